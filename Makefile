@@ -1,0 +1,30 @@
+# `make demo`, `make test`, `make bench`: each creates or reuses .venv and installs
+# exactly the pins in requirements.txt first.
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+export PYTHONDONTWRITEBYTECODE := 1
+
+.PHONY: install demo test bench clean
+
+install: $(STAMP)
+
+$(STAMP): requirements.txt setup.py setup.cfg package.xml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --disable-pip-version-check -r requirements.txt
+	$(PY) -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e .
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(PY) -m multi_instance_reg.tools.demo
+
+test: $(STAMP)
+	$(PY) -m pytest -q test
+
+bench: $(STAMP)
+	$(VENV)/bin/mireg bench core
+	$(VENV)/bin/mireg bench table1 --samples-per-band 20
+
+clean:
+	rm -rf $(VENV) out

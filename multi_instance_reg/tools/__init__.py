@@ -1,0 +1,1 @@
+"""Command-line tools (``mireg``). They sit beside the library and never inside it."""

@@ -1,0 +1,56 @@
+"""``mireg``: one entry point, one module per sub-command.
+
+Each sub-command module defines ``HELP`` (one line), ``add_arguments(parser)`` and
+``run(args) -> int``. Modules are imported only when their command runs, so
+``mireg register`` does not pay for OpenCV or rclpy.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from ..errors import InputError
+
+# name -> (module, one-line help)
+COMMANDS = {
+    "register": ("multi_instance_reg.tools.register", "multi-instance registration of a correspondence set (npz in, npz out)"),
+    "bench": ("multi_instance_reg.tools.bench", "benchmarks that print figures: table1, core, ..."),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="mireg", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name, (module_name, help_text) in COMMANDS.items():
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        p.set_defaults(_module=module_name)
+        # Arguments are added lazily below, only for the command actually used.
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    parser = build_parser()
+    # Find the command first, then import only its module to add its arguments.
+    name = next((a for a in argv if not a.startswith("-")), None)
+    if name in COMMANDS:
+        module = importlib.import_module(COMMANDS[name][0])
+        module.add_arguments(parser._subparsers._group_actions[0].choices[name])
+    args = parser.parse_args(argv)
+    module = importlib.import_module(args._module)
+    try:
+        return int(module.run(args) or 0)
+    except InputError as exc:
+        print(f"mireg {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except (OSError, EOFError) as exc:
+        print(f"mireg {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"mireg {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
