@@ -21,7 +21,6 @@ setup(
     maintainer="multi_instance_reg developers",
     description="Multi-instance 6-DoF registration of a known object in RGB-D with ECC.",
     license="Apache-2.0",
-    tests_require=["pytest"],
     entry_points={
         "console_scripts": [
             "mireg = multi_instance_reg.tools.cli:main",
