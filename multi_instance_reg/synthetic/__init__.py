@@ -1,0 +1,1 @@
+"""Data the project makes itself: correspondence sets and rendered D455 tabletop scenes."""
