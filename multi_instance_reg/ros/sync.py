@@ -1,0 +1,143 @@
+"""Approximate-time synchronisation of several streams on their header stamps.
+
+message_filters is not available as a wheel, so this is the project's own, small and
+pure Python (no ROS import): messages go in with a stream index and a stamp in
+nanoseconds; a tuple with one message per stream comes out when the stamps all lie
+within ``slop_ns`` of each other. Matching is greedy and immediate (a set is emitted as
+soon as the last of its members arrives), which adds no latency for a camera whose colour
+and aligned depth carry the same stamp.
+"""
+from __future__ import annotations
+
+import threading
+from collections import deque
+from dataclasses import dataclass
+from typing import Any
+
+
+def stamp_to_ns(stamp) -> int:
+    """builtin_interfaces/Time (rclpy or rosbags) -> integer nanoseconds."""
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+@dataclass
+class SyncCounters:
+    matched: int = 0        # sets emitted
+    unmatched: int = 0      # messages dropped without a partner (evicted or superseded)
+    stale: int = 0          # messages older than the last emitted set (arrived too late)
+
+
+class ApproximateTimeSync:
+    """Pair (or n-tuple) messages from ``n_streams`` streams whose stamps differ by at most
+    ``slop_ns``.
+
+    ``add(stream, stamp_ns, msg)`` returns the matched tuple (ordered by stream) or None.
+    Each stream keeps at most ``queue_size`` unmatched messages; once a set is emitted,
+    everything at or before its stamps is discarded, so a set never repeats a message and
+    time never goes backwards. Thread-safe.
+    """
+
+    def __init__(self, n_streams: int, slop_ns: int, queue_size: int = 10):
+        if n_streams < 2:
+            raise ValueError("synchronising needs at least two streams")
+        if queue_size < 1:
+            raise ValueError("queue_size must be at least 1")
+        self.n_streams = n_streams
+        self.slop_ns = int(slop_ns)
+        self.queue_size = queue_size
+        self._queues: list[deque] = [deque() for _ in range(n_streams)]
+        self._last_emitted: list[int | None] = [None] * n_streams
+        self._lock = threading.Lock()
+        self.counters = SyncCounters()
+
+    def set_slop(self, slop_ns: int) -> None:
+        with self._lock:
+            self.slop_ns = int(slop_ns)
+
+    def add(self, stream: int, stamp_ns: int, msg: Any) -> tuple | None:
+        with self._lock:
+            last = self._last_emitted[stream]
+            if last is not None and stamp_ns <= last:
+                self.counters.stale += 1
+                return None
+            queue = self._queues[stream]
+            queue.append((stamp_ns, msg))
+            if len(queue) > self.queue_size:
+                queue.popleft()
+                self.counters.unmatched += 1
+            match = self._match(stream, stamp_ns)
+            if match is None:
+                return None
+            self._emit(match)
+            return tuple(msg for _, msg in match)
+
+    def _match(self, stream: int, stamp_ns: int):
+        """The set built around the newest arrival: the closest-stamped message of every
+        other stream, if all lie within the slop of each other."""
+        chosen = []
+        for s, queue in enumerate(self._queues):
+            if s == stream:
+                chosen.append(queue[-1])
+                continue
+            if not queue:
+                return None
+            chosen.append(min(queue, key=lambda item: abs(item[0] - stamp_ns)))
+        stamps = [stamp for stamp, _ in chosen]
+        if max(stamps) - min(stamps) > self.slop_ns:
+            return None
+        return chosen
+
+    def _emit(self, match) -> None:
+        self.counters.matched += 1
+        for s, (stamp, _) in enumerate(match):
+            queue = self._queues[s]
+            while queue and queue[0][0] <= stamp:
+                item = queue.popleft()
+                if item[0] != stamp:
+                    self.counters.unmatched += 1
+            self._last_emitted[s] = stamp
+
+
+class LatestSlot:
+    """A one-item mailbox: ``put`` replaces whatever is waiting, ``take`` blocks for the next.
+
+    This is what keeps latency from queueing up: when frames arrive faster than they are
+    processed, the worker always gets the newest one and the replaced ones are counted.
+    """
+
+    def __init__(self):
+        self._cond = threading.Condition()
+        self._item = None
+        self._has_item = False
+        self._closed = False
+        self.replaced = 0
+
+    def put(self, item) -> bool:
+        """Store ``item``; True if it replaced one that was never taken."""
+        with self._cond:
+            replaced = self._has_item
+            if replaced:
+                self.replaced += 1
+            self._item, self._has_item = item, True
+            self._cond.notify()
+            return replaced
+
+    def take(self, timeout: float | None = None):
+        """The waiting item (and empties the slot), or None on timeout or close."""
+        with self._cond:
+            if not self._has_item and not self._closed:
+                self._cond.wait(timeout)
+            if not self._has_item:
+                return None
+            item, self._item, self._has_item = self._item, None, False
+            return item
+
+    def close(self) -> None:
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+

@@ -1,0 +1,107 @@
+"""The node's approximate-time synchroniser and latest-frame mailbox (pure Python, no ROS)."""
+import threading
+import time
+from types import SimpleNamespace
+
+import pytest
+
+from multi_instance_reg.ros.sync import ApproximateTimeSync, LatestSlot, stamp_to_ns
+
+MS = 1_000_000
+
+
+def test_stamp_to_ns():
+    assert stamp_to_ns(SimpleNamespace(sec=3, nanosec=5)) == 3_000_000_005
+
+
+def test_identical_stamps_pair_immediately_in_either_order():
+    sync = ApproximateTimeSync(2, slop_ns=10 * MS)
+    assert sync.add(0, 100 * MS, "c0") is None
+    assert sync.add(1, 100 * MS, "d0") == ("c0", "d0")
+    assert sync.add(1, 133 * MS, "d1") is None
+    assert sync.add(0, 133 * MS, "c1") == ("c1", "d1")
+    assert sync.counters.matched == 2 and sync.counters.unmatched == 0
+
+
+def test_pairs_within_slop_and_not_beyond():
+    sync = ApproximateTimeSync(2, slop_ns=5 * MS)
+    sync.add(0, 100 * MS, "c0")
+    assert sync.add(1, 106 * MS, "d0") is None          # 6 ms apart > 5 ms slop
+    assert sync.add(0, 133 * MS, "c1") is None
+    assert sync.add(1, 130 * MS, "d1") == ("c1", "d1")  # 3 ms apart
+    # c0 and d0 were never matched and are gone now: both count as unmatched.
+    assert sync.counters.unmatched == 2
+
+
+def test_closest_partner_wins_and_older_ones_are_dropped():
+    sync = ApproximateTimeSync(2, slop_ns=20 * MS)
+    for k in range(3):
+        sync.add(1, (100 + 33 * k) * MS, f"d{k}")
+    assert sync.add(0, 167 * MS, "c") == ("c", "d2")
+    assert sync.counters.unmatched == 2
+
+
+def test_late_message_is_stale_not_matched():
+    sync = ApproximateTimeSync(2, slop_ns=5 * MS)
+    sync.add(0, 200 * MS, "c1")
+    assert sync.add(1, 200 * MS, "d1") == ("c1", "d1")
+    assert sync.add(0, 100 * MS, "c0") is None
+    assert sync.add(1, 100 * MS, "d0") is None
+    assert sync.counters.stale == 2
+
+
+def test_queue_is_bounded():
+    sync = ApproximateTimeSync(2, slop_ns=1 * MS, queue_size=3)
+    for k in range(10):
+        sync.add(0, k * 100 * MS, k)
+    assert len(sync._queues[0]) == 3
+    assert sync.counters.unmatched == 7
+    assert sync.add(1, 900 * MS, "d") == (9, "d")
+
+
+def test_three_streams():
+    sync = ApproximateTimeSync(3, slop_ns=10 * MS)
+    assert sync.add(0, 100 * MS, "a") is None
+    assert sync.add(2, 104 * MS, "c") is None
+    assert sync.add(1, 95 * MS, "b") == ("a", "b", "c")
+
+
+def test_slop_change_applies_to_next_add():
+    sync = ApproximateTimeSync(2, slop_ns=1 * MS)
+    sync.add(0, 100 * MS, "c")
+    assert sync.add(1, 110 * MS, "d") is None
+    sync.set_slop(20 * MS)
+    assert sync.add(0, 120 * MS, "c2") == ("c2", "d")
+
+
+def test_rejects_bad_construction():
+    with pytest.raises(ValueError):
+        ApproximateTimeSync(1, slop_ns=0)
+    with pytest.raises(ValueError):
+        ApproximateTimeSync(2, slop_ns=0, queue_size=0)
+
+
+def test_latest_slot_keeps_only_the_newest_and_counts_replaced():
+    slot = LatestSlot()
+    assert slot.put(1) is False
+    assert slot.put(2) is True
+    assert slot.put(3) is True
+    assert slot.take(timeout=0) == 3
+    assert slot.take(timeout=0) is None
+    assert slot.replaced == 2
+
+
+def test_latest_slot_wakes_a_waiting_worker_and_close_releases_it():
+    slot = LatestSlot()
+    got = []
+    worker = threading.Thread(target=lambda: got.append(slot.take(timeout=5)))
+    worker.start()
+    time.sleep(0.05)
+    slot.put("frame")
+    worker.join(2)
+    assert got == ["frame"]
+    worker = threading.Thread(target=lambda: got.append(slot.take(timeout=5)))
+    worker.start()
+    slot.close()
+    worker.join(2)
+    assert not worker.is_alive() and got == ["frame", None]
