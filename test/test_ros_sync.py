@@ -41,13 +41,13 @@ def test_closest_partner_wins_and_older_ones_are_dropped():
     assert sync.counters.unmatched == 2
 
 
-def test_late_message_is_stale_not_matched():
+def test_duplicate_stamp_is_stale_not_matched_again():
     sync = ApproximateTimeSync(2, slop_ns=5 * MS)
     sync.add(0, 200 * MS, "c1")
     assert sync.add(1, 200 * MS, "d1") == ("c1", "d1")
-    assert sync.add(0, 100 * MS, "c0") is None
-    assert sync.add(1, 100 * MS, "d0") is None
-    assert sync.counters.stale == 2
+    assert sync.add(0, 200 * MS, "c1 again") is None
+    assert sync.add(1, 200 * MS, "d1 again") is None
+    assert sync.counters.stale == 2 and sync.counters.matched == 1
 
 
 def test_queue_is_bounded():
@@ -105,3 +105,13 @@ def test_latest_slot_wakes_a_waiting_worker_and_close_releases_it():
     slot.close()
     worker.join(2)
     assert not worker.is_alive() and got == ["frame", None]
+
+
+def test_time_jumping_back_starts_afresh():
+    """A looping bag repeats its stamps: pairs must keep coming, not be dropped as stale."""
+    sync = ApproximateTimeSync(2, slop_ns=5 * MS)
+    for lap in range(2):
+        for k in range(3):
+            sync.add(0, (5000 + 33 * k) * MS, (lap, k))
+            assert sync.add(1, (5000 + 33 * k) * MS, "d") == ((lap, k), "d")
+    assert sync.counters.resets == 1 and sync.counters.stale == 0

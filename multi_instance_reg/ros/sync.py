@@ -24,7 +24,8 @@ def stamp_to_ns(stamp) -> int:
 class SyncCounters:
     matched: int = 0        # sets emitted
     unmatched: int = 0      # messages dropped without a partner (evicted or superseded)
-    stale: int = 0          # messages older than the last emitted set (arrived too late)
+    stale: int = 0          # duplicates of an emitted stamp
+    resets: int = 0         # time jumped back (a looping bag, a restarted camera)
 
 
 class ApproximateTimeSync:
@@ -34,7 +35,11 @@ class ApproximateTimeSync:
     ``add(stream, stamp_ns, msg)`` returns the matched tuple (ordered by stream) or None.
     Each stream keeps at most ``queue_size`` unmatched messages; once a set is emitted,
     everything at or before its stamps is discarded, so a set never repeats a message and
-    time never goes backwards. Thread-safe.
+    time never goes backwards. Each stream arrives in order (DDS keeps a writer's order),
+    so a stamp older than that stream's last emitted one means time jumped back (a bag
+    starting again, a camera restarted): matching starts afresh rather than discarding
+    everything from then on. A repeated stamp is a duplicate and counts as stale.
+    Thread-safe.
     """
 
     def __init__(self, n_streams: int, slop_ns: int, queue_size: int = 10):
@@ -57,7 +62,13 @@ class ApproximateTimeSync:
     def add(self, stream: int, stamp_ns: int, msg: Any) -> tuple | None:
         with self._lock:
             last = self._last_emitted[stream]
-            if last is not None and stamp_ns <= last:
+            if last is not None and stamp_ns < last:
+                self.counters.resets += 1
+                self.counters.unmatched += sum(len(q) for q in self._queues)
+                for queue in self._queues:
+                    queue.clear()
+                self._last_emitted = [None] * self.n_streams
+            elif last is not None and stamp_ns == last:
                 self.counters.stale += 1
                 return None
             queue = self._queues[stream]

@@ -16,6 +16,8 @@ from ..errors import InputError
 COMMANDS = {
     "register": ("multi_instance_reg.tools.register", "multi-instance registration of a correspondence set (npz in, npz out)"),
     "bench": ("multi_instance_reg.tools.bench", "benchmarks that print figures: table1, core, ..."),
+    "play": ("multi_instance_reg.tools.play", "publish a bag into the ROS graph with its original timing"),
+    "listen": ("multi_instance_reg.tools.listen", "print the node's instances per frame; MHF1 against a bag's ground truth"),
 }
 
 

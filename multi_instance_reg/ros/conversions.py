@@ -1,0 +1,108 @@
+"""Instances -> the node's output messages: PoseArray, MarkerArray and the JSON details.
+
+Instances are duck-typed: anything with ``id``, ``T`` (4x4, model frame -> camera optical
+frame, metres), ``inliers`` (a count or a list of indices) and ``score``.
+"""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+from geometry_msgs.msg import Pose, PoseArray
+from std_msgs.msg import String
+from visualization_msgs.msg import Marker, MarkerArray
+
+from ..transforms import matrix_to_pose
+
+BOX_NS = "instances"
+LABEL_NS = "instance_ids"
+
+# Distinct colours (RGB, 0-255) for instance ids; the debug image uses the same ones.
+_PALETTE = np.array([
+    (230, 25, 75), (60, 180, 75), (255, 225, 25), (0, 130, 200), (245, 130, 48),
+    (145, 30, 180), (70, 240, 240), (240, 50, 230), (210, 245, 60), (250, 190, 212),
+    (0, 128, 128), (220, 190, 255), (170, 110, 40), (255, 250, 200), (128, 0, 0),
+    (170, 255, 195), (128, 128, 0), (255, 215, 180), (0, 0, 128), (128, 128, 128),
+], dtype=np.uint8)
+
+
+def instance_colour(instance_id: int) -> tuple[int, int, int]:
+    """RGB 0-255 for an instance id (-1, an outlier, is grey)."""
+    if instance_id < 0:
+        return (160, 160, 160)
+    return tuple(int(c) for c in _PALETTE[int(instance_id) % len(_PALETTE)])
+
+
+def inlier_count(instance) -> int:
+    inliers = instance.inliers
+    return int(inliers) if np.isscalar(inliers) else len(inliers)
+
+
+def matrix_to_pose_msg(T: np.ndarray) -> Pose:
+    xyz, quat = matrix_to_pose(np.asarray(T, dtype=np.float64))
+    pose = Pose()
+    pose.position.x, pose.position.y, pose.position.z = (float(v) for v in xyz)
+    (pose.orientation.x, pose.orientation.y,
+     pose.orientation.z, pose.orientation.w) = (float(v) for v in quat)
+    return pose
+
+
+def pose_array(instances, header) -> PoseArray:
+    """Pose k = the model frame of instance k in the camera optical frame (REP-103, metres)."""
+    msg = PoseArray()
+    msg.header = header
+    msg.poses = [matrix_to_pose_msg(inst.T) for inst in instances]
+    return msg
+
+
+def marker_array(instances, header, box_centre, box_size, previous_ids=()) -> tuple[MarkerArray, set]:
+    """An oriented box (the model's extent) and an id label per instance, plus DELETE
+    markers for ids published last time and gone now. Returns (markers, ids now shown)."""
+    centre = np.asarray(box_centre, dtype=np.float64).reshape(3)
+    size = np.asarray(box_size, dtype=np.float64).reshape(3)
+    out = MarkerArray()
+    shown = set()
+    for inst in instances:
+        T = np.asarray(inst.T, dtype=np.float64)
+        box_T = T.copy()
+        box_T[:3, 3] = T[:3, :3] @ centre + T[:3, 3]
+        r, g, b = (c / 255.0 for c in instance_colour(inst.id))
+        box = Marker()
+        box.header = header
+        box.ns, box.id = BOX_NS, int(inst.id)
+        box.type, box.action = Marker.CUBE, Marker.ADD
+        box.pose = matrix_to_pose_msg(box_T)
+        box.scale.x, box.scale.y, box.scale.z = (float(max(v, 1e-3)) for v in size)
+        box.color.r, box.color.g, box.color.b, box.color.a = r, g, b, 0.5
+        label = Marker()
+        label.header = header
+        label.ns, label.id = LABEL_NS, int(inst.id)
+        label.type, label.action = Marker.TEXT_VIEW_FACING, Marker.ADD
+        # Above the box: "up" in the optical frame is -y.
+        label.pose.position.x, label.pose.position.y, label.pose.position.z = (
+            float(box_T[0, 3]), float(box_T[1, 3] - 0.6 * size.max() - 0.01), float(box_T[2, 3]))
+        label.pose.orientation.w = 1.0
+        label.scale.z = 0.03
+        label.color.r, label.color.g, label.color.b, label.color.a = 1.0, 1.0, 1.0, 1.0
+        label.text = f"{inst.id} ({inlier_count(inst)})"
+        out.markers.extend([box, label])
+        shown.add(int(inst.id))
+    for gone in sorted(set(previous_ids) - shown):
+        for ns in (BOX_NS, LABEL_NS):
+            delete = Marker()
+            delete.header = header
+            delete.ns, delete.id, delete.action = ns, gone, Marker.DELETE
+            out.markers.append(delete)
+    return out, shown
+
+
+def details_message(stamp_ns: int, frame_id: str, latency_ms: float, instances, **extra) -> String:
+    """std_msgs/String with JSON (no custom messages in a pure-Python package):
+    {"stamp_ns", "frame_id", "latency_ms", "instances": [{"id", "inliers", "score"}], ...extra}."""
+    payload = {
+        "stamp_ns": int(stamp_ns), "frame_id": frame_id, "latency_ms": round(float(latency_ms), 3),
+        "instances": [{"id": int(i.id), "inliers": inlier_count(i), "score": round(float(i.score), 4)}
+                      for i in instances],
+    }
+    payload.update(extra)
+    return String(data=json.dumps(payload))

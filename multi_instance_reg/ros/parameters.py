@@ -1,0 +1,88 @@
+"""ROS parameters from the project's declarative settings (``multi_instance_reg.params``).
+
+One ROS parameter per ParamSpec, with its description and range in the descriptor, so
+``ros2 param describe`` shows them and out-of-range sets are refused with a reason. The
+node's own settings are declared the same way (``NodeSettings``); the pipeline's come from
+``param_specs(PipelineConfig())`` under their dotted names (``ecc.inlier_thresh``).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
+                                ParameterType)
+
+from ..errors import InputError
+from ..params import ParamSpec, param, param_specs
+
+_ROS_TYPES = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
+              float: ParameterType.PARAMETER_DOUBLE, str: ParameterType.PARAMETER_STRING}
+
+
+@dataclass(frozen=True)
+class NodeSettings:
+    """Settings of the ROS wrapper itself (the algorithm's live in PipelineConfig)."""
+    model_path: str = param("", "object model file built by `mireg model` (read-only: fixed at start-up)")
+    sync_slop_s: float = param(0.02, "largest stamp difference between a colour and a depth image that still pair up (s)", 0.0, 1.0)
+    qos_reliability: str = param("reliable", "subscription reliability (read-only); best_effort loses large frames over Fast DDS",
+                                 choices=("reliable", "best_effort"))
+    qos_depth: int = param(10, "subscription and publisher queue depth (read-only)", 1, 1000)
+    depth_scale: float = param(0.001, "metres per unit of a 16UC1 depth image (realsense-ros: 0.001, millimetres)", 1e-6, 1.0)
+    publish_debug_image: bool = param(False, "draw and publish the debug image on every frame even with no subscriber "
+                                             "(it is drawn whenever someone subscribes)")
+    stats_log_period_s: float = param(5.0, "how often frame counts and latency are logged and published on ~/stats (s)", 0.1, 3600.0)
+
+
+# Fixed for the node's lifetime: they shape subscriptions or the loaded model.
+READ_ONLY = frozenset({"model_path", "qos_reliability", "qos_depth"})
+
+
+def descriptor(spec: ParamSpec, read_only: bool = False) -> ParameterDescriptor:
+    description = spec.description
+    if spec.choices:
+        description += f" (one of: {', '.join(map(str, spec.choices))})"
+    desc = ParameterDescriptor(name=spec.name, type=_ROS_TYPES[spec.type],
+                               description=description, read_only=read_only)
+    if spec.choices:
+        desc.additional_constraints = "one of: " + ", ".join(map(str, spec.choices))
+    if spec.low is not None and spec.high is not None:
+        if spec.type is int:
+            desc.integer_range = [IntegerRange(from_value=int(spec.low), to_value=int(spec.high), step=1)]
+        elif spec.type is float:
+            desc.floating_point_range = [FloatingPointRange(
+                from_value=float(spec.low), to_value=float(spec.high), step=0.0)]
+    return desc
+
+
+def declare(node, specs, read_only=frozenset()) -> dict:
+    """Declare one parameter per spec (the value from a params file or ``-p`` wins over the
+    default) and return {name: value}, each checked against its spec (InputError if not)."""
+    values = {}
+    for spec in specs:
+        try:
+            p = node.declare_parameter(spec.name, spec.default, descriptor(spec, spec.name in read_only))
+        except Exception as exc:  # rclpy refuses a value of the wrong type or out of range
+            raise InputError(f"parameter {spec.name}: {exc}") from None
+        values[spec.name] = spec.check(p.value)
+    return values
+
+
+def check_parameters(specs: dict[str, ParamSpec], params) -> str | None:
+    """None if every rclpy Parameter in ``params`` is acceptable, else the reason why not."""
+    for p in params:
+        spec = specs.get(p.name)
+        if spec is None:
+            return f"unknown parameter {p.name}"
+        try:
+            spec.check(p.value)
+        except InputError as exc:
+            return str(exc)
+    return None
+
+
+def node_settings(values: dict) -> NodeSettings:
+    return NodeSettings(**{k: v for k, v in values.items() if k in NodeSettings.__dataclass_fields__})
+
+
+def node_specs() -> list[ParamSpec]:
+    return list(param_specs(NodeSettings()))

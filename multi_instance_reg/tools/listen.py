@@ -1,0 +1,225 @@
+"""``mireg listen``: print what the node publishes, frame by frame; score it against a bag.
+
+Subscribes to ``/instances/poses`` and ``/instances/details`` (joined on the header stamp),
+prints one line per frame, and at the end a summary: frames, mean node latency, frames
+dropped by the node and, with ``--ground-truth BAG``, MHR / MHP / MHF1 against the bag's
+``/ground_truth/poses`` (same stamps: ``mireg play`` rewrites nothing). ``--save-overlays
+DIR`` also subscribes to the node's debug image and writes it as PNG.
+"""
+from __future__ import annotations
+
+import json
+import signal
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+
+HELP = "print the node's instances per frame; MHF1 against a bag's ground truth"
+GT_TOPIC = "/ground_truth/poses"
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("--ground-truth", type=Path, metavar="BAG",
+                        help="bag with /ground_truth/poses to score the poses against (MHF1)")
+    parser.add_argument("--frames", type=int, default=0, metavar="N", help="stop after N frames (0 = no limit)")
+    parser.add_argument("--idle-timeout", type=float, default=0.0, metavar="S",
+                        help="stop when nothing arrived for S seconds after the first frame (0 = never)")
+    parser.add_argument("--timeout", type=float, default=0.0, metavar="S",
+                        help="stop after S seconds in all (0 = never)")
+    parser.add_argument("--save-overlays", type=Path, metavar="DIR",
+                        help="write the node's debug images there (every --overlay-every-th)")
+    parser.add_argument("--overlay-every", type=int, default=5, metavar="K")
+    parser.add_argument("--summary", type=Path, metavar="JSON", help="also write the summary to this file")
+    parser.add_argument("--rotation-deg", type=float, default=None, metavar="DEG",
+                        help="hit threshold on rotation error (default: the metrics module's RGB-D one)")
+    parser.add_argument("--translation-m", type=float, default=None, metavar="M",
+                        help="hit threshold on translation error (default: the metrics module's RGB-D one)")
+    parser.add_argument("--quiet", action="store_true", help="only the summary")
+
+
+def read_ground_truth(path: Path) -> dict[int, np.ndarray]:
+    """stamp_ns -> (K, 4, 4) ground-truth poses (object frame in the camera optical frame)."""
+    from ..transforms import pose_to_matrix
+    from .play import open_bag
+
+    reader = open_bag(path)
+    try:
+        connections = [c for c in reader.connections if c.topic == GT_TOPIC]
+        if not connections:
+            raise InputError(f"bag {path} has no {GT_TOPIC} topic to score against")
+        truth = {}
+        for connection, _, raw in reader.messages(connections=connections):
+            msg = reader.deserialize(raw, connection.msgtype)
+            stamp = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
+            truth[stamp] = np.array([
+                pose_to_matrix((p.position.x, p.position.y, p.position.z),
+                               (p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w))
+                for p in msg.poses]).reshape(-1, 4, 4)
+        return truth
+    finally:
+        reader.close()
+
+
+def pose_array_to_matrices(msg) -> np.ndarray:
+    from ..transforms import pose_to_matrix
+
+    return np.array([pose_to_matrix((p.position.x, p.position.y, p.position.z),
+                                    (p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w))
+                     for p in msg.poses]).reshape(-1, 4, 4)
+
+
+class Listener:
+    """Joins poses and details by stamp; keeps what the summary needs."""
+
+    def __init__(self, truth=None, quiet=False, overlay_dir=None, overlay_every=5):
+        self.truth = truth
+        self.quiet = quiet
+        self.overlay_dir = overlay_dir
+        self.overlay_every = max(1, overlay_every)
+        self.poses: dict[int, np.ndarray] = {}
+        self.details: dict[int, dict] = {}
+        self.frames: list[dict] = []   # joined frames in arrival order
+        self.last_counters: dict = {}
+        self.last_stats: dict = {}
+        self.last_arrival = None
+        self.overlays_seen = 0
+        self.overlays_written: list[str] = []
+
+    def on_poses(self, msg) -> None:
+        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        self.poses[stamp] = pose_array_to_matrices(msg)
+        self._join(stamp)
+
+    def on_details(self, msg) -> None:
+        data = json.loads(msg.data)
+        self.details[data["stamp_ns"]] = data
+        self.last_counters = data.get("counters", self.last_counters)
+        self._join(data["stamp_ns"])
+
+    def on_stats(self, msg) -> None:
+        self.last_stats = json.loads(msg.data)
+
+    def on_overlay(self, msg) -> None:
+        from ..messages import colour_to_rgb
+
+        self.overlays_seen += 1
+        if (self.overlays_seen - 1) % self.overlay_every:
+            return
+        import cv2
+
+        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        path = self.overlay_dir / f"overlay_{stamp}.png"
+        cv2.imwrite(str(path), colour_to_rgb(msg)[:, :, ::-1])
+        self.overlays_written.append(str(path))
+
+    def _join(self, stamp: int) -> None:
+        if stamp not in self.poses or stamp not in self.details:
+            return
+        self.last_arrival = time.monotonic()
+        poses, details = self.poses.pop(stamp), self.details.pop(stamp)
+        frame = {"stamp_ns": stamp, "poses": poses, "details": details}
+        self.frames.append(frame)
+        if not self.quiet:
+            insts = ", ".join(
+                f"#{i['id']} ({i['inliers']} inl, {i['score']:.2f}) at "
+                f"[{T[0, 3]:+.3f} {T[1, 3]:+.3f} {T[2, 3]:+.3f}]"
+                for i, T in zip(details["instances"], poses))
+            gt = ""
+            if self.truth is not None and stamp in self.truth:
+                gt = f" (truth: {len(self.truth[stamp])})"
+            print(f"{stamp / 1e9:.3f} s: {len(poses)} instance(s){gt}, "
+                  f"{details['latency_ms']:.0f} ms{': ' + insts if insts else ''}", flush=True)
+
+    def summary(self, rotation_deg=None, translation_m=None) -> dict:
+        latencies = [f["details"]["latency_ms"] for f in self.frames]
+        counters = self.last_stats or self.last_counters
+        out = {
+            "frames": len(self.frames),
+            "latency_ms_mean": round(float(np.mean(latencies)), 1) if latencies else None,
+            "latency_ms_p50": round(float(np.median(latencies)), 1) if latencies else None,
+            "frames_dropped": counters.get("dropped"),
+            "frames_bad": counters.get("bad"),
+            "node_counters": counters,
+            "overlays": self.overlays_written,
+        }
+        if self.truth is not None:
+            scored = [(f["poses"], self.truth[f["stamp_ns"]]) for f in self.frames if f["stamp_ns"] in self.truth]
+            out.update(score_frames(scored, rotation_deg, translation_m))
+        return out
+
+
+def score_frames(pairs, rotation_deg=None, translation_m=None) -> dict:
+    """MHR / MHP / MHF1 (means over frames) of (estimated, ground-truth) pose stacks."""
+    from .. import metrics
+
+    kwargs = {}
+    if rotation_deg is not None:
+        kwargs["rotation_deg"] = rotation_deg
+    if translation_m is not None:
+        kwargs["translation_m"] = translation_m
+    if not pairs:
+        return {"frames_scored": 0, "MHR": None, "MHP": None, "MHF1": None}
+    scores = metrics.score_scenes([est for est, _ in pairs], [gt for _, gt in pairs], **kwargs)
+    return {"frames_scored": len(pairs), "MHR": round(scores.mhr, 2), "MHP": round(scores.mhp, 2),
+            "MHF1": round(scores.mhf1, 2)}
+
+
+def format_summary(summary: dict) -> str:
+    lines = [f"frames received: {summary['frames']}",
+             f"mean node latency: {summary['latency_ms_mean']} ms (p50 {summary['latency_ms_p50']} ms)",
+             f"frames dropped by the node: {summary['frames_dropped']}"]
+    if "MHF1" in summary:
+        lines.insert(0, f"MHF1 {summary['MHF1']} % (MHR {summary['MHR']} %, MHP {summary['MHP']} %) "
+                        f"over {summary['frames_scored']} frames with ground truth")
+    return "\n".join(lines)
+
+
+def run(args) -> int:
+    truth = read_ground_truth(args.ground_truth) if args.ground_truth else None
+    if args.save_overlays:
+        args.save_overlays.mkdir(parents=True, exist_ok=True)
+
+    import rclpy
+    from geometry_msgs.msg import PoseArray
+    from rclpy.executors import ExternalShutdownException
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import Image
+    from std_msgs.msg import String
+
+    listener = Listener(truth, args.quiet, args.save_overlays, args.overlay_every)
+    rclpy.init()
+    node = rclpy.create_node("mireg_listen")
+    qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50, reliability=ReliabilityPolicy.RELIABLE)
+    node.create_subscription(PoseArray, "/instances/poses", listener.on_poses, qos)
+    node.create_subscription(String, "/instances/details", listener.on_details, qos)
+    node.create_subscription(String, "/instance_registration/stats", listener.on_stats, qos)
+    if args.save_overlays:
+        node.create_subscription(Image, "/instances/debug_image", listener.on_overlay, qos)
+    start = time.monotonic()
+    # SIGTERM (from a script that started us) ends the loop like Ctrl-C: print the summary.
+    signal.signal(signal.SIGTERM, lambda *_: rclpy.try_shutdown())
+    try:
+        while rclpy.ok():
+            rclpy.spin_once(node, timeout_sec=0.1)
+            now = time.monotonic()
+            if args.frames and len(listener.frames) >= args.frames:
+                break
+            if args.timeout and now - start > args.timeout:
+                break
+            if args.idle_timeout and listener.last_arrival and now - listener.last_arrival > args.idle_timeout:
+                break
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    summary = listener.summary(args.rotation_deg, args.translation_m)
+    print(format_summary(summary), flush=True)
+    if args.summary:
+        args.summary.parent.mkdir(parents=True, exist_ok=True)
+        args.summary.write_text(json.dumps(summary, indent=2) + "\n")
+    return 0
