@@ -1,0 +1,55 @@
+"""SIFT keypoints and descriptors of a colour image (OpenCV)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+
+@dataclass(frozen=True)
+class SiftSettings:
+    nfeatures: int = 0                 # 0 = keep all
+    contrast_threshold: float = 0.02   # OpenCV default 0.04
+    edge_threshold: float = 10.0
+    upsample: float = 1.0              # > 1: detect on an enlarged image (more keypoints on small objects)
+
+
+_DETECTORS: dict[SiftSettings, cv2.SIFT] = {}
+
+
+def _detector(settings: SiftSettings):
+    det = _DETECTORS.get(settings)
+    if det is None:
+        det = cv2.SIFT_create(nfeatures=settings.nfeatures, contrastThreshold=settings.contrast_threshold,
+                              edgeThreshold=settings.edge_threshold)
+        _DETECTORS[settings] = det
+    return det
+
+
+def to_gray(rgb: np.ndarray) -> np.ndarray:
+    return rgb if rgb.ndim == 2 else cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+
+
+def extract_sift(rgb: np.ndarray, settings: SiftSettings = SiftSettings(),
+                 mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """SIFT on an (H, W, 3) RGB or (H, W) grey uint8 image.
+
+    Returns (uv (K, 2) float32 pixel coordinates in the input image, descriptors (K, 128) float32).
+    ``mask`` (H, W) bool/uint8 restricts detection to nonzero pixels.
+    """
+    gray = to_gray(rgb)
+    s = float(settings.upsample)
+    if s > 1.0:
+        gray = cv2.resize(gray, None, fx=s, fy=s, interpolation=cv2.INTER_LINEAR)
+        if mask is not None:
+            mask = cv2.resize(mask.astype(np.uint8), None, fx=s, fy=s, interpolation=cv2.INTER_NEAREST)
+    m = None if mask is None else (mask > 0).astype(np.uint8)
+    kps, desc = _detector(settings).detectAndCompute(gray, m)
+    if desc is None or not kps:
+        return np.zeros((0, 2), np.float32), np.zeros((0, 128), np.float32)
+    uv = np.array([k.pt for k in kps], dtype=np.float32)
+    if s > 1.0:
+        # Pixel centres: x_small = (x_big + 0.5) / s - 0.5 for cv2.resize's half-pixel convention.
+        uv = (uv + 0.5) / s - 0.5
+    return uv, desc.astype(np.float32, copy=False)

@@ -1,0 +1,329 @@
+"""The stored object model ("the scan of the object"): SIFT keypoints lifted to 3D in a model
+frame centred on the object, plus a dense cloud for markers.
+
+File format (npz, read with allow_pickle=False):
+  schema_version   ()      int      MODEL_SCHEMA_VERSION
+  keypoints_xyz    (S, 3)  float32  keypoint positions, model frame, metres
+  descriptors      (S, 128) float32 SIFT descriptors (plain, not RootSIFT)
+  points_xyz       (P, 3)  float32  dense object cloud, model frame (for markers)
+  extent           (3,)    float64  size of the object's box along the model axes
+  T_capture_model  (4, 4)  float64  model frame in the optical frame of the first capture frame
+  T_object_model   (4, 4)  float64  optional: model frame in the object's ground-truth frame
+  name             ()      str      optional: the object's name
+
+The model frame: origin at the centre of the object's bounding box; z along the table normal
+(up, towards the camera) when a table plane was found, else the capture camera's axes.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ..errors import InputError
+from ..messages import CameraIntrinsics
+from ..transforms import apply_transform, invert_transform, make_transform
+from .features import SiftSettings, extract_sift
+from .lifting import backproject, depth_to_cloud, lookup_depth, undistort_pixels
+
+MODEL_SCHEMA_VERSION = 1
+_REQUIRED = ("schema_version", "keypoints_xyz", "descriptors", "points_xyz", "extent", "T_capture_model")
+
+
+@dataclass
+class ObjectModel:
+    keypoints_xyz: np.ndarray            # (S, 3) float32, model frame
+    descriptors: np.ndarray              # (S, 128) float32
+    points_xyz: np.ndarray               # (P, 3) float32, model frame
+    extent: np.ndarray                   # (3,) float64
+    T_capture_model: np.ndarray          # (4, 4) float64
+    T_object_model: np.ndarray | None = None
+    name: str = ""
+
+    @property
+    def num_keypoints(self) -> int:
+        return len(self.keypoints_xyz)
+
+    def box_corners(self) -> np.ndarray:
+        """(8, 3) corners of the object's box in the model frame (centred at the origin)."""
+        h = np.asarray(self.extent, dtype=np.float64) / 2.0
+        signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
+        return signs * h
+
+
+def save_model(model: ObjectModel, path) -> Path:
+    path = Path(path)
+    if path.suffix != ".npz":
+        raise InputError(f"model file {path} must end in .npz")
+    arrays = {
+        "schema_version": np.array(MODEL_SCHEMA_VERSION, dtype=np.int64),
+        "keypoints_xyz": np.asarray(model.keypoints_xyz, dtype=np.float32),
+        "descriptors": np.asarray(model.descriptors, dtype=np.float32),
+        "points_xyz": np.asarray(model.points_xyz, dtype=np.float32),
+        "extent": np.asarray(model.extent, dtype=np.float64),
+        "T_capture_model": np.asarray(model.T_capture_model, dtype=np.float64),
+        "name": np.array(str(model.name)),
+    }
+    if model.T_object_model is not None:
+        arrays["T_object_model"] = np.asarray(model.T_object_model, dtype=np.float64)
+    _check_arrays(arrays, str(path))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(path, **arrays)
+    return path
+
+
+def load_model(path) -> ObjectModel:
+    """Read and check a model file; InputError names what is wrong with it."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"model file {path} does not exist; build one with `mireg build-model`")
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            arrays = {k: npz[k] for k in npz.files}
+    except ValueError as exc:
+        raise InputError(f"model file {path} is not a valid model: {exc}") from None
+    except Exception as exc:  # zipfile.BadZipFile, EOFError, OSError: not an npz at all
+        raise InputError(f"model file {path} is not a readable .npz ({type(exc).__name__}: {exc}); "
+                         f"rebuild it with `mireg build-model`") from None
+    _check_arrays(arrays, str(path))
+    return ObjectModel(
+        keypoints_xyz=arrays["keypoints_xyz"].astype(np.float32),
+        descriptors=arrays["descriptors"].astype(np.float32),
+        points_xyz=arrays["points_xyz"].astype(np.float32),
+        extent=arrays["extent"].astype(np.float64),
+        T_capture_model=arrays["T_capture_model"].astype(np.float64),
+        T_object_model=arrays["T_object_model"].astype(np.float64) if "T_object_model" in arrays else None,
+        name=str(arrays["name"]) if "name" in arrays else "",
+    )
+
+
+def _check_arrays(a: dict, where: str) -> None:
+    missing = [k for k in _REQUIRED if k not in a]
+    if missing:
+        raise InputError(f"model file {where} lacks {', '.join(missing)}; rebuild it with `mireg build-model`")
+    version = a["schema_version"]
+    if version.shape != () or not np.issubdtype(version.dtype, np.integer) or int(version) != MODEL_SCHEMA_VERSION:
+        raise InputError(f"model file {where} has schema_version {version!r}; this version reads "
+                         f"{MODEL_SCHEMA_VERSION}: rebuild it with `mireg build-model`")
+
+    def shape_ok(key, shape):
+        arr = a[key]
+        if arr.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, arr.shape)):
+            raise InputError(f"model file {where}: {key} has shape {arr.shape}, expected "
+                             f"({', '.join('N' if s is None else str(s) for s in shape)})")
+        if not np.issubdtype(arr.dtype, np.number) or not np.all(np.isfinite(arr)):
+            raise InputError(f"model file {where}: {key} must hold finite numbers")
+
+    shape_ok("keypoints_xyz", (None, 3))
+    shape_ok("descriptors", (None, 128))
+    shape_ok("points_xyz", (None, 3))
+    shape_ok("extent", (3,))
+    shape_ok("T_capture_model", (4, 4))
+    if "T_object_model" in a:
+        shape_ok("T_object_model", (4, 4))
+    s = len(a["keypoints_xyz"])
+    if len(a["descriptors"]) != s:
+        raise InputError(f"model file {where}: {s} keypoints but {len(a['descriptors'])} descriptors")
+    if s < 3:
+        raise InputError(f"model file {where} has {s} keypoints (at least 3 needed); rebuild it from views "
+                         f"where the object is textured and has valid depth")
+
+
+# --------------------------------------------------------------------------- building
+
+@dataclass
+class CaptureView:
+    """One RGB-D view of the object for model building."""
+    rgb: np.ndarray                      # (H, W, 3) uint8
+    depth_m: np.ndarray                  # (H, W) float32 metres, 0 = invalid
+    intrinsics: CameraIntrinsics
+    T_camera_object: np.ndarray | None = None   # ground truth: object frame in this view's optical frame
+
+
+@dataclass(frozen=True)
+class BuildSettings:
+    roi: tuple[int, int, int, int] | None = None       # x, y, w, h in pixels
+    depth_range: tuple[float, float] = (0.1, 4.0)      # metres
+    plane_thresh: float = 0.01                         # metres: table points within this of the plane are removed
+    sift: SiftSettings = field(default_factory=lambda: SiftSettings(contrast_threshold=0.02, upsample=1.0))
+    depth_window: int = 5
+    voxel: float = 0.003                               # metres: dense cloud resolution
+    min_keypoints: int = 10
+    seed: int = 0
+
+
+def fit_dominant_plane(points: np.ndarray, thresh: float, iterations: int = 200, seed: int = 0
+                       ) -> tuple[np.ndarray, float, np.ndarray] | None:
+    """RANSAC plane n.x + d = 0 (|n| = 1, oriented towards the camera: d > 0) with the most
+    points within ``thresh``; returns (n, d, inlier mask) refined by least squares, or None."""
+    if len(points) < 50:
+        return None
+    rng = np.random.default_rng(seed)
+    sample = points if len(points) <= 5000 else points[rng.choice(len(points), 5000, replace=False)]
+    best_count, best = 0, None
+    for _ in range(iterations):
+        p = sample[rng.choice(len(sample), 3, replace=False)]
+        n = np.cross(p[1] - p[0], p[2] - p[0])
+        norm = np.linalg.norm(n)
+        if norm < 1e-9:
+            continue
+        n = n / norm
+        d = -n @ p[0]
+        count = int((np.abs(sample @ n + d) < thresh).sum())
+        if count > best_count:
+            best_count, best = count, (n, d)
+    if best is None:
+        return None
+    n, d = best
+    inl = np.abs(points @ n + d) < thresh
+    if inl.sum() >= 3:  # least-squares refit on the inliers
+        c = points[inl].mean(axis=0)
+        _, _, vt = np.linalg.svd(points[inl] - c, full_matrices=False)
+        n = vt[2]
+        d = -n @ c
+        inl = np.abs(points @ n + d) < thresh
+    if d < 0:  # orient the normal towards the camera (the origin is on the positive side)
+        n, d = -n, -d
+    return n, float(d), inl
+
+
+def object_mask(view: CaptureView, settings: BuildSettings) -> tuple[np.ndarray, tuple[np.ndarray, float] | None]:
+    """(H, W) bool mask of the object in one view, and the table plane (n, d) if one was removed.
+
+    ROI and depth range first; then the dominant plane (the table) and everything behind it
+    go; the largest connected blob left is the object.
+    """
+    depth = view.depth_m
+    h, w = depth.shape
+    lo, hi = settings.depth_range
+    mask = np.isfinite(depth) & (depth >= lo) & (depth <= hi)
+    if settings.roi is not None:
+        x, y, rw, rh = settings.roi
+        if rw <= 0 or rh <= 0 or x < 0 or y < 0 or x + rw > w or y + rh > h:
+            raise InputError(f"ROI {x},{y},{rw},{rh} is not inside the {w}x{h} image (x,y,w,h in pixels)")
+        roi = np.zeros_like(mask)
+        roi[y:y + rh, x:x + rw] = True
+        mask &= roi
+    if not mask.any():
+        raise InputError(f"no valid depth in the ROI and depth range {lo}-{hi} m; check --roi and --depth-range")
+    pts, rc = depth_to_cloud(depth, view.intrinsics, mask)
+    plane = fit_dominant_plane(pts.astype(np.float64), settings.plane_thresh, seed=settings.seed)
+    if plane is not None:
+        n, d, inl = plane
+        # A plane is "the table" only if it holds a good share of the points; remove it and all
+        # below it (signed distance <= thresh: the camera is on the positive side).
+        if inl.mean() > 0.15:
+            keep = (pts @ n + d) > settings.plane_thresh
+            mask = np.zeros_like(mask)
+            mask[rc[keep, 0], rc[keep, 1]] = True
+        else:
+            plane = None
+    mask_u8 = cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
+    n_lab, lab, stats, _ = cv2.connectedComponentsWithStats(mask_u8, connectivity=8)
+    if n_lab <= 1:
+        raise InputError("nothing is left of the object after removing the table plane; "
+                         "check --roi and --depth-range")
+    biggest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    return lab == biggest, (plane[:2] if plane is not None else None)
+
+
+def _voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
+    if len(points) == 0 or voxel <= 0:
+        return points
+    keys = np.floor(points / voxel).astype(np.int64)
+    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    sums = np.zeros((len(counts), 3))
+    np.add.at(sums, inverse.reshape(-1), points)
+    return (sums / counts[:, None]).astype(np.float32)
+
+
+def view_keypoints(view: CaptureView, mask: np.ndarray, settings: BuildSettings
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """SIFT keypoints on the object in one view, lifted with the object's own depth only:
+    (xyz (K, 3) float32 in the view's optical frame, descriptors (K, 128) float32)."""
+    detect_mask = cv2.dilate(mask.astype(np.uint8), np.ones((5, 5), np.uint8))
+    uv, desc = extract_sift(view.rgb, settings.sift, detect_mask)
+    # Depth outside the object is blanked, so the window median never mixes in the table.
+    obj_depth = np.where(mask, view.depth_m, 0.0).astype(np.float32)
+    z = lookup_depth(obj_depth, uv, settings.depth_window, *settings.depth_range)
+    ok = z > 0
+    xyz = backproject(undistort_pixels(uv[ok], view.intrinsics), z[ok], view.intrinsics)
+    return xyz, desc[ok]
+
+
+def build_model(views: list[CaptureView], settings: BuildSettings = BuildSettings(), name: str = "",
+                register_view=None) -> ObjectModel:
+    """Merge one or more views of one capture into a model.
+
+    Views are brought into the first view's optical frame with their ground-truth object poses
+    when all have one, else with ``register_view(xyz, desc, model_xyz, model_desc) -> T`` (a
+    view -> capture transform, e.g. from matching plus ECC; required for several views without
+    ground truth).
+    """
+    if not views:
+        raise InputError("no views to build a model from")
+    have_gt = all(v.T_camera_object is not None for v in views)
+    kp_xyz, kp_desc, clouds = [], [], []
+    plane0 = None
+    for i, view in enumerate(views):
+        mask, plane = object_mask(view, settings)
+        if i == 0:
+            plane0 = plane
+        xyz, desc = view_keypoints(view, mask, settings)
+        cloud, _ = depth_to_cloud(view.depth_m, view.intrinsics, mask, stride=2)
+        if i == 0:
+            T_cap_view = np.eye(4)
+        elif have_gt:
+            T_cap_view = views[0].T_camera_object @ invert_transform(view.T_camera_object)
+        elif register_view is not None:
+            if len(xyz) < 3:
+                continue
+            T_cap_view = register_view(xyz, desc, np.concatenate(kp_xyz), np.concatenate(kp_desc))
+            if T_cap_view is None:
+                continue
+        else:
+            raise InputError("several views without ground-truth poses need a view registration")
+        kp_xyz.append(apply_transform(T_cap_view, xyz.astype(np.float64)))
+        kp_desc.append(desc)
+        clouds.append(apply_transform(T_cap_view, cloud.astype(np.float64)))
+    keypoints = np.concatenate(kp_xyz) if kp_xyz else np.zeros((0, 3))
+    descriptors = np.concatenate(kp_desc) if kp_desc else np.zeros((0, 128), np.float32)
+    if len(keypoints) < settings.min_keypoints:
+        raise InputError(f"only {len(keypoints)} SIFT keypoints with valid depth on the object "
+                         f"(at least {settings.min_keypoints} needed); check --roi / --depth-range, "
+                         f"or capture a better textured view")
+    cloud = _voxel_downsample(np.concatenate(clouds), settings.voxel)
+
+    # Model axes: z up from the table (towards the camera) if a table was found.
+    if plane0 is not None:
+        z_axis = plane0[0]    # oriented towards the camera, i.e. up from the table
+        x_axis = np.array([1.0, 0.0, 0.0]) - z_axis * z_axis[0]
+        if np.linalg.norm(x_axis) < 1e-6:
+            x_axis = np.array([0.0, 1.0, 0.0]) - z_axis * z_axis[1]
+        x_axis /= np.linalg.norm(x_axis)
+        R = np.stack([x_axis, np.cross(z_axis, x_axis), z_axis], axis=1)
+    else:
+        R = np.eye(3)
+    local = cloud.astype(np.float64) @ R            # capture coords expressed along the model axes
+    lo, hi = np.percentile(local, 1, axis=0), np.percentile(local, 99, axis=0)
+    centre = R @ ((lo + hi) / 2.0)
+    T_capture_model = make_transform(R, centre)
+    T_model_capture = invert_transform(T_capture_model)
+    T_object_model = None
+    if views[0].T_camera_object is not None:
+        T_object_model = invert_transform(views[0].T_camera_object) @ T_capture_model
+    return ObjectModel(
+        keypoints_xyz=apply_transform(T_model_capture, keypoints).astype(np.float32),
+        descriptors=descriptors.astype(np.float32),
+        points_xyz=apply_transform(T_model_capture, cloud.astype(np.float64)).astype(np.float32),
+        extent=(hi - lo).astype(np.float64),
+        T_capture_model=T_capture_model,
+        T_object_model=T_object_model,
+        name=name,
+    )
+
+
+__all__ = ["ObjectModel", "save_model", "load_model", "MODEL_SCHEMA_VERSION", "CaptureView", "BuildSettings",
+           "build_model", "object_mask", "fit_dominant_plane", "view_keypoints"]

@@ -1,0 +1,209 @@
+"""The per-frame pipeline: one RGB-D frame in, one pose per visible instance out. No ROS.
+
+It reads like the method::
+
+    reg = InstanceRegistration(load_model("mug.npz"), PipelineConfig())
+    result = reg.register_frame(rgb, depth_m, intrinsics)
+    for inst in result.instances:       # sorted by inlier count, descending
+        inst.T                          # (4, 4) model frame -> camera optical frame, metres
+
+detect (SIFT) -> match (one-to-many, ratio test) -> lift (window-median depth, undistortion)
+-> cluster (ECC in metres) -> refine (per-instance least squares on re-selected inliers).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..core import ECC, ECCConfig
+from ..errors import InputError
+from ..messages import CameraIntrinsics
+from ..params import param
+from ..transforms import apply_transform, rigid_fit
+from .features import SiftSettings, extract_sift
+from .lifting import backproject, lookup_depth, undistort_pixels
+from .matching import DescriptorMatcher, prepare_descriptors
+from .model import ObjectModel
+
+STAGES = ("sift", "matching", "lifting", "ecc", "refinement", "total")
+
+
+@dataclass(frozen=True)
+class FrontEndConfig:
+    """Settings of everything around the ECC core: detection, matching, lifting, refinement."""
+    # Detection.
+    sift_nfeatures: int = param(0, "SIFT: keep at most this many keypoints per frame (0 = all)", 0, 100000)
+    sift_contrast_threshold: float = param(0.02, "SIFT contrast threshold (OpenCV default 0.04; lower finds more keypoints on weak texture)", 0.001, 0.5)
+    sift_edge_threshold: float = param(10.0, "SIFT edge threshold (OpenCV default 10)", 1.0, 100.0)
+    sift_upsample: float = param(1.0, "scale the image by this before SIFT (1 = off; 1.5-2 finds more keypoints on small objects, at a cost)", 1.0, 4.0)
+    # Matching.
+    ratio: float = param(0.8, "ratio test: best descriptor distance / second-best (second among model points more than ratio_separation away in 3D) must be below this", 0.1, 1.0)
+    ratio_separation: float = param(0.01, "metres: model points closer than this to the best match count as the same physical point in the ratio test", 0.0, 1.0)
+    root_sift: bool = param(True, "compare descriptors as RootSIFT (Hellinger kernel) instead of plain L2")
+    # Lifting.
+    depth_window: int = param(5, "side in pixels of the window whose median valid depth lifts a keypoint (odd)", 1, 31)
+    depth_min: float = param(0.1, "metres: ignore depth below this", 0.0, 100.0)
+    depth_max: float = param(4.0, "metres: ignore depth beyond this", 0.0, 100.0)
+    depth_max_spread: float = param(0.02, "metres: drop a keypoint whose window depths spread more than this around the median (a depth edge); 0 = keep all", 0.0, 10.0)
+    # Per-instance refinement.
+    refine: bool = param(True, "refine each instance by least squares on its correspondences re-selected with refine_thresh")
+    refine_iterations: int = param(3, "refinement rounds per instance", 1, 50)
+    refine_thresh: float = param(0.008, "metres: residual below which a correspondence joins an instance during refinement", 0.0005, 1.0)
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    """All settings of the per-frame pipeline; the ROS node declares one parameter per leaf."""
+    frontend: FrontEndConfig = field(default_factory=FrontEndConfig)
+    ecc: ECCConfig = field(default_factory=ECCConfig.metric)
+
+
+@dataclass
+class Instance:
+    """One found instance of the object in a frame."""
+    id: int                 # index in this frame's result, 0 = most inliers (not tracked over frames)
+    T: np.ndarray           # (4, 4) float64, model frame -> camera optical frame, metres
+    inliers: int            # number of inlier correspondences
+    score: float            # in [0, 1], from the ECC core (mean of 1 - residual / inlier_thresh)
+
+
+@dataclass
+class FrameResult:
+    """Everything one frame produced; the node's debug image draws keypoints_uv with labels."""
+    instances: list[Instance]
+    timings_ms: dict[str, float]        # keys: STAGES
+    keypoints_uv: np.ndarray            # (N, 2) float32 pixel coordinates of the lifted matches
+    model_xyz: np.ndarray               # (N, 3) float32 matched model keypoints, model frame
+    scene_xyz: np.ndarray               # (N, 3) float32 lifted scene keypoints, camera frame
+    labels: np.ndarray                  # (N,) int64: instance id or -1 (outlier)
+    num_keypoints: int = 0              # SIFT keypoints detected in the frame
+
+    @staticmethod
+    def empty(timings_ms: dict[str, float], num_keypoints: int = 0) -> "FrameResult":
+        return FrameResult([], timings_ms, np.zeros((0, 2), np.float32), np.zeros((0, 3), np.float32),
+                           np.zeros((0, 3), np.float32), np.zeros(0, np.int64), num_keypoints)
+
+
+def check_frame(rgb: np.ndarray, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> None:
+    """Raise InputError if the frame cannot be registered (shapes, dtypes, sizes)."""
+    if not (isinstance(rgb, np.ndarray) and rgb.ndim == 3 and rgb.shape[2] == 3 and rgb.dtype == np.uint8):
+        raise InputError(f"colour image must be (H, W, 3) uint8 RGB, got {getattr(rgb, 'shape', None)} "
+                         f"{getattr(rgb, 'dtype', type(rgb).__name__)}")
+    if not (isinstance(depth_m, np.ndarray) and depth_m.ndim == 2 and np.issubdtype(depth_m.dtype, np.floating)):
+        raise InputError(f"depth image must be (H, W) float metres, got {getattr(depth_m, 'shape', None)} "
+                         f"{getattr(depth_m, 'dtype', type(depth_m).__name__)}")
+    if depth_m.shape != rgb.shape[:2]:
+        raise InputError(f"depth image is {depth_m.shape[1]}x{depth_m.shape[0]} but colour is "
+                         f"{rgb.shape[1]}x{rgb.shape[0]}; register depth to colour (aligned_depth_to_color)")
+    if (intrinsics.width, intrinsics.height) != (rgb.shape[1], rgb.shape[0]):
+        raise InputError(f"camera_info is for {intrinsics.width}x{intrinsics.height} but the image is "
+                         f"{rgb.shape[1]}x{rgb.shape[0]}; use the colour stream's camera_info")
+
+
+class InstanceRegistration:
+    """Finds every instance of one stored object in RGB-D frames."""
+
+    def __init__(self, model: ObjectModel, config: PipelineConfig | None = None):
+        self.model = model
+        self.config = config or PipelineConfig()
+        fe = self.config.frontend
+        self._sift = SiftSettings(fe.sift_nfeatures, fe.sift_contrast_threshold, fe.sift_edge_threshold, fe.sift_upsample)
+        self._matcher = DescriptorMatcher(prepare_descriptors(model.descriptors, fe.root_sift), model.keypoints_xyz,
+                                          fe.ratio, fe.ratio_separation)
+        self._ecc = ECC(self.config.ecc)
+
+    def register_frame(self, rgb: np.ndarray, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> FrameResult:
+        """rgb (H, W, 3) uint8, depth_m (H, W) float metres (0 = invalid), aligned to colour."""
+        check_frame(rgb, depth_m, intrinsics)
+        fe = self.config.frontend
+        t = {s: 0.0 for s in STAGES}
+        t0 = time.perf_counter()
+
+        # Detect.
+        uv, desc = extract_sift(rgb, self._sift)
+        t1 = time.perf_counter()
+        t["sift"] = (t1 - t0) * 1e3
+        n_kp = len(uv)
+
+        # Lift before matching: keypoints without depth cannot be used, so do not match them.
+        z = lookup_depth(depth_m, uv, fe.depth_window, fe.depth_min, fe.depth_max, fe.depth_max_spread)
+        ok = z > 0
+        uv, desc, z = uv[ok], desc[ok], z[ok]
+        rays = undistort_pixels(uv, intrinsics)
+        scene_xyz = backproject(rays, z, intrinsics)
+        t2 = time.perf_counter()
+        t["lifting"] = (t2 - t1) * 1e3
+
+        # Match, one-to-many: every scene keypoint to its nearest model descriptor.
+        scene_idx, model_idx, _ = self._matcher.match(prepare_descriptors(desc, fe.root_sift))
+        t3 = time.perf_counter()
+        t["matching"] = (t3 - t2) * 1e3
+
+        src = self.model.keypoints_xyz[model_idx].astype(np.float64)
+        tgt = scene_xyz[scene_idx].astype(np.float64)
+        kp_uv = uv[scene_idx].astype(np.float32)
+        if len(src) < 3:
+            t["total"] = (time.perf_counter() - t0) * 1e3
+            res = FrameResult.empty(t, n_kp)
+            res.keypoints_uv, res.model_xyz, res.scene_xyz = kp_uv, src.astype(np.float32), tgt.astype(np.float32)
+            res.labels = np.full(len(src), -1, np.int64)
+            return res
+
+        # Cluster.
+        reg = self._ecc.register(src, tgt)
+        t4 = time.perf_counter()
+        t["ecc"] = (t4 - t3) * 1e3
+
+        # Refine.
+        transforms = [np.asarray(T, dtype=np.float64) for T in reg.transforms]
+        labels = np.asarray(reg.labels, dtype=np.int64).copy()
+        counts = [int(c) for c in reg.inlier_counts]
+        scores = [float(s) for s in reg.scores]
+        if fe.refine and transforms:
+            transforms, labels, counts = refine_instances(src, tgt, transforms, fe.refine_thresh, fe.refine_iterations,
+                                                          self.config.ecc.inlier_thresh)
+        t5 = time.perf_counter()
+        t["refinement"] = (t5 - t4) * 1e3
+
+        order = np.argsort(-np.asarray(counts), kind="stable")
+        remap = np.full(len(transforms) + 1, -1, np.int64)
+        instances = []
+        for new_id, old in enumerate(order):
+            remap[old] = new_id
+            instances.append(Instance(new_id, transforms[old], counts[old], scores[old]))
+        labels = np.where(labels >= 0, remap[labels], -1)
+        t["total"] = (time.perf_counter() - t0) * 1e3
+        return FrameResult(instances, t, kp_uv, src.astype(np.float32), tgt.astype(np.float32), labels, n_kp)
+
+
+def refine_instances(src: np.ndarray, tgt: np.ndarray, transforms: list[np.ndarray], thresh: float, iterations: int,
+                     assign_thresh: float) -> tuple[list[np.ndarray], np.ndarray, list[int]]:
+    """Per-instance least squares: re-select each instance's correspondences with a tighter
+    threshold, refit, repeat; then assign every correspondence to its nearest instance.
+
+    Returns the refined transforms, labels (N,) and inlier counts (within assign_thresh).
+    """
+    refined = []
+    for T in transforms:
+        for _ in range(iterations):
+            r = np.linalg.norm(apply_transform(T, src) - tgt, axis=1)
+            sel = r < thresh
+            if sel.sum() < 3:
+                break
+            T_new = rigid_fit(src[sel], tgt[sel])
+            if np.allclose(T_new, T, atol=1e-7):
+                T = T_new
+                break
+            T = T_new
+        refined.append(T)
+    res = np.stack([np.linalg.norm(apply_transform(T, src) - tgt, axis=1) for T in refined], axis=1)
+    best = res.argmin(axis=1)
+    labels = np.where(res[np.arange(len(src)), best] < assign_thresh, best, -1).astype(np.int64)
+    counts = [int((labels == m).sum()) for m in range(len(refined))]
+    return refined, labels, counts
+
+
+__all__ = ["FrontEndConfig", "PipelineConfig", "Instance", "FrameResult", "InstanceRegistration",
+           "check_frame", "refine_instances", "STAGES"]
