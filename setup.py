@@ -24,6 +24,7 @@ setup(
     entry_points={
         "console_scripts": [
             "mireg = multi_instance_reg.tools.cli:main",
+            "instance_registration_node = multi_instance_reg.ros.node:main",
         ],
     },
 )

@@ -85,11 +85,10 @@ class InstanceRegistrationNode(Node):
         self.settings = node_settings(node_values)
         self.config = with_overrides(PipelineConfig(), pipeline_values)
         if not self.settings.model_path:
-            raise InputError("no model: pass -p model_path:=MODEL (build one with `mireg model`)")
+            raise InputError("no model: pass -p model_path:=MODEL (build one with `mireg build-model`)")
         self.model = load_model(self.settings.model_path)
         self._pipeline_class = InstanceRegistration
         self._pipeline = InstanceRegistration(self.model, self.config)
-        self._box_centre, self._box_size = _model_box(self.model)
 
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
@@ -181,34 +180,20 @@ class InstanceRegistrationNode(Node):
 
     def _process(self, pair: _Pair) -> None:
         log = self.get_logger()
-        try:
-            rgb = colour_to_rgb(pair.colour)
-            depth = depth_to_metres(pair.depth, self.settings.depth_scale)
-            if rgb.shape[:2] != depth.shape:
-                raise InputError(
-                    f"colour is {rgb.shape[1]}x{rgb.shape[0]} but depth is {depth.shape[1]}x{depth.shape[0]}; "
-                    f"subscribe to the depth aligned to colour (align_depth.enable:=true)")
-        except InputError as exc:
-            self._count("bad")
-            log.warn(f"skipping a malformed frame: {exc}", throttle_duration_sec=2.0)
-            return
         intrinsics = self._intrinsics
         if intrinsics is None:
             self._count("no_camera_info")
             log.warn(f"no camera_info received on {self.resolve_topic_name(CAMERA_INFO_TOPIC)} yet; "
                      "skipping frames until it arrives", throttle_duration_sec=5.0)
             return
-        if (intrinsics.width, intrinsics.height) != (rgb.shape[1], rgb.shape[0]):
-            self._count("bad")
-            log.warn(f"camera_info is {intrinsics.width}x{intrinsics.height} but the images are "
-                     f"{rgb.shape[1]}x{rgb.shape[0]}; skipping", throttle_duration_sec=5.0)
-            return
         pipeline = self._pipeline
         try:
-            result = pipeline.register_frame(rgb, depth, intrinsics)
+            rgb = colour_to_rgb(pair.colour)
+            depth = depth_to_metres(pair.depth, self.settings.depth_scale)
+            result = pipeline.register_frame(rgb, depth, intrinsics)  # checks sizes: InputError
         except InputError as exc:
             self._count("bad")
-            log.warn(f"skipping a frame: {exc}", throttle_duration_sec=2.0)
+            log.warn(f"skipping a malformed frame: {exc}", throttle_duration_sec=2.0)
             return
         except Exception as exc:  # a bug must not take the camera pipeline down with it
             self._count("failed")
@@ -217,7 +202,7 @@ class InstanceRegistrationNode(Node):
         header = pair.colour.header
         self._pub_poses.publish(conversions.pose_array(result.instances, header))
         markers, self._marker_ids = conversions.marker_array(
-            result.instances, header, self._box_centre, self._box_size, self._marker_ids)
+            result.instances, header, np.zeros(3), self.model.extent, self._marker_ids)
         self._pub_markers.publish(markers)
         if self.settings.publish_debug_image or self._pub_debug.get_subscription_count() > 0:
             self._publish_debug_image(rgb, result, intrinsics, header)
@@ -234,8 +219,7 @@ class InstanceRegistrationNode(Node):
     def _publish_debug_image(self, rgb, result, intrinsics, header) -> None:
         from ..rgbd.overlay import draw_overlay
 
-        overlay = draw_overlay(rgb, result, intrinsics, self._box_centre, self._box_size,
-                               colour_of=conversions.instance_colour)
+        overlay = draw_overlay(rgb, result, intrinsics, self.model.box_corners(), conversions.instance_colour)
         fields = array_to_image_fields(overlay, "rgb8")
         fields["data"] = fields["data"].tobytes()
         msg = Image(**fields)
@@ -270,13 +254,6 @@ class InstanceRegistrationNode(Node):
         self._slot.close()
         self._worker.join(timeout=5.0)
         return super().destroy_node()
-
-
-def _model_box(model):
-    """(centre, size) of the model's bounding box in its own frame, metres."""
-    points = np.asarray(model.points, dtype=np.float64)
-    lo, hi = points.min(axis=0), points.max(axis=0)
-    return (lo + hi) / 2.0, hi - lo
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..transforms import invert_transform
 
 HELP = "print the node's instances per frame; MHF1 against a bag's ground truth"
 GT_TOPIC = "/ground_truth/poses"
@@ -34,19 +35,22 @@ def add_arguments(parser) -> None:
                         help="write the node's debug images there (every --overlay-every-th)")
     parser.add_argument("--overlay-every", type=int, default=5, metavar="K")
     parser.add_argument("--summary", type=Path, metavar="JSON", help="also write the summary to this file")
-    parser.add_argument("--rotation-deg", type=float, default=None, metavar="DEG",
-                        help="hit threshold on rotation error (default: the metrics module's RGB-D one)")
-    parser.add_argument("--translation-m", type=float, default=None, metavar="M",
-                        help="hit threshold on translation error (default: the metrics module's RGB-D one)")
+    parser.add_argument("--model", type=Path, metavar="MODEL",
+                        help="the node's model file: its T_object_model maps the published model frame to the "
+                             "ground truth's object frame (without it the two are taken to be the same)")
+    parser.add_argument("--max-rre-deg", type=float, default=20.0, metavar="DEG",
+                        help="a hit needs a rotation error below this (default 20, the paper's)")
+    parser.add_argument("--max-rte-m", type=float, default=0.05, metavar="M",
+                        help="a hit needs a translation error below this (default 0.05 m)")
     parser.add_argument("--quiet", action="store_true", help="only the summary")
 
 
 def read_ground_truth(path: Path) -> dict[int, np.ndarray]:
     """stamp_ns -> (K, 4, 4) ground-truth poses (object frame in the camera optical frame)."""
+    from ..datasets.rgbd_bag import _open_reader
     from ..transforms import pose_to_matrix
-    from .play import open_bag
 
-    reader = open_bag(path)
+    reader = _open_reader(path)
     try:
         connections = [c for c in reader.connections if c.topic == GT_TOPIC]
         if not connections:
@@ -75,8 +79,10 @@ def pose_array_to_matrices(msg) -> np.ndarray:
 class Listener:
     """Joins poses and details by stamp; keeps what the summary needs."""
 
-    def __init__(self, truth=None, quiet=False, overlay_dir=None, overlay_every=5):
+    def __init__(self, truth=None, quiet=False, overlay_dir=None, overlay_every=5, T_object_model=None):
         self.truth = truth
+        # Published poses are model frame -> camera; ground truth is object frame -> camera.
+        self.T_model_object = None if T_object_model is None else invert_transform(T_object_model)
         self.quiet = quiet
         self.overlay_dir = overlay_dir
         self.overlay_every = max(1, overlay_every)
@@ -116,6 +122,9 @@ class Listener:
         cv2.imwrite(str(path), colour_to_rgb(msg)[:, :, ::-1])
         self.overlays_written.append(str(path))
 
+    def object_poses(self, model_poses: np.ndarray) -> np.ndarray:
+        return model_poses if self.T_model_object is None else model_poses @ self.T_model_object
+
     def _join(self, stamp: int) -> None:
         if stamp not in self.poses or stamp not in self.details:
             return
@@ -134,7 +143,7 @@ class Listener:
             print(f"{stamp / 1e9:.3f} s: {len(poses)} instance(s){gt}, "
                   f"{details['latency_ms']:.0f} ms{': ' + insts if insts else ''}", flush=True)
 
-    def summary(self, rotation_deg=None, translation_m=None) -> dict:
+    def summary(self, max_rre_deg: float = 20.0, max_rte_m: float = 0.05) -> dict:
         latencies = [f["details"]["latency_ms"] for f in self.frames]
         counters = self.last_stats or self.last_counters
         out = {
@@ -147,25 +156,21 @@ class Listener:
             "overlays": self.overlays_written,
         }
         if self.truth is not None:
-            scored = [(f["poses"], self.truth[f["stamp_ns"]]) for f in self.frames if f["stamp_ns"] in self.truth]
-            out.update(score_frames(scored, rotation_deg, translation_m))
+            scored = [(self.object_poses(f["poses"]), self.truth[f["stamp_ns"]])
+                      for f in self.frames if f["stamp_ns"] in self.truth]
+            out.update(score_frames(scored, max_rre_deg, max_rte_m))
         return out
 
 
-def score_frames(pairs, rotation_deg=None, translation_m=None) -> dict:
-    """MHR / MHP / MHF1 (means over frames) of (estimated, ground-truth) pose stacks."""
-    from .. import metrics
+def score_frames(pairs, max_rre_deg: float = 20.0, max_rte_m: float = 0.05) -> dict:
+    """MHR / MHP / MHF1 in % (means over frames) of (estimated, ground-truth) pose stacks."""
+    from ..metrics import evaluate_scene, summarize
 
-    kwargs = {}
-    if rotation_deg is not None:
-        kwargs["rotation_deg"] = rotation_deg
-    if translation_m is not None:
-        kwargs["translation_m"] = translation_m
-    if not pairs:
-        return {"frames_scored": 0, "MHR": None, "MHP": None, "MHF1": None}
-    scores = metrics.score_scenes([est for est, _ in pairs], [gt for _, gt in pairs], **kwargs)
-    return {"frames_scored": len(pairs), "MHR": round(scores.mhr, 2), "MHP": round(scores.mhp, 2),
-            "MHF1": round(scores.mhf1, 2)}
+    s = summarize([evaluate_scene(gt, est, max_rre_deg, max_rte_m) for est, gt in pairs])
+    return {"frames_scored": len(pairs), "MHR": round(100 * s["MHR"], 1), "MHP": round(100 * s["MHP"], 1),
+            "MHF1": round(100 * s["MHF1"], 1), "MF": round(100 * s["MF"], 1),
+            "max_rre_deg": max_rre_deg, "max_rte_m": max_rte_m,
+            "median_rre_deg": s["median_rre_deg"], "median_rte_m": s["median_rte"]}
 
 
 def format_summary(summary: dict) -> str:
@@ -173,13 +178,19 @@ def format_summary(summary: dict) -> str:
              f"mean node latency: {summary['latency_ms_mean']} ms (p50 {summary['latency_ms_p50']} ms)",
              f"frames dropped by the node: {summary['frames_dropped']}"]
     if "MHF1" in summary:
-        lines.insert(0, f"MHF1 {summary['MHF1']} % (MHR {summary['MHR']} %, MHP {summary['MHP']} %) "
-                        f"over {summary['frames_scored']} frames with ground truth")
+        lines.insert(0, f"MHF1 {summary['MHF1']} % (MHR {summary['MHR']} %, MHP {summary['MHP']} %) over "
+                        f"{summary['frames_scored']} frames with ground truth (hit: rotation < "
+                        f"{summary['max_rre_deg']:g} deg, translation < {summary['max_rte_m']:g} m)")
     return "\n".join(lines)
 
 
 def run(args) -> int:
     truth = read_ground_truth(args.ground_truth) if args.ground_truth else None
+    T_object_model = None
+    if args.model:
+        from ..rgbd.model import load_model
+
+        T_object_model = load_model(args.model).T_object_model
     if args.save_overlays:
         args.save_overlays.mkdir(parents=True, exist_ok=True)
 
@@ -190,7 +201,7 @@ def run(args) -> int:
     from sensor_msgs.msg import Image
     from std_msgs.msg import String
 
-    listener = Listener(truth, args.quiet, args.save_overlays, args.overlay_every)
+    listener = Listener(truth, args.quiet, args.save_overlays, args.overlay_every, T_object_model)
     rclpy.init()
     node = rclpy.create_node("mireg_listen")
     qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50, reliability=ReliabilityPolicy.RELIABLE)
@@ -217,7 +228,7 @@ def run(args) -> int:
     finally:
         node.destroy_node()
         rclpy.try_shutdown()
-    summary = listener.summary(args.rotation_deg, args.translation_m)
+    summary = listener.summary(args.max_rre_deg, args.max_rte_m)
     print(format_summary(summary), flush=True)
     if args.summary:
         args.summary.parent.mkdir(parents=True, exist_ok=True)

@@ -44,24 +44,12 @@ def message_class(msgtype: str):
                          f"install its interface package or leave its topic out with --topics") from None
 
 
-def open_bag(path: Path):
-    from rosbags.highlevel import AnyReader
-    from rosbags.typesys import Stores, get_typestore
-
-    if not path.exists():
-        raise InputError(f"bag {path} does not exist")
-    reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_JAZZY))
-    try:
-        reader.open()
-    except Exception as exc:  # rosbags raises its own error types for unreadable bags
-        raise InputError(f"cannot read bag {path}: {exc}") from None
-    return reader
-
-
 def run(args) -> int:
     if not args.rate > 0:
         raise InputError(f"--rate must be positive, got {args.rate}")
-    reader = open_bag(args.bag)
+    from ..datasets.rgbd_bag import _open_reader
+
+    reader = _open_reader(args.bag)
     try:
         return _play(reader, args)
     except KeyboardInterrupt:

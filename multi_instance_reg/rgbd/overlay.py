@@ -1,0 +1,49 @@
+"""The debug picture of one frame: matched keypoints coloured by instance, each instance's
+box projected into the image with its id. No ROS; the node publishes it, tools save it."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from ..messages import CameraIntrinsics
+from ..transforms import apply_transform
+
+# Box edges between the corners of ObjectModel.box_corners() (index bits: x, y, z sign).
+_EDGES = [(0, 1), (2, 3), (4, 5), (6, 7), (0, 2), (1, 3), (4, 6), (5, 7), (0, 4), (1, 5), (2, 6), (3, 7)]
+
+
+def project(points_cam: np.ndarray, intrinsics: CameraIntrinsics) -> np.ndarray:
+    """(N, 3) camera-frame points -> (N, 2) pixels (pinhole; points behind the camera give NaN)."""
+    K = intrinsics.K
+    z = points_cam[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = K[0, 0] * points_cam[:, 0] / z + K[0, 2]
+        v = K[1, 1] * points_cam[:, 1] / z + K[1, 2]
+    uv = np.stack([u, v], axis=1)
+    uv[z <= 1e-6] = np.nan
+    return uv
+
+
+def draw_overlay(rgb: np.ndarray, result, intrinsics: CameraIntrinsics, box_corners: np.ndarray,
+                 colour_of) -> np.ndarray:
+    """A copy of ``rgb`` with ``result.keypoints_uv`` as dots coloured by ``result.labels``
+    (outliers small and grey) and every instance's box (``box_corners`` (8, 3), model frame)
+    drawn in its colour. ``colour_of(id) -> (r, g, b)``."""
+    out = np.ascontiguousarray(rgb.copy())
+    labels = np.asarray(result.labels)
+    for (u, v), label in zip(np.asarray(result.keypoints_uv), labels):
+        inlier = label >= 0
+        cv2.circle(out, (int(round(u)), int(round(v))), 3 if inlier else 1, colour_of(int(label)),
+                   -1 if inlier else 1, cv2.LINE_AA)
+    for inst in result.instances:
+        colour = colour_of(int(inst.id))
+        uv = project(apply_transform(np.asarray(inst.T, dtype=np.float64), box_corners), intrinsics)
+        if not np.all(np.isfinite(uv)) or np.abs(uv).max() > 1e5:
+            continue
+        pts = np.round(uv).astype(np.int32)
+        for a, b in _EDGES:
+            cv2.line(out, tuple(pts[a]), tuple(pts[b]), colour, 2, cv2.LINE_AA)
+        top = pts[np.argmin(pts[:, 1])]
+        cv2.putText(out, str(inst.id), (int(top[0]), int(top[1]) - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.6,
+                    colour, 2, cv2.LINE_AA)
+    return out
