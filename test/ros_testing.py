@@ -107,3 +107,120 @@ def wait_until(predicate, timeout: float, interval: float = 0.05, proc: subproce
             return bool(predicate())
         time.sleep(interval)
     return bool(predicate())
+
+
+# ---------------------------------------------------------------------------------------
+# A small, fast stand-in scene for the node's plumbing tests: a textured poster (an
+# astronaut photograph that ships with scikit-image) 0.6 m in front of the camera, on a
+# background 1 m away. The model is its SIFT keypoints lifted with the same intrinsics, so
+# the real pipeline finds exactly one instance, at the identity rotation, 0.6 m ahead.
+
+D455_K = ((379.05, 0.0, 321.89), (0.0, 378.68, 238.97), (0.0, 0.0, 1.0))
+POSTER_Z = 0.6
+
+
+def poster_model(path) -> Path:
+    import numpy as np
+    from skimage import data
+
+    from multi_instance_reg.rgbd.features import SiftSettings, extract_sift
+    from multi_instance_reg.rgbd.model import ObjectModel, save_model
+
+    K = np.array(D455_K)
+    tex = data.astronaut()[100:300, 150:350].copy()
+    uv, desc = extract_sift(tex, SiftSettings())
+    # Model frame: the poster's centre, axes along the camera's.
+    xyz = np.c_[(uv[:, 0] - 99.5) * POSTER_Z / K[0, 0], (uv[:, 1] - 99.5) * POSTER_Z / K[1, 1], np.zeros(len(uv))]
+    extent = np.array([200 * POSTER_Z / K[0, 0], 200 * POSTER_Z / K[1, 1], 0.002])
+    model = ObjectModel(xyz.astype(np.float32), desc, xyz.astype(np.float32), extent, np.eye(4), np.eye(4), "poster")
+    return save_model(model, Path(path))
+
+
+def poster_frame():
+    """(rgb (480, 640, 3) uint8, depth (480, 640) uint16 mm, K (3, 3)); the poster's centre
+    is on the optical axis's pixel (cx, cy) rounded, so its pose is ~ (0, 0, POSTER_Z)."""
+    import numpy as np
+    from skimage import data
+
+    tex = data.astronaut()[100:300, 150:350]
+    rgb = np.full((480, 640, 3), 90, np.uint8)
+    depth = np.full((480, 640), 1000, np.uint16)
+    top, left = 239 - 100, 322 - 100
+    rgb[top:top + 200, left:left + 200] = tex
+    depth[top:top + 200, left:left + 200] = int(POSTER_Z * 1000)
+    return rgb, depth, np.array(D455_K)
+
+
+class CameraPublisher:
+    """Publishes colour + aligned depth + camera_info like realsense-ros, from a Probe."""
+
+    def __init__(self, probe: Probe):
+        from sensor_msgs.msg import CameraInfo, Image
+
+        self.probe = probe
+        self.colour = probe.publisher(Image, "/camera/camera/color/image_raw")
+        self.depth = probe.publisher(Image, "/camera/camera/aligned_depth_to_color/image_raw")
+        self.info = probe.publisher(CameraInfo, "/camera/camera/color/camera_info")
+
+    def wait_for_subscribers(self, timeout: float = 30.0, proc=None) -> bool:
+        pubs = (self.colour, self.depth, self.info)
+        ok = wait_until(lambda: all(p.get_subscription_count() > 0 for p in pubs), timeout, proc=proc)
+        time.sleep(0.3)
+        return ok
+
+    @staticmethod
+    def image(arr, encoding: str, stamp=None, overrides: dict | None = None):
+        from sensor_msgs.msg import Image
+
+        from multi_instance_reg.messages import array_to_image_fields
+
+        fields = array_to_image_fields(arr, encoding)
+        fields["data"] = fields["data"].tobytes()
+        fields.update(overrides or {})
+        msg = Image(**fields)
+        if stamp is not None:
+            msg.header.stamp = stamp
+        msg.header.frame_id = "camera_color_optical_frame"
+        return msg
+
+    def send(self, rgb, depth, K, colour_msg=None, depth_msg=None, with_info: bool = True):
+        """Publish one frame stamped now; returns its stamp in ns."""
+        from builtin_interfaces.msg import Time
+        from sensor_msgs.msg import CameraInfo
+
+        ns = time.time_ns()
+        stamp = Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+        if with_info:
+            info = CameraInfo(width=rgb.shape[1], height=rgb.shape[0], k=[float(v) for v in K.reshape(-1)],
+                              distortion_model="plumb_bob", d=[0.0] * 5)
+            info.header.stamp = stamp
+            info.header.frame_id = "camera_color_optical_frame"
+            self.info.publish(info)
+        if colour_msg is None:
+            colour_msg = self.image(rgb, "rgb8", stamp)
+        if depth_msg is None:
+            depth_msg = self.image(depth, "16UC1", stamp)
+        colour_msg.header.stamp = stamp
+        depth_msg.header.stamp = stamp
+        self.colour.publish(colour_msg)
+        self.depth.publish(depth_msg)
+        return ns
+
+
+def set_parameters(probe: Probe, values: dict, node: str = "/instance_registration", timeout: float = 10.0):
+    """Call the node's SetParameters service (what `ros2 param set` does); returns the results."""
+    from rcl_interfaces.srv import SetParameters
+    from rclpy.parameter import Parameter
+
+    client = probe.node.create_client(SetParameters, f"{node}/set_parameters")
+    try:
+        if not client.wait_for_service(timeout_sec=timeout):
+            raise TimeoutError(f"{node}/set_parameters is not available")
+        request = SetParameters.Request(
+            parameters=[Parameter(name, value=value).to_parameter_msg() for name, value in values.items()])
+        future = client.call_async(request)
+        if not wait_until(future.done, timeout):
+            raise TimeoutError("SetParameters did not answer")
+        return future.result().results
+    finally:
+        probe.node.destroy_client(client)

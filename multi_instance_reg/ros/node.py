@@ -201,11 +201,7 @@ class InstanceRegistrationNode(Node):
             return
         header = pair.colour.header
         self._pub_poses.publish(conversions.pose_array(result.instances, header))
-        markers, self._marker_ids = conversions.marker_array(
-            result.instances, header, np.zeros(3), self.model.extent, self._marker_ids)
-        self._pub_markers.publish(markers)
-        if self.settings.publish_debug_image or self._pub_debug.get_subscription_count() > 0:
-            self._publish_debug_image(rgb, result, intrinsics, header)
+        # Latency as a user sees it: pair complete -> poses out (waiting for the worker included).
         latency_ms = (time.monotonic() - pair.received) * 1e3
         with self._counters_lock:
             self.counters.processed += 1
@@ -215,6 +211,11 @@ class InstanceRegistrationNode(Node):
             stamp_to_ns(header.stamp), header.frame_id, latency_ms, result.instances,
             timings_ms={k: round(float(v), 2) for k, v in result.timings_ms.items()},
             counters=counters))
+        markers, self._marker_ids = conversions.marker_array(
+            result.instances, header, np.zeros(3), self.model.extent, self._marker_ids)
+        self._pub_markers.publish(markers)
+        if self.settings.publish_debug_image or self._pub_debug.get_subscription_count() > 0:
+            self._publish_debug_image(rgb, result, intrinsics, header)
 
     def _publish_debug_image(self, rgb, result, intrinsics, header) -> None:
         from ..rgbd.overlay import draw_overlay
@@ -258,7 +259,11 @@ class InstanceRegistrationNode(Node):
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv if argv is None else argv
-    rclpy.init(args=argv)
+    try:
+        rclpy.init(args=argv)
+    except Exception as exc:  # rcl's own error for malformed --ros-args, with a C backtrace
+        print(f"{NODE_NAME}: error: cannot parse the --ros-args: {str(exc).split(', at ')[0]}", file=sys.stderr)
+        return 1
     try:
         node = InstanceRegistrationNode()
     except InputError as exc:

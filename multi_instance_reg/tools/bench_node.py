@@ -1,0 +1,290 @@
+"""``mireg bench node``: the node's end-to-end latency, its behaviour under overload, its memory.
+
+Starts the node as a real process (its own ROS_DOMAIN_ID, localhost discovery), publishes
+the frames of a scene bag from this process with fresh stamps (time of publishing), and
+measures on the same machine clock:
+
+1. at the camera's rate (30 Hz): end-to-end latency = poses received - image stamp, p50/p95;
+2. with the camera outrunning the pipeline (60 Hz): latency in the first and last thirds of
+   the run (it must not grow) and frames dropped;
+3. over a long replay (``--rss-frames``, 5,000 by default): the node's resident memory
+   (VmRSS from /proc) at the start, the end and its maximum.
+"""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+
+HELP = "the ROS node's end-to-end latency, latency under overload and memory over a long replay"
+COLOUR_TOPIC = "/camera/camera/color/image_raw"
+DEPTH_TOPIC = "/camera/camera/aligned_depth_to_color/image_raw"
+INFO_TOPIC = "/camera/camera/color/camera_info"
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("--bag", type=Path, help="scene bag whose frames are replayed (default: make the demo's)")
+    parser.add_argument("--model", type=Path, help="model file (default: make the demo's)")
+    parser.add_argument("--frames", type=int, default=300, metavar="N", help="frames at 30 Hz for the latency figures")
+    parser.add_argument("--overload-frames", type=int, default=300, metavar="N", help="frames at --overload-rate")
+    parser.add_argument("--overload-rate", type=float, default=60.0, metavar="HZ")
+    parser.add_argument("--rss-frames", type=int, default=5000, metavar="N",
+                        help="frames at 30 Hz for the memory figures (0 = skip)")
+    parser.add_argument("--distinct-frames", type=int, default=30, metavar="N",
+                        help="how many of the bag's frames to cycle through")
+    parser.add_argument("--domain-id", type=int, default=77, help="ROS_DOMAIN_ID of the benchmark")
+    parser.add_argument("--json", type=Path, metavar="FILE", help="also write the figures here")
+
+
+def _load_frames(bag: Path, count: int):
+    from ..datasets.rgbd_bag import RGBDBag
+
+    frames = []
+    with RGBDBag(bag) as reader:
+        for frame in reader:
+            frames.append(frame)
+            if len(frames) >= count:
+                break
+    if not frames:
+        raise InputError(f"bag {bag} has no complete RGB-D frame to replay")
+    return frames
+
+
+def _messages(frames):
+    from sensor_msgs.msg import CameraInfo, Image
+
+    from ..messages import array_to_image_fields
+
+    out = []
+    for f in frames:
+        colour = array_to_image_fields(f.rgb, "rgb8")
+        depth = array_to_image_fields(np.round(f.depth_m * 1000).astype(np.uint16), "16UC1")
+        colour["data"], depth["data"] = colour["data"].tobytes(), depth["data"].tobytes()
+        info = CameraInfo(width=f.intrinsics.width, height=f.intrinsics.height,
+                          k=f.intrinsics.K.reshape(-1).tolist(), distortion_model=f.intrinsics.distortion_model,
+                          d=[float(v) for v in f.intrinsics.D])
+        msgs = (Image(**colour), Image(**depth), info)
+        for m in msgs:
+            m.header.frame_id = f.frame_id
+        out.append(msgs)
+    return out
+
+
+def rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024.0
+    raise InputError(f"process {pid} has no VmRSS")
+
+
+class _Bench:
+    def __init__(self, messages, domain_id: int):
+        import rclpy
+        from geometry_msgs.msg import PoseArray
+        from rclpy.context import Context
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+        from sensor_msgs.msg import CameraInfo, Image
+        from std_msgs.msg import String
+
+        self.messages = messages
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=domain_id)
+        self.node = rclpy.create_node("mireg_bench_node", context=self.context)
+        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        self.pub_colour = self.node.create_publisher(Image, COLOUR_TOPIC, qos)
+        self.pub_depth = self.node.create_publisher(Image, DEPTH_TOPIC, qos)
+        self.pub_info = self.node.create_publisher(CameraInfo, INFO_TOPIC, qos)
+        self.latencies: list[tuple[int, float]] = []   # (stamp_ns, ms)
+        self.counters: dict = {}
+        self.node.create_subscription(PoseArray, "/instances/poses", self._on_poses, qos)
+        self.node.create_subscription(String, "/instances/details", self._on_details, qos)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        import threading
+        self._thread = threading.Thread(target=self._spin, daemon=True)
+        self._thread.start()
+
+    def _spin(self):
+        while self.context.ok():
+            try:
+                self.executor.spin_once(timeout_sec=0.05)
+            except Exception:
+                if not self.context.ok():
+                    return
+                raise
+
+    def _on_poses(self, msg):
+        now = time.time_ns()
+        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        self.latencies.append((stamp, (now - stamp) / 1e6))
+
+    def _on_details(self, msg):
+        self.counters = json.loads(msg.data).get("counters", self.counters)
+
+    def wait_for_node(self, timeout: float, proc) -> None:
+        deadline = time.monotonic() + timeout
+        pubs = (self.pub_colour, self.pub_depth, self.pub_info)
+        while any(p.get_subscription_count() == 0 for p in pubs):
+            if proc.poll() is not None:
+                raise InputError(f"the node exited with code {proc.returncode} before subscribing:\n"
+                                 + (proc.stdout.read() if proc.stdout else ""))
+            if time.monotonic() > deadline:
+                raise InputError("the node did not subscribe to the camera topics in time")
+            time.sleep(0.05)
+        time.sleep(0.5)
+
+    def publish(self, count: int, rate: float, on_tick=None) -> tuple[int, int]:
+        """Publish ``count`` frames at ``rate``; returns the (first, last) stamps sent."""
+        from builtin_interfaces.msg import Time
+
+        start = time.monotonic()
+        first = last = None
+        for k in range(count):
+            colour, depth, info = self.messages[k % len(self.messages)]
+            ns = time.time_ns()
+            stamp = Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+            for m in (info, colour, depth):
+                m.header.stamp = stamp
+            self.pub_info.publish(info)
+            self.pub_colour.publish(colour)
+            self.pub_depth.publish(depth)
+            first = ns if first is None else first
+            last = ns
+            if on_tick is not None:
+                on_tick(k)
+            delay = start + (k + 1) / rate - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+        return first, last
+
+    def window(self, first: int, last: int) -> np.ndarray:
+        return np.array([ms for stamp, ms in self.latencies if first <= stamp <= last])
+
+    def close(self):
+        import rclpy
+
+        rclpy.try_shutdown(context=self.context)
+        self._thread.join(5)
+        self.node.destroy_node()
+
+
+def _settle(bench: _Bench, seconds: float = 2.0) -> None:
+    """Wait until the last frame's poses are in (or a few seconds pass)."""
+    n, deadline = -1, time.monotonic() + seconds
+    while time.monotonic() < deadline and n != len(bench.latencies):
+        n = len(bench.latencies)
+        time.sleep(0.5)
+
+
+def _pct(values: np.ndarray, q: float):
+    return round(float(np.percentile(values, q)), 1) if len(values) else None
+
+
+def run(args) -> int:
+    if args.bag is None or args.model is None:
+        from .demo import prepare_data
+
+        data = prepare_data(Path("out/bench_node"), quiet=False)
+        args.bag = args.bag or data["scene_bag"]
+        args.model = args.model or data["model"]
+    frames = _load_frames(args.bag, args.distinct_frames)
+    messages = _messages(frames)
+    env = dict(os.environ, ROS_DOMAIN_ID=str(args.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+               PYTHONUNBUFFERED="1")
+    node = subprocess.Popen([sys.executable, "-m", "multi_instance_reg.ros.node", "--ros-args",
+                             "-p", f"model_path:={args.model}", "-p", "stats_log_period_s:=10.0"],
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    bench = _Bench(messages, args.domain_id)
+    figures: dict = {"frames_distinct": len(messages), "image_size": [frames[0].rgb.shape[1], frames[0].rgb.shape[0]]}
+    try:
+        bench.wait_for_node(60.0, node)
+        bench.publish(10, 10.0)   # warm-up: first-frame costs (allocations, JIT) out of the figures
+        _settle(bench)
+
+        def counters_now():
+            return dict(bench.counters)
+
+        # 1. the camera's rate.
+        before = counters_now()
+        first, last = bench.publish(args.frames, 30.0)
+        _settle(bench)
+        lat = bench.window(first, last)
+        after = counters_now()
+        figures["rate_30hz"] = {
+            "frames_sent": args.frames, "frames_with_poses": int(len(lat)),
+            "dropped": after.get("dropped", 0) - before.get("dropped", 0),
+            "e2e_ms_p50": _pct(lat, 50), "e2e_ms_p95": _pct(lat, 95), "e2e_ms_mean": round(float(lat.mean()), 1) if len(lat) else None}
+
+        # 2. overload.
+        before = counters_now()
+        first, last = bench.publish(args.overload_frames, args.overload_rate)
+        _settle(bench)
+        after = counters_now()
+        span = (last - first) / 3
+        early, late = bench.window(first, first + span), bench.window(last - span, last)
+        figures["overload"] = {
+            "rate_hz": args.overload_rate, "frames_sent": args.overload_frames,
+            "frames_with_poses": int(len(bench.window(first, last))),
+            "dropped": after.get("dropped", 0) - before.get("dropped", 0),
+            "e2e_ms_p50_first_third": _pct(early, 50), "e2e_ms_p50_last_third": _pct(late, 50),
+            "e2e_ms_p95_first_third": _pct(early, 95), "e2e_ms_p95_last_third": _pct(late, 95)}
+
+        # 3. memory over a long replay.
+        if args.rss_frames:
+            samples = []
+
+            def sample(k):
+                if k % 100 == 0:
+                    samples.append((k, rss_mb(node.pid)))
+            first, last = bench.publish(args.rss_frames, 30.0, on_tick=sample)
+            _settle(bench)
+            samples.append((args.rss_frames, rss_mb(node.pid)))
+            rss = np.array([mb for _, mb in samples])
+            lat = bench.window(first, last)
+            tenth = max(1, len(lat) // 10)
+            figures["long_replay"] = {
+                "frames_sent": args.rss_frames, "frames_with_poses": int(len(lat)),
+                "rss_mb_start": round(float(rss[0]), 1), "rss_mb_end": round(float(rss[-1]), 1),
+                "rss_mb_max": round(float(rss.max()), 1),
+                "rss_mb_samples": [(k, round(mb, 1)) for k, mb in samples],
+                "e2e_ms_p50_first_tenth": _pct(lat[:tenth], 50), "e2e_ms_p50_last_tenth": _pct(lat[-tenth:], 50)}
+        figures["node_counters"] = bench.counters
+    finally:
+        bench.close()
+        node.terminate()
+        try:
+            node.wait(10)
+        except subprocess.TimeoutExpired:
+            node.kill()
+            node.wait()
+    _print(figures)
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(figures, indent=2) + "\n")
+    return 0
+
+
+def _print(f: dict) -> None:
+    w, h = f["image_size"]
+    r = f["rate_30hz"]
+    print(f"node end-to-end latency at 30 Hz, {w}x{h} (image published -> poses received):")
+    print(f"  p50 {r['e2e_ms_p50']} ms, p95 {r['e2e_ms_p95']} ms, mean {r['e2e_ms_mean']} ms; "
+          f"{r['frames_with_poses']}/{r['frames_sent']} frames processed, {r['dropped']} dropped (newest kept)")
+    o = f["overload"]
+    print(f"camera outrunning the pipeline ({o['rate_hz']:g} Hz, {o['frames_sent']} frames):")
+    print(f"  p50 {o['e2e_ms_p50_first_third']} ms in the first third, {o['e2e_ms_p50_last_third']} ms in the last; "
+          f"p95 {o['e2e_ms_p95_first_third']} / {o['e2e_ms_p95_last_third']} ms; "
+          f"{o['frames_with_poses']} processed, {o['dropped']} dropped")
+    if "long_replay" in f:
+        m = f["long_replay"]
+        print(f"resident memory over {m['frames_sent']} frames at 30 Hz: start {m['rss_mb_start']} MB, "
+              f"end {m['rss_mb_end']} MB, max {m['rss_mb_max']} MB; latency p50 "
+              f"{m['e2e_ms_p50_first_tenth']} ms (first tenth) -> {m['e2e_ms_p50_last_tenth']} ms (last tenth)")

@@ -1,0 +1,193 @@
+"""The instance_registration node as a real process over DDS (one ROS_DOMAIN_ID per test).
+
+A test process publishes camera frames like realsense-ros and reads what the node publishes.
+The scene is the small poster of ros_testing (one instance ~0.6 m ahead); the ground-truth
+quality over a rendered bag replayed with `mireg play` is in test_ros_replay.py.
+"""
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from ros_testing import (POSTER_Z, CameraPublisher, Probe, poster_frame, poster_model, ros_env, set_parameters,
+                         start, stop, wait_until)
+
+
+def start_node(domain_id, model, *params):
+    args = ["multi_instance_reg.ros.node", "--ros-args", "-p", f"model_path:={model}",
+            "-p", "stats_log_period_s:=0.3"]
+    for p in params:
+        args += ["-p", p]
+    return start(args, domain_id)
+
+
+@pytest.fixture(scope="module")
+def model(tmp_path_factory):
+    return poster_model(tmp_path_factory.mktemp("model") / "poster.npz")
+
+
+def stamp_ns(msg):
+    return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+
+
+def last_stats(box):
+    return json.loads(box[-1][1].data) if box else {}
+
+
+def test_missing_or_broken_model_stops_the_node_with_one_clear_line(tmp_path):
+    broken = tmp_path / "broken.npz"
+    broken.write_bytes(b"not a model")
+    cases = [(["-p", f"model_path:={tmp_path / 'absent.npz'}"], "does not exist"),
+             (["-p", f"model_path:={broken}"], "broken.npz"),
+             ([], "no model"),
+             (["-p", "ecc.inlier_thresh:=-1.0", "-p", f"model_path:={broken}"], "inlier_thresh")]
+    for params, message in cases:
+        done = subprocess.run([sys.executable, "-m", "multi_instance_reg.ros.node", "--ros-args", *params],
+                              env=ros_env(43), capture_output=True, text=True, timeout=60)
+        assert done.returncode == 1, done
+        lines = done.stderr.strip().splitlines()
+        assert len(lines) == 1, done.stderr
+        assert lines[0].startswith("instance_registration: error:") and message in lines[0], lines[0]
+    # Malformed --ros-args: rcl logs its own line first, then ours; no traceback.
+    done = subprocess.run([sys.executable, "-m", "multi_instance_reg.ros.node", "--ros-args", "-p", "model_path:="],
+                          env=ros_env(43), capture_output=True, text=True, timeout=60)
+    assert done.returncode == 1 and "Traceback" not in done.stderr
+    assert done.stderr.strip().splitlines()[-1].startswith("instance_registration: error: cannot parse the --ros-args")
+
+
+def test_poses_markers_details_and_debug_image_for_a_live_stream(model):
+    from geometry_msgs.msg import PoseArray
+    from sensor_msgs.msg import Image
+    from std_msgs.msg import String
+    from visualization_msgs.msg import Marker, MarkerArray
+
+    node = start_node(44, model)
+    probe = Probe(44)
+    try:
+        poses = probe.subscribe(PoseArray, "/instances/poses")
+        markers = probe.subscribe(MarkerArray, "/instances/markers")
+        details = probe.subscribe(String, "/instances/details")
+        debug = probe.subscribe(Image, "/instances/debug_image")
+        camera = CameraPublisher(probe)
+        assert camera.wait_for_subscribers(proc=node), stop(node)
+        rgb, depth, K = poster_frame()
+        sent = []
+        for _ in range(6):
+            sent.append(camera.send(rgb, depth, K))
+            wait_until(lambda: len(poses) == len(sent), 5, proc=node)
+        assert len(poses) == 6, stop(node)
+        # Header = the colour image's stamp and frame id; one pose, the poster 0.6 m ahead.
+        assert [stamp_ns(m) for _, m in poses] == sent
+        for _, msg in poses:
+            assert msg.header.frame_id == "camera_color_optical_frame"
+            assert len(msg.poses) == 1
+            p = msg.poses[0]
+            assert np.allclose([p.position.x, p.position.y, p.position.z], [0, 0, POSTER_Z], atol=0.01)
+            assert abs(p.orientation.w) > 0.999  # identity rotation
+        assert wait_until(lambda: len(details) == 6 and len(markers) == 6, 5)
+        info = json.loads(details[-1][1].data)
+        assert info["stamp_ns"] == sent[-1] and info["frame_id"] == "camera_color_optical_frame"
+        assert info["latency_ms"] > 0 and info["counters"]["processed"] == 6
+        (inst,) = info["instances"]
+        assert inst["id"] == 0 and inst["inliers"] >= 20 and 0 <= inst["score"] <= 1
+        boxes = [m for m in markers[-1][1].markers if m.type == Marker.CUBE]
+        assert len(boxes) == 1 and boxes[0].action == Marker.ADD and boxes[0].scale.x == pytest.approx(0.3166, abs=1e-3)
+        # The debug image is drawn because someone subscribed: same size, something drawn.
+        assert wait_until(lambda: len(debug) >= 1, 5)
+        overlay = debug[-1][1]
+        assert (overlay.width, overlay.height, overlay.encoding) == (640, 480, "rgb8")
+        assert (np.frombuffer(bytes(overlay.data), np.uint8).reshape(480, 640, 3) != rgb).any()
+
+        # The poster leaves the view: no pose, and its markers are deleted.
+        empty = np.full_like(rgb, 90)
+        sent.append(camera.send(empty, np.full_like(depth, 1000), K))
+        assert wait_until(lambda: len(poses) == 7, 5, proc=node)
+        assert poses[-1][1].poses == []
+        assert wait_until(lambda: len(markers) == 7, 5)
+        gone = markers[-1][1].markers
+        assert gone and all(m.action == Marker.DELETE and m.id == 0 for m in gone)
+    finally:
+        probe.close()
+        out = stop(node)
+    assert node.returncode == 0, out
+
+
+def test_parameter_changes_apply_on_the_next_frame_and_bad_ones_are_refused(model):
+    from geometry_msgs.msg import PoseArray
+
+    node = start_node(45, model)
+    probe = Probe(45)
+    try:
+        poses = probe.subscribe(PoseArray, "/instances/poses")
+        camera = CameraPublisher(probe)
+        assert camera.wait_for_subscribers(proc=node), stop(node)
+        rgb, depth, K = poster_frame()
+
+        def frame():
+            n = len(poses)
+            camera.send(rgb, depth, K)
+            assert wait_until(lambda: len(poses) > n, 10, proc=node), stop(node)
+            return len(poses[-1][1].poses)
+
+        assert frame() == 1
+        # Only depth up to 0.3 m: the poster (0.6 m) is out of range, nothing is found.
+        (result,) = set_parameters(probe, {"frontend.depth_max": 0.3})
+        assert result.successful
+        assert frame() == 0
+        # Out of range, wrong type, read-only: refused with the reason; the node keeps going.
+        (result,) = set_parameters(probe, {"ecc.inlier_thresh": -1.0})
+        assert not result.successful and "inlier_thresh" in result.reason
+        (result,) = set_parameters(probe, {"frontend.depth_window": 100})
+        assert not result.successful and "depth_window" in result.reason
+        (result,) = set_parameters(probe, {"model_path": "/elsewhere.npz"})
+        assert not result.successful and "read-only" in result.reason.lower()
+        (result,) = set_parameters(probe, {"frontend.depth_max": 4.0})
+        assert result.successful
+        assert frame() == 1
+        assert node.poll() is None
+    finally:
+        probe.close()
+        out = stop(node)
+    assert "parameters changed: frontend.depth_max=0.3" in out
+
+
+def test_malformed_images_and_missing_camera_info_are_skipped_and_counted(model):
+    from geometry_msgs.msg import PoseArray
+    from std_msgs.msg import String
+
+    node = start_node(46, model)
+    probe = Probe(46)
+    try:
+        poses = probe.subscribe(PoseArray, "/instances/poses")
+        stats = probe.subscribe(String, "/instance_registration/stats")
+        camera = CameraPublisher(probe)
+        assert camera.wait_for_subscribers(proc=node), stop(node)
+        rgb, depth, K = poster_frame()
+        # No camera_info yet: a warning, the frame skipped, no crash.
+        camera.send(rgb, depth, K, with_info=False)
+        assert wait_until(lambda: last_stats(stats).get("no_camera_info") == 1, 5, proc=node), stop(node)
+
+        def bad(**kw):  # one at a time: frames sent faster than processed would be dropped instead
+            n = last_stats(stats).get("bad", 0)
+            camera.send(rgb, depth, K, **kw)
+            assert wait_until(lambda: last_stats(stats).get("bad", 0) == n + 1, 10, proc=node), stop(node)
+
+        bad(colour_msg=camera.image(rgb, "rgb8", overrides={"step": 100}))                # step < width * 3
+        bad(colour_msg=camera.image(rgb, "rgb8", overrides={"encoding": "yuv422_yuy2"}))  # unknown encoding
+        bad(depth_msg=camera.image(depth[:240, :320], "16UC1"))                           # sizes differ
+        bad(colour_msg=camera.image(rgb, "rgb8", overrides={"data": rgb.tobytes()[:1000]}))  # truncated
+        assert poses == [] and last_stats(stats)["dropped"] == 0
+        # ... and the next good frame goes through.
+        camera.send(rgb, depth, K)
+        assert wait_until(lambda: len(poses) == 1, 10, proc=node), stop(node)
+        assert len(poses[0][1].poses) == 1
+        assert node.poll() is None
+        assert wait_until(lambda: last_stats(stats)["processed"] == 1, 5)
+        assert last_stats(stats)["failed"] == 0 and last_stats(stats)["bad"] == 4
+    finally:
+        probe.close()
+        out = stop(node)
+    assert "no camera_info received" in out
+    assert "skipping a malformed frame" in out
