@@ -114,6 +114,14 @@ class InstanceRegistration:
                                           fe.ratio, fe.ratio_separation)
         self._ecc = ECC(self.config.ecc)
 
+    def warm_up(self) -> None:
+        """Run the clustering once on a small made-up problem, so that one-off costs (the ECC
+        core's compiled kernels) are not paid by the first real frame."""
+        rng = np.random.default_rng(0)
+        src = rng.uniform(-0.05, 0.05, (40, 3))
+        tgt = src + np.array([0.0, 0.0, 0.8])
+        self._ecc.register(src, tgt)
+
     def register_frame(self, rgb: np.ndarray, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> FrameResult:
         """rgb (H, W, 3) uint8, depth_m (H, W) float metres (0 = invalid), aligned to colour."""
         check_frame(rgb, depth_m, intrinsics)

@@ -116,6 +116,7 @@ def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_
     from ..rgbd.pipeline import InstanceRegistration
 
     reg = InstanceRegistration(model, config)
+    reg.warm_up()   # compile the ECC core's kernels now, not inside the first frame's latency
     kwargs = dict(zip(("colour_topic", "depth_topic", "info_topic"), topics)) if topics else {}
     out = ReplayResult()
     skip_reasons: dict[str, int] = {}
@@ -233,14 +234,15 @@ def draw_found_vs_present(present, found, hits, width: int = 900, height: int = 
         cv2.putText(img, str(v), (10, y + 5), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
     cv2.putText(img, f"frame (0..{n - 1})", (width // 2 - 50, height - 10), cv2.FONT_HERSHEY_SIMPLEX, 0.5,
                 (0, 0, 0), 1, cv2.LINE_AA)
-    series = [("present", present, (120, 120, 120)), ("found", found, (200, 80, 0)), ("hits", hits, (0, 160, 0))]
-    for k, (label, vals, colour) in enumerate(series):
+    # Wide lines under narrow ones, so equal series stay visible.
+    series = [("present", present, (190, 190, 190), 9), ("found", found, (230, 140, 40), 5), ("hits", hits, (0, 150, 0), 2)]
+    for k, (label, vals, colour, thick) in enumerate(series):
         pts = [xy(i, v) for i, v in enumerate(vals) if v >= 0]
         if len(pts) == 1:
-            cv2.circle(img, pts[0], 3, colour, -1)
+            cv2.circle(img, pts[0], thick, colour, -1)
         if len(pts) > 1:
-            cv2.polylines(img, [np.array(pts, np.int32)], False, colour, 2, cv2.LINE_AA)
-        cv2.line(img, (left + 10 + 130 * k, 20), (left + 40 + 130 * k, 20), colour, 2)
+            cv2.polylines(img, [np.array(pts, np.int32)], False, colour, thick, cv2.LINE_AA)
+        cv2.line(img, (left + 10 + 130 * k, 20), (left + 40 + 130 * k, 20), colour, thick)
         cv2.putText(img, label, (left + 46 + 130 * k, 25), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
     return img
 
