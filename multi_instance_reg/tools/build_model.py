@@ -24,7 +24,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("-o", "--output", required=True, help="model file to write (.npz)")
     parser.add_argument("--frames", default=None,
                         help="frames of the bag to merge: indices '0,10,20' or a range 'start:stop:step' "
-                             "(default: 6 spread over the bag with ground truth, else the first)")
+                             "(default: up to 12 spread over the bag with ground truth, else the first)")
     parser.add_argument("--roi", default=None, help="x,y,w,h pixel box around the object (default: whole image)")
     parser.add_argument("--depth-range", nargs=2, type=float, metavar=("MIN", "MAX"), default=(0.1, 4.0),
                         help="metres: depth kept for the object (default 0.1 4.0)")
@@ -51,7 +51,7 @@ def parse_roi(text: str | None):
 def parse_frames(text: str | None, n_frames: int, has_gt: bool) -> list[int]:
     if text is None:
         if has_gt and n_frames > 1:
-            return sorted(set(np.linspace(0, n_frames - 1, min(6, n_frames)).round().astype(int).tolist()))
+            return sorted(set(np.linspace(0, n_frames - 1, min(12, n_frames)).round().astype(int).tolist()))
         return [0]
     try:
         if ":" in text:
