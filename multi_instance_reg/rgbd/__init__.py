@@ -1,6 +1,6 @@
-"""RGB-D front end (no ROS): SIFT, the stored object model, matching, lifting, the per-frame pipeline."""
-from .model import ObjectModel, load_model, save_model
-from .pipeline import FrameResult, FrontEndConfig, Instance, InstanceRegistration, PipelineConfig
+"""RGB-D front end (no ROS).
 
-__all__ = ["ObjectModel", "load_model", "save_model", "FrameResult", "FrontEndConfig", "Instance",
-           "InstanceRegistration", "PipelineConfig"]
+- ``features``: SIFT extraction;  ``model``: the stored object model (file format, building);
+- ``lifting``: robust depth lookup, undistortion, back-projection;  ``matching``: one-to-many;
+- ``pipeline``: ``InstanceRegistration.register_frame(rgb, depth_m, intrinsics) -> FrameResult``.
+"""

@@ -79,12 +79,16 @@ def load_model(path) -> ObjectModel:
     path = Path(path)
     if not path.is_file():
         raise InputError(f"model file {path} does not exist; build one with `mireg build-model`")
+    with open(path, "rb") as fh:
+        if fh.read(4) != b"PK\x03\x04":   # an npz is a zip archive
+            raise InputError(f"model file {path} is not a readable .npz (not a zip archive); "
+                             f"build one with `mireg build-model`")
     try:
         with np.load(path, allow_pickle=False) as npz:
             arrays = {k: npz[k] for k in npz.files}
-    except ValueError as exc:
-        raise InputError(f"model file {path} is not a valid model: {exc}") from None
-    except Exception as exc:  # zipfile.BadZipFile, EOFError, OSError: not an npz at all
+    except ValueError as exc:  # object arrays need pickle, which is never used for models
+        raise InputError(f"model file {path} is not a valid model: {str(exc).split('.')[0]}") from None
+    except Exception as exc:  # zipfile.BadZipFile, EOFError, OSError: a damaged archive
         raise InputError(f"model file {path} is not a readable .npz ({type(exc).__name__}: {exc}); "
                          f"rebuild it with `mireg build-model`") from None
     _check_arrays(arrays, str(path))

@@ -97,6 +97,8 @@ def check_frame(rgb: np.ndarray, depth_m: np.ndarray, intrinsics: CameraIntrinsi
     if depth_m.shape != rgb.shape[:2]:
         raise InputError(f"depth image is {depth_m.shape[1]}x{depth_m.shape[0]} but colour is "
                          f"{rgb.shape[1]}x{rgb.shape[0]}; register depth to colour (aligned_depth_to_color)")
+    if not np.any(depth_m > 0):
+        raise InputError("depth image has no valid pixel (all zero); is the depth stream running and aligned to colour?")
     if (intrinsics.width, intrinsics.height) != (rgb.shape[1], rgb.shape[0]):
         raise InputError(f"camera_info is for {intrinsics.width}x{intrinsics.height} but the image is "
                          f"{rgb.shape[1]}x{rgb.shape[0]}; use the colour stream's camera_info")
@@ -106,6 +108,9 @@ class InstanceRegistration:
     """Finds every instance of one stored object in RGB-D frames."""
 
     def __init__(self, model: ObjectModel, config: PipelineConfig | None = None):
+        if model.num_keypoints < 3 or len(model.descriptors) != model.num_keypoints:
+            raise InputError(f"object model has {model.num_keypoints} keypoints and {len(model.descriptors)} descriptors; "
+                             f"rebuild it with `mireg build-model`")
         self.model = model
         self.config = config or PipelineConfig()
         fe = self.config.frontend
@@ -113,6 +118,14 @@ class InstanceRegistration:
         self._matcher = DescriptorMatcher(prepare_descriptors(model.descriptors, fe.root_sift), model.keypoints_xyz,
                                           fe.ratio, fe.ratio_separation)
         self._ecc = ECC(self.config.ecc)
+
+    def warm_up(self) -> None:
+        """Run the clustering once on a small made-up problem, so that one-off costs (the ECC
+        core's compiled kernels) are not paid by the first real frame."""
+        rng = np.random.default_rng(0)
+        src = rng.uniform(-0.05, 0.05, (40, 3))
+        tgt = src + np.array([0.0, 0.0, 0.8])
+        self._ecc.register(src, tgt)
 
     def register_frame(self, rgb: np.ndarray, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> FrameResult:
         """rgb (H, W, 3) uint8, depth_m (H, W) float metres (0 = invalid), aligned to colour."""

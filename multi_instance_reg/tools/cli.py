@@ -15,6 +15,8 @@ from ..errors import InputError
 # name -> (module, one-line help)
 COMMANDS = {
     "register": ("multi_instance_reg.tools.register", "multi-instance registration of a correspondence set (npz in, npz out)"),
+    "build-model": ("multi_instance_reg.tools.build_model", "build the stored object model (npz) from a capture bag or colour/depth PNGs"),
+    "offline": ("multi_instance_reg.tools.offline", "replay a bag through the RGB-D pipeline: poses.json, metrics.json with ground truth"),
     "bench": ("multi_instance_reg.tools.bench", "benchmarks that print figures: table1, core, ..."),
     "play": ("multi_instance_reg.tools.play", "publish a bag into the ROS graph with its original timing"),
     "listen": ("multi_instance_reg.tools.listen", "print the node's instances per frame; MHF1 against a bag's ground truth"),

@@ -1,0 +1,96 @@
+"""The per-frame pipeline and its parts: lifting, undistortion, matching, bad inputs."""
+import cv2
+import numpy as np
+import pytest
+from planar_scene import INTRINSICS, K, card_pose, render_planes, table
+from skimage import data
+
+from multi_instance_reg.errors import InputError
+from multi_instance_reg.messages import CameraIntrinsics
+from multi_instance_reg.rgbd.features import SiftSettings, extract_sift
+from multi_instance_reg.rgbd.lifting import backproject, lookup_depth, undistort_pixels
+from multi_instance_reg.rgbd.matching import DescriptorMatcher, prepare_descriptors
+from multi_instance_reg.transforms import apply_transform, invert_transform
+
+
+def lifted_on_plane(uv, depth, T_plane, window=5, max_spread=0.02):
+    z = lookup_depth(depth, uv, window, 0.1, 4.0, max_spread)
+    ok = z > 0
+    xyz = backproject(undistort_pixels(uv[ok], INTRINSICS), z[ok], INTRINSICS)
+    # Distance of each lifted point from the plane (object z = 0).
+    return ok, apply_transform(invert_transform(T_plane), xyz.astype(np.float64))[:, 2]
+
+
+def test_lifting_accuracy_on_a_rendered_plane():
+    T = card_pose(rx=25, ry=-20, rz=30, t=(0.05, 0.02, 0.7))
+    rgb, depth = render_planes(data.astronaut(), (0.3, 0.3), [T])
+    uv, _ = extract_sift(rgb, SiftSettings())
+    assert len(uv) > 100
+    ok, off_plane = lifted_on_plane(uv, depth, T)
+    assert ok.mean() > 0.9          # only keypoints on the border lose their depth
+    assert np.median(np.abs(off_plane)) < 0.0005 and np.percentile(np.abs(off_plane), 95) < 0.002
+
+
+def test_window_median_survives_missing_pixels_and_noise():
+    T = card_pose(rx=20, t=(0.0, 0.0, 0.8))
+    rgb, depth = render_planes(data.astronaut(), (0.4, 0.4), [T])
+    uv, _ = extract_sift(rgb, SiftSettings())
+    rng = np.random.default_rng(0)
+    holes = depth.copy()
+    holes[rng.random(depth.shape) < 0.3] = 0.0                        # 30 % of pixels missing
+    holes = np.where(holes > 0, holes + rng.normal(0, 0.003, depth.shape), 0).astype(np.float32)
+    ok1, err1 = lifted_on_plane(uv, holes, T, window=1)              # the centre pixel alone
+    ok5, err5 = lifted_on_plane(uv, holes, T, window=5)
+    assert ok1.mean() < 0.75 and ok5.mean() > 0.9
+    assert np.median(np.abs(err5)) < np.median(np.abs(err1))
+
+
+def test_depth_edge_keypoints_are_dropped():
+    depth = np.full((20, 20), 0.5, np.float32)
+    depth[:, 10:] = 0.9
+    uv = np.array([[5.0, 5.0], [10.0, 5.0], [15.0, 5.0]], np.float32)
+    z = lookup_depth(depth, uv, 5, 0.1, 4.0, max_spread=0.02)
+    np.testing.assert_allclose(z, [0.5, 0.0, 0.9])
+    z = lookup_depth(depth, uv, 5, 0.1, 4.0, max_spread=0.0)
+    assert z[1] in (np.float32(0.5), np.float32(0.9))
+    assert lookup_depth(depth, np.array([[-5.0, 3.0]]), 5)[0] == 0       # outside the image
+
+
+def test_undistortion_inverts_the_distortion_model():
+    D = np.array([-0.055, 0.066, 0.0004, -0.0008, -0.021])
+    intr = CameraIntrinsics(K=K, width=640, height=480, D=D)
+    rng = np.random.default_rng(1)
+    pts = np.column_stack([rng.uniform(-0.5, 0.5, 50), rng.uniform(-0.4, 0.4, 50), np.ones(50)])
+    ideal = (pts @ K.T)[:, :2]
+    distorted, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), K, D)
+    assert np.abs(distorted.reshape(-1, 2) - ideal).max() > 1.0       # the distortion is not negligible
+    np.testing.assert_allclose(undistort_pixels(distorted.reshape(-1, 2), intr), ideal, atol=0.05)
+    no_d = CameraIntrinsics(K=K, width=640, height=480)
+    np.testing.assert_array_equal(undistort_pixels(ideal, no_d), ideal)
+
+
+def test_ratio_test_ignores_copies_of_the_same_physical_point():
+    rng = np.random.default_rng(0)
+    base = rng.random((50, 128)).astype(np.float32)
+    xyz = rng.uniform(-0.1, 0.1, (50, 3))
+    # The model holds every point twice (two views): two noisy copies of a descriptor, 2 mm apart;
+    # the scene sees a third copy, as far from either.
+    def noisy():
+        return base + rng.normal(0, 0.02, base.shape).astype(np.float32)
+    model_desc = prepare_descriptors(np.vstack([noisy(), noisy()]))
+    model_xyz = np.vstack([xyz, xyz + 0.002])
+    scene = prepare_descriptors(noisy())
+    s, m, r = DescriptorMatcher(model_desc, model_xyz, ratio=0.8, separation=0.01).match(scene)
+    assert len(s) == 50 and np.all(m % 50 == s)
+    # The textbook test (separation 0) rejects them: the copy is as close as the original.
+    s0, _, _ = DescriptorMatcher(model_desc, model_xyz, ratio=0.8, separation=0.0).match(scene)
+    assert len(s0) < 10
+
+
+def test_one_to_many_matching_maps_several_scene_points_to_one_model_point():
+    rng = np.random.default_rng(2)
+    model_desc = prepare_descriptors(rng.random((30, 128)).astype(np.float32))
+    model_xyz = rng.uniform(-0.1, 0.1, (30, 3))
+    scene = np.vstack([model_desc[:10], model_desc[:10]])
+    s, m, _ = DescriptorMatcher(model_desc, model_xyz).match(scene)
+    assert len(s) == 20 and np.all(m == np.tile(np.arange(10), 2))
