@@ -89,6 +89,7 @@ class InstanceRegistrationNode(Node):
         self.model = load_model(self.settings.model_path)
         self._pipeline_class = InstanceRegistration
         self._pipeline = InstanceRegistration(self.model, self.config)
+        self._pipeline.warm_up()  # one-off compilation now, not in the first frame's latency
 
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
@@ -141,7 +142,9 @@ class InstanceRegistrationNode(Node):
         if pipeline_changes:
             # Takes effect on the next frame: the worker picks up the new pipeline there.
             self.config = with_overrides(self.config, pipeline_changes)
-            self._pipeline = self._pipeline_class(self.model, self.config)
+            pipeline = self._pipeline_class(self.model, self.config)
+            pipeline.warm_up()
+            self._pipeline = pipeline
         self.get_logger().info("parameters changed: " + ", ".join(
             f"{k}={v!r}" for k, v in {**node_changes, **pipeline_changes}.items()))
 

@@ -19,6 +19,7 @@ COMMANDS = {
     "offline": ("multi_instance_reg.tools.offline", "replay a bag through the RGB-D pipeline: poses.json, metrics.json with ground truth"),
     "bench": ("multi_instance_reg.tools.bench", "benchmarks that print figures: table1, core, ..."),
     "play": ("multi_instance_reg.tools.play", "publish a bag into the ROS graph with its original timing"),
+    "demo": ("multi_instance_reg.tools.demo", "the end-to-end demo: synthetic bags, model, node, live replay, MHF1 and latency"),
     "listen": ("multi_instance_reg.tools.listen", "print the node's instances per frame; MHF1 against a bag's ground truth"),
 }
 

@@ -17,7 +17,6 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..transforms import invert_transform
 
 HELP = "print the node's instances per frame; MHF1 against a bag's ground truth"
 GT_TOPIC = "/ground_truth/poses"
@@ -38,10 +37,12 @@ def add_arguments(parser) -> None:
     parser.add_argument("--model", type=Path, metavar="MODEL",
                         help="the node's model file: its T_object_model maps the published model frame to the "
                              "ground truth's object frame (without it the two are taken to be the same)")
-    parser.add_argument("--max-rre-deg", type=float, default=20.0, metavar="DEG",
-                        help="a hit needs a rotation error below this (default 20, the paper's)")
-    parser.add_argument("--max-rte-m", type=float, default=0.05, metavar="M",
-                        help="a hit needs a translation error below this (default 0.05 m)")
+    parser.add_argument("--max-rre-deg", type=float, default=10.0, metavar="DEG",
+                        help="a hit needs a rotation error below this (default 10, as mireg offline)")
+    parser.add_argument("--max-rte", type=float, default=0.02, metavar="M",
+                        help="a hit needs a translation error below this (default 0.02 m, as mireg offline)")
+    parser.add_argument("--wait-for-node", type=float, default=0.0, metavar="S",
+                        help="first wait up to S seconds for the node's poses publisher, then print 'listening'")
     parser.add_argument("--quiet", action="store_true", help="only the summary")
 
 
@@ -79,10 +80,9 @@ def pose_array_to_matrices(msg) -> np.ndarray:
 class Listener:
     """Joins poses and details by stamp; keeps what the summary needs."""
 
-    def __init__(self, truth=None, quiet=False, overlay_dir=None, overlay_every=5, T_object_model=None):
+    def __init__(self, truth=None, quiet=False, overlay_dir=None, overlay_every=5, model=None):
         self.truth = truth
-        # Published poses are model frame -> camera; ground truth is object frame -> camera.
-        self.T_model_object = None if T_object_model is None else invert_transform(T_object_model)
+        self.model = model
         self.quiet = quiet
         self.overlay_dir = overlay_dir
         self.overlay_every = max(1, overlay_every)
@@ -123,7 +123,10 @@ class Listener:
         self.overlays_written.append(str(path))
 
     def object_poses(self, model_poses: np.ndarray) -> np.ndarray:
-        return model_poses if self.T_model_object is None else model_poses @ self.T_model_object
+        """Published poses are model frame -> camera; ground truth is object frame -> camera."""
+        from .offline import estimates_in_object_frame
+
+        return model_poses if self.model is None else estimates_in_object_frame(self.model, model_poses)
 
     def _join(self, stamp: int) -> None:
         if stamp not in self.poses or stamp not in self.details:
@@ -143,7 +146,7 @@ class Listener:
             print(f"{stamp / 1e9:.3f} s: {len(poses)} instance(s){gt}, "
                   f"{details['latency_ms']:.0f} ms{': ' + insts if insts else ''}", flush=True)
 
-    def summary(self, max_rre_deg: float = 20.0, max_rte_m: float = 0.05) -> dict:
+    def summary(self, max_rre_deg: float = 10.0, max_rte: float = 0.02) -> dict:
         latencies = [f["details"]["latency_ms"] for f in self.frames]
         counters = self.last_stats or self.last_counters
         out = {
@@ -158,18 +161,18 @@ class Listener:
         if self.truth is not None:
             scored = [(self.object_poses(f["poses"]), self.truth[f["stamp_ns"]])
                       for f in self.frames if f["stamp_ns"] in self.truth]
-            out.update(score_frames(scored, max_rre_deg, max_rte_m))
+            out.update(score_frames(scored, max_rre_deg, max_rte))
         return out
 
 
-def score_frames(pairs, max_rre_deg: float = 20.0, max_rte_m: float = 0.05) -> dict:
+def score_frames(pairs, max_rre_deg: float = 10.0, max_rte: float = 0.02) -> dict:
     """MHR / MHP / MHF1 in % (means over frames) of (estimated, ground-truth) pose stacks."""
     from ..metrics import evaluate_scene, summarize
 
-    s = summarize([evaluate_scene(gt, est, max_rre_deg, max_rte_m) for est, gt in pairs])
+    s = summarize([evaluate_scene(gt, est, max_rre_deg, max_rte) for est, gt in pairs])
     return {"frames_scored": len(pairs), "MHR": round(100 * s["MHR"], 1), "MHP": round(100 * s["MHP"], 1),
             "MHF1": round(100 * s["MHF1"], 1), "MF": round(100 * s["MF"], 1),
-            "max_rre_deg": max_rre_deg, "max_rte_m": max_rte_m,
+            "max_rre_deg": max_rre_deg, "max_rte": max_rte,
             "median_rre_deg": s["median_rre_deg"], "median_rte_m": s["median_rte"]}
 
 
@@ -180,17 +183,17 @@ def format_summary(summary: dict) -> str:
     if "MHF1" in summary:
         lines.insert(0, f"MHF1 {summary['MHF1']} % (MHR {summary['MHR']} %, MHP {summary['MHP']} %) over "
                         f"{summary['frames_scored']} frames with ground truth (hit: rotation < "
-                        f"{summary['max_rre_deg']:g} deg, translation < {summary['max_rte_m']:g} m)")
+                        f"{summary['max_rre_deg']:g} deg, translation < {summary['max_rte']:g} m)")
     return "\n".join(lines)
 
 
 def run(args) -> int:
     truth = read_ground_truth(args.ground_truth) if args.ground_truth else None
-    T_object_model = None
+    model = None
     if args.model:
         from ..rgbd.model import load_model
 
-        T_object_model = load_model(args.model).T_object_model
+        model = load_model(args.model)
     if args.save_overlays:
         args.save_overlays.mkdir(parents=True, exist_ok=True)
 
@@ -201,7 +204,7 @@ def run(args) -> int:
     from sensor_msgs.msg import Image
     from std_msgs.msg import String
 
-    listener = Listener(truth, args.quiet, args.save_overlays, args.overlay_every, T_object_model)
+    listener = Listener(truth, args.quiet, args.save_overlays, args.overlay_every, model)
     rclpy.init()
     node = rclpy.create_node("mireg_listen")
     qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50, reliability=ReliabilityPolicy.RELIABLE)
@@ -210,6 +213,20 @@ def run(args) -> int:
     node.create_subscription(String, "/instance_registration/stats", listener.on_stats, qos)
     if args.save_overlays:
         node.create_subscription(Image, "/instances/debug_image", listener.on_overlay, qos)
+    if args.wait_for_node:
+        deadline = time.monotonic() + args.wait_for_node
+        while node.count_publishers("/instances/poses") == 0:
+            if time.monotonic() > deadline:
+                node.destroy_node()
+                rclpy.try_shutdown()
+                raise InputError(f"no node publishes /instances/poses after {args.wait_for_node:g} s; "
+                                 "is it running with the same ROS_DOMAIN_ID?")
+            rclpy.spin_once(node, timeout_sec=0.1)
+        # Discovery is mutual: give the node's publishers a moment to match our subscriptions.
+        end = time.monotonic() + 0.5
+        while time.monotonic() < end:
+            rclpy.spin_once(node, timeout_sec=0.1)
+    print("listening for the node's output", file=sys.stderr, flush=True)
     start = time.monotonic()
     # SIGTERM (from a script that started us) ends the loop like Ctrl-C: print the summary.
     signal.signal(signal.SIGTERM, lambda *_: rclpy.try_shutdown())
@@ -228,7 +245,7 @@ def run(args) -> int:
     finally:
         node.destroy_node()
         rclpy.try_shutdown()
-    summary = listener.summary(args.max_rre_deg, args.max_rte_m)
+    summary = listener.summary(args.max_rre_deg, args.max_rte)
     print(format_summary(summary), flush=True)
     if args.summary:
         args.summary.parent.mkdir(parents=True, exist_ok=True)

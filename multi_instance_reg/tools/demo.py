@@ -1,0 +1,177 @@
+"""``make demo``: the whole product in a few minutes, on synthetic data made on the spot.
+
+1. renders a capture bag (the object alone) and a scene bag (several instances, distractors,
+   ground truth), and builds the object model from the capture;
+2. starts the ROS node, a separate listener (``mireg listen``) and plays the scene into the
+   node in real time (``mireg play``), all as real processes on a DDS domain of their own;
+3. prints each frame's instances as they arrive, then MHF1 against the ground truth, the mean
+   latency and the frames the node dropped; leaves overlays and a summary in ``out/demo/``.
+"""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+from ..errors import InputError
+
+HELP = "the end-to-end demo: synthetic bags, model, node, live replay, MHF1 and latency"
+REPO = Path(__file__).resolve().parents[2]
+DOMAIN_ID = 87
+COLOUR, DEPTH, INFO = ("/camera/camera/color/image_raw", "/camera/camera/aligned_depth_to_color/image_raw",
+                       "/camera/camera/color/camera_info")
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("--out", type=Path, default=Path("out/demo"), help="where bags, model and results go")
+    parser.add_argument("--frames", type=int, default=90, help="frames in the scene bag (30 Hz)")
+    parser.add_argument("--instances", type=int, default=6, help="instances of the object in the scene")
+    parser.add_argument("--rate", type=float, default=1.0, help="replay speed (1 = real time)")
+    parser.add_argument("--domain-id", type=int, default=DOMAIN_ID, help="ROS_DOMAIN_ID for the demo's processes")
+    parser.add_argument("--fresh", action="store_true", help="render the bags and build the model again")
+
+
+def _say(text: str) -> None:
+    print(f"\033[1m== {text}\033[0m" if sys.stdout.isatty() else f"== {text}", flush=True)
+
+
+def prepare_data(out: Path, frames: int = 90, instances: int = 6, fresh: bool = False, quiet: bool = False) -> dict:
+    """Capture bag, scene bag and model under ``out`` (reused if already there)."""
+    import shutil
+
+    from ..rgbd.model import BuildSettings, build_model, save_model
+    from ..synthetic.scene import generate_capture_bag, generate_scene_bag
+    from .build_model import register_view_with_ecc, views_from_bag
+
+    out.mkdir(parents=True, exist_ok=True)
+    capture, scene, model_path = out / "capture", out / "scene", out / "model.npz"
+    marker = out / "data.json"
+    wanted = {"frames": frames, "instances": instances}
+    if fresh or not marker.exists() or json.loads(marker.read_text()) != wanted:
+        for path in (capture, scene):
+            shutil.rmtree(path, ignore_errors=True)
+        model_path.unlink(missing_ok=True)
+        marker.unlink(missing_ok=True)
+    if not capture.exists():
+        quiet or _say("rendering the capture bag (the object alone, several views)")
+        generate_capture_bag(capture, seed=0, views=8)
+    if not scene.exists():
+        quiet or _say(f"rendering the scene bag ({frames} frames, {instances} instances, distractors)")
+        generate_scene_bag(scene, instances=instances, distractors=3, frames=frames, seed=1)
+    if not model_path.exists():
+        quiet or _say("building the object model from the capture bag")
+        views, description = views_from_bag(capture, None, None)
+        model = build_model(views, BuildSettings(), name=(description or {}).get("name", ""),
+                            register_view=register_view_with_ecc)
+        save_model(model, model_path)
+    marker.write_text(json.dumps(wanted))
+    return {"capture_bag": capture, "scene_bag": scene, "model": model_path}
+
+
+class _Process:
+    """A child process whose output is echoed (optionally) and kept, line by line."""
+
+    def __init__(self, name: str, args: list[str], env: dict, echo: bool, log: Path):
+        self.name, self.lines, self.echo = name, [], echo
+        self.log = log.open("w")
+        self.proc = subprocess.Popen([sys.executable, "-m", *args], env=env, cwd=REPO, text=True,
+                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+        self._thread = threading.Thread(target=self._pump, daemon=True)
+        self._thread.start()
+
+    def _pump(self):
+        for line in self.proc.stdout:
+            self.lines.append(line)
+            self.log.write(line)
+            self.log.flush()
+            if self.echo:
+                print(f"  {line}", end="", flush=True)
+
+    def wait_for_line(self, text: str, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if any(text in line for line in self.lines):
+                return True
+            if self.proc.poll() is not None:
+                time.sleep(0.2)
+                return any(text in line for line in self.lines)
+            time.sleep(0.1)
+        return False
+
+    def stop(self, timeout: float = 10.0) -> int:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self._thread.join(2)
+        self.log.close()
+        return self.proc.returncode
+
+
+def run(args) -> int:
+    started = time.monotonic()
+    out = args.out
+    data = prepare_data(out, args.frames, args.instances, args.fresh)
+    env = dict(os.environ, ROS_DOMAIN_ID=str(args.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+               PYTHONUNBUFFERED="1")
+    params = REPO / "config" / "params.yaml"
+    node_args = ["multi_instance_reg.ros.node", "--ros-args"]
+    if params.exists():
+        node_args += ["--params-file", str(params)]
+    node_args += ["-p", f"model_path:={data['model']}"]
+    overlays = out / "overlays"
+    summary_path = out / "summary.json"
+    summary_path.unlink(missing_ok=True)
+
+    _say("starting the node: " + " ".join(["instance_registration_node", *node_args[1:]]))
+    node = _Process("node", node_args, env, echo=False, log=out / "node.log")
+    listener = play = None
+    try:
+        if not node.wait_for_line("ready:", 120):
+            raise InputError("the node did not start; see " + str(out / "node.log") + ":\n" + "".join(node.lines[-5:]))
+        _say("starting the listener (a separate process) and playing the scene into the node")
+        listener = _Process("listen", [
+            "multi_instance_reg.tools.cli", "listen", "--ground-truth", str(data["scene_bag"]),
+            "--model", str(data["model"]), "--save-overlays", str(overlays), "--overlay-every", "3",
+            "--summary", str(summary_path), "--idle-timeout", "4", "--wait-for-node", "60"],
+            env, echo=True, log=out / "listen.log")
+        if not listener.wait_for_line("listening", 90):
+            raise InputError("the listener did not find the node; see " + str(out / "listen.log"))
+        play = _Process("play", [
+            "multi_instance_reg.tools.cli", "play", str(data["scene_bag"]), "--rate", str(args.rate),
+            "--wait-for", COLOUR, DEPTH, INFO], env, echo=False, log=out / "play.log")
+        if play.proc.wait(600) != 0:
+            raise InputError("mireg play failed:\n" + "".join(play.lines[-5:]))
+        listener.proc.wait(120)
+    finally:
+        for proc in (play, listener, node):
+            if proc is not None:
+                proc.stop()
+    if not summary_path.exists():
+        raise InputError("the listener wrote no summary; see " + str(out / "listen.log"))
+    summary = json.loads(summary_path.read_text())
+    summary["frames_in_bag"] = args.frames
+    summary["demo_seconds"] = round(time.monotonic() - started, 1)
+    summary_path.write_text(json.dumps(summary, indent=2) + "\n")
+    _say("result")
+    print(f"  MHF1 {summary.get('MHF1')} % (MHR {summary.get('MHR')} %, MHP {summary.get('MHP')} %) over "
+          f"{summary.get('frames_scored')} frames the node processed (of {args.frames} played at "
+          f"{30 * args.rate:g} Hz)")
+    print(f"  mean latency {summary['latency_ms_mean']} ms (p50 {summary['latency_ms_p50']} ms), "
+          f"frames dropped by the node: {summary['frames_dropped']} (it always works on the newest frame)")
+    print(f"  overlays: {overlays}/, summary: {summary_path}, logs: {out}/*.log "
+          f"({summary['demo_seconds']:.0f} s in all)")
+    return 0
+
+
+if __name__ == "__main__":  # what `make demo` runs; the same as `mireg demo`
+    from .cli import main
+
+    sys.exit(main(["demo", *sys.argv[1:]]))
