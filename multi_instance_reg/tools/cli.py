@@ -21,6 +21,7 @@ COMMANDS = {
     "play": ("multi_instance_reg.tools.play", "publish a bag into the ROS graph with its original timing"),
     "demo": ("multi_instance_reg.tools.demo", "the end-to-end demo: synthetic bags, model, node, live replay, MHF1 and latency"),
     "listen": ("multi_instance_reg.tools.listen", "print the node's instances per frame; MHF1 against a bag's ground truth"),
+    "synth": ("multi_instance_reg.tools.synth", "make synthetic D455 tabletop bags with ground truth (scene, capture)"),
 }
 
 
