@@ -58,7 +58,6 @@ class FrameCounters:
     synchronised: int = 0
     processed: int = 0
     dropped: int = 0          # synchronised pairs replaced by a newer one before processing
-    unmatched: int = 0        # images that never found a partner within the slop
     bad: int = 0              # malformed images (encoding, step, sizes), skipped
     no_camera_info: int = 0   # pairs skipped because no camera_info had arrived yet
     failed: int = 0           # pipeline raised on a frame, skipped
@@ -105,6 +104,7 @@ class InstanceRegistrationNode(Node):
         self._sync = ApproximateTimeSync(2, int(self.settings.sync_slop_s * 1e9))
         self._slot = LatestSlot()
         self._intrinsics = None
+        self._have_intrinsics = threading.Event()
         self._latencies = deque(maxlen=LATENCY_WINDOW)
         self._marker_ids: set = set()
         self._last_stats = time.monotonic()
@@ -152,6 +152,7 @@ class InstanceRegistrationNode(Node):
     def _on_camera_info(self, msg: CameraInfo) -> None:
         try:
             self._intrinsics = camera_info_to_intrinsics(msg)
+            self._have_intrinsics.set()
         except InputError as exc:
             self.get_logger().warn(f"ignoring camera_info: {exc}", throttle_duration_sec=5.0)
 
@@ -183,6 +184,9 @@ class InstanceRegistrationNode(Node):
 
     def _process(self, pair: _Pair) -> None:
         log = self.get_logger()
+        if self._intrinsics is None:
+            # At start-up the first camera_info can trail the first images by a few frames.
+            self._have_intrinsics.wait(timeout=1.0)
         intrinsics = self._intrinsics
         if intrinsics is None:
             self._count("no_camera_info")
@@ -209,7 +213,7 @@ class InstanceRegistrationNode(Node):
         with self._counters_lock:
             self.counters.processed += 1
             self._latencies.append(latency_ms)
-            counters = asdict(self.counters)
+        counters = self.frame_counts()
         self._pub_details.publish(conversions.details_message(
             stamp_to_ns(header.stamp), header.frame_id, latency_ms, result.instances,
             timings_ms={k: round(float(v), 2) for k, v in result.timings_ms.items()},
@@ -231,12 +235,17 @@ class InstanceRegistrationNode(Node):
         self._pub_debug.publish(msg)
 
     # ---- statistics -------------------------------------------------------------------
-    def stats(self) -> dict:
+    def frame_counts(self) -> dict:
         with self._counters_lock:
-            stats = asdict(self.counters)
-            lat = np.array(self._latencies) if self._latencies else None
+            counts = asdict(self.counters)
         sync = self._sync.counters
-        stats["unmatched"] = sync.unmatched + sync.stale
+        counts["unmatched"] = sync.unmatched + sync.stale  # images that never found a partner
+        return counts
+
+    def stats(self) -> dict:
+        stats = self.frame_counts()
+        with self._counters_lock:
+            lat = np.array(self._latencies) if self._latencies else None
         stats["latency_ms_p50"] = round(float(np.percentile(lat, 50)), 2) if lat is not None else None
         stats["latency_ms_p95"] = round(float(np.percentile(lat, 95)), 2) if lat is not None else None
         stats["latency_ms_mean"] = round(float(lat.mean()), 2) if lat is not None else None

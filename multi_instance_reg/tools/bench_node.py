@@ -288,3 +288,15 @@ def _print(f: dict) -> None:
         print(f"resident memory over {m['frames_sent']} frames at 30 Hz: start {m['rss_mb_start']} MB, "
               f"end {m['rss_mb_end']} MB, max {m['rss_mb_max']} MB; latency p50 "
               f"{m['e2e_ms_p50_first_tenth']} ms (first tenth) -> {m['e2e_ms_p50_last_tenth']} ms (last tenth)")
+
+
+if __name__ == "__main__":  # also `mireg bench node` once the bench registry lists it
+    import argparse
+
+    _parser = argparse.ArgumentParser(prog="mireg bench node", description=HELP)
+    add_arguments(_parser)
+    try:
+        sys.exit(run(_parser.parse_args()))
+    except InputError as exc:
+        print(f"mireg bench node: error: {exc}", file=sys.stderr)
+        sys.exit(2)
