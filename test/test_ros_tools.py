@@ -1,0 +1,38 @@
+"""`mireg bench node` and `make demo` end to end, tiny: the figures and files they promise."""
+import json
+import subprocess
+import sys
+
+from ros_testing import REPO, ros_env
+
+
+def test_bench_node_prints_latency_overload_and_memory_figures(scene_bag, object_model, tmp_path):
+    out = tmp_path / "bench.json"
+    done = subprocess.run(
+        [sys.executable, "-m", "multi_instance_reg.tools.bench_node", "--bag", str(scene_bag), "--model",
+         str(object_model), "--frames", "15", "--overload-frames", "15", "--rss-frames", "30",
+         "--distinct-frames", "3", "--domain-id", "50", "--json", str(out)],
+        env=ros_env(50), cwd=REPO, capture_output=True, text=True, timeout=240)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "end-to-end latency at 30 Hz" in done.stdout and "resident memory" in done.stdout
+    figures = json.loads(out.read_text())
+    r = figures["rate_30hz"]
+    assert 1 <= r["frames_with_poses"] <= 15 and r["frames_with_poses"] + r["dropped"] == 15
+    assert 0 < r["e2e_ms_p50"] <= r["e2e_ms_p95"] < 10_000
+    m = figures["long_replay"]
+    assert 50 < m["rss_mb_start"] <= m["rss_mb_max"] and m["rss_mb_end"] <= m["rss_mb_max"]
+
+
+def test_demo_runs_end_to_end_and_leaves_overlays_and_a_summary(tmp_path):
+    out = tmp_path / "demo"
+    done = subprocess.run([sys.executable, "-m", "multi_instance_reg.tools.demo", "--out", str(out),
+                           "--frames", "10", "--instances", "3", "--domain-id", "51", "--rate", "0.5"],
+                          env=ros_env(51), cwd=REPO, capture_output=True, text=True, timeout=400)
+    assert done.returncode == 0, done.stdout + done.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["frames"] >= 1 and summary["frames_scored"] == summary["frames"]
+    assert summary["MHF1"] is not None and summary["frames_dropped"] is not None
+    assert list((out / "overlays").glob("overlay_*.png"))
+    assert "MHF1" in done.stdout and "mean latency" in done.stdout and "frames dropped" in done.stdout
+    for log in ("node.log", "listen.log", "play.log"):
+        assert (out / log).stat().st_size > 0
