@@ -134,8 +134,7 @@ class _Bench:
         pubs = (self.pub_colour, self.pub_depth, self.pub_info)
         while any(p.get_subscription_count() == 0 for p in pubs):
             if proc.poll() is not None:
-                raise InputError(f"the node exited with code {proc.returncode} before subscribing:\n"
-                                 + (proc.stdout.read() if proc.stdout else ""))
+                raise InputError(f"the node exited with code {proc.returncode} before subscribing")
             if time.monotonic() > deadline:
                 raise InputError("the node did not subscribe to the camera topics in time")
             time.sleep(0.05)
@@ -198,9 +197,13 @@ def run(args) -> int:
     messages = _messages(frames)
     env = dict(os.environ, ROS_DOMAIN_ID=str(args.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                PYTHONUNBUFFERED="1")
+    import tempfile
+
+    # The node's log goes to a file: an unread pipe would fill up and stall it on a long run.
+    log = tempfile.NamedTemporaryFile("w+", prefix="bench_node_", suffix=".log")
     node = subprocess.Popen([sys.executable, "-m", "multi_instance_reg.ros.node", "--ros-args",
                              "-p", f"model_path:={args.model}", "-p", "stats_log_period_s:=10.0"],
-                            env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+                            env=env, stdout=log, stderr=subprocess.STDOUT, text=True)
     bench = _Bench(messages, args.domain_id)
     figures: dict = {"frames_distinct": len(messages), "image_size": [frames[0].rgb.shape[1], frames[0].rgb.shape[0]]}
     try:
@@ -257,6 +260,11 @@ def run(args) -> int:
         except subprocess.TimeoutExpired:
             node.kill()
             node.wait()
+        log.seek(0)
+        node_log = log.read()
+        log.close()
+        if node.returncode not in (0, -15):
+            print(node_log[-3000:], file=sys.stderr)
     _print(figures)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
