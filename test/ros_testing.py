@@ -30,6 +30,18 @@ def start(args: list[str], domain_id: int, **kwargs) -> subprocess.Popen:
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, **kwargs)
 
 
+def start_logged(args: list[str], domain_id: int, log: Path) -> subprocess.Popen:
+    """Like start(), with the output going to ``log`` (readable while it runs)."""
+    proc = subprocess.Popen([sys.executable, "-m", *args], env=ros_env(domain_id), cwd=REPO,
+                            stdout=open(log, "w"), stderr=subprocess.STDOUT, text=True)
+    proc.log = Path(log)
+    return proc
+
+
+def output(proc: subprocess.Popen) -> str:
+    return proc.log.read_text() if hasattr(proc, "log") else ""
+
+
 def stop(proc: subprocess.Popen, timeout: float = 10.0) -> str:
     """Terminate (SIGTERM, then SIGKILL) and return everything it printed."""
     if proc.poll() is None:
@@ -39,6 +51,8 @@ def stop(proc: subprocess.Popen, timeout: float = 10.0) -> str:
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
+    if hasattr(proc, "log"):
+        return output(proc)
     return proc.stdout.read() if proc.stdout else ""
 
 

@@ -148,7 +148,10 @@ class Listener:
 
     def summary(self, max_rre_deg: float = 10.0, max_rte: float = 0.02) -> dict:
         latencies = [f["details"]["latency_ms"] for f in self.frames]
-        counters = self.last_stats or self.last_counters
+        # The newer of the two: details come with every processed frame, stats periodically.
+        def seen(c):
+            return sum(c.get(k, 0) for k in ("processed", "dropped", "bad", "no_camera_info", "failed"))
+        counters = max(self.last_counters, self.last_stats, key=seen)
         out = {
             "frames": len(self.frames),
             "latency_ms_mean": round(float(np.mean(latencies)), 1) if latencies else None,
