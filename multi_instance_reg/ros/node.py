@@ -185,8 +185,9 @@ class InstanceRegistrationNode(Node):
     def _process(self, pair: _Pair) -> None:
         log = self.get_logger()
         if self._intrinsics is None:
-            # At start-up the first camera_info can trail the first images by a few frames.
-            self._have_intrinsics.wait(timeout=1.0)
+            # At start-up the first camera_info can trail the first images: a reliable reader
+            # holds later samples back until a lost one is repaired (Fast DDS heartbeats: 3 s).
+            self._have_intrinsics.wait(timeout=3.5)
         intrinsics = self._intrinsics
         if intrinsics is None:
             self._count("no_camera_info")
@@ -271,6 +272,10 @@ class InstanceRegistrationNode(Node):
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv if argv is None else argv
+    # The pipeline thread runs long stretches of Python; with the default 5 ms GIL switch
+    # interval the executor thread then took ~130 ms per image callback (measured), which is
+    # latency added to every frame. 0.5 ms lets callbacks run on time.
+    sys.setswitchinterval(0.0005)
     try:
         rclpy.init(args=argv)
     except Exception as exc:  # rcl's own error for malformed --ros-args, with a C backtrace

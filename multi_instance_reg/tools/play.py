@@ -91,8 +91,13 @@ def _play(reader, args) -> int:
         if not args.quiet:
             print(f"published {count} messages in {time.monotonic() - wall_start:.1f} s"
                   + (f" ({rounds} rounds)" if rounds > 1 else ""), file=sys.stderr, flush=True)
-        # Reliable delivery of the last messages needs the publishers alive a moment longer.
-        time.sleep(0.5)
+        # Reliable delivery of the last messages needs the publishers alive until every
+        # subscriber has acknowledged them (a lost fragment is repaired on the next heartbeat).
+        from rclpy.duration import Duration
+
+        deadline = time.monotonic() + 5.0
+        for pub in publishers.values():
+            pub.wait_for_all_acked(Duration(seconds=max(0.1, deadline - time.monotonic())))
     finally:
         node.destroy_node()
         rclpy.try_shutdown()
