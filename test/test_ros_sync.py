@@ -114,4 +114,19 @@ def test_time_jumping_back_starts_afresh():
         for k in range(3):
             sync.add(0, (5000 + 33 * k) * MS, (lap, k))
             assert sync.add(1, (5000 + 33 * k) * MS, "d") == ((lap, k), "d")
-    assert sync.counters.resets == 1 and sync.counters.stale == 0
+    assert sync.counters.resets == 2 and sync.counters.stale == 0  # one per stream
+
+
+def test_looping_streams_that_drift_apart_lose_only_the_pairs_at_the_wrap():
+    """Colour runs two frames ahead of depth when the bag wraps around."""
+    sync = ApproximateTimeSync(2, slop_ns=5 * MS)
+    stamps = [k * 33 * MS for k in range(6)] * 3
+    out = []
+    for k in range(len(stamps) + 2):
+        if k < len(stamps):
+            out.append(sync.add(0, stamps[k], ("c", k)))
+        if k >= 2:
+            out.append(sync.add(1, stamps[k - 2], ("d", k - 2)))
+    pairs = [p for p in out if p is not None]
+    assert all(c[1] == d[1] for c, d in pairs)  # never a pair from different laps
+    assert len(pairs) >= 18 - 2 * 2

@@ -37,7 +37,7 @@ class ApproximateTimeSync:
     everything at or before its stamps is discarded, so a set never repeats a message and
     time never goes backwards. Each stream arrives in order (DDS keeps a writer's order),
     so a stamp older than that stream's last emitted one means time jumped back (a bag
-    starting again, a camera restarted): matching starts afresh rather than discarding
+    starting again, a camera restarted): that stream starts afresh rather than discarding
     everything from then on. A repeated stamp is a duplicate and counts as stale.
     Thread-safe.
     """
@@ -63,11 +63,12 @@ class ApproximateTimeSync:
         with self._lock:
             last = self._last_emitted[stream]
             if last is not None and stamp_ns < last:
+                # This stream's time went back: forget its own past (other streams reset
+                # themselves when their own time goes back, so every queue stays sorted).
                 self.counters.resets += 1
-                self.counters.unmatched += sum(len(q) for q in self._queues)
-                for queue in self._queues:
-                    queue.clear()
-                self._last_emitted = [None] * self.n_streams
+                self.counters.unmatched += len(self._queues[stream])
+                self._queues[stream].clear()
+                self._last_emitted[stream] = None
             elif last is not None and stamp_ns == last:
                 self.counters.stale += 1
                 return None
