@@ -11,7 +11,8 @@ to change), pairs colour and depth by header stamp, runs the per-frame pipeline
 - ``~/stats`` (std_msgs/String, JSON): frame counts and latency, also logged.
 
 Callbacks never wait for the pipeline: a synchronised pair goes into a one-frame mailbox
-and the worker always takes the newest one; pairs replaced before the worker got to them
+and the worker thread always takes the newest one (the pipeline itself runs in a child
+process, ``worker.py``, so it never holds this process's GIL); pairs replaced before the worker got to them
 are counted as dropped, so latency cannot queue up when the camera outruns the pipeline.
 
 Run: ``instance_registration_node --ros-args --params-file config/params.yaml
@@ -73,9 +74,9 @@ class _Pair:
 class InstanceRegistrationNode(Node):
     def __init__(self, **node_kwargs):
         super().__init__(NODE_NAME, **node_kwargs)
-        # Imported here so that `--help`-like failures and the sync tests need no OpenCV.
         from ..rgbd.model import load_model
-        from ..rgbd.pipeline import InstanceRegistration, PipelineConfig
+        from ..rgbd.pipeline import PipelineConfig
+        from .worker import PipelineProcess
 
         node_values = declare(self, node_specs(), READ_ONLY)
         pipeline_values = declare(self, param_specs(PipelineConfig()))
@@ -86,9 +87,8 @@ class InstanceRegistrationNode(Node):
         if not self.settings.model_path:
             raise InputError("no model: pass -p model_path:=MODEL (build one with `mireg build-model`)")
         self.model = load_model(self.settings.model_path)
-        self._pipeline_class = InstanceRegistration
-        self._pipeline = InstanceRegistration(self.model, self.config)
-        self._pipeline.warm_up()  # one-off compilation now, not in the first frame's latency
+        # The pipeline runs in a child process (see worker.py): it never holds our GIL.
+        self._pipeline = PipelineProcess(self.model, self.config)
 
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
@@ -140,11 +140,8 @@ class InstanceRegistrationNode(Node):
             self.settings = node_settings({**asdict(self.settings), **node_changes})
             self._sync.set_slop(int(self.settings.sync_slop_s * 1e9))
         if pipeline_changes:
-            # Takes effect on the next frame: the worker picks up the new pipeline there.
+            # Takes effect on the next frame: it goes to the pipeline process with the frame.
             self.config = with_overrides(self.config, pipeline_changes)
-            pipeline = self._pipeline_class(self.model, self.config)
-            pipeline.warm_up()
-            self._pipeline = pipeline
         self.get_logger().info("parameters changed: " + ", ".join(
             f"{k}={v!r}" for k, v in {**node_changes, **pipeline_changes}.items()))
 
@@ -194,18 +191,17 @@ class InstanceRegistrationNode(Node):
             log.warn(f"no camera_info received on {self.resolve_topic_name(CAMERA_INFO_TOPIC)} yet; "
                      "skipping frames until it arrives", throttle_duration_sec=5.0)
             return
-        pipeline = self._pipeline
         try:
             rgb = colour_to_rgb(pair.colour)
             depth = depth_to_metres(pair.depth, self.settings.depth_scale)
-            result = pipeline.register_frame(rgb, depth, intrinsics)  # checks sizes: InputError
+            result = self._pipeline.register(rgb, depth, intrinsics, self.config)  # checks sizes
         except InputError as exc:
             self._count("bad")
             log.warn(f"skipping a malformed frame: {exc}", throttle_duration_sec=2.0)
             return
-        except Exception as exc:  # a bug must not take the camera pipeline down with it
+        except RuntimeError as exc:  # a bug must not take the camera pipeline down with it
             self._count("failed")
-            log.error(f"the pipeline failed on a frame: {type(exc).__name__}: {exc}", throttle_duration_sec=2.0)
+            log.error(f"the pipeline failed on a frame: {exc}", throttle_duration_sec=2.0)
             return
         header = pair.colour.header
         self._pub_poses.publish(conversions.pose_array(result.instances, header))
@@ -267,15 +263,12 @@ class InstanceRegistrationNode(Node):
     def destroy_node(self):
         self._slot.close()
         self._worker.join(timeout=5.0)
+        self._pipeline.close()
         return super().destroy_node()
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv if argv is None else argv
-    # The pipeline thread runs long stretches of Python; with the default 5 ms GIL switch
-    # interval the executor thread then took ~130 ms per image callback (measured), which is
-    # latency added to every frame. 0.5 ms lets callbacks run on time.
-    sys.setswitchinterval(0.0005)
     try:
         rclpy.init(args=argv)
     except Exception as exc:  # rcl's own error for malformed --ros-args, with a C backtrace
