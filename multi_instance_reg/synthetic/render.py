@@ -48,6 +48,9 @@ class Quad:
     tex_rect: tuple[float, float, float, float]
     label: int = LABEL_NOTHING
     disc: bool = False
+    # Optional (h, w) float32 brightness over the quad (s along columns, t along rows), e.g.
+    # the shadows that objects cast on the table.
+    lightmap: np.ndarray | None = None
 
 
 @dataclass
@@ -227,7 +230,14 @@ class Renderer:
             def colour(mask):
                 levels = self._row_levels(Hi, du, dv, tex, rows0, cols0, mask.shape)
                 img = _remap_rows(tex, u0 + ss * du, v0 + ts * dv, levels)
-                return img.astype(np.float32) * shade
+                out = img.astype(np.float32) * shade
+                if q.lightmap is not None:
+                    lh, lw = q.lightmap.shape
+                    light = cv2.remap(q.lightmap, ss * np.float32(lw) - np.float32(0.5),
+                                      ts * np.float32(lh) - np.float32(0.5), cv2.INTER_LINEAR,
+                                      borderMode=cv2.BORDER_REPLICATE)
+                    out *= light[:, :, None]
+                return out
             return colour
         return box, inside, z, make_colour
 

@@ -31,6 +31,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from ..errors import InputError
@@ -38,7 +39,7 @@ from ..messages import CameraIntrinsics
 from ..transforms import invert_transform, make_transform
 from .objects import (BOX_FACES, DEFAULT_OBJECT, ENVIRONMENT_SIZE, OBJECTS, ObjectSpec, environment_texture,
                       get_object, object_textures)
-from .render import LABEL_NOTHING, CylinderSide, Quad, Renderer, Texture
+from .render import AMBIENT, DIFFUSE, LIGHT_DIR_WORLD, LABEL_NOTHING, CylinderSide, Quad, Renderer, Texture
 from .sensor import d455_intrinsics, simulate_colour, simulate_depth
 
 FRAME_RATE_HZ = 30.0
@@ -395,8 +396,44 @@ def object_primitives(placement: Placement) -> list:
     return prims
 
 
-def environment_primitives(wall_y: float) -> list:
-    """The table top (z = 0) and the wall behind it (y = wall_y), both textured."""
+SHADOW_METRES_PER_TEXEL = 0.004
+
+
+def table_lightmap(placements: list[Placement], wall_y: float, size_m: tuple[float, float]) -> np.ndarray:
+    """Brightness of the table top (1 = lit): soft shadows cast by the objects along the
+    light direction, plus darkening right around their footprints (skylight they block).
+    Rows run from the wall (y = wall_y) towards the front, columns from x = -TABLE_HALF_X."""
+    sx, sy = size_m
+    w, h = int(round(sx / SHADOW_METRES_PER_TEXEL)), int(round(sy / SHADOW_METRES_PER_TEXEL))
+    shadow = np.zeros((h, w), np.float32)
+    contact = np.zeros((h, w), np.float32)
+    L = LIGHT_DIR_WORLD
+    ring = np.linspace(0, 2 * np.pi, 24, endpoint=False)
+    for p in placements:
+        half = p.spec.half_extents
+        if p.spec.shape == "cylinder":
+            local = np.array([[half[0] * np.cos(a), half[0] * np.sin(a), sz * half[2]]
+                              for a in ring for sz in (-1, 1)])
+        else:
+            local = np.array([[sx_ * half[0], sy_ * half[1], sz * half[2]]
+                              for sx_ in (-1, 1) for sy_ in (-1, 1) for sz in (-1, 1)])
+        pts = local @ p.pose[:3, :3].T + p.pose[:3, 3]
+        cast = pts[:, :2] - (pts[:, 2:3] / L[2]) * L[:2]             # along the light onto z = 0
+        for target, xy in ((shadow, cast), (contact, pts[pts[:, 2] < 0.01 + pts[:, 2].min(), :2])):
+            px = np.stack([(xy[:, 0] + TABLE_HALF_X) / SHADOW_METRES_PER_TEXEL,
+                           (wall_y - xy[:, 1]) / SHADOW_METRES_PER_TEXEL], axis=1)
+            hull = cv2.convexHull(np.round(px * 16).astype(np.int32))
+            cv2.fillConvexPoly(target, hull, 1.0, lineType=cv2.LINE_AA, shift=4)
+    shadow = cv2.GaussianBlur(shadow, (0, 0), 0.006 / SHADOW_METRES_PER_TEXEL)
+    contact = cv2.GaussianBlur(contact, (0, 0), 0.02 / SHADOW_METRES_PER_TEXEL)
+    # In full shadow only the ambient term remains: AMBIENT / (AMBIENT + DIFFUSE * L_z).
+    direct = 1.0 - AMBIENT / (AMBIENT + DIFFUSE * L[2])
+    return np.clip(1.0 - direct * shadow - 0.25 * contact, 0.3, 1.0).astype(np.float32)
+
+
+def environment_primitives(wall_y: float, placements: list[Placement] = ()) -> list:
+    """The table top (z = 0) and the wall behind it (y = wall_y), both textured; the
+    placements cast shadows on the table."""
     table_tex = _environment_texture("table")
     wall_tex = _environment_texture("wall")
     table_per_m = ENVIRONMENT_SIZE["table"][2]
@@ -404,7 +441,8 @@ def environment_primitives(wall_y: float) -> list:
     sx, sy = 2 * TABLE_HALF_X, min(wall_y - TABLE_FRONT_Y, ENVIRONMENT_SIZE["table"][1])
     table = Quad(origin=np.array([-TABLE_HALF_X, wall_y, 0.0]), e1=np.array([sx, 0.0, 0.0]),
                  e2=np.array([0.0, -sy, 0.0]), normal=np.array([0.0, 0.0, 1.0]), texture=table_tex,
-                 tex_rect=(0.0, 0.0, sx * table_per_m, sy * table_per_m))
+                 tex_rect=(0.0, 0.0, sx * table_per_m, sy * table_per_m),
+                 lightmap=table_lightmap(list(placements), wall_y, (sx, sy)) if placements else None)
     wall_w, wall_h = ENVIRONMENT_SIZE["wall"][:2]
     # The wall stops just below the table top: anything lower is hidden and costs time.
     wall = Quad(origin=np.array([-wall_w / 2, wall_y, wall_h - 0.02]), e1=np.array([wall_w, 0.0, 0.0]),
@@ -447,7 +485,7 @@ class SyntheticScene:
             wall_y = max(0.45, max(p.pose[1, 3] for p in self.placements) + 0.3)
             if self.kind == "capture":
                 wall_y = 1.0
-            self.primitives = environment_primitives(wall_y)
+            self.primitives = environment_primitives(wall_y, self.placements)
             for p in self.placements:
                 self.primitives += object_primitives(p)
         self._renderer = Renderer(self.intrinsics.K, self.intrinsics.width, self.intrinsics.height)
