@@ -1,0 +1,82 @@
+"""Multi-instance registration metrics (ECC paper, appendix; NOTES.md section 2).
+
+Per scene: match K ground-truth to M estimated transforms with the Hungarian method on the
+Frobenius distance of the 4x4 matrices; a matched pair is a hit when RRE < max_rre_deg and
+RTE < max_rte. MHR = hits / K, MHP = hits / M, MHF1 = per-scene F1. Over scenes, MHR, MHP and
+MHF1 are averaged; MF is the F1 of the averaged precision and recall, as later papers report.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from .transforms import rotation_angle_deg
+
+
+def _f1(precision: float, recall: float) -> float:
+    return 0.0 if precision + recall == 0 else 2 * precision * recall / (precision + recall)
+
+
+@dataclass
+class SceneScore:
+    n_gt: int
+    n_est: int
+    hits: int
+    pairs: list[tuple[int, int]] = field(default_factory=list)   # (gt index, est index)
+    rre_deg: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per pair
+    rte: np.ndarray = field(default_factory=lambda: np.zeros(0))      # per pair
+    hit: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+
+    @property
+    def recall(self) -> float:
+        # A scene with nothing to find and nothing found is perfect; with nothing to find
+        # and something found, recall is vacuous (1) and precision carries the penalty.
+        return 1.0 if self.n_gt == 0 else self.hits / self.n_gt
+
+    @property
+    def precision(self) -> float:
+        return (1.0 if self.n_gt == 0 else 0.0) if self.n_est == 0 else self.hits / self.n_est
+
+    @property
+    def f1(self) -> float:
+        return _f1(self.precision, self.recall)
+
+
+def evaluate_scene(T_gt, T_est, max_rre_deg: float = 20.0, max_rte: float = 0.5) -> SceneScore:
+    """Score one scene. T_gt (K,4,4), T_est (M,4,4); either may be empty."""
+    T_gt = np.asarray(T_gt, dtype=np.float64).reshape(-1, 4, 4)
+    T_est = np.asarray(T_est, dtype=np.float64).reshape(-1, 4, 4)
+    K, M = len(T_gt), len(T_est)
+    if K == 0 or M == 0:
+        return SceneScore(K, M, 0)
+    cost = np.linalg.norm(T_gt[:, None] - T_est[None], axis=(2, 3))
+    gi, ei = linear_sum_assignment(cost)
+    rre = np.array([rotation_angle_deg(T_est[e, :3, :3].T @ T_gt[g, :3, :3]) for g, e in zip(gi, ei)])
+    rte = np.linalg.norm(T_gt[gi, :3, 3] - T_est[ei, :3, 3], axis=1)
+    hit = (rre < max_rre_deg) & (rte < max_rte)
+    return SceneScore(K, M, int(hit.sum()), list(zip(gi.tolist(), ei.tolist())), rre, rte, hit)
+
+
+def summarize(scores: list[SceneScore]) -> dict:
+    """Averages over scenes: MHR, MHP, MHF1 (mean of per-scene F1), MF (F1 of the means),
+    and the median RRE / RTE of the hits."""
+    if not scores:
+        return {"scenes": 0, "MHR": 0.0, "MHP": 0.0, "MHF1": 0.0, "MF": 0.0,
+                "median_rre_deg": None, "median_rte": None, "hits": 0, "gt": 0, "est": 0}
+    mhr = float(np.mean([s.recall for s in scores]))
+    mhp = float(np.mean([s.precision for s in scores]))
+    rre = np.concatenate([s.rre_deg[s.hit] for s in scores])
+    rte = np.concatenate([s.rte[s.hit] for s in scores])
+    return {
+        "scenes": len(scores),
+        "MHR": mhr, "MHP": mhp,
+        "MHF1": float(np.mean([s.f1 for s in scores])),
+        "MF": _f1(mhp, mhr),
+        "median_rre_deg": float(np.median(rre)) if len(rre) else None,
+        "median_rte": float(np.median(rte)) if len(rte) else None,
+        "hits": int(sum(s.hits for s in scores)),
+        "gt": int(sum(s.n_gt for s in scores)),
+        "est": int(sum(s.n_est for s in scores)),
+    }
