@@ -40,7 +40,7 @@ from ..messages import CameraIntrinsics
 from ..transforms import invert_transform, make_transform
 from .objects import (BOX_FACES, DEFAULT_OBJECT, ENVIRONMENT_SIZE, OBJECTS, ObjectSpec, environment_texture,
                       get_object, object_textures)
-from .render import AMBIENT, DIFFUSE, LIGHT_DIR_WORLD, LABEL_NOTHING, CylinderSide, Quad, Renderer, Texture
+from .render import AMBIENT, DIFFUSE, LIGHT_DIR_WORLD, CylinderSide, Quad, Renderer, Texture
 from .sensor import d455_intrinsics, simulate_colour, simulate_depth
 
 FRAME_RATE_HZ = 30.0
