@@ -144,9 +144,8 @@ class _Table:
     def __init__(self):
         self.placed: list[Placement] = []
 
-    def collides(self, pose, half, ignore=None) -> bool:
-        return any(p is not ignore and _obb_overlap(pose, half, p.pose, p.spec.half_extents)
-                   for p in self.placed)
+    def collides(self, pose, half) -> bool:
+        return any(_obb_overlap(pose, half, p.pose, p.spec.half_extents) for p in self.placed)
 
     def slide_to_contact(self, pose, half, target: np.ndarray, direction: np.ndarray, other: Placement):
         """Move ``pose`` along -``direction`` from far away towards ``target`` until it just
