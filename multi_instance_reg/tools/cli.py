@@ -16,6 +16,7 @@ from ..errors import InputError
 COMMANDS = {
     "register": ("multi_instance_reg.tools.register", "multi-instance registration of a correspondence set (npz in, npz out)"),
     "bench": ("multi_instance_reg.tools.bench", "benchmarks that print figures: table1, core, ..."),
+    "synth": ("multi_instance_reg.tools.synth", "make synthetic D455 tabletop bags with ground truth (scene, capture)"),
 }
 
 
