@@ -48,6 +48,9 @@ class Quad:
     tex_rect: tuple[float, float, float, float]
     label: int = LABEL_NOTHING
     disc: bool = False
+    # Optional (h, w) float32 brightness over the quad (s along columns, t along rows), e.g.
+    # the shadows that objects cast on the table.
+    lightmap: np.ndarray | None = None
 
 
 @dataclass
@@ -148,6 +151,7 @@ class Renderer:
         R = T_cam_world[:3, :3]
         t = T_cam_world[:3, 3]
         light_cam = R @ LIGHT_DIR_WORLD
+        labels_touched = False      # until an object is drawn, labels are all LABEL_NOTHING
         image_window = (0, 0, W, H)
         wide_window = (-W, -H, 2 * W, 2 * H)
         for prim in primitives:
@@ -179,7 +183,9 @@ class Renderer:
                 continue
             # copyto(where=) is faster than boolean indexing on large boxes (no compaction).
             np.copyto(zr, z, where=draw)
-            np.copyto(labels[y0:y1, x0:x1], np.int16(prim.label), where=draw)
+            if prim.label != LABEL_NOTHING or labels_touched:
+                np.copyto(labels[y0:y1, x0:x1], np.int16(prim.label), where=draw)
+                labels_touched = True
             np.copyto(radiance[y0:y1, x0:x1], colour_fn(draw), where=draw[:, :, None])
         return RenderOutput(radiance, zbuf, labels, coverage)
 
@@ -227,7 +233,14 @@ class Renderer:
             def colour(mask):
                 levels = self._row_levels(Hi, du, dv, tex, rows0, cols0, mask.shape)
                 img = _remap_rows(tex, u0 + ss * du, v0 + ts * dv, levels)
-                return img.astype(np.float32) * shade
+                out = img.astype(np.float32) * shade
+                if q.lightmap is not None:
+                    lh, lw = q.lightmap.shape
+                    light = cv2.remap(q.lightmap, ss * np.float32(lw) - np.float32(0.5),
+                                      ts * np.float32(lh) - np.float32(0.5), cv2.INTER_LINEAR,
+                                      borderMode=cv2.BORDER_REPLICATE)
+                    out *= light[:, :, None]
+                return out
             return colour
         return box, inside, z, make_colour
 

@@ -9,7 +9,8 @@ Python API (what tests, the demo and the tools call):
   yaw; some touch, some are stacked or lean on another, some are occluded or leave the view.
 - ``make_capture_scene(object_name, seed=0, views=10, resolution="640x480")``: the object
   alone on the table seen from ``views`` viewpoints around it (elevation 30-60 deg,
-  0.4-0.6 m), the way a user scans it to build the stored model.
+  0.4-0.6 m), the way a user scans it to build the stored model; half way the object is
+  turned over, so every face is seen (the ground-truth pose follows it).
 - ``SyntheticScene.render_frame(i) -> RenderedFrame`` / ``SyntheticScene.frames()``: per frame
   ``rgb`` (H, W, 3) uint8, ``depth_mm`` (H, W) uint16 (0 = invalid), ``depth_true_m`` (H, W)
   float32 noise-free (0 = nothing), ``K`` (3, 3), ``poses`` (K, 4, 4) object -> colour optical
@@ -31,6 +32,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from ..errors import InputError
@@ -38,7 +40,7 @@ from ..messages import CameraIntrinsics
 from ..transforms import invert_transform, make_transform
 from .objects import (BOX_FACES, DEFAULT_OBJECT, ENVIRONMENT_SIZE, OBJECTS, ObjectSpec, environment_texture,
                       get_object, object_textures)
-from .render import LABEL_NOTHING, CylinderSide, Quad, Renderer, Texture
+from .render import AMBIENT, DIFFUSE, LIGHT_DIR_WORLD, CylinderSide, Quad, Renderer, Texture
 from .sensor import d455_intrinsics, simulate_colour, simulate_depth
 
 FRAME_RATE_HZ = 30.0
@@ -142,9 +144,8 @@ class _Table:
     def __init__(self):
         self.placed: list[Placement] = []
 
-    def collides(self, pose, half, ignore=None) -> bool:
-        return any(p is not ignore and _obb_overlap(pose, half, p.pose, p.spec.half_extents)
-                   for p in self.placed)
+    def collides(self, pose, half) -> bool:
+        return any(_obb_overlap(pose, half, p.pose, p.spec.half_extents) for p in self.placed)
 
     def slide_to_contact(self, pose, half, target: np.ndarray, direction: np.ndarray, other: Placement):
         """Move ``pose`` along -``direction`` from far away towards ``target`` until it just
@@ -179,9 +180,9 @@ def place_objects(target: ObjectSpec, instances: int, distractor_specs: list[Obj
     items = [(target, k) for k in range(instances)] + \
             [(spec, _DISTRACTOR_LABEL0 + j) for j, spec in enumerate(distractor_specs)]
     order = rng.permutation(len(items))
-    # Region: about 2.8 times the summed footprints, 4:3.
+    # Region: about 2.4 times the summed footprints, 4:3.
     footprint = sum(s.dimensions_m[0] * max(s.dimensions_m[1], s.dimensions_m[2]) for s, _ in items)
-    area = max(0.12, 2.8 * footprint)
+    area = max(0.1, 2.4 * footprint)
     half = np.array([np.sqrt(area * 4 / 3) / 2, np.sqrt(area * 3 / 4) / 2])
     table = _Table()
     for idx in order:
@@ -294,13 +295,16 @@ def _clearance(eye: np.ndarray, placements: list[Placement]) -> float:
 def sweep_trajectory(placements: list[Placement], frames: int, rng) -> list[np.ndarray]:
     """A smooth hand-held sweep over the table from the front: camera -> world poses at 30 Hz.
 
-    Distance to the looked-at point 0.5-1.0 m (0.4-1.5 m to what is seen), elevation
-    ~35-65 deg, azimuth swinging +-12-22 deg, plus a few millimetres of hand shake.
+    Distance to the looked-at point 0.5-0.9 m (up to ~1.35 m for crowded tables), elevation
+    ~40-70 deg, azimuth swinging +-12-22 deg, plus a few millimetres of hand shake. Most
+    instances end up 0.5-1.0 m from the camera.
     """
     centres = np.array([p.pose[:3, 3] for p in placements])
     centre = np.array([centres[:, 0].mean(), centres[:, 1].mean(), 0.03])
-    r0 = rng.uniform(0.64, 0.8)
-    el0 = np.radians(rng.uniform(42, 56))
+    # Back off for crowded tables so that most of them fits in the view (up to ~1.25 m).
+    spread = np.percentile(np.linalg.norm(centres[:, :2] - centre[:2], axis=1), 80)
+    r0 = min(max(rng.uniform(0.6, 0.75), 0.9 * spread), 1.2)
+    el0 = np.radians(rng.uniform(45, 62))
     az0 = np.radians(-90 + rng.uniform(-20, 20))
     amp_az = np.radians(rng.uniform(12, 22))
     amp_el = np.radians(rng.uniform(4, 8))
@@ -393,8 +397,44 @@ def object_primitives(placement: Placement) -> list:
     return prims
 
 
-def environment_primitives(wall_y: float) -> list:
-    """The table top (z = 0) and the wall behind it (y = wall_y), both textured."""
+SHADOW_METRES_PER_TEXEL = 0.004
+
+
+def table_lightmap(placements: list[Placement], wall_y: float, size_m: tuple[float, float]) -> np.ndarray:
+    """Brightness of the table top (1 = lit): soft shadows cast by the objects along the
+    light direction, plus darkening right around their footprints (skylight they block).
+    Rows run from the wall (y = wall_y) towards the front, columns from x = -TABLE_HALF_X."""
+    sx, sy = size_m
+    w, h = int(round(sx / SHADOW_METRES_PER_TEXEL)), int(round(sy / SHADOW_METRES_PER_TEXEL))
+    shadow = np.zeros((h, w), np.float32)
+    contact = np.zeros((h, w), np.float32)
+    L = LIGHT_DIR_WORLD
+    ring = np.linspace(0, 2 * np.pi, 24, endpoint=False)
+    for p in placements:
+        half = p.spec.half_extents
+        if p.spec.shape == "cylinder":
+            local = np.array([[half[0] * np.cos(a), half[0] * np.sin(a), sz * half[2]]
+                              for a in ring for sz in (-1, 1)])
+        else:
+            local = np.array([[sx_ * half[0], sy_ * half[1], sz * half[2]]
+                              for sx_ in (-1, 1) for sy_ in (-1, 1) for sz in (-1, 1)])
+        pts = local @ p.pose[:3, :3].T + p.pose[:3, 3]
+        cast = pts[:, :2] - (pts[:, 2:3] / L[2]) * L[:2]             # along the light onto z = 0
+        for target, xy in ((shadow, cast), (contact, pts[pts[:, 2] < 0.01 + pts[:, 2].min(), :2])):
+            px = np.stack([(xy[:, 0] + TABLE_HALF_X) / SHADOW_METRES_PER_TEXEL,
+                           (wall_y - xy[:, 1]) / SHADOW_METRES_PER_TEXEL], axis=1)
+            hull = cv2.convexHull(np.round(px * 16).astype(np.int32))
+            cv2.fillConvexPoly(target, hull, 1.0, lineType=cv2.LINE_AA, shift=4)
+    shadow = cv2.GaussianBlur(shadow, (0, 0), 0.006 / SHADOW_METRES_PER_TEXEL)
+    contact = cv2.GaussianBlur(contact, (0, 0), 0.02 / SHADOW_METRES_PER_TEXEL)
+    # In full shadow only the ambient term remains: AMBIENT / (AMBIENT + DIFFUSE * L_z).
+    direct = 1.0 - AMBIENT / (AMBIENT + DIFFUSE * L[2])
+    return np.clip(1.0 - direct * shadow - 0.25 * contact, 0.3, 1.0).astype(np.float32)
+
+
+def environment_primitives(wall_y: float, placements: list[Placement] = ()) -> list:
+    """The table top (z = 0) and the wall behind it (y = wall_y), both textured; the
+    placements cast shadows on the table."""
     table_tex = _environment_texture("table")
     wall_tex = _environment_texture("wall")
     table_per_m = ENVIRONMENT_SIZE["table"][2]
@@ -402,7 +442,8 @@ def environment_primitives(wall_y: float) -> list:
     sx, sy = 2 * TABLE_HALF_X, min(wall_y - TABLE_FRONT_Y, ENVIRONMENT_SIZE["table"][1])
     table = Quad(origin=np.array([-TABLE_HALF_X, wall_y, 0.0]), e1=np.array([sx, 0.0, 0.0]),
                  e2=np.array([0.0, -sy, 0.0]), normal=np.array([0.0, 0.0, 1.0]), texture=table_tex,
-                 tex_rect=(0.0, 0.0, sx * table_per_m, sy * table_per_m))
+                 tex_rect=(0.0, 0.0, sx * table_per_m, sy * table_per_m),
+                 lightmap=table_lightmap(list(placements), wall_y, (sx, sy)) if placements else None)
     wall_w, wall_h = ENVIRONMENT_SIZE["wall"][:2]
     # The wall stops just below the table top: anything lower is hidden and costs time.
     wall = Quad(origin=np.array([-wall_w / 2, wall_y, wall_h - 0.02]), e1=np.array([wall_w, 0.0, 0.0]),
@@ -438,16 +479,20 @@ class SyntheticScene:
     camera_poses: list[np.ndarray]       # camera -> world, one per frame
     intrinsics: CameraIntrinsics
     seed: int
-    primitives: list = field(default_factory=list)
+    # (first frame, placements) from which frame on the objects lie differently, e.g. a
+    # capture where the user turns the object over half way; same objects, same labels.
+    later_placements: list = field(default_factory=list)
 
     def __post_init__(self):
-        if not self.primitives:
-            wall_y = max(0.45, max(p.pose[1, 3] for p in self.placements) + 0.3)
-            if self.kind == "capture":
-                wall_y = 1.0
-            self.primitives = environment_primitives(wall_y)
-            for p in self.placements:
-                self.primitives += object_primitives(p)
+        wall_y = max(0.45, max(p.pose[1, 3] for p in self.placements) + 0.3)
+        if self.kind == "capture":
+            wall_y = 1.0
+        self._stages = []           # (first frame, placements, primitives)
+        for start, placements in [(0, self.placements)] + sorted(self.later_placements, key=lambda s: s[0]):
+            prims = environment_primitives(wall_y, placements)
+            for p in placements:
+                prims += object_primitives(p)
+            self._stages.append((start, placements, prims))
         self._renderer = Renderer(self.intrinsics.K, self.intrinsics.width, self.intrinsics.height)
 
     @property
@@ -473,8 +518,9 @@ class SyntheticScene:
     def render_frame(self, index: int) -> RenderedFrame:
         T_wc = self.camera_poses[index]
         T_cw = invert_transform(T_wc)
-        instances = self.instances
-        out = self._renderer.render(self.primitives, T_cw, count_labels=[p.label for p in instances])
+        _, placements, primitives = [st for st in self._stages if st[0] <= index][-1]
+        instances = [p for p in placements if p.is_instance]
+        out = self._renderer.render(primitives, T_cw, count_labels=[p.label for p in instances])
         noise_seed = int(np.random.SeedSequence([self.seed, index, 17]).generate_state(1)[0])
         rgb = simulate_colour(out.radiance, noise_seed)
         depth_mm = simulate_depth(out.depth_m, float(self.intrinsics.K[0, 0]), noise_seed + 1)
@@ -530,8 +576,17 @@ def make_capture_scene(object_name: str = DEFAULT_OBJECT, seed: int = 0, views: 
     pose = make_transform(_resting_rotation(spec, up, rng.uniform(0, 2 * np.pi), rng), [0.0, 0.0, 0.0])
     pose[2, 3] -= _lowest_z(pose, spec.half_extents)
     placement = Placement(spec, pose, 0, "free")
-    poses = capture_viewpoints(placement, int(views), rng)
-    return SyntheticScene("capture", spec, [placement], poses, d455_intrinsics(resolution), int(seed))
+    # Half way the user turns the object over (180 deg about a horizontal axis, same spot),
+    # so that the model also holds the face it first stood on; each half goes all around.
+    flipped = placement.pose.copy()
+    flipped[:3, :3] = _rot_x(np.pi) @ flipped[:3, :3]
+    flipped[2, 3] -= _lowest_z(flipped, spec.half_extents)
+    turned = Placement(spec, flipped, 0, "free")
+    first = int(views) - int(views) // 2
+    poses = capture_viewpoints(placement, first, rng) + capture_viewpoints(turned, int(views) - first, rng)
+    later = [(first, [turned])]
+    return SyntheticScene("capture", spec, [placement], poses, d455_intrinsics(resolution), int(seed),
+                          later_placements=later)
 
 
 # ----------------------------------------------------------------------------------------------
