@@ -26,7 +26,7 @@ from ..errors import InputError
 from ..messages import CameraIntrinsics
 from ..transforms import apply_transform, invert_transform, make_transform
 from .features import SiftSettings, extract_sift
-from .lifting import backproject, depth_to_cloud, lookup_depth, undistort_pixels
+from .lifting import backproject, depth_to_cloud, fit_dominant_plane, lookup_depth, undistort_pixels
 
 MODEL_SCHEMA_VERSION = 1
 _REQUIRED = ("schema_version", "keypoints_xyz", "descriptors", "points_xyz", "extent", "T_capture_model")
@@ -151,46 +151,13 @@ class BuildSettings:
     roi: tuple[int, int, int, int] | None = None       # x, y, w, h in pixels
     depth_range: tuple[float, float] = (0.1, 4.0)      # metres
     plane_thresh: float = 0.01                         # metres: table points within this of the plane are removed
+    edge_thresh: float = 0.015                         # metres: depth step between neighbours that separates blobs
+    min_blob_pixels: int = 200                         # blobs smaller than this are never the object
     sift: SiftSettings = field(default_factory=lambda: SiftSettings(contrast_threshold=0.02, upsample=1.0))
     depth_window: int = 5
     voxel: float = 0.003                               # metres: dense cloud resolution
     min_keypoints: int = 10
     seed: int = 0
-
-
-def fit_dominant_plane(points: np.ndarray, thresh: float, iterations: int = 200, seed: int = 0
-                       ) -> tuple[np.ndarray, float, np.ndarray] | None:
-    """RANSAC plane n.x + d = 0 (|n| = 1, oriented towards the camera: d > 0) with the most
-    points within ``thresh``; returns (n, d, inlier mask) refined by least squares, or None."""
-    if len(points) < 50:
-        return None
-    rng = np.random.default_rng(seed)
-    sample = points if len(points) <= 5000 else points[rng.choice(len(points), 5000, replace=False)]
-    best_count, best = 0, None
-    for _ in range(iterations):
-        p = sample[rng.choice(len(sample), 3, replace=False)]
-        n = np.cross(p[1] - p[0], p[2] - p[0])
-        norm = np.linalg.norm(n)
-        if norm < 1e-9:
-            continue
-        n = n / norm
-        d = -n @ p[0]
-        count = int((np.abs(sample @ n + d) < thresh).sum())
-        if count > best_count:
-            best_count, best = count, (n, d)
-    if best is None:
-        return None
-    n, d = best
-    inl = np.abs(points @ n + d) < thresh
-    if inl.sum() >= 3:  # least-squares refit on the inliers
-        c = points[inl].mean(axis=0)
-        _, _, vt = np.linalg.svd(points[inl] - c, full_matrices=False)
-        n = vt[2]
-        d = -n @ c
-        inl = np.abs(points @ n + d) < thresh
-    if d < 0:  # orient the normal towards the camera (the origin is on the positive side)
-        n, d = -n, -d
-    return n, float(d), inl
 
 
 def object_mask(view: CaptureView, settings: BuildSettings) -> tuple[np.ndarray, tuple[np.ndarray, float] | None]:
@@ -224,13 +191,35 @@ def object_mask(view: CaptureView, settings: BuildSettings) -> tuple[np.ndarray,
             mask[rc[keep, 0], rc[keep, 1]] = True
         else:
             plane = None
-    mask_u8 = cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
-    n_lab, lab, stats, _ = cv2.connectedComponentsWithStats(mask_u8, connectivity=8)
-    if n_lab <= 1:
+    # Cut the mask along depth edges, so that an object in front of a wall stays a blob of its own.
+    d = np.where(np.isfinite(depth), depth, 0.0)
+    edge = np.zeros_like(mask)
+    edge[:, :-1] |= np.abs(d[:, 1:] - d[:, :-1]) > settings.edge_thresh
+    edge[:-1, :] |= np.abs(d[1:, :] - d[:-1, :]) > settings.edge_thresh
+    mask_u8 = cv2.morphologyEx((mask & ~edge).astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
+    n_lab, lab, stats, centroids = cv2.connectedComponentsWithStats(mask_u8, connectivity=4)
+    areas = stats[1:, cv2.CC_STAT_AREA]
+    big = np.nonzero(areas >= max(settings.min_blob_pixels, 1))[0]
+    if n_lab <= 1 or len(big) == 0:
         raise InputError("nothing is left of the object after removing the table plane; "
                          "check --roi and --depth-range")
-    biggest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
-    return lab == biggest, (plane[:2] if plane is not None else None)
+    # The object is the blob nearest the centre of the ROI (or image): a scan keeps it in view,
+    # while walls and table remnants sit towards the edges.
+    if settings.roi is not None:
+        x, y, rw, rh = settings.roi
+        centre = np.array([x + rw / 2.0, y + rh / 2.0])
+    else:
+        centre = np.array([w / 2.0, h / 2.0])
+    dist = np.linalg.norm(centroids[1:][big] - centre, axis=1)
+    chosen = 1 + int(big[np.argmin(dist)])
+    obj = lab == chosen
+    # Give back the edge pixels that border the object and lie at its depth (its silhouette).
+    ring = cv2.dilate(obj.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool) & mask & ~obj
+    if ring.any():
+        near = np.abs(d[ring] - np.median(d[obj])) < max(settings.edge_thresh, 0.5 * float(np.ptp(d[obj])))
+        rr, cc = np.nonzero(ring)
+        obj[rr[near], cc[near]] = True
+    return obj, (plane[:2] if plane is not None else None)
 
 
 def _voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
@@ -330,4 +319,4 @@ def build_model(views: list[CaptureView], settings: BuildSettings = BuildSetting
 
 
 __all__ = ["ObjectModel", "save_model", "load_model", "MODEL_SCHEMA_VERSION", "CaptureView", "BuildSettings",
-           "build_model", "object_mask", "fit_dominant_plane", "view_keypoints"]
+           "build_model", "object_mask", "view_keypoints"]

@@ -23,7 +23,7 @@ from ..messages import CameraIntrinsics
 from ..params import param
 from ..transforms import apply_transform, rigid_fit
 from .features import SiftSettings, extract_sift
-from .lifting import backproject, lookup_depth, undistort_pixels
+from .lifting import backproject, lookup_depth, off_planes, support_planes, undistort_pixels
 from .matching import DescriptorMatcher, prepare_descriptors
 from .model import ObjectModel
 
@@ -46,6 +46,9 @@ class FrontEndConfig:
     depth_window: int = param(5, "side in pixels of the window whose median valid depth lifts a keypoint (odd)", 1, 31)
     depth_min: float = param(0.1, "metres: ignore depth below this", 0.0, 100.0)
     depth_max: float = param(4.0, "metres: ignore depth beyond this", 0.0, 100.0)
+    remove_planes: int = param(1, "drop keypoints on (or behind) this many dominant planes of the depth image, the table first (0 = keep all)", 0, 3)
+    plane_thresh: float = param(0.01, "metres: keypoints closer than this to a removed plane are dropped", 0.001, 0.1)
+    plane_min_share: float = param(0.2, "a plane is removed only if it holds at least this share of the valid depth pixels", 0.01, 1.0)
     depth_max_spread: float = param(0.02, "metres: drop a keypoint whose window depths spread more than this around the median (a depth edge); 0 = keep all", 0.0, 10.0)
     # Per-instance refinement.
     refine: bool = param(True, "refine each instance by least squares on its correspondences re-selected with refine_thresh")
@@ -146,6 +149,12 @@ class InstanceRegistration:
         uv, desc, z = uv[ok], desc[ok], z[ok]
         rays = undistort_pixels(uv, intrinsics)
         scene_xyz = backproject(rays, z, intrinsics)
+        if fe.remove_planes > 0:
+            # Keypoints on the table (and walls) cannot belong to an instance: dropping them
+            # here saves most of the matching time on a textured table.
+            planes = support_planes(depth_m, intrinsics, fe.remove_planes, fe.plane_thresh, fe.plane_min_share)
+            keep = off_planes(scene_xyz, planes, fe.plane_thresh)
+            uv, desc, scene_xyz = uv[keep], desc[keep], scene_xyz[keep]
         t2 = time.perf_counter()
         t["lifting"] = (t2 - t1) * 1e3
 

@@ -29,6 +29,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of the generated bags (default 0)")
     parser.add_argument("--max-rre-deg", type=float, default=10.0, help="hit: rotation error below this (default 10 deg)")
     parser.add_argument("--max-rte", type=float, default=0.02, help="hit: translation error below this (default 0.02 m)")
+    parser.add_argument("--min-visibility", type=float, default=0.25,
+                        help="instances less visible than this are not counted as present (default 0.25)")
     parser.add_argument("--json", default=None, help="also write the figures to this JSON file")
 
 
@@ -58,7 +60,8 @@ def format_report(metrics: dict) -> str:
     lines = [
         f"frames {metrics['frames']} (with ground truth {metrics['frames_with_ground_truth']}, skipped {metrics['skipped_frames']}); "
         f"instances present {metrics['gt']}, found {metrics['est']}, hits {metrics['hits']} "
-        f"(hit: RRE < {metrics['max_rre_deg']} deg and RTE < {metrics['max_rte'] * 100:g} cm)",
+        f"(hit: RRE < {metrics['max_rre_deg']} deg and RTE < {metrics['max_rte'] * 100:g} cm; "
+        f"present: visible fraction >= {metrics['min_visibility']})",
         f"MHF1 {metrics['MHF1']:.3f}  MHR {metrics['MHR']:.3f}  MHP {metrics['MHP']:.3f}  MF {metrics['MF']:.3f}",
         f"median RTE {'-' if rte is None else f'{rte * 1000:.2f} mm'}  median RRE {'-' if rre is None else f'{rre:.2f} deg'}",
         f"latency per frame: p50 {lat['total']['p50']:.1f} ms  p95 {lat['total']['p95']:.1f} ms",
@@ -93,10 +96,11 @@ def run(args) -> int:
                                 register_view=register_view_with_ecc)
             save_model(model, tmp / "model.npz")
             print(f"model: {model.num_keypoints} keypoints from {len(views)} view(s) of {capture}", file=sys.stderr)
-        result = replay(bag, model, config, None, args.max_rre_deg, args.max_rte, progress=sys.stderr.isatty())
+        result = replay(bag, model, config, None, args.max_rre_deg, args.max_rte, progress=sys.stderr.isatty(),
+                        min_visibility=args.min_visibility)
     if not result.scores:
         raise InputError(f"bag {bag} has no ground truth (/ground_truth/poses); the benchmark needs it")
-    metrics = metrics_dict(result, args.max_rre_deg, args.max_rte)
+    metrics = metrics_dict(result, args.max_rre_deg, args.max_rte, args.min_visibility)
     print(format_report(metrics))
     if args.json:
         Path(args.json).write_text(json.dumps(metrics, indent=2))

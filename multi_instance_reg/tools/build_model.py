@@ -1,11 +1,13 @@
 """``mireg build-model``: the stored object model from a capture bag, or from PNG files.
 
-    mireg build-model CAPTURE_BAG -o MODEL.npz [--frames 0,10,20 | 0:60:10] [--roi x,y,w,h] [--depth-range 0.2 1.5]
+    mireg build-model CAPTURE_BAG [MORE_BAGS ...] -o MODEL.npz [--frames 0,10,20 | 0:60:10] [--roi x,y,w,h] [--depth-range 0.2 1.5]
     mireg build-model --rgb colour.png --depth depth.png --intrinsics fx,fy,cx,cy -o MODEL.npz
 
 The object is isolated by the ROI and depth range, the removal of the dominant (table) plane
-and the largest remaining blob. Several frames are merged with their ground-truth poses when
-the bag has them, else by registering each frame to the model built so far.
+and the blob nearest the image centre. Several frames are merged with their ground-truth
+poses when the bag has them, else by registering each frame to the model built so far.
+Several bags of one object (e.g. upright, then upside down, so that the model sees every
+face) are merged the same way; the first frame of the first bag defines the capture frame.
 """
 from __future__ import annotations
 
@@ -20,7 +22,7 @@ HELP = "build the stored object model (npz) from a capture bag or colour/depth P
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("bag", nargs="?", help="capture bag (rosbag2 directory, .db3 or .mcap)")
+    parser.add_argument("bag", nargs="*", help="capture bag(s) (rosbag2 directory, .db3 or .mcap)")
     parser.add_argument("-o", "--output", required=True, help="model file to write (.npz)")
     parser.add_argument("--frames", default=None,
                         help="frames of the bag to merge: indices '0,10,20' or a range 'start:stop:step' "
@@ -150,7 +152,11 @@ def run(args) -> int:
         raise InputError("give either a capture bag or --rgb/--depth PNG files, not both")
     description = None
     if args.bag:
-        views, description = views_from_bag(args.bag, args.frames, args.topics)
+        views = []
+        for bag in args.bag:
+            more, desc = views_from_bag(bag, args.frames, args.topics)
+            views += more
+            description = description or desc
     elif args.rgb or args.depth:
         views = views_from_png(args.rgb, args.depth, args.intrinsics, args.depth_scale)
     else:

@@ -36,6 +36,9 @@ def add_arguments(parser) -> None:
                         help="colour, aligned depth and camera_info topics (default: realsense-ros names)")
     parser.add_argument("--max-rre-deg", type=float, default=10.0, help="hit: rotation error below this (default 10 deg)")
     parser.add_argument("--max-rte", type=float, default=0.02, help="hit: translation error below this (default 0.02 m)")
+    parser.add_argument("--min-visibility", type=float, default=0.25,
+                        help="instances with a smaller visible fraction (/ground_truth/visibility) are not counted "
+                             "as present (default 0.25)")
     parser.add_argument("--max-frames", type=int, default=0, help="stop after this many frames (0 = all)")
     parser.add_argument("--overlays", type=int, default=4, help="overlay pictures to write with ground truth (default 4)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -107,12 +110,28 @@ def estimates_in_object_frame(model, transforms: np.ndarray) -> np.ndarray:
     return transforms @ invert_transform(model.T_object_model)
 
 
+def evaluate_frame(T_gt, T_est, visibility=None, min_visibility: float = 0.0, max_rre_deg: float = 10.0,
+                   max_rte: float = 0.02):
+    """Score one frame. Instances less visible than ``min_visibility`` are not "present": they
+    do not count against recall, and an estimate that hits one is neither credit nor blame."""
+    from ..metrics import evaluate_scene
+
+    T_gt = np.asarray(T_gt, dtype=np.float64).reshape(-1, 4, 4)
+    T_est = np.asarray(T_est, dtype=np.float64).reshape(-1, 4, 4)
+    if visibility is None or min_visibility <= 0:
+        return evaluate_scene(T_gt, T_est, max_rre_deg, max_rte)
+    seen = np.asarray(visibility) >= min_visibility
+    full = evaluate_scene(T_gt, T_est, max_rre_deg, max_rte)
+    drop = {e for (g, e), hit in zip(full.pairs, full.hit) if hit and not seen[g]}
+    keep = [e for e in range(len(T_est)) if e not in drop]
+    return evaluate_scene(T_gt[seen], T_est[keep], max_rre_deg, max_rte)
+
+
 def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_rte: float = 0.02,
-           max_frames: int = 0, on_frame=None, progress: bool = True) -> ReplayResult:
+           max_frames: int = 0, on_frame=None, progress: bool = True, min_visibility: float = 0.0) -> ReplayResult:
     """Run every frame of a bag through InstanceRegistration. ``on_frame(index, frame,
     FrameResult)`` is called for each processed frame (pictures are drawn there)."""
     from ..datasets.rgbd_bag import RGBDBag
-    from ..metrics import evaluate_scene
     from ..rgbd.pipeline import InstanceRegistration
 
     reg = InstanceRegistration(model, config)
@@ -143,9 +162,9 @@ def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_
             out.found.append(len(result.instances))
             if frame.gt_poses is not None:
                 est = estimates_in_object_frame(model, [i.T for i in result.instances])
-                score = evaluate_scene(frame.gt_poses, est, max_rre_deg, max_rte)
+                score = evaluate_frame(frame.gt_poses, est, frame.gt_visibility, min_visibility, max_rre_deg, max_rte)
                 out.scores.append(score)
-                out.present.append(len(frame.gt_poses))
+                out.present.append(score.n_gt)
                 out.hits.append(score.hits)
             else:
                 out.present.append(-1)
@@ -164,11 +183,11 @@ def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_
     return out
 
 
-def metrics_dict(result: ReplayResult, max_rre_deg: float, max_rte: float) -> dict:
+def metrics_dict(result: ReplayResult, max_rre_deg: float, max_rte: float, min_visibility: float = 0.0) -> dict:
     from ..metrics import summarize
 
     summary = summarize(result.scores)
-    return {**summary, "max_rre_deg": max_rre_deg, "max_rte": max_rte,
+    return {**summary, "max_rre_deg": max_rre_deg, "max_rte": max_rte, "min_visibility": min_visibility,
             "frames": len(result.frames), "frames_with_ground_truth": len(result.scores),
             "skipped_frames": result.skipped, "latency_ms": result.latency_summary()}
 
@@ -274,14 +293,14 @@ def run(args) -> int:
             cv2.imwrite(str(out_dir / f"overlay_{index:05d}.png"), img)
 
     result = replay(args.bag, model, config, args.topics, args.max_rre_deg, args.max_rte, args.max_frames,
-                    on_frame=on_frame, progress=not args.quiet)
+                    on_frame=on_frame, progress=not args.quiet, min_visibility=args.min_visibility)
     (out_dir / "poses.json").write_text(json.dumps({"frames": result.frames}))
     lat = result.latency_summary()["total"]
     line = f"{len(result.frames)} frames, latency p50 {lat['p50']:.1f} ms p95 {lat['p95']:.1f} ms"
     if result.skipped:
         line += f", {result.skipped} skipped ({result.skip_reasons})"
     if result.scores:
-        metrics = metrics_dict(result, args.max_rre_deg, args.max_rte)
+        metrics = metrics_dict(result, args.max_rre_deg, args.max_rte, args.min_visibility)
         (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
         cv2.imwrite(str(out_dir / "found_vs_present.png"),
                     draw_found_vs_present(result.present, result.found, result.hits))
