@@ -17,7 +17,7 @@ $(STAMP): requirements.txt setup.py setup.cfg package.xml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(PY) -m multi_instance_reg.tools.demo
+	$(PY) -m multi_instance_reg.tools.demo_core
 
 test: $(STAMP)
 	$(PY) -m pytest -q test

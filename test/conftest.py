@@ -5,7 +5,12 @@ instances plus distractors, with ground truth), ``object_model`` (built from cap
 """
 from __future__ import annotations
 
+import os
+
 import pytest
+
+# Integration tests pick their own ROS_DOMAIN_ID; keep DDS discovery on this machine.
+os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 
 SCENE_OBJECT = None        # the generator's default object
 SCENE_FRAMES = 6

@@ -1,1 +1,165 @@
-"""Placeholder replaced in the next commit by the ECC implementation."""
+"""ECC: one rigid transform per object instance from a noisy set of 3D correspondences.
+
+``ECC.register`` reads like the paper: preprocess (drop invalid rows, sample when N is
+large), compatibility matrix, agglomerative clustering, recursive refinement, upsampling to
+all correspondences, selection.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import InputError
+from .clustering import cluster_compatibility_vectors
+from .compatibility import compatibility_matrix
+from .config import ECCConfig
+from .refinement import assign, fit_transforms, merge_duplicates, relabel, residuals
+
+
+@dataclass
+class RegistrationResult:
+    transforms: np.ndarray      # (M, 4, 4) float64, source -> target, by inlier count, descending
+    labels: np.ndarray          # (N,) int64: index into transforms, -1 for outliers
+    inlier_counts: np.ndarray   # (M,) int64
+    scores: np.ndarray          # (M,) float64: mean of 1 - residual / inlier_thresh over inliers
+    n_invalid: int = 0          # rows dropped for NaN / inf
+    n_clustered: int = 0        # correspondences that went through clustering (after sampling)
+    timings_ms: dict = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.transforms)
+
+    def inliers(self, m: int) -> np.ndarray:
+        return np.flatnonzero(self.labels == m)
+
+
+def _as_points(name: str, a) -> np.ndarray:
+    a = np.asarray(a, dtype=np.float64)
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise InputError(f"{name} must be an (N, 3) array of points, got shape {a.shape}")
+    return a
+
+
+class ECC:
+    def __init__(self, config: ECCConfig | None = None):
+        self.config = config or ECCConfig()
+
+    def register(self, src, tgt) -> RegistrationResult:
+        """Multi-instance registration of correspondences src[i] <-> tgt[i]."""
+        cfg = self.config
+        src, tgt = _as_points("src", src), _as_points("tgt", tgt)
+        if len(src) != len(tgt):
+            raise InputError(f"src and tgt must have the same number of rows ({len(src)} != {len(tgt)})")
+        timings = {}
+        t0 = time.perf_counter()
+        valid = np.isfinite(src).all(1) & np.isfinite(tgt).all(1)
+        x, y = src[valid], tgt[valid]
+        n = len(x)
+        if n < 3:
+            return self._empty(len(src), int((~valid).sum()), n)
+        sample = self.sample(n)
+        xs, ys = x[sample], y[sample]
+        t1 = time.perf_counter()
+        G = compatibility_matrix(xs, ys, cfg.spatial_sigma)
+        t2 = time.perf_counter()
+        labels = cluster_compatibility_vectors(G, cfg.min_dist_thresh)
+        t3 = time.perf_counter()
+        labels = self.refine(xs, ys, labels)
+        if len(sample) < n:
+            labels = self.upsample(xs, ys, labels, x, y)
+        T, labels_valid, counts, scores = self.select(x, y, labels)
+        t4 = time.perf_counter()
+        timings.update(preprocess=(t1 - t0) * 1e3, compatibility=(t2 - t1) * 1e3,
+                       clustering=(t3 - t2) * 1e3, refinement=(t4 - t3) * 1e3, total=(t4 - t0) * 1e3)
+        full_labels = -np.ones(len(src), dtype=np.int64)
+        full_labels[valid] = labels_valid
+        return RegistrationResult(T, full_labels, counts, scores, int((~valid).sum()), len(sample), timings)
+
+    # -- stages ---------------------------------------------------------------------------
+    def sample(self, n: int) -> np.ndarray:
+        """Indices of the correspondences to cluster: all, or a seeded uniform sample."""
+        m = self.config.max_correspondences
+        if m <= 0 or n <= m:
+            return np.arange(n)
+        rng = np.random.default_rng(self.config.seed)
+        return np.sort(rng.choice(n, size=m, replace=False))
+
+    def refine(self, x: np.ndarray, y: np.ndarray, labels: np.ndarray) -> np.ndarray:
+        """Fit, merge duplicates, re-assign; repeat until the partition stops changing."""
+        cfg = self.config
+        n = len(x)
+        labels, _ = relabel(labels)
+        for it in range(1, cfg.max_refine_iters + 1):
+            alpha = max(cfg.alpha_floor, min(cfg.alpha0 * cfg.theta ** (it - 1), round(n / 100)))
+            counts = np.bincount(labels[labels >= 0], minlength=1)
+            big = np.flatnonzero(counts > alpha)
+            if len(big) == 0:
+                return -np.ones(n, dtype=np.int64)
+            remap = -np.ones(len(counts), dtype=np.int64)
+            remap[big] = np.arange(len(big))
+            fit_labels = np.where(labels >= 0, remap[np.maximum(labels, 0)], -1)
+            T = fit_transforms(x, y, fit_labels, len(big))
+            errors = residuals(x, y, T)
+            keep = merge_duplicates(errors <= cfg.inlier_thresh, cfg.iou_thresh)
+            new_labels, _ = relabel(assign(errors[:, keep], cfg.inlier_thresh))
+            if np.array_equal(new_labels, labels):
+                break
+            labels = new_labels
+        return labels
+
+    def upsample(self, xs, ys, sample_labels, x, y) -> np.ndarray:
+        """Assign every correspondence to the transforms found on the sample (Sec. 3.6)."""
+        n_clusters = int(sample_labels.max()) + 1 if (sample_labels >= 0).any() else 0
+        if n_clusters == 0:
+            return -np.ones(len(x), dtype=np.int64)
+        T = fit_transforms(xs, ys, sample_labels, n_clusters)
+        return assign(residuals(x, y, T), self.config.inlier_thresh)
+
+    def select(self, x, y, labels):
+        """Clusters larger than min_cluster_size, by inlier count; stop at the first whose
+        count falls to gamma_thresh of the best (Sec. 3.5). Final fits use all inliers."""
+        cfg = self.config
+        n = len(x)
+        counts = np.bincount(labels[labels >= 0], minlength=1)
+        cand = np.flatnonzero(counts > cfg.min_cluster_size)
+        cand = cand[np.argsort(-counts[cand], kind="stable")]
+        if len(cand) == 0:
+            return self._no_instances(n)
+        ratios = counts[cand] / counts[cand[0]]
+        cut = np.flatnonzero(ratios[1:] <= cfg.gamma_thresh)
+        if len(cut):
+            cand = cand[: cut[0] + 1]
+        remap = -np.ones(len(counts), dtype=np.int64)
+        remap[cand] = np.arange(len(cand))
+        sel_labels = np.where(labels >= 0, remap[np.maximum(labels, 0)], -1)
+        T = fit_transforms(x, y, sel_labels, len(cand))
+        errors = residuals(x, y, T)
+        final = assign(errors, cfg.inlier_thresh)
+        counts = np.bincount(final[final >= 0], minlength=len(cand))
+        order = np.argsort(-counts, kind="stable")
+        order = order[counts[order] > 0]
+        rank = -np.ones(len(cand) + 1, dtype=np.int64)
+        rank[order] = np.arange(len(order))
+        final = rank[final]  # -1 maps through rank[-1] = -1
+        err = errors[np.arange(n), np.maximum(final, 0)] if n else np.zeros(0)
+        inlier_err = np.where(final >= 0, 1.0 - err / cfg.inlier_thresh, 0.0)
+        counts = counts[order]
+        scores = np.bincount(np.maximum(final, 0), weights=inlier_err * (final >= 0),
+                             minlength=len(order))[: len(order)] / np.maximum(counts, 1)
+        return T[order], final, counts.astype(np.int64), scores
+
+    # -- empty results ---------------------------------------------------------------------
+    @staticmethod
+    def _no_instances(n):
+        return np.zeros((0, 4, 4)), -np.ones(n, dtype=np.int64), np.zeros(0, np.int64), np.zeros(0)
+
+    def _empty(self, n_rows, n_invalid, n_clustered):
+        T, _, counts, scores = self._no_instances(0)
+        return RegistrationResult(T, -np.ones(n_rows, dtype=np.int64), counts, scores, n_invalid, n_clustered)
+
+
+def register(src, tgt, config: ECCConfig | None = None) -> RegistrationResult:
+    """Functional form of ``ECC(config).register(src, tgt)``."""
+    return ECC(config).register(src, tgt)

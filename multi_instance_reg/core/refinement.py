@@ -1,0 +1,84 @@
+"""Rigid fits per cluster, residuals, duplicate merging and re-assignment (Sec. 3.3-3.5)."""
+from __future__ import annotations
+
+import numpy as np
+
+
+def fit_transforms(src: np.ndarray, tgt: np.ndarray, labels: np.ndarray, n_clusters: int) -> np.ndarray:
+    """Kabsch fit of every cluster at once: (n_clusters, 4, 4), det(R) = +1.
+
+    Clusters with fewer than 3 members still get a proper rotation (the SVD picks one in the
+    unconstrained directions); callers decide which sizes they trust.
+    """
+    keep = labels >= 0
+    lab, x, y = labels[keep], src[keep], tgt[keep]
+    counts = np.bincount(lab, minlength=n_clusters).astype(np.float64)
+    safe = np.maximum(counts, 1.0)[:, None]
+    mu_x = np.stack([np.bincount(lab, x[:, i], n_clusters) for i in range(3)], 1) / safe
+    mu_y = np.stack([np.bincount(lab, y[:, i], n_clusters) for i in range(3)], 1) / safe
+    xc = x - mu_x[lab]
+    yc = y - mu_y[lab]
+    outer = (xc[:, :, None] * yc[:, None, :]).reshape(-1, 9)
+    H = np.stack([np.bincount(lab, outer[:, i], n_clusters) for i in range(9)], 1).reshape(-1, 3, 3)
+    U, _, Vt = np.linalg.svd(H)
+    V = np.transpose(Vt, (0, 2, 1))
+    Ut = np.transpose(U, (0, 2, 1))
+    det = np.linalg.det(V @ Ut)
+    D = np.tile(np.eye(3), (n_clusters, 1, 1))
+    D[:, 2, 2] = np.where(det < 0, -1.0, 1.0)
+    R = V @ D @ Ut
+    T = np.tile(np.eye(4), (n_clusters, 1, 1))
+    T[:, :3, :3] = R
+    T[:, :3, 3] = mu_y - np.einsum("kij,kj->ki", R, mu_x)
+    return T
+
+
+def residuals(src: np.ndarray, tgt: np.ndarray, transforms: np.ndarray) -> np.ndarray:
+    """(N, M) alignment errors |R_m x_i + t_m - y_i| (not squared, as the authors' code)."""
+    m = len(transforms)
+    if m == 0:
+        return np.zeros((len(src), 0))
+    # One GEMM for all transforms: (N, 3) @ (3, 3M), then translate and compare.
+    stacked = transforms[:, :3, :3].transpose(2, 0, 1).reshape(3, 3 * m)   # [R_0^T | R_1^T | ...]
+    moved = (src @ stacked).reshape(len(src), m, 3)
+    moved += transforms[:, :3, 3][None] - tgt[:, None, :]
+    return np.sqrt(np.einsum("nmi,nmi->nm", moved, moved))
+
+
+def assign(errors: np.ndarray, inlier_thresh: float) -> np.ndarray:
+    """Each correspondence to the transform with the smallest error; -1 if that is too large."""
+    if errors.shape[1] == 0:
+        return -np.ones(len(errors), dtype=np.int64)
+    best = np.argmin(errors, axis=1)
+    best_err = errors[np.arange(len(errors)), best]
+    return np.where(best_err <= inlier_thresh, best, -1).astype(np.int64)
+
+
+def merge_duplicates(inlier_sets: np.ndarray, iou_thresh: float) -> np.ndarray:
+    """Indices of transforms to keep: of two whose inlier sets overlap with IoU >= iou_thresh,
+    the one with more outliers (fewer inliers) is dropped. inlier_sets: (N, M) bool."""
+    counts = inlier_sets.sum(0)
+    order = np.argsort(-counts, kind="stable")
+    sets = inlier_sets[:, order].astype(np.float32)
+    inter = sets.T @ sets
+    union = counts[order][:, None] + counts[order][None, :] - inter
+    iou = np.where(union > 0, inter / np.maximum(union, 1), 0.0)
+    keep = np.ones(len(order), dtype=bool)
+    for i in range(len(order)):
+        if keep[i]:
+            keep[i + 1:] &= iou[i, i + 1:] < iou_thresh
+    return order[keep]
+
+
+def relabel(labels: np.ndarray) -> tuple[np.ndarray, int]:
+    """Labels renumbered 0..C-1 in order of first appearance (-1 stays -1)."""
+    out = -np.ones_like(labels)
+    valid = labels >= 0
+    if not valid.any():
+        return out, 0
+    uniq, first = np.unique(labels[valid], return_index=True)
+    order = np.argsort(first)
+    rank = np.empty(len(uniq), dtype=np.int64)
+    rank[order] = np.arange(len(uniq))
+    out[valid] = rank[np.searchsorted(uniq, labels[valid])]
+    return out, len(uniq)

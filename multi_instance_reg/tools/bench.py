@@ -1,0 +1,22 @@
+"""mireg bench NAME: benchmarks that print figures (run by `make bench`)."""
+from __future__ import annotations
+
+import importlib
+
+# name -> (module, one-line help)
+BENCHES = {
+    "core": ("multi_instance_reg.tools.bench_core", "median time and peak memory of the ECC core at N = 256 ... 16384"),
+    "table1": ("multi_instance_reg.tools.bench_table1", "the paper's Table 1: MHR/MHP/MHF1 per outlier band, ECC vs sequential RANSAC"),
+}
+
+
+def add_arguments(parser) -> None:
+    sub = parser.add_subparsers(dest="bench", metavar="NAME", required=True)
+    for name, (module_name, help_text) in BENCHES.items():
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        importlib.import_module(module_name).add_arguments(p)
+        p.set_defaults(_bench_module=module_name)
+
+
+def run(args) -> int:
+    return importlib.import_module(args._bench_module).run(args)

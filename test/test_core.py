@@ -1,0 +1,238 @@
+"""ECC core: each stage on small cases with known answers, properties, and bad inputs."""
+import dataclasses
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from multi_instance_reg.core import ECC, ECCConfig
+from multi_instance_reg.core.clustering import cluster_compatibility_vectors
+from multi_instance_reg.core.compatibility import compatibility_matrix
+from multi_instance_reg.core.refinement import fit_transforms, merge_duplicates, residuals
+from multi_instance_reg.errors import InputError
+from multi_instance_reg.metrics import evaluate_scene
+from multi_instance_reg.synthetic.correspondences import make_band, make_sized_scene
+from multi_instance_reg.transforms import make_transform, rigid_fit
+
+
+def random_T(rng, scale=5.0):
+    return make_transform(Rotation.random(random_state=rng).as_matrix(), rng.uniform(-scale, scale, 3))
+
+
+def two_instance_scene(rng, n_per=60, n_out=40):
+    """Two rigid copies of one random cloud plus random outliers (known ground truth)."""
+    model = rng.uniform(-1, 1, (n_per, 3))
+    Ts = [random_T(rng), random_T(rng)]
+    src = [model, model]
+    tgt = [model @ T[:3, :3].T + T[:3, 3] + rng.normal(0, 0.005, (n_per, 3)) for T in Ts]
+    src.append(rng.uniform(-1, 1, (n_out, 3)))
+    tgt.append(rng.uniform(-6, 6, (n_out, 3)))
+    truth = np.concatenate([np.zeros(n_per, int), np.ones(n_per, int), -np.ones(n_out, int)])
+    return np.concatenate(src), np.concatenate(tgt), np.stack(Ts), truth
+
+
+def test_compatibility_matrix_known_values():
+    src = np.array([[0, 0, 0], [1, 0, 0], [0, 3, 0.0]])
+    tgt = np.array([[0, 0, 0], [2, 0, 0], [0, 3, 0.0]])
+    G = compatibility_matrix(src, tgt)
+    assert np.allclose(np.diag(G), 1)
+    assert G[0, 1] == pytest.approx(0.25)          # d = 1, d' = 2: s = 0.5
+    assert G[0, 2] == pytest.approx(1.0)           # distance kept
+    assert np.allclose(G, G.T)
+    # The spatial weight zeroes pairs whose mean distance is beyond sigma.
+    Gw = compatibility_matrix(src, tgt, spatial_sigma=2.0)
+    assert Gw[0, 2] == 0.0 and Gw[0, 1] == pytest.approx(0.25 * (1 - 1.5 ** 2 / 4))
+
+
+def test_compatibility_of_duplicates_and_shared_source():
+    src = np.array([[0, 0, 0], [0, 0, 0], [0, 0, 0.0]])
+    tgt = np.array([[1, 1, 1], [1, 1, 1], [5, 1, 1.0]])
+    G = compatibility_matrix(src, tgt)
+    assert G[0, 1] == 1.0  # the same correspondence twice is fully compatible
+    assert G[0, 2] == 0.0  # one source point matched to two distant targets: incompatible
+    assert np.isfinite(G).all()
+
+
+def _reference_clustering(G, thresh):
+    """The paper's clustering written the slow, obvious way."""
+    groups = [[i] for i in range(len(G))]
+    reps = [G[i].astype(np.float64) for i in range(len(G))]
+    while len(groups) > 1:
+        best = (2.0, -1, -1)
+        for i in range(len(groups)):
+            for j in range(i + 1, len(groups)):
+                p, q = reps[i], reps[j]
+                dot = p @ q
+                denom = p @ p + q @ q - dot
+                d = 1.0 - dot / denom if denom > 0 else 1.0
+                best = min(best, (d, i, j))
+        d, i, j = best
+        if d > thresh:
+            break
+        reps[i] = np.minimum(reps[i], reps[j])
+        groups[i] += groups.pop(j)
+        reps.pop(j)
+    labels = np.empty(len(G), int)
+    for k, g in enumerate(groups):
+        labels[g] = k
+    return labels
+
+
+def _same_partition(a, b):
+    pairs = set(zip(a.tolist(), b.tolist()))
+    return len(pairs) == len(set(a.tolist())) == len(set(b.tolist()))
+
+
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("sigma", [0.0, 2.0])
+def test_clustering_matches_the_plain_algorithm(seed, sigma):
+    rng = np.random.default_rng(seed)
+    src, tgt, _, _ = two_instance_scene(rng, n_per=25, n_out=20)
+    G = compatibility_matrix(src, tgt, sigma)
+    fast = cluster_compatibility_vectors(G, 0.2)
+    slow = _reference_clustering(G, 0.2)
+    assert _same_partition(fast, slow)
+
+
+def test_clustering_separates_two_instances():
+    rng = np.random.default_rng(1)
+    src, tgt, _, truth = two_instance_scene(rng)
+    labels = cluster_compatibility_vectors(compatibility_matrix(src, tgt), 0.2)
+    for k in (0, 1):
+        members = labels[truth == k]
+        assert np.bincount(members).max() >= 0.9 * len(members)
+    assert labels[truth == 0][0] != labels[truth == 1][0]
+
+
+def test_rigid_fit_recovers_transform_and_is_proper():
+    rng = np.random.default_rng(2)
+    T = random_T(rng)
+    x = rng.normal(size=(30, 3))
+    assert np.allclose(rigid_fit(x, x @ T[:3, :3].T + T[:3, 3]), T, atol=1e-9)
+    # A mirrored target would want a reflection: the fit must stay a rotation.
+    R = rigid_fit(x, x * [1, 1, -1])[:3, :3]
+    assert np.linalg.det(R) == pytest.approx(1.0)
+    # Degenerate: collinear and coincident points give a finite proper rotation.
+    line = np.outer(np.linspace(0, 1, 5), [1, 2, 3])
+    for a, b in ((line, line + 1), (np.zeros((4, 3)), np.ones((4, 3))), (x[:1], x[:1])):
+        Tf = rigid_fit(a, b)
+        assert np.isfinite(Tf).all() and np.linalg.det(Tf[:3, :3]) == pytest.approx(1.0)
+
+
+def test_batched_fit_equals_single_fits():
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=(90, 3))
+    labels = np.repeat([0, 1, -1], 30)
+    Ts = [random_T(rng), random_T(rng)]
+    y = x.copy()
+    for k, T in enumerate(Ts):
+        y[labels == k] = x[labels == k] @ T[:3, :3].T + T[:3, 3]
+    batched = fit_transforms(x, y, labels, 2)
+    for k in range(2):
+        assert np.allclose(batched[k], rigid_fit(x[labels == k], y[labels == k]), atol=1e-9)
+        assert np.allclose(batched[k], Ts[k], atol=1e-9)
+    assert np.allclose(residuals(x[:30], y[:30], batched[:1]), 0, atol=1e-9)
+
+
+def test_merge_duplicates_keeps_the_transform_with_fewer_outliers():
+    sets = np.zeros((100, 3), bool)
+    sets[:50, 0] = True           # 50 inliers
+    sets[:45, 1] = True           # IoU 0.9 with 0: duplicate, fewer inliers -> dropped
+    sets[60:90, 2] = True         # disjoint: kept
+    assert sorted(merge_duplicates(sets, 0.8).tolist()) == [0, 2]
+    assert sorted(merge_duplicates(sets, 0.95).tolist()) == [0, 1, 2]
+
+
+def test_registration_finds_every_instance():
+    rng = np.random.default_rng(4)
+    src, tgt, Ts, truth = two_instance_scene(rng, n_per=80, n_out=60)
+    cfg = ECCConfig(inlier_thresh=0.05)
+    result = ECC(cfg).register(src, tgt)
+    assert len(result) == 2
+    score = evaluate_scene(Ts, result.transforms, 2.0, 0.05)
+    assert score.hits == 2
+    assert list(result.inlier_counts) == sorted(result.inlier_counts, reverse=True)
+    for m in range(2):
+        assert len(result.inliers(m)) == result.inlier_counts[m]
+    assert ((result.labels >= 0) == (truth >= 0)).mean() > 0.95
+    assert 0 < result.scores.min() and result.scores.max() <= 1
+
+
+def test_permuting_rows_permutes_labels_only():
+    s = make_band("50-70", 1, seed=5)[0]
+    cfg = ECCConfig.modelnet()
+    idx = np.random.default_rng(0).choice(len(s.src), 800, replace=False)
+    src, tgt = s.src[idx], s.tgt[idx]
+    a = ECC(cfg).register(src, tgt)
+    perm = np.random.default_rng(1).permutation(len(src))
+    b = ECC(cfg).register(src[perm], tgt[perm])
+    assert len(a) == len(b) > 0
+    assert _same_partition(a.labels[perm], b.labels)
+    assert np.array_equal(np.sort(a.inlier_counts), np.sort(b.inlier_counts))
+    for T in a.transforms:
+        assert min(np.abs(T - Tb).max() for Tb in b.transforms) < 1e-6
+
+
+def test_moving_all_targets_composes_into_every_result():
+    rng = np.random.default_rng(6)
+    src, tgt, _, _ = two_instance_scene(rng, n_per=60, n_out=30)
+    cfg = ECCConfig(inlier_thresh=0.05)
+    a = ECC(cfg).register(src, tgt)
+    M = random_T(rng)
+    b = ECC(cfg).register(src, tgt @ M[:3, :3].T + M[:3, 3])
+    assert np.array_equal(a.labels, b.labels)
+    assert np.allclose(b.transforms, M @ a.transforms, atol=1e-6)
+
+
+def test_large_inputs_are_sampled_deterministically():
+    s = make_sized_scene(np.random.default_rng(7), 3000, 0.5, 5)
+    cfg = ECCConfig.modelnet()
+    a = ECC(cfg).register(s.src, s.tgt)
+    b = ECC(cfg).register(s.src, s.tgt)
+    assert a.n_clustered == 1024 and len(a.labels) == 3000
+    assert np.array_equal(a.labels, b.labels) and np.array_equal(a.transforms, b.transforms)
+    assert evaluate_scene(s.T_gt, a.transforms).hits == 5
+    c = ECC(dataclasses.replace(cfg, seed=1)).register(s.src, s.tgt)
+    assert evaluate_scene(s.T_gt, c.transforms).hits == 5
+
+
+@pytest.mark.parametrize("n", [0, 1, 2])
+def test_fewer_than_three_correspondences(n):
+    r = ECC().register(np.zeros((n, 3)), np.ones((n, 3)))
+    assert len(r) == 0 and r.labels.shape == (n,) and (r.labels == -1).all()
+
+
+def test_pure_outliers_give_no_instance_and_no_nan():
+    rng = np.random.default_rng(8)
+    r = ECC(ECCConfig.modelnet()).register(rng.uniform(-1, 1, (300, 3)), rng.uniform(0, 10, (300, 3)))
+    assert len(r) == 0 and (r.labels == -1).all()
+
+
+def test_degenerate_inputs_do_not_crash_or_nan():
+    rng = np.random.default_rng(9)
+    cases = {
+        "coincident": (np.zeros((50, 3)), np.ones((50, 3))),
+        "duplicated rows": (np.repeat(rng.normal(size=(5, 3)), 10, 0),) * 2,
+        "collinear": (np.outer(np.linspace(0, 1, 40), [1, 0, 0]), np.outer(np.linspace(0, 1, 40), [0, 1, 0])),
+    }
+    for name, (x, y) in cases.items():
+        r = ECC(ECCConfig(min_cluster_size=3)).register(x, y)
+        assert np.isfinite(r.transforms).all(), name
+        for T in r.transforms:
+            assert np.linalg.det(T[:3, :3]) == pytest.approx(1.0), name
+
+
+def test_rows_with_nan_or_inf_are_dropped_and_counted():
+    rng = np.random.default_rng(10)
+    src, tgt, Ts, _ = two_instance_scene(rng, n_per=60, n_out=20)
+    src[3] = np.nan
+    tgt[70, 1] = np.inf
+    r = ECC(ECCConfig(inlier_thresh=0.05)).register(src, tgt)
+    assert r.n_invalid == 2 and r.labels[3] == -1 and r.labels[70] == -1
+    assert evaluate_scene(Ts, r.transforms, 2.0, 0.05).hits == 2
+
+
+@pytest.mark.parametrize("src,tgt", [(np.zeros((5, 2)), np.zeros((5, 2))), (np.zeros((5, 3)), np.zeros((4, 3)))])
+def test_bad_shapes_raise_input_error(src, tgt):
+    with pytest.raises(InputError):
+        ECC().register(src, tgt)
