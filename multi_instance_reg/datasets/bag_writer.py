@@ -1,0 +1,158 @@
+"""Write RGB-D frames (and optional ground truth) as a real rosbag2, the way realsense-ros
+publishes them: topics, message types, encodings, frame ids, identical stamps per frame.
+
+    with RealSenseBagWriter("out/scene", storage="sqlite3") as bag:
+        bag.write_object_description(stamp_ns, {"name": ..., "shape": ..., ...})
+        bag.write_frame(stamp_ns, rgb, depth_mm, intrinsics, poses=T_cam_obj, visibility=v)
+
+Uses ``rosbags`` (pure Python, no ROS install): rosbag2 format version 9, sqlite3 or mcap.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..messages import CameraIntrinsics, array_to_image_fields
+from ..transforms import matrix_to_pose
+
+TOPIC_COLOUR = "/camera/camera/color/image_raw"
+TOPIC_COLOUR_INFO = "/camera/camera/color/camera_info"
+TOPIC_DEPTH = "/camera/camera/aligned_depth_to_color/image_raw"
+TOPIC_DEPTH_INFO = "/camera/camera/aligned_depth_to_color/camera_info"
+TOPIC_GT_POSES = "/ground_truth/poses"
+TOPIC_GT_OBJECT = "/ground_truth/object"
+# Per instance, the fraction of its silhouette that is in the image and not hidden
+# (std_msgs/Float32MultiArray, same stamp as the image, same order as the poses).
+TOPIC_GT_VISIBILITY = "/ground_truth/visibility"
+COLOUR_FRAME_ID = "camera_color_optical_frame"
+STORAGES = ("sqlite3", "mcap")
+CUSTOM_DATA_OBJECT_KEY = "multi_instance_reg.object"
+
+
+def _qos(transient_local: bool = False):
+    """realsense-ros offers reliable, keep-last 10; the object description is latched."""
+    from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+
+    zero = QosTime(0, 0)
+    return Qos(history=QosHistory.KEEP_LAST, depth=1 if transient_local else 10,
+               reliability=QosReliability.RELIABLE,
+               durability=QosDurability.TRANSIENT_LOCAL if transient_local else QosDurability.VOLATILE,
+               deadline=zero, lifespan=zero, liveliness=QosLiveliness.AUTOMATIC,
+               liveliness_lease_duration=zero, avoid_ros_namespace_conventions=False)
+
+
+class RealSenseBagWriter:
+    """A rosbag2 writer for D455-style RGB-D streams plus ground truth.
+
+    ``storage`` is "sqlite3" (default, what ``ros2 bag record`` writes) or "mcap". The path
+    must not exist yet (rosbag2 never overwrites).
+    """
+
+    def __init__(self, path, storage: str = "sqlite3"):
+        from rosbags.rosbag2 import StoragePlugin, Writer
+        from rosbags.typesys import Stores, get_typestore
+
+        if storage not in STORAGES:
+            raise InputError(f"storage '{storage}' is not supported; use one of: {', '.join(STORAGES)}")
+        self.path = Path(path)
+        if self.path.exists():
+            raise InputError(f"output '{self.path}' already exists; rosbag2 does not overwrite, "
+                             "so remove it or choose another path")
+        if not self.path.parent.exists():
+            raise InputError(f"the folder '{self.path.parent}' for output '{self.path}' does not exist")
+        self.typestore = get_typestore(Stores.ROS2_JAZZY)
+        self._types = self.typestore.types
+        plugin = StoragePlugin.SQLITE3 if storage == "sqlite3" else StoragePlugin.MCAP
+        self._writer = Writer(self.path, version=9, storage_plugin=plugin)
+        self._writer.open()
+        self._connections = {}
+        self.frames_written = 0
+
+    # -- context manager -------------------------------------------------------------------
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        self.close()
+
+    def close(self) -> None:
+        if self._writer is not None:
+            self._writer.close()
+            self._writer = None
+
+    # -- writing ---------------------------------------------------------------------------
+    def _connection(self, topic: str, msgtype: str, latched: bool = False):
+        conn = self._connections.get(topic)
+        if conn is None:
+            conn = self._writer.add_connection(topic, msgtype, typestore=self.typestore,
+                                               offered_qos_profiles=[_qos(latched)])
+            self._connections[topic] = conn
+        return conn
+
+    def _write(self, topic: str, msg, stamp_ns: int, latched: bool = False) -> None:
+        conn = self._connection(topic, msg.__msgtype__, latched)
+        self._writer.write(conn, int(stamp_ns), self.typestore.serialize_cdr(msg, msg.__msgtype__))
+
+    def _header(self, stamp_ns: int, frame_id: str = COLOUR_FRAME_ID):
+        T = self._types
+        sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+        return T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec),
+                                        frame_id=frame_id)
+
+    def _camera_info(self, header, intr: CameraIntrinsics):
+        T = self._types
+        K = np.asarray(intr.K, dtype=np.float64)
+        P = np.zeros((3, 4))
+        P[:, :3] = K
+        d = np.asarray(intr.D, dtype=np.float64)
+        roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+        return T["sensor_msgs/msg/CameraInfo"](
+            header=header, height=int(intr.height), width=int(intr.width),
+            distortion_model=intr.distortion_model, d=d, k=K.reshape(-1).copy(),
+            r=np.eye(3).reshape(-1), p=P.reshape(-1), binning_x=0, binning_y=0, roi=roi)
+
+    def write_object_description(self, stamp_ns: int, description: dict) -> None:
+        """The placed object's description as JSON on /ground_truth/object (latched), and
+        in the bag's metadata (custom_data) so a reader finds it without reading messages."""
+        text = json.dumps(description, sort_keys=True)
+        self._write(TOPIC_GT_OBJECT, self._types["std_msgs/msg/String"](data=text), stamp_ns, latched=True)
+        self._writer.set_custom_data(CUSTOM_DATA_OBJECT_KEY, text)
+
+    def write_frame(self, stamp_ns: int, rgb: np.ndarray, depth_mm: np.ndarray,
+                    intrinsics: CameraIntrinsics, poses: np.ndarray | None = None,
+                    visibility: np.ndarray | None = None) -> None:
+        """One RGB-D frame at ``stamp_ns``: colour (rgb8), aligned depth (16UC1 mm), both
+        camera_infos, and, when given, ground-truth poses ((K, 4, 4) object -> colour optical
+        frame, metres) and per-instance visibility."""
+        T = self._types
+        rgb = np.asarray(rgb)
+        depth_mm = np.asarray(depth_mm)
+        if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
+            raise InputError(f"colour must be HxWx3 uint8, got {rgb.shape} {rgb.dtype}")
+        if depth_mm.shape != rgb.shape[:2] or depth_mm.dtype != np.uint16:
+            raise InputError(f"depth must be HxW uint16 millimetres matching colour {rgb.shape[:2]}, "
+                             f"got {depth_mm.shape} {depth_mm.dtype}")
+        header = self._header(stamp_ns)
+        Image = T["sensor_msgs/msg/Image"]
+        self._write(TOPIC_COLOUR, Image(header=header, **array_to_image_fields(rgb, "rgb8")), stamp_ns)
+        self._write(TOPIC_COLOUR_INFO, self._camera_info(header, intrinsics), stamp_ns)
+        self._write(TOPIC_DEPTH, Image(header=header, **array_to_image_fields(depth_mm, "16UC1")), stamp_ns)
+        self._write(TOPIC_DEPTH_INFO, self._camera_info(header, intrinsics), stamp_ns)
+        if poses is not None:
+            P = T["geometry_msgs/msg/Pose"]
+            pose_msgs = []
+            for Tm in np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4):
+                xyz, q = matrix_to_pose(Tm)
+                pose_msgs.append(P(position=T["geometry_msgs/msg/Point"](x=float(xyz[0]), y=float(xyz[1]), z=float(xyz[2])),
+                                   orientation=T["geometry_msgs/msg/Quaternion"](x=float(q[0]), y=float(q[1]),
+                                                                                 z=float(q[2]), w=float(q[3]))))
+            self._write(TOPIC_GT_POSES, T["geometry_msgs/msg/PoseArray"](header=header, poses=pose_msgs), stamp_ns)
+        if visibility is not None:
+            vis = np.asarray(visibility, dtype=np.float32).reshape(-1)
+            dim = T["std_msgs/msg/MultiArrayDimension"](label="instance", size=len(vis), stride=len(vis))
+            layout = T["std_msgs/msg/MultiArrayLayout"](dim=[dim], data_offset=0)
+            self._write(TOPIC_GT_VISIBILITY, T["std_msgs/msg/Float32MultiArray"](layout=layout, data=vis), stamp_ns)
+        self.frames_written += 1

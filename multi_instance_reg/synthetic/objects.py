@@ -1,0 +1,234 @@
+"""Catalogue of named tabletop objects (boxes and cylinders) with their textures.
+
+Object frame (the frame the ground truth poses refer to): origin at the geometric centre;
+for a box the axes run along its edges, x along ``dx``, y along ``dy``, z along ``dz``; for a
+cylinder z is the axis and the dimensions are ``[diameter, diameter, height]``.
+
+Textures are crops of pictures that ship inside scikit-image (no download at run time). They
+depend on the object's name only, never on a seed: every instance of an object, in every
+scene and capture bag, looks the same, while different faces of one object show different
+crops so that the object's pose is not ambiguous to SIFT.
+"""
+from __future__ import annotations
+
+import functools
+import zlib
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ..errors import InputError
+
+OBJECT_FRAME_TEXT = ("origin at the geometric centre; box axes along the edges (dx, dy, dz); "
+                     "cylinder axis = z, dimensions [diameter, diameter, height]")
+
+# Texels per metre of object surface. 2000/m keeps a face sharp down to 0.4 m at 1280x720
+# (fx ~ 758 px, i.e. ~1900 px/m at 0.4 m); the renderer mip-maps for farther views.
+TEXELS_PER_METRE = 2000.0
+_MAX_TEXTURE_SIDE = 1024
+
+# Box faces: (name, outward normal, "up" direction of the picture on that face).
+BOX_FACES = (
+    ("+x", (1, 0, 0), (0, 0, 1)), ("-x", (-1, 0, 0), (0, 0, 1)),
+    ("+y", (0, 1, 0), (0, 0, 1)), ("-y", (0, -1, 0), (0, 0, 1)),
+    ("+z", (0, 0, 1), (0, 1, 0)), ("-z", (0, 0, -1), (0, 1, 0)),
+)
+
+
+@dataclass(frozen=True)
+class ObjectSpec:
+    """A named object. ``faces`` maps each face (box: "+x".."-z"; cylinder: "side", "+z",
+    "-z") to the scikit-image picture its texture is cropped from; ``tint`` colours grey
+    pictures; ``resting`` lists (object axis that points up, weight) for placing it on a table."""
+    name: str
+    shape: str                                  # "box" | "cylinder"
+    dimensions_m: tuple[float, float, float]    # box (dx, dy, dz); cylinder (d, d, h)
+    faces: tuple[tuple[str, str], ...]
+    resting: tuple[tuple[str, float], ...]
+    tint: tuple[int, int, int] = (255, 255, 255)
+    label: str = ""                             # printed on the larger faces like a brand name
+    label_colour: tuple[int, int, int] = (200, 30, 30)
+
+    @property
+    def radius(self) -> float:
+        return 0.5 * self.dimensions_m[0]
+
+    @property
+    def half_extents(self) -> np.ndarray:
+        return 0.5 * np.asarray(self.dimensions_m, dtype=np.float64)
+
+    def description(self) -> dict:
+        """The JSON-able description that travels with a bag on /ground_truth/object."""
+        return {"name": self.name, "shape": self.shape,
+                "dimensions_m": [float(v) for v in self.dimensions_m],
+                "object_frame": OBJECT_FRAME_TEXT}
+
+
+def _box_faces(top, bottom, sides) -> tuple[tuple[str, str], ...]:
+    side = dict(zip(("+x", "-x", "+y", "-y"), sides))
+    return tuple((f, {"+z": top, "-z": bottom}.get(f, side.get(f))) for f, _, _ in BOX_FACES)
+
+
+OBJECTS: dict[str, ObjectSpec] = {spec.name: spec for spec in (
+    # A flat box of crackers or tea: big textured top, lies flat most of the time.
+    ObjectSpec("snack_box", "box", (0.18, 0.12, 0.05),
+               _box_faces("astronaut", "astronaut", ("coffee", "coffee", "coffee", "coffee")),
+               resting=(("+z", 0.45), ("-z", 0.35), ("+y", 0.1), ("-y", 0.1)),
+               label="CRUNCH", label_colour=(30, 60, 170)),
+    ObjectSpec("cereal_box", "box", (0.19, 0.07, 0.27),
+               _box_faces("chelsea", "chelsea", ("chelsea", "chelsea", "rocket", "rocket")),
+               resting=(("+z", 0.6), ("-y", 0.15), ("+y", 0.15), ("-z", 0.1)),
+               label="OATY", label_colour=(200, 120, 20)),
+    ObjectSpec("snack_bar", "box", (0.12, 0.04, 0.02),
+               _box_faces("hubble_deep_field", "hubble_deep_field",
+                          ("hubble_deep_field",) * 4),
+               resting=(("+z", 0.5), ("-z", 0.4), ("+y", 0.05), ("-y", 0.05)),
+               label="BAR", label_colour=(150, 20, 120)),
+    ObjectSpec("can", "cylinder", (0.066, 0.066, 0.122),
+               (("side", "immunohistochemistry"), ("+z", "coins"), ("-z", "coins")),
+               resting=(("+z", 0.8), ("+x", 0.2)), label="FIZZ", label_colour=(20, 140, 60)),
+    # Distractors: other pictures, other sizes.
+    ObjectSpec("book", "box", (0.21, 0.15, 0.03),
+               _box_faces("retina", "retina", ("page", "page", "text", "text")),
+               resting=(("+z", 0.6), ("-z", 0.4)), tint=(235, 225, 200),
+               label="ATLAS", label_colour=(40, 40, 40)),
+    ObjectSpec("toy_block", "box", (0.07, 0.07, 0.07),
+               _box_faces("camera", "clock", ("camera", "clock", "camera", "clock")),
+               resting=(("+z", 0.3), ("-z", 0.2), ("+x", 0.25), ("-y", 0.25)),
+               tint=(250, 200, 120)),
+    ObjectSpec("tea_tin", "cylinder", (0.085, 0.085, 0.11),
+               (("side", "moon"), ("+z", "moon"), ("-z", "moon")),
+               resting=(("+z", 0.9), ("+x", 0.1)), tint=(230, 190, 90),
+               label="TEA", label_colour=(90, 20, 20)),
+    ObjectSpec("jar", "cylinder", (0.075, 0.075, 0.14),
+               (("side", "cell"), ("+z", "grass"), ("-z", "grass")),
+               resting=(("+z", 1.0),), tint=(170, 220, 250)),
+)}
+
+DEFAULT_OBJECT = "snack_box"
+
+
+def get_object(name: str) -> ObjectSpec:
+    try:
+        return OBJECTS[name]
+    except KeyError:
+        raise InputError(f"unknown object '{name}'; choose one of: {', '.join(OBJECTS)}") from None
+
+
+# --------------------------------------------------------------------------------------------
+# Textures
+
+
+@functools.lru_cache(maxsize=None)
+def load_picture(name: str) -> np.ndarray:
+    """A scikit-image sample picture as HxWx3 uint8 RGB (grey pictures are replicated)."""
+    from skimage import data  # imported lazily: only renderers need it
+
+    img = np.asarray(getattr(data, name)())
+    if img.dtype == bool:
+        img = img.astype(np.uint8) * 255
+    if img.dtype != np.uint8:
+        img = cv2.normalize(img.astype(np.float32), None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    if img.ndim == 2:
+        img = np.repeat(img[:, :, None], 3, axis=2)
+    return np.ascontiguousarray(img[:, :, :3])
+
+
+def _stable_rng(*keys: str) -> np.random.Generator:
+    """A generator that depends on the given strings only (not on PYTHONHASHSEED)."""
+    return np.random.default_rng(zlib.crc32("/".join(keys).encode()))
+
+
+def crop_texture(picture: str, width_m: float, height_m: float, key: str,
+                 tint=(255, 255, 255), texels_per_metre: float = TEXELS_PER_METRE) -> np.ndarray:
+    """A crop of ``picture`` with the aspect of a ``width_m`` x ``height_m`` face, resized to
+    ``texels_per_metre``. ``key`` picks the crop (the same key gives the same crop)."""
+    img = load_picture(picture)
+    h, w = img.shape[:2]
+    aspect = width_m / height_m
+    rng = _stable_rng(picture, key)
+    # Largest crop of that aspect, then a random fraction of it at a random place.
+    cw, ch = (w, w / aspect) if w / aspect <= h else (h * aspect, h)
+    frac = rng.uniform(0.45, 0.85)
+    cw, ch = cw * frac, ch * frac
+    x0 = rng.uniform(0, w - cw)
+    y0 = rng.uniform(0, h - ch)
+    crop = img[int(y0):int(y0 + ch), int(x0):int(x0 + cw)]
+    tw = int(np.clip(round(width_m * texels_per_metre), 16, _MAX_TEXTURE_SIDE))
+    th = int(np.clip(round(height_m * texels_per_metre), 16, _MAX_TEXTURE_SIDE))
+    interp = cv2.INTER_AREA if crop.shape[1] > tw else cv2.INTER_CUBIC
+    tex = cv2.resize(crop, (tw, th), interpolation=interp)
+    if tuple(tint) != (255, 255, 255):
+        tex = (tex.astype(np.float32) * (np.asarray(tint, np.float32) / 255.0)).astype(np.uint8)
+    return tex
+
+
+def _print_label(tex: np.ndarray, text: str, colour) -> None:
+    """Print a brand band with ``text`` across the lower part of a face, in place."""
+    h, w = tex.shape[:2]
+    band = max(4, int(0.2 * h))
+    y0 = h - band - max(2, h // 12)
+    tex[y0:y0 + band] = colour
+    scale = band / 30.0
+    (tw, th), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_DUPLEX, scale, max(1, int(scale * 2)))
+    if tw > 0.9 * w:
+        scale *= 0.9 * w / tw
+        (tw, th), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_DUPLEX, scale, max(1, int(scale * 2)))
+    org = ((w - tw) // 2, y0 + (band + th) // 2)
+    cv2.putText(tex, text, org, cv2.FONT_HERSHEY_DUPLEX, scale, (255, 255, 255),
+                max(1, int(scale * 2)), cv2.LINE_AA)
+
+
+def face_size_m(spec: ObjectSpec, face: str) -> tuple[float, float]:
+    """(width, height) in metres of a face's picture (width along the picture's rows)."""
+    dx, dy, dz = spec.dimensions_m
+    if spec.shape == "cylinder":
+        return (np.pi * dx, dz) if face == "side" else (dx, dx)
+    return {"+x": (dy, dz), "-x": (dy, dz), "+y": (dx, dz), "-y": (dx, dz),
+            "+z": (dx, dy), "-z": (dx, dy)}[face]
+
+
+@functools.lru_cache(maxsize=None)
+def object_textures(name: str) -> dict[str, np.ndarray]:
+    """Face name -> HxWx3 uint8 texture for object ``name`` (cached; treat as read-only)."""
+    spec = get_object(name)
+    textures = {}
+    for face, picture in spec.faces:
+        width_m, height_m = face_size_m(spec, face)
+        tex = crop_texture(picture, width_m, height_m, key=f"{name}{face}", tint=spec.tint)
+        # Brand band on the faces big enough to carry it (and the cylinder's wrap).
+        if spec.label and min(width_m, height_m) >= 0.035 and face in ("side", "+x", "-x", "+y", "-y", "+z"):
+            _print_label(tex, spec.label, spec.label_colour)
+        tex.setflags(write=False)
+        textures[face] = tex
+    return textures
+
+
+# Environment surfaces: (metres covered along rows, along columns, texels per metre).
+ENVIRONMENT_SIZE = {"table": (3.2, 3.2, 800.0), "wall": (6.0, 2.8, 512.0)}
+
+
+@functools.lru_cache(maxsize=None)
+def environment_texture(kind: str) -> np.ndarray:
+    """Textures covering the whole table top and the wall behind it (``ENVIRONMENT_SIZE``),
+    tiled with mirrored copies so there are no seams. Tiled once here rather than wrapped at
+    render time: OpenCV's wrapping border is several times slower than an in-range lookup."""
+    if kind == "table":   # a granite/terrazzo worktop
+        tile = load_picture("gravel").astype(np.float32)
+        tile = 0.55 * tile + 0.45 * 150.0
+        tile = (tile * (np.array([200, 175, 150], np.float32) / 255.0)).astype(np.uint8)
+    elif kind == "wall":  # painted brick
+        tile = load_picture("brick").astype(np.float32)
+        tile = (0.6 * tile + 0.4 * 200.0) * (np.array([235, 225, 215], np.float32) / 255.0)
+        tile = tile.astype(np.uint8)
+    else:
+        raise ValueError(kind)
+    tile = np.concatenate([tile, tile[:, ::-1]], axis=1)
+    tile = np.concatenate([tile, tile[::-1]], axis=0)
+    width_m, height_m, per_m = ENVIRONMENT_SIZE[kind]
+    w, h = int(round(width_m * per_m)), int(round(height_m * per_m))
+    reps = (-(-h // tile.shape[0]), -(-w // tile.shape[1]), 1)
+    tex = np.ascontiguousarray(np.tile(tile, reps)[:h, :w])
+    tex.setflags(write=False)
+    return tex

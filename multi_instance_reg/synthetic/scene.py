@@ -1,0 +1,633 @@
+"""Synthetic D455 tabletop scenes with ground truth: placement, camera paths, bags.
+
+Python API (what tests, the demo and the tools call):
+
+- ``make_tabletop_scene(object_name="snack_box", instances=6, distractors=3, frames=60,
+  seed=0, resolution="640x480") -> SyntheticScene``: K identical instances of a catalogue
+  object (:mod:`.objects`) and D distractors on a textured table in front of a wall, seen by a
+  hand-held camera sweeping at 30 Hz, 0.4-1.5 m away. Objects rest on the table with random
+  yaw; some touch, some are stacked or lean on another, some are occluded or leave the view.
+- ``make_capture_scene(object_name, seed=0, views=10, resolution="640x480")``: the object
+  alone on the table seen from ``views`` viewpoints around it (elevation 30-60 deg,
+  0.4-0.6 m), the way a user scans it to build the stored model.
+- ``SyntheticScene.render_frame(i) -> RenderedFrame`` / ``SyntheticScene.frames()``: per frame
+  ``rgb`` (H, W, 3) uint8, ``depth_mm`` (H, W) uint16 (0 = invalid), ``depth_true_m`` (H, W)
+  float32 noise-free (0 = nothing), ``K`` (3, 3), ``poses`` (K, 4, 4) object -> colour optical
+  frame (metres), ``instance_mask`` (H, W) int16 (k = instance k, -1 table/wall, -2
+  distractor), ``visibility`` (K,) visible fraction of each instance's silhouette, ``stamp_ns``.
+- ``generate_scene_bag(out_path, object_name=..., instances=..., distractors=..., frames=...,
+  seed=..., storage="sqlite3", resolution="640x480", preview_dir=None) -> BagSummary`` and
+  ``generate_capture_bag(out_path, object_name, seed=0, views=10, ...)``: the same written as a
+  rosbag2 with realsense-ros topics plus /ground_truth/{poses,object,visibility}
+  (:mod:`multi_instance_reg.datasets.bag_writer`).
+
+World frame: z up, table top at z = 0, objects around the origin, the wall at +y behind them.
+Everything is a function of the seed: the same seed gives the same bag content.
+"""
+from __future__ import annotations
+
+import functools
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ..errors import InputError
+from ..messages import CameraIntrinsics
+from ..transforms import invert_transform, make_transform
+from .objects import (BOX_FACES, DEFAULT_OBJECT, ENVIRONMENT_SIZE, OBJECTS, ObjectSpec, environment_texture,
+                      get_object, object_textures)
+from .render import AMBIENT, DIFFUSE, LIGHT_DIR_WORLD, LABEL_NOTHING, CylinderSide, Quad, Renderer, Texture
+from .sensor import d455_intrinsics, simulate_colour, simulate_depth
+
+FRAME_RATE_HZ = 30.0
+START_STAMP_NS = 1_700_000_000 * 1_000_000_000
+MAX_INSTANCES = 20
+MAX_DISTRACTORS = 20
+LABEL_DISTRACTOR = -2
+_DISTRACTOR_LABEL0 = 1000        # internal render labels of distractors
+TABLE_HALF_X = 1.6
+TABLE_FRONT_Y = -2.4
+MIN_CAMERA_CLEARANCE_M = 0.32    # camera to any object surface (the depth minimum is 0.3 m)
+
+
+# ----------------------------------------------------------------------------------------------
+# Geometry helpers
+
+
+def _rot_z(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _rot_x(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+# Rotation that turns the named object axis to world up (+z).
+_UP_AXIS_ROTATION = {
+    "+z": np.eye(3),
+    "-z": np.diag([1.0, -1.0, -1.0]),
+    "+x": np.array([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]]),
+    "-x": np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]),
+    "+y": np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]),
+    "-y": np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]),
+}
+
+
+@dataclass
+class Placement:
+    """One object on the table: ``pose`` maps the object frame to the world frame."""
+    spec: ObjectSpec
+    pose: np.ndarray
+    label: int                      # 0..K-1 for instances, >= 1000 for distractors
+    arrangement: str = "free"       # free | touching | stacked | leaning
+
+    @property
+    def is_instance(self) -> bool:
+        return 0 <= self.label < _DISTRACTOR_LABEL0
+
+
+def _obb_overlap(pa: np.ndarray, ha: np.ndarray, pb: np.ndarray, hb: np.ndarray, margin: float = 5e-4) -> bool:
+    """Do two oriented boxes (pose, half extents) overlap? Separating-axis test, 15 axes."""
+    Ra, Rb = pa[:3, :3], pb[:3, :3]
+    d = pb[:3, 3] - pa[:3, 3]
+    ha = ha + margin
+    hb = hb + margin
+    axes = [Ra[:, i] for i in range(3)] + [Rb[:, i] for i in range(3)]
+    for i in range(3):
+        for j in range(3):
+            c = np.cross(Ra[:, i], Rb[:, j])
+            n = np.linalg.norm(c)
+            if n > 1e-9:
+                axes.append(c / n)
+    for ax in axes:
+        ra = np.sum(ha * np.abs(Ra.T @ ax))
+        rb = np.sum(hb * np.abs(Rb.T @ ax))
+        if abs(d @ ax) > ra + rb:
+            return False
+    return True
+
+
+def _lowest_z(pose: np.ndarray, half: np.ndarray) -> float:
+    return float(pose[2, 3] - np.sum(np.abs(pose[2, :3]) * half))
+
+
+def _top_z(pose: np.ndarray, half: np.ndarray) -> float:
+    return float(pose[2, 3] + np.sum(np.abs(pose[2, :3]) * half))
+
+
+def _resting_rotation(spec: ObjectSpec, up: str, yaw: float, rng) -> np.ndarray:
+    R = _rot_z(yaw) @ _UP_AXIS_ROTATION[up]
+    if spec.shape == "cylinder":        # a can spins freely about its own axis
+        R = R @ _rot_z(rng.uniform(0, 2 * np.pi))
+    return R
+
+
+def _choose_up(spec: ObjectSpec, rng) -> str:
+    ups = [u for u, _ in spec.resting]
+    w = np.array([wt for _, wt in spec.resting], dtype=np.float64)
+    return ups[int(rng.choice(len(ups), p=w / w.sum()))]
+
+
+# ----------------------------------------------------------------------------------------------
+# Placement
+
+
+class _Table:
+    """Objects placed so far, with collision checks against all of them."""
+
+    def __init__(self):
+        self.placed: list[Placement] = []
+
+    def collides(self, pose, half, ignore=None) -> bool:
+        return any(p is not ignore and _obb_overlap(pose, half, p.pose, p.spec.half_extents)
+                   for p in self.placed)
+
+    def slide_to_contact(self, pose, half, target: np.ndarray, direction: np.ndarray, other: Placement):
+        """Move ``pose`` along -``direction`` from far away towards ``target`` until it just
+        touches ``other`` (bisection); None if it never gets free."""
+        far = np.linalg.norm(half) + np.linalg.norm(other.spec.half_extents) + 0.05
+        def at(dist):
+            p = pose.copy()
+            p[:2, 3] = target[:2] - direction[:2] * dist
+            return p
+        if _obb_overlap(at(far), half, other.pose, other.spec.half_extents):
+            return None
+        lo, hi = 0.0, far           # overlap at lo (probably), free at hi
+        if not _obb_overlap(at(lo), half, other.pose, other.spec.half_extents):
+            return at(lo)
+        for _ in range(22):
+            mid = 0.5 * (lo + hi)
+            if _obb_overlap(at(mid), half, other.pose, other.spec.half_extents):
+                lo = mid
+            else:
+                hi = mid
+        return at(hi + 1e-3)
+
+
+def place_objects(target: ObjectSpec, instances: int, distractor_specs: list[ObjectSpec], rng,
+                  arrangement_probs=(0.62, 0.2, 0.09, 0.09)) -> list[Placement]:
+    """Place ``instances`` copies of ``target`` and the distractors on the table.
+
+    Each object is placed free (anywhere in the region), touching a neighbour, stacked on a
+    flat top or leaning against a taller object, with probabilities ``arrangement_probs``;
+    if its arrangement fails it is placed free. No two objects interpenetrate.
+    """
+    items = [(target, k) for k in range(instances)] + \
+            [(spec, _DISTRACTOR_LABEL0 + j) for j, spec in enumerate(distractor_specs)]
+    order = rng.permutation(len(items))
+    # Region: about 2.8 times the summed footprints, 4:3.
+    footprint = sum(s.dimensions_m[0] * max(s.dimensions_m[1], s.dimensions_m[2]) for s, _ in items)
+    area = max(0.12, 2.8 * footprint)
+    half = np.array([np.sqrt(area * 4 / 3) / 2, np.sqrt(area * 3 / 4) / 2])
+    table = _Table()
+    for idx in order:
+        spec, label = items[idx]
+        placement = None
+        up = _choose_up(spec, rng)      # once: retrying must not favour small footprints
+        arrangement = ["free", "touching", "stacked", "leaning"][int(rng.choice(4, p=arrangement_probs))]
+        if arrangement != "free" and table.placed:
+            placement = _try_arrangement(arrangement, spec, up, label, table, half, rng)
+        grow = 1.0
+        while placement is None:
+            for _ in range(100):
+                placement = _place_free(spec, up, label, table, half * grow, rng)
+                if placement is not None:
+                    break
+            grow *= 1.15
+        table.placed.append(placement)
+    table.placed.sort(key=lambda p: p.label)
+    return table.placed
+
+
+def _place_free(spec, up, label, table, half, rng) -> Placement | None:
+    R = _resting_rotation(spec, up, rng.uniform(0, 2 * np.pi), rng)
+    pose = make_transform(R, [rng.uniform(-half[0], half[0]), rng.uniform(-half[1], half[1]), 0.0])
+    pose[2, 3] -= _lowest_z(pose, spec.half_extents)
+    if table.collides(pose, spec.half_extents):
+        return None
+    return Placement(spec, pose, label, "free")
+
+
+def _try_arrangement(kind, spec, up, label, table, half, rng) -> Placement | None:
+    for _ in range(25):
+        other = table.placed[int(rng.integers(len(table.placed)))]
+        if kind == "touching":
+            pose = make_transform(_resting_rotation(spec, up, rng.uniform(0, 2 * np.pi), rng), [0, 0, 0])
+            pose[2, 3] -= _lowest_z(pose, spec.half_extents)
+            a = rng.uniform(0, 2 * np.pi)
+            direction = np.array([np.cos(a), np.sin(a), 0.0])
+            pose = table.slide_to_contact(pose, spec.half_extents, other.pose[:3, 3], direction, other)
+        elif kind == "stacked":
+            # On a flat top (a box, or a can standing up), lying on its largest face, its
+            # centre over the support so it would stay there.
+            if other.spec.shape == "cylinder" and abs(other.pose[2, 2]) < 0.99:
+                continue
+            if other.arrangement == "leaning":
+                continue
+            top_half = other.spec.half_extents
+            flat = max(spec.resting, key=lambda r: r[1])[0]
+            pose = make_transform(_resting_rotation(spec, flat, rng.uniform(0, 2 * np.pi), rng), [0, 0, 0])
+            # Offset within the support's top face (in the support's frame, horizontal axes).
+            horiz = [i for i in range(3) if abs(other.pose[2, i]) < 0.5]
+            local = np.zeros(3)
+            for i in horiz:
+                local[i] = rng.uniform(-0.4, 0.4) * top_half[i]
+            centre = other.pose[:3, :3] @ local + other.pose[:3, 3]
+            pose[:2, 3] = centre[:2]
+            pose[2, 3] = _top_z(other.pose, top_half) - _lowest_z(pose, spec.half_extents) + 1e-3
+        else:  # leaning: a box standing on its end, tilted until it rests on a taller object
+            if spec.shape != "box" or other.arrangement == "leaning":
+                continue
+            tall = ["+x", "+y", "+z"][int(np.argmax(spec.dimensions_m))]
+            other_height = _top_z(other.pose, other.spec.half_extents)
+            if other_height < 0.3 * max(spec.dimensions_m):
+                continue
+            a = rng.uniform(0, 2 * np.pi)
+            direction = np.array([np.cos(a), np.sin(a), 0.0])    # from the leaner to the support
+            tilt = np.radians(rng.uniform(12, 28))
+            # _rot_x(-tilt) moves the top towards +y; yaw turns +y onto ``direction``.
+            R = _rot_z(a - np.pi / 2) @ _rot_x(-tilt) @ _UP_AXIS_ROTATION[tall]
+            pose = make_transform(R, [0, 0, 0])
+            pose[2, 3] -= _lowest_z(pose, spec.half_extents)
+            pose = table.slide_to_contact(pose, spec.half_extents, other.pose[:3, 3], direction, other)
+        if pose is None:
+            continue
+        if np.any(np.abs(pose[:2, 3]) > 1.6 * half):
+            continue
+        if table.collides(pose, spec.half_extents):
+            continue
+        return Placement(spec, pose, label, kind)
+    return None
+
+
+# ----------------------------------------------------------------------------------------------
+# Camera paths
+
+
+def look_at(eye: np.ndarray, target: np.ndarray, roll: float = 0.0) -> np.ndarray:
+    """Camera -> world pose of an optical frame (z forward, x right, y down) at ``eye``
+    looking at ``target`` with world z up, rolled by ``roll`` radians about its axis."""
+    z = target - eye
+    z = z / np.linalg.norm(z)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x = x / np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.column_stack([x, y, z])
+    c, s = np.cos(roll), np.sin(roll)
+    R = R @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return make_transform(R, eye)
+
+
+def _spherical(centre, r, az, el):
+    return centre + r * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+
+
+def _clearance(eye: np.ndarray, placements: list[Placement]) -> float:
+    return min((np.linalg.norm(eye - p.pose[:3, 3]) - np.linalg.norm(p.spec.half_extents)
+                for p in placements), default=np.inf)
+
+
+def sweep_trajectory(placements: list[Placement], frames: int, rng) -> list[np.ndarray]:
+    """A smooth hand-held sweep over the table from the front: camera -> world poses at 30 Hz.
+
+    Distance to the looked-at point 0.5-1.0 m (up to 1.4 m for crowded tables), elevation
+    ~35-65 deg, azimuth swinging +-12-22 deg, plus a few millimetres of hand shake.
+    """
+    centres = np.array([p.pose[:3, 3] for p in placements])
+    centre = np.array([centres[:, 0].mean(), centres[:, 1].mean(), 0.03])
+    # Back off for crowded tables so that most of them fits in the view (up to ~1.25 m).
+    spread = np.percentile(np.linalg.norm(centres[:, :2] - centre[:2], axis=1), 80)
+    r0 = min(max(rng.uniform(0.64, 0.8), 1.05 * spread), 1.25)
+    el0 = np.radians(rng.uniform(42, 56))
+    az0 = np.radians(-90 + rng.uniform(-20, 20))
+    amp_az = np.radians(rng.uniform(12, 22))
+    amp_el = np.radians(rng.uniform(4, 8))
+    amp_r = rng.uniform(0.06, 0.13)
+    period = rng.uniform(5.0, 8.0, size=3)
+    phase = rng.uniform(0, 2 * np.pi, size=8)
+    shake_f = rng.uniform(0.8, 2.5, size=(3, 3))
+    shake_p = rng.uniform(0, 2 * np.pi, size=(3, 3))
+    drift = rng.uniform(0.03, 0.07)
+    for _attempt in range(20):
+        poses = []
+        for i in range(frames):
+            tsec = i / FRAME_RATE_HZ
+            w = 2 * np.pi * tsec
+            r = r0 + amp_r * np.sin(w / period[0] + phase[0])
+            az = az0 + amp_az * np.sin(w / period[1] + phase[1])
+            el = el0 + amp_el * np.sin(w / period[2] + phase[2])
+            target = centre + drift * np.array([np.sin(w / 7.0 + phase[3]), np.sin(w / 9.0 + phase[4]), 0.0])
+            shake = 0.0025 * np.sin(w * shake_f + shake_p).sum(axis=1)
+            eye = _spherical(target, r, az, el) + shake
+            roll = np.radians(2.0) * np.sin(w / 3.0 + phase[5])
+            poses.append(look_at(eye, target, roll))
+        if min(_clearance(P[:3, 3], placements) for P in poses) >= MIN_CAMERA_CLEARANCE_M:
+            return poses
+        r0 += 0.05          # too close to a tall object somewhere: back off
+    return poses
+
+
+def capture_viewpoints(placement: Placement, views: int, rng) -> list[np.ndarray]:
+    """Camera -> world poses around one object: evenly spread azimuths with jitter,
+    elevations alternating within 30-60 deg, 0.4-0.6 m from the object's centre."""
+    centre = placement.pose[:3, 3].copy()
+    az0 = rng.uniform(0, 2 * np.pi)
+    poses = []
+    for i in range(views):
+        az = az0 + 2 * np.pi * i / views + np.radians(rng.uniform(-8, 8))
+        el = np.radians((rng.uniform(30, 42) if i % 2 == 0 else rng.uniform(48, 60)))
+        r = rng.uniform(0.4, 0.6)
+        target = centre + rng.uniform(-0.01, 0.01, size=3)
+        poses.append(look_at(_spherical(target, r, az, el), target, np.radians(rng.uniform(-4, 4))))
+    return poses
+
+
+# ----------------------------------------------------------------------------------------------
+# Primitives
+
+
+@functools.lru_cache(maxsize=None)
+def _object_texture(name: str, face: str) -> Texture:
+    spec = get_object(name)
+    return Texture(object_textures(name)[face], wrap=(spec.shape == "cylinder" and face == "side"))
+
+
+@functools.lru_cache(maxsize=None)
+def _environment_texture(kind: str) -> Texture:
+    return Texture(environment_texture(kind))
+
+
+def _quad_world(pose, centre, e1, e2, normal, texture, label, disc=False) -> Quad:
+    R, t = pose[:3, :3], pose[:3, 3]
+    origin = centre - 0.5 * e1 - 0.5 * e2
+    return Quad(origin=R @ origin + t, e1=R @ e1, e2=R @ e2, normal=R @ normal, texture=texture,
+                tex_rect=(0.0, 0.0, float(texture.width), float(texture.height)), label=label, disc=disc)
+
+
+def object_primitives(placement: Placement) -> list:
+    """Quads (and a cylinder side) of one placed object, in the world frame."""
+    spec, pose, label = placement.spec, placement.pose, placement.label
+    half = spec.half_extents
+    prims = []
+    if spec.shape == "box":
+        for face, normal, up in BOX_FACES:
+            n = np.asarray(normal, dtype=np.float64)
+            upv = np.asarray(up, dtype=np.float64)
+            right = np.cross(upv, n)            # picture rows run left to right seen from outside
+            width = 2 * np.abs(right) @ half
+            height = 2 * np.abs(upv) @ half
+            centre = n * (np.abs(n) @ half)
+            prims.append(_quad_world(pose, centre, right * width, -upv * height, n,
+                                     _object_texture(spec.name, face), label))
+    else:
+        r, hh = spec.radius, half[2]
+        prims.append(CylinderSide(pose=pose, radius=r, height=2 * hh,
+                                  texture=_object_texture(spec.name, "side"), label=label))
+        for face, sign in (("+z", 1.0), ("-z", -1.0)):
+            n = np.array([0.0, 0.0, sign])
+            right = np.cross([0.0, 1.0, 0.0], n)
+            prims.append(_quad_world(pose, n * hh, right * 2 * r, np.array([0.0, -2 * r, 0.0]), n,
+                                     _object_texture(spec.name, face), label, disc=True))
+    return prims
+
+
+SHADOW_METRES_PER_TEXEL = 0.004
+
+
+def table_lightmap(placements: list[Placement], wall_y: float, size_m: tuple[float, float]) -> np.ndarray:
+    """Brightness of the table top (1 = lit): soft shadows cast by the objects along the
+    light direction, plus darkening right around their footprints (skylight they block).
+    Rows run from the wall (y = wall_y) towards the front, columns from x = -TABLE_HALF_X."""
+    sx, sy = size_m
+    w, h = int(round(sx / SHADOW_METRES_PER_TEXEL)), int(round(sy / SHADOW_METRES_PER_TEXEL))
+    shadow = np.zeros((h, w), np.float32)
+    contact = np.zeros((h, w), np.float32)
+    L = LIGHT_DIR_WORLD
+    ring = np.linspace(0, 2 * np.pi, 24, endpoint=False)
+    for p in placements:
+        half = p.spec.half_extents
+        if p.spec.shape == "cylinder":
+            local = np.array([[half[0] * np.cos(a), half[0] * np.sin(a), sz * half[2]]
+                              for a in ring for sz in (-1, 1)])
+        else:
+            local = np.array([[sx_ * half[0], sy_ * half[1], sz * half[2]]
+                              for sx_ in (-1, 1) for sy_ in (-1, 1) for sz in (-1, 1)])
+        pts = local @ p.pose[:3, :3].T + p.pose[:3, 3]
+        cast = pts[:, :2] - (pts[:, 2:3] / L[2]) * L[:2]             # along the light onto z = 0
+        for target, xy in ((shadow, cast), (contact, pts[pts[:, 2] < 0.01 + pts[:, 2].min(), :2])):
+            px = np.stack([(xy[:, 0] + TABLE_HALF_X) / SHADOW_METRES_PER_TEXEL,
+                           (wall_y - xy[:, 1]) / SHADOW_METRES_PER_TEXEL], axis=1)
+            hull = cv2.convexHull(np.round(px * 16).astype(np.int32))
+            cv2.fillConvexPoly(target, hull, 1.0, lineType=cv2.LINE_AA, shift=4)
+    shadow = cv2.GaussianBlur(shadow, (0, 0), 0.006 / SHADOW_METRES_PER_TEXEL)
+    contact = cv2.GaussianBlur(contact, (0, 0), 0.02 / SHADOW_METRES_PER_TEXEL)
+    # In full shadow only the ambient term remains: AMBIENT / (AMBIENT + DIFFUSE * L_z).
+    direct = 1.0 - AMBIENT / (AMBIENT + DIFFUSE * L[2])
+    return np.clip(1.0 - direct * shadow - 0.25 * contact, 0.3, 1.0).astype(np.float32)
+
+
+def environment_primitives(wall_y: float, placements: list[Placement] = ()) -> list:
+    """The table top (z = 0) and the wall behind it (y = wall_y), both textured; the
+    placements cast shadows on the table."""
+    table_tex = _environment_texture("table")
+    wall_tex = _environment_texture("wall")
+    table_per_m = ENVIRONMENT_SIZE["table"][2]
+    wall_per_m = ENVIRONMENT_SIZE["wall"][2]
+    sx, sy = 2 * TABLE_HALF_X, min(wall_y - TABLE_FRONT_Y, ENVIRONMENT_SIZE["table"][1])
+    table = Quad(origin=np.array([-TABLE_HALF_X, wall_y, 0.0]), e1=np.array([sx, 0.0, 0.0]),
+                 e2=np.array([0.0, -sy, 0.0]), normal=np.array([0.0, 0.0, 1.0]), texture=table_tex,
+                 tex_rect=(0.0, 0.0, sx * table_per_m, sy * table_per_m),
+                 lightmap=table_lightmap(list(placements), wall_y, (sx, sy)) if placements else None)
+    wall_w, wall_h = ENVIRONMENT_SIZE["wall"][:2]
+    # The wall stops just below the table top: anything lower is hidden and costs time.
+    wall = Quad(origin=np.array([-wall_w / 2, wall_y, wall_h - 0.02]), e1=np.array([wall_w, 0.0, 0.0]),
+                e2=np.array([0.0, 0.0, -wall_h]), normal=np.array([0.0, -1.0, 0.0]), texture=wall_tex,
+                tex_rect=(0.0, 0.0, wall_w * wall_per_m, wall_h * wall_per_m))
+    return [table, wall]
+
+
+# ----------------------------------------------------------------------------------------------
+# Scenes and frames
+
+
+@dataclass
+class RenderedFrame:
+    index: int
+    stamp_ns: int
+    rgb: np.ndarray              # (H, W, 3) uint8
+    depth_mm: np.ndarray         # (H, W) uint16, 0 = invalid
+    depth_true_m: np.ndarray     # (H, W) float32, noise-free, 0 = nothing
+    K: np.ndarray                # (3, 3)
+    poses: np.ndarray            # (K, 4, 4) object -> colour optical frame
+    instance_mask: np.ndarray    # (H, W) int16: k instance k, -1 table/wall, -2 distractor
+    visibility: np.ndarray       # (K,) float32 in [0, 1]
+    T_world_camera: np.ndarray   # (4, 4) camera -> world
+
+
+@dataclass
+class SyntheticScene:
+    """A placed scene plus its camera path; render frames on demand."""
+    kind: str                            # "scene" | "capture"
+    target: ObjectSpec
+    placements: list[Placement]
+    camera_poses: list[np.ndarray]       # camera -> world, one per frame
+    intrinsics: CameraIntrinsics
+    seed: int
+    primitives: list = field(default_factory=list)
+
+    def __post_init__(self):
+        if not self.primitives:
+            wall_y = max(0.45, max(p.pose[1, 3] for p in self.placements) + 0.3)
+            if self.kind == "capture":
+                wall_y = 1.0
+            self.primitives = environment_primitives(wall_y, self.placements)
+            for p in self.placements:
+                self.primitives += object_primitives(p)
+        self._renderer = Renderer(self.intrinsics.K, self.intrinsics.width, self.intrinsics.height)
+
+    @property
+    def instances(self) -> list[Placement]:
+        return [p for p in self.placements if p.is_instance]
+
+    @property
+    def num_frames(self) -> int:
+        return len(self.camera_poses)
+
+    def description(self) -> dict:
+        """The /ground_truth/object JSON: the shared convention plus what else was placed."""
+        d = self.target.description()
+        d.update({"instances": len(self.instances), "kind": self.kind, "seed": int(self.seed),
+                  "distractors": [p.spec.name for p in self.placements if not p.is_instance],
+                  "arrangements": [p.arrangement for p in self.instances],
+                  "generator": "multi_instance_reg.synthetic"})
+        return d
+
+    def stamp_ns(self, index: int) -> int:
+        return START_STAMP_NS + int(round(index * 1e9 / FRAME_RATE_HZ))
+
+    def render_frame(self, index: int) -> RenderedFrame:
+        T_wc = self.camera_poses[index]
+        T_cw = invert_transform(T_wc)
+        instances = self.instances
+        out = self._renderer.render(self.primitives, T_cw, count_labels=[p.label for p in instances])
+        noise_seed = int(np.random.SeedSequence([self.seed, index, 17]).generate_state(1)[0])
+        rgb = simulate_colour(out.radiance, noise_seed)
+        depth_mm = simulate_depth(out.depth_m, float(self.intrinsics.K[0, 0]), noise_seed + 1)
+        mask = out.labels.copy()
+        mask[mask >= _DISTRACTOR_LABEL0] = LABEL_DISTRACTOR
+        counts = np.bincount(mask[mask >= 0].ravel(), minlength=len(instances))
+        vis = np.array([counts[p.label] / out.coverage[p.label] if out.coverage[p.label] else 0.0
+                        for p in instances], dtype=np.float32)
+        poses = np.stack([T_cw @ p.pose for p in instances]) if instances else np.zeros((0, 4, 4))
+        depth_true = np.where(np.isfinite(out.depth_m), out.depth_m, 0).astype(np.float32)
+        return RenderedFrame(index=index, stamp_ns=self.stamp_ns(index), rgb=rgb, depth_mm=depth_mm,
+                             depth_true_m=depth_true, K=self.intrinsics.K.copy(), poses=poses,
+                             instance_mask=mask, visibility=vis, T_world_camera=T_wc)
+
+    def frames(self):
+        for i in range(self.num_frames):
+            yield self.render_frame(i)
+
+
+def _check_common(object_name: str, seed: int, resolution: str) -> ObjectSpec:
+    spec = get_object(object_name)
+    d455_intrinsics(resolution)        # validates the resolution
+    if int(seed) < 0:
+        raise InputError(f"seed must be >= 0, got {seed}")
+    return spec
+
+
+def make_tabletop_scene(object_name: str = DEFAULT_OBJECT, instances: int = 6, distractors: int = 3,
+                        frames: int = 60, seed: int = 0, resolution: str = "640x480") -> SyntheticScene:
+    spec = _check_common(object_name, seed, resolution)
+    if not 1 <= int(instances) <= MAX_INSTANCES:
+        raise InputError(f"instances must be 1 to {MAX_INSTANCES}, got {instances}")
+    if not 0 <= int(distractors) <= MAX_DISTRACTORS:
+        raise InputError(f"distractors must be 0 to {MAX_DISTRACTORS}, got {distractors}")
+    if int(frames) < 1:
+        raise InputError(f"frames must be at least 1, got {frames}")
+    # Independent streams, so that e.g. the frame count does not change the placement.
+    rng_choose, rng_place, rng_path = (np.random.default_rng([int(seed), k]) for k in (1, 2, 3))
+    pool = [s for s in OBJECTS.values() if s.name != spec.name]
+    distractor_specs = [pool[int(i)] for i in rng_choose.integers(len(pool), size=int(distractors))]
+    placements = place_objects(spec, int(instances), distractor_specs, rng_place)
+    poses = sweep_trajectory(placements, int(frames), rng_path)
+    return SyntheticScene("scene", spec, placements, poses, d455_intrinsics(resolution), int(seed))
+
+
+def make_capture_scene(object_name: str = DEFAULT_OBJECT, seed: int = 0, views: int = 10,
+                       resolution: str = "640x480") -> SyntheticScene:
+    spec = _check_common(object_name, seed, resolution)
+    if not 3 <= int(views) <= 100:
+        raise InputError(f"views must be 3 to 100, got {views}")
+    rng = np.random.default_rng([int(seed), 4])
+    up = max(spec.resting, key=lambda r: r[1])[0]
+    pose = make_transform(_resting_rotation(spec, up, rng.uniform(0, 2 * np.pi), rng), [0.0, 0.0, 0.0])
+    pose[2, 3] -= _lowest_z(pose, spec.half_extents)
+    placement = Placement(spec, pose, 0, "free")
+    poses = capture_viewpoints(placement, int(views), rng)
+    return SyntheticScene("capture", spec, [placement], poses, d455_intrinsics(resolution), int(seed))
+
+
+# ----------------------------------------------------------------------------------------------
+# Bags
+
+
+@dataclass
+class BagSummary:
+    path: Path
+    frames: int
+    seconds: float
+    instances: int
+    storage: str
+
+    @property
+    def fps(self) -> float:
+        return self.frames / self.seconds if self.seconds > 0 else float("inf")
+
+    def line(self) -> str:
+        return (f"wrote {self.frames} frames ({self.instances} instance(s)) to {self.path} "
+                f"[{self.storage}] at {self.fps:.1f} frames/s")
+
+
+def write_scene_bag(scene: SyntheticScene, out_path, storage: str = "sqlite3", preview_dir=None,
+                    preview_frames=None) -> BagSummary:
+    """Render every frame of ``scene`` into a new rosbag2 at ``out_path``."""
+    from ..datasets.bag_writer import RealSenseBagWriter
+    from .preview import write_preview
+
+    n = scene.num_frames
+    if preview_frames is None:
+        preview_frames = sorted({0, n // 2, n - 1})
+    if preview_dir is not None:
+        Path(preview_dir).mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    with RealSenseBagWriter(out_path, storage=storage) as bag:
+        bag.write_object_description(scene.stamp_ns(0), scene.description())
+        for frame in scene.frames():
+            bag.write_frame(frame.stamp_ns, frame.rgb, frame.depth_mm, scene.intrinsics,
+                            poses=frame.poses, visibility=frame.visibility)
+            if preview_dir is not None and frame.index in preview_frames:
+                write_preview(preview_dir, frame, scene)
+    return BagSummary(Path(out_path), n, time.perf_counter() - t0, len(scene.instances), storage)
+
+
+def generate_scene_bag(out_path, object_name: str = DEFAULT_OBJECT, instances: int = 6,
+                       distractors: int = 3, frames: int = 60, seed: int = 0, storage: str = "sqlite3",
+                       resolution: str = "640x480", preview_dir=None) -> BagSummary:
+    """Make a tabletop scene (see ``make_tabletop_scene``) and write it as a rosbag2."""
+    scene = make_tabletop_scene(object_name, instances, distractors, frames, seed, resolution)
+    return write_scene_bag(scene, out_path, storage, preview_dir)
+
+
+def generate_capture_bag(out_path, object_name: str = DEFAULT_OBJECT, seed: int = 0, views: int = 10,
+                         storage: str = "sqlite3", resolution: str = "640x480", preview_dir=None) -> BagSummary:
+    """Make a capture sequence (see ``make_capture_scene``) and write it as a rosbag2."""
+    scene = make_capture_scene(object_name, seed, views, resolution)
+    return write_scene_bag(scene, out_path, storage, preview_dir,
+                           preview_frames=list(range(min(views, 4))))
