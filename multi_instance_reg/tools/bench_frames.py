@@ -1,11 +1,12 @@
-"""``mireg bench frames``: accuracy and latency of the per-frame pipeline on a scene bag.
+"""``mireg bench frames``: accuracy and latency of the per-frame pipeline on scene bags.
 
-    mireg bench frames [BAG] [--model MODEL.npz | --capture CAPTURE_BAG] [--params FILE.yaml]
+    mireg bench frames [BAG ...] [--model MODEL.npz | --capture BAG ...] [--params FILE.yaml]
 
-Without BAG, a synthetic scene bag (4-12 instances plus distractors, 640x480) and a capture
-bag are generated first in a temporary directory; without --model, the model is built from
-the capture bag. Prints MHF1, MHR, MHP, MF, median RTE / RRE of the hits, the latency per
-frame (p50, p95) and the median of each stage.
+Without BAGs, synthetic scene bags are generated first in a temporary directory: ``--scenes``
+tabletop scenes with 4 to 12 instances plus distractors at 640x480, ``--frames`` frames each.
+Without --model, the model is built from capture bags (default: generated, the object
+upright and upside down so that the model sees every face). Prints MHF1, MHR, MHP, MF, the
+median RTE / RRE of the hits, the latency per frame (p50, p95) and each stage's p50 / p95.
 """
 from __future__ import annotations
 
@@ -14,18 +15,23 @@ import sys
 import tempfile
 from pathlib import Path
 
+import numpy as np
+
 from ..errors import InputError
 
-HELP = "per-frame pipeline on a scene bag: MHF1/MHR/MHP/MF, RTE/RRE, latency by stage"
+HELP = "per-frame pipeline on scene bags: MHF1/MHR/MHP/MF, RTE/RRE, latency by stage"
+
+INSTANCES_PER_SCENE = (4, 12, 6, 10, 8, 5, 11, 7, 9)
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("bag", nargs="?", default=None, help="scene bag with ground truth (default: generate one)")
+    parser.add_argument("bags", nargs="*", help="scene bags with ground truth (default: generate --scenes of them)")
     parser.add_argument("--model", default=None, help="object model (.npz); default: built from --capture")
-    parser.add_argument("--capture", default=None, help="capture bag to build the model from (default: generate one)")
+    parser.add_argument("--capture", nargs="+", default=None, help="capture bag(s) to build the model from (default: generate)")
     parser.add_argument("--params", default=None, help="the node's parameter YAML (frontend.* and ecc.* are used)")
     parser.add_argument("--object", default=None, help="object of the generated bags (default: the generator's)")
-    parser.add_argument("--frames", type=int, default=30, help="frames of the generated scene bag (default 30)")
+    parser.add_argument("--scenes", type=int, default=6, help="generated scenes (default 6; instances 4..12)")
+    parser.add_argument("--frames", type=int, default=5, help="frames per generated scene (default 5)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the generated bags (default 0)")
     parser.add_argument("--max-rre-deg", type=float, default=10.0, help="hit: rotation error below this (default 10 deg)")
     parser.add_argument("--max-rte", type=float, default=0.02, help="hit: translation error below this (default 0.02 m)")
@@ -34,24 +40,56 @@ def add_arguments(parser) -> None:
     parser.add_argument("--json", default=None, help="also write the figures to this JSON file")
 
 
-def generate_bags(workdir: Path, object_name, frames: int, seed: int) -> tuple[Path, Path]:
-    """A scene bag and a capture bag from the synthetic generator."""
-    from ..synthetic import bags as synth_bags
+def flipped_capture_scene(object_name=None, seed: int = 0, views: int = 10):
+    """The generator's capture scene with the object upside down (rotated 180 deg about its
+    x axis, resting on its top), so that a model merged from both sees the bottom too."""
+    from ..synthetic.scene import (DEFAULT_OBJECT, Placement, SyntheticScene, capture_viewpoints,
+                                   make_capture_scene)
 
-    scene = workdir / "scene"
-    capture = workdir / "capture"
-    synth_bags.write_scene_bag(scene, **synth_bags_kwargs(object_name, frames, seed))
-    synth_bags.write_capture_bag(capture, **synth_bags_kwargs(object_name, None, seed))
-    return scene, capture
+    base = make_capture_scene(object_name or DEFAULT_OBJECT, seed, views)
+    upright = base.placements[0]
+    pose = upright.pose.copy()
+    pose[:3, :3] = pose[:3, :3] @ np.diag([1.0, -1.0, -1.0])
+    pose[2, 3] = float(np.sum(np.abs(pose[2, :3]) * upright.spec.half_extents))   # lowest point on the table
+    placement = Placement(upright.spec, pose, 0, "free")
+    cameras = capture_viewpoints(placement, views, np.random.default_rng([seed, 5]))
+    return SyntheticScene("capture", upright.spec, [placement], cameras, base.intrinsics, seed)
 
 
-def synth_bags_kwargs(object_name, frames, seed) -> dict:
-    kw = {"seed": seed}
-    if object_name:
-        kw["object_name"] = object_name
-    if frames:
-        kw["frames"] = frames
-    return kw
+def generate_capture_bags(workdir: Path, object_name=None, seed: int = 0, views: int = 10) -> list[Path]:
+    """Two capture bags of the object: upright and upside down."""
+    from ..synthetic.scene import DEFAULT_OBJECT, generate_capture_bag, write_scene_bag
+
+    upright, flipped = Path(workdir) / "capture_upright", Path(workdir) / "capture_flipped"
+    generate_capture_bag(upright, object_name or DEFAULT_OBJECT, seed=seed, views=views)
+    write_scene_bag(flipped_capture_scene(object_name, seed, views), flipped)
+    return [upright, flipped]
+
+
+def generate_scene_bags(workdir: Path, object_name=None, scenes: int = 6, frames: int = 5, seed: int = 0) -> list[Path]:
+    """Tabletop scenes with 4 to 12 instances and 3 distractors each."""
+    from ..synthetic.scene import DEFAULT_OBJECT, generate_scene_bag
+
+    paths = []
+    for k in range(scenes):
+        path = Path(workdir) / f"scene_{k:02d}"
+        generate_scene_bag(path, object_name or DEFAULT_OBJECT, instances=INSTANCES_PER_SCENE[k % len(INSTANCES_PER_SCENE)],
+                           distractors=3, frames=frames, seed=seed + 100 + k)
+        paths.append(path)
+    return paths
+
+
+def model_from_captures(captures) -> "object":
+    from ..rgbd.model import BuildSettings, build_model
+    from .build_model import register_view_with_ecc, views_from_bag
+
+    views, description = [], None
+    for bag in captures:
+        more, desc = views_from_bag(bag, None, None)
+        views += more
+        description = description or desc
+    return build_model(views, BuildSettings(), name=(description or {}).get("name", ""),
+                       register_view=register_view_with_ecc)
 
 
 def format_report(metrics: dict) -> str:
@@ -72,35 +110,35 @@ def format_report(metrics: dict) -> str:
 
 
 def run(args) -> int:
-    from ..rgbd.model import load_model, save_model
-    from .build_model import views_from_bag
-    from .offline import load_config, metrics_dict, replay
+    from ..rgbd.model import load_model
+    from .offline import ReplayResult, load_config, metrics_dict, replay
 
     config = load_config(args.params)
     with tempfile.TemporaryDirectory(prefix="mireg_bench_frames_") as tmp:
         tmp = Path(tmp)
-        bag, capture = args.bag, args.capture
-        if bag is None or (args.model is None and capture is None):
-            print("generating synthetic bags ...", file=sys.stderr)
-            gen_scene, gen_capture = generate_bags(tmp, args.object, args.frames, args.seed)
-            bag = bag or gen_scene
-            capture = capture or gen_capture
+        bags = list(args.bags)
+        if not bags:
+            print(f"generating {args.scenes} scene bags of {args.frames} frames ...", file=sys.stderr)
+            bags = generate_scene_bags(tmp, args.object, args.scenes, args.frames, args.seed)
         if args.model:
             model = load_model(args.model)
         else:
-            from ..rgbd.model import BuildSettings, build_model
-            from .build_model import register_view_with_ecc
-
-            views, description = views_from_bag(capture, None, None)
-            model = build_model(views, BuildSettings(), name=(description or {}).get("name", ""),
-                                register_view=register_view_with_ecc)
-            save_model(model, tmp / "model.npz")
-            print(f"model: {model.num_keypoints} keypoints from {len(views)} view(s) of {capture}", file=sys.stderr)
-        result = replay(bag, model, config, None, args.max_rre_deg, args.max_rte, progress=sys.stderr.isatty(),
-                        min_visibility=args.min_visibility)
-    if not result.scores:
-        raise InputError(f"bag {bag} has no ground truth (/ground_truth/poses); the benchmark needs it")
-    metrics = metrics_dict(result, args.max_rre_deg, args.max_rte, args.min_visibility)
+            captures = args.capture
+            if not captures:
+                print("generating capture bags (upright, upside down) ...", file=sys.stderr)
+                captures = generate_capture_bags(tmp, args.object, args.seed)
+            model = model_from_captures(captures)
+            print(f"model: {model.num_keypoints} keypoints from {len(captures)} capture bag(s)", file=sys.stderr)
+        total = ReplayResult()
+        for bag in bags:
+            r = replay(bag, model, config, None, args.max_rre_deg, args.max_rte, progress=sys.stderr.isatty(),
+                       min_visibility=args.min_visibility)
+            for name in ("frames", "timings", "scores", "present", "found", "hits"):
+                getattr(total, name).extend(getattr(r, name))
+            total.skipped += r.skipped
+    if not total.scores:
+        raise InputError("the scene bags have no ground truth (/ground_truth/poses); the benchmark needs it")
+    metrics = metrics_dict(total, args.max_rre_deg, args.max_rte, args.min_visibility)
     print(format_report(metrics))
     if args.json:
         Path(args.json).write_text(json.dumps(metrics, indent=2))
