@@ -289,7 +289,9 @@ def build_model(views: list[CaptureView], settings: BuildSettings = BuildSetting
                          f"or capture a better textured view")
     cloud = _voxel_downsample(np.concatenate(clouds), settings.voxel)
 
-    # Model axes: z up from the table (towards the camera) if a table was found.
+    # Model axes: z up from the table (towards the camera) if a table was found, x and y along
+    # the sides of the object's smallest rectangle on the table; else the cloud's principal axes.
+    pts = cloud.astype(np.float64)
     if plane0 is not None:
         z_axis = plane0[0]    # oriented towards the camera, i.e. up from the table
         x_axis = np.array([1.0, 0.0, 0.0]) - z_axis * z_axis[0]
@@ -297,10 +299,18 @@ def build_model(views: list[CaptureView], settings: BuildSettings = BuildSetting
             x_axis = np.array([0.0, 1.0, 0.0]) - z_axis * z_axis[1]
         x_axis /= np.linalg.norm(x_axis)
         R = np.stack([x_axis, np.cross(z_axis, x_axis), z_axis], axis=1)
+        (_, _), (_, _), angle = cv2.minAreaRect((pts @ R[:, :2]).astype(np.float32))
+        c, s_ = np.cos(np.radians(angle)), np.sin(np.radians(angle))
+        R = R @ np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
     else:
-        R = np.eye(3)
-    local = cloud.astype(np.float64) @ R            # capture coords expressed along the model axes
-    lo, hi = np.percentile(local, 1, axis=0), np.percentile(local, 99, axis=0)
+        _, _, vt = np.linalg.svd(pts - pts.mean(axis=0), full_matrices=False)
+        R = vt.T * np.array([1.0, 1.0, np.linalg.det(vt.T)])   # a proper rotation
+    local = pts @ R                                   # capture coords expressed along the model axes
+    lo, hi = np.percentile(local, 0.5, axis=0), np.percentile(local, 99.5, axis=0)
+    if plane0 is not None:
+        # The object stands on the table: its box reaches down to the plane (n.p + d = 0,
+        # i.e. local z = -d), which the depth camera cannot see.
+        lo[2] = min(lo[2], -plane0[1])
     centre = R @ ((lo + hi) / 2.0)
     T_capture_model = make_transform(R, centre)
     T_model_capture = invert_transform(T_capture_model)
