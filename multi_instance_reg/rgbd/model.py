@@ -307,10 +307,10 @@ def build_model(views: list[CaptureView], settings: BuildSettings = BuildSetting
         R = vt.T * np.array([1.0, 1.0, np.linalg.det(vt.T)])   # a proper rotation
     local = pts @ R                                   # capture coords expressed along the model axes
     lo, hi = np.percentile(local, 0.5, axis=0), np.percentile(local, 99.5, axis=0)
-    if plane0 is not None:
+    if plane0 is not None and 0 < lo[2] - (-plane0[1]) <= 2 * settings.plane_thresh:
         # The object stands on the table: its box reaches down to the plane (n.p + d = 0,
-        # i.e. local z = -d), which the depth camera cannot see.
-        lo[2] = min(lo[2], -plane0[1])
+        # i.e. local z = -d); the slice just above the plane went with the table.
+        lo[2] = -plane0[1]
     centre = R @ ((lo + hi) / 2.0)
     T_capture_model = make_transform(R, centre)
     T_model_capture = invert_transform(T_capture_model)
