@@ -5,7 +5,7 @@
 Without BAGs, synthetic scene bags are generated first in a temporary directory: ``--scenes``
 tabletop scenes with 4 to 12 instances plus distractors at 640x480, ``--frames`` frames each.
 Without --model, the model is built from capture bags (default: generated, the object
-upright and upside down so that the model sees every face). Prints MHF1, MHR, MHP, MF, the
+resting on its bottom, its top and both long sides, so that the model sees every face). Prints MHF1, MHR, MHP, MF, the
 median RTE / RRE of the hits, the latency per frame (p50, p95) and each stage's p50 / p95.
 """
 from __future__ import annotations
@@ -40,30 +40,47 @@ def add_arguments(parser) -> None:
     parser.add_argument("--json", default=None, help="also write the figures to this JSON file")
 
 
-def flipped_capture_scene(object_name=None, seed: int = 0, views: int = 10):
-    """The generator's capture scene with the object upside down (rotated 180 deg about its
-    x axis, resting on its top), so that a model merged from both sees the bottom too."""
+# Rotation (object frame) that turns the upright object's "up" axis (+z) into another.
+_TO_UP = {
+    "+z": np.eye(3),
+    "-z": np.diag([1.0, -1.0, -1.0]),
+    "+y": np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]),
+    "-y": np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]),
+}
+CAPTURE_POSES = ("+z", "-z", "+y", "-y")
+
+
+def capture_scene_resting_on(up: str, object_name=None, seed: int = 0, views: int = 8):
+    """The generator's capture scene with the object resting so that its ``up`` axis points
+    up (the generator itself scans it upright): scanning an object in several resting poses
+    is how its model gets to see every face."""
     from ..synthetic.scene import (DEFAULT_OBJECT, Placement, SyntheticScene, capture_viewpoints,
                                    make_capture_scene)
 
     base = make_capture_scene(object_name or DEFAULT_OBJECT, seed, views)
+    if up == "+z":
+        return base
     upright = base.placements[0]
     pose = upright.pose.copy()
-    pose[:3, :3] = pose[:3, :3] @ np.diag([1.0, -1.0, -1.0])
+    pose[:3, :3] = pose[:3, :3] @ _TO_UP[up].T
     pose[2, 3] = float(np.sum(np.abs(pose[2, :3]) * upright.spec.half_extents))   # lowest point on the table
     placement = Placement(upright.spec, pose, 0, "free")
-    cameras = capture_viewpoints(placement, views, np.random.default_rng([seed, 5]))
+    cameras = capture_viewpoints(placement, views, np.random.default_rng([seed, 5, CAPTURE_POSES.index(up)]))
     return SyntheticScene("capture", upright.spec, [placement], cameras, base.intrinsics, seed)
 
 
-def generate_capture_bags(workdir: Path, object_name=None, seed: int = 0, views: int = 10) -> list[Path]:
-    """Two capture bags of the object: upright and upside down."""
-    from ..synthetic.scene import DEFAULT_OBJECT, generate_capture_bag, write_scene_bag
+def generate_capture_bags(workdir: Path, object_name=None, seed: int = 0, views: int = 8,
+                          poses=CAPTURE_POSES) -> list[Path]:
+    """Capture bags of the object in several resting poses (default: on its bottom, top and
+    both long sides)."""
+    from ..synthetic.scene import write_scene_bag
 
-    upright, flipped = Path(workdir) / "capture_upright", Path(workdir) / "capture_flipped"
-    generate_capture_bag(upright, object_name or DEFAULT_OBJECT, seed=seed, views=views)
-    write_scene_bag(flipped_capture_scene(object_name, seed, views), flipped)
-    return [upright, flipped]
+    paths = []
+    for up in poses:
+        path = Path(workdir) / f"capture_{'pos' if up[0] == '+' else 'neg'}{up[1]}_up"
+        write_scene_bag(capture_scene_resting_on(up, object_name, seed, views), path)
+        paths.append(path)
+    return paths
 
 
 def generate_scene_bags(workdir: Path, object_name=None, scenes: int = 6, frames: int = 5, seed: int = 0) -> list[Path]:
@@ -125,7 +142,7 @@ def run(args) -> int:
         else:
             captures = args.capture
             if not captures:
-                print("generating capture bags (upright, upside down) ...", file=sys.stderr)
+                print("generating capture bags (4 resting poses) ...", file=sys.stderr)
                 captures = generate_capture_bags(tmp, args.object, args.seed)
             model = model_from_captures(captures)
             print(f"model: {model.num_keypoints} keypoints from {len(captures)} capture bag(s)", file=sys.stderr)
