@@ -12,7 +12,7 @@ class SiftSettings:
     nfeatures: int = 0                 # 0 = keep all
     contrast_threshold: float = 0.02   # OpenCV default 0.04
     edge_threshold: float = 10.0
-    upsample: float = 1.0              # > 1: detect on an enlarged image (more keypoints on small objects)
+    upsample: float = 1.0              # image scale before SIFT: > 1 more keypoints on small objects, < 1 faster
 
 
 _DETECTORS: dict[SiftSettings, cv2.SIFT] = {}
@@ -40,8 +40,8 @@ def extract_sift(rgb: np.ndarray, settings: SiftSettings = SiftSettings(),
     """
     gray = to_gray(rgb)
     s = float(settings.upsample)
-    if s > 1.0:
-        gray = cv2.resize(gray, None, fx=s, fy=s, interpolation=cv2.INTER_LINEAR)
+    if s != 1.0:
+        gray = cv2.resize(gray, None, fx=s, fy=s, interpolation=cv2.INTER_LINEAR if s > 1 else cv2.INTER_AREA)
         if mask is not None:
             mask = cv2.resize(mask.astype(np.uint8), None, fx=s, fy=s, interpolation=cv2.INTER_NEAREST)
     m = None if mask is None else (mask > 0).astype(np.uint8)
@@ -49,7 +49,46 @@ def extract_sift(rgb: np.ndarray, settings: SiftSettings = SiftSettings(),
     if desc is None or not kps:
         return np.zeros((0, 2), np.float32), np.zeros((0, 128), np.float32)
     uv = np.array([k.pt for k in kps], dtype=np.float32)
-    if s > 1.0:
+    if s != 1.0:
         # Pixel centres: x_small = (x_big + 0.5) / s - 0.5 for cv2.resize's half-pixel convention.
         uv = (uv + 0.5) / s - 0.5
     return uv, desc.astype(np.float32, copy=False)
+
+
+@dataclass
+class Detection:
+    """SIFT keypoints of one image, before their descriptors are computed."""
+    uv: np.ndarray          # (K, 2) float32 pixel coordinates in the input image
+    keypoints: list         # cv2.KeyPoint, in the (possibly rescaled) detection image
+    gray: np.ndarray        # the detection image
+
+
+def detect_sift(rgb: np.ndarray, settings: SiftSettings = SiftSettings()) -> Detection:
+    """Keypoints only. Describing costs about twice as much as detecting, so the pipeline
+    describes only the keypoints that survive the depth and table-plane checks."""
+    gray = to_gray(rgb)
+    s = float(settings.upsample)
+    if s != 1.0:
+        gray = cv2.resize(gray, None, fx=s, fy=s, interpolation=cv2.INTER_LINEAR if s > 1 else cv2.INTER_AREA)
+    kps = _detector(settings).detect(gray, None)
+    uv = np.array([k.pt for k in kps], dtype=np.float32).reshape(-1, 2)
+    if s != 1.0:
+        uv = (uv + 0.5) / s - 0.5
+    return Detection(uv, list(kps), gray)
+
+
+def describe_sift(detection: Detection, keep: np.ndarray, settings: SiftSettings = SiftSettings()
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Descriptors of the kept keypoints: (indices into detection.uv (K',) int64, (K', 128) float32)."""
+    idx = np.flatnonzero(keep)
+    if len(idx) == 0:
+        return idx.astype(np.int64), np.zeros((0, 128), np.float32)
+    chosen = [detection.keypoints[i] for i in idx]
+    kps, desc = _detector(settings).compute(detection.gray, chosen)
+    if desc is None:
+        return np.zeros(0, np.int64), np.zeros((0, 128), np.float32)
+    if len(kps) != len(idx):
+        # OpenCV may drop keypoints it cannot describe: find the survivors by position.
+        where = {(k.pt, k.size, k.angle, k.octave): i for k, i in zip(chosen, idx)}
+        idx = np.array([where[(k.pt, k.size, k.angle, k.octave)] for k in kps], dtype=np.int64)
+    return idx.astype(np.int64), desc.astype(np.float32, copy=False)

@@ -22,7 +22,7 @@ from ..errors import InputError
 from ..messages import CameraIntrinsics
 from ..params import param
 from ..transforms import apply_transform, rigid_fit
-from .features import SiftSettings, extract_sift
+from .features import SiftSettings, describe_sift, detect_sift
 from .lifting import backproject, lookup_depth, off_planes, support_planes, undistort_pixels
 from .matching import DescriptorMatcher, prepare_descriptors
 from .model import ObjectModel
@@ -37,7 +37,7 @@ class FrontEndConfig:
     sift_nfeatures: int = param(0, "SIFT: keep at most this many keypoints per frame (0 = all)", 0, 100000)
     sift_contrast_threshold: float = param(0.02, "SIFT contrast threshold (OpenCV default 0.04; lower finds more keypoints on weak texture)", 0.001, 0.5)
     sift_edge_threshold: float = param(10.0, "SIFT edge threshold (OpenCV default 10)", 1.0, 100.0)
-    sift_upsample: float = param(1.0, "scale the image by this before SIFT (1 = off; 1.5-2 finds more keypoints on small objects, at a cost)", 1.0, 4.0)
+    sift_upsample: float = param(1.0, "scale the image by this before SIFT (1 = off; > 1 finds more keypoints on small objects, < 1 is faster)", 0.25, 4.0)
     # Matching.
     ratio: float = param(0.8, "ratio test: best descriptor distance / second-best (second among model points more than ratio_separation away in 3D) must be below this", 0.1, 1.0)
     ratio_separation: float = param(0.01, "metres: model points closer than this to the best match count as the same physical point in the ratio test", 0.0, 1.0)
@@ -148,30 +148,32 @@ class InstanceRegistration:
         t0 = time.perf_counter()
 
         # Detect.
-        uv, desc = extract_sift(rgb, self._sift)
+        det = detect_sift(rgb, self._sift)
         t1 = time.perf_counter()
-        t["sift"] = (t1 - t0) * 1e3
-        n_kp = len(uv)
+        n_kp = len(det.uv)
 
-        # Lift before matching: keypoints without depth cannot be used, so do not match them.
-        z = lookup_depth(depth_m, uv, fe.depth_window, fe.depth_min, fe.depth_max, fe.depth_max_spread)
+        # Lift. Keypoints without depth, or on the table (and walls), cannot belong to an
+        # instance: they are dropped before the costly part of SIFT (descriptors) and matching.
+        z = lookup_depth(depth_m, det.uv, fe.depth_window, fe.depth_min, fe.depth_max, fe.depth_max_spread)
+        scene_xyz = np.zeros((n_kp, 3), np.float32)
         ok = z > 0
-        uv, desc, z = uv[ok], desc[ok], z[ok]
-        rays = undistort_pixels(uv, intrinsics)
-        scene_xyz = backproject(rays, z, intrinsics)
-        if fe.remove_planes > 0:
-            # Keypoints on the table (and walls) cannot belong to an instance: dropping them
-            # here saves most of the matching time on a textured table.
+        scene_xyz[ok] = backproject(undistort_pixels(det.uv[ok], intrinsics), z[ok], intrinsics)
+        if fe.remove_planes > 0 and ok.any():
             planes = support_planes(depth_m, intrinsics, fe.remove_planes, fe.plane_thresh, fe.plane_min_share)
-            keep = off_planes(scene_xyz, planes, fe.plane_thresh)
-            uv, desc, scene_xyz = uv[keep], desc[keep], scene_xyz[keep]
+            ok[ok] = off_planes(scene_xyz[ok], planes, fe.plane_thresh)
         t2 = time.perf_counter()
         t["lifting"] = (t2 - t1) * 1e3
 
+        # Describe the survivors.
+        kept, desc = describe_sift(det, ok, self._sift)
+        uv, scene_xyz = det.uv[kept], scene_xyz[kept]
+        t3 = time.perf_counter()
+        t["sift"] = (t1 - t0 + t3 - t2) * 1e3
+
         # Match, one-to-many: every scene keypoint to its nearest model descriptor.
         scene_idx, model_idx, _ = self._matcher.match(prepare_descriptors(desc, fe.root_sift))
-        t3 = time.perf_counter()
-        t["matching"] = (t3 - t2) * 1e3
+        t4 = time.perf_counter()
+        t["matching"] = (t4 - t3) * 1e3
 
         src = self.model.keypoints_xyz[model_idx].astype(np.float64)
         tgt = scene_xyz[scene_idx].astype(np.float64)
@@ -185,15 +187,15 @@ class InstanceRegistration:
 
         # Cluster.
         reg = self._ecc.register(src, tgt)
-        t4 = time.perf_counter()
-        t["ecc"] = (t4 - t3) * 1e3
+        t5 = time.perf_counter()
+        t["ecc"] = (t5 - t4) * 1e3
 
         # Refine each instance, drop duplicates that overlap a stronger one, assign, score.
         transforms = [np.asarray(T, dtype=np.float64) for T in reg.transforms]
         if fe.refine:
             transforms = [refine_transform(T, src, tgt, fe.refine_thresh, fe.refine_iterations) for T in transforms]
         instances, labels = self._finalise(src, tgt, transforms)
-        t["refinement"] = (time.perf_counter() - t4) * 1e3
+        t["refinement"] = (time.perf_counter() - t5) * 1e3
         t["total"] = (time.perf_counter() - t0) * 1e3
         return FrameResult(instances, t, kp_uv, src.astype(np.float32), tgt.astype(np.float32), labels, n_kp)
 
