@@ -94,3 +94,17 @@ def test_one_to_many_matching_maps_several_scene_points_to_one_model_point():
     scene = np.vstack([model_desc[:10], model_desc[:10]])
     s, m, _ = DescriptorMatcher(model_desc, model_xyz).match(scene)
     assert len(s) == 20 and np.all(m == np.tile(np.arange(10), 2))
+
+
+@pytest.mark.parametrize("method", ["flann", "brute_force"])
+def test_matchers_agree_and_flann_is_deterministic(method):
+    rng = np.random.default_rng(3)
+    model_desc = prepare_descriptors(rng.random((800, 128)).astype(np.float32))
+    model_xyz = rng.uniform(-0.1, 0.1, (800, 3))
+    scene = prepare_descriptors(np.vstack([model_desc[:300] + rng.normal(0, 0.01, (300, 128)).astype(np.float32),
+                                           rng.random((200, 128)).astype(np.float32)]))
+    runs = [DescriptorMatcher(model_desc, model_xyz, method=method).match(scene) for _ in range(2)]
+    np.testing.assert_array_equal(runs[0][0], runs[1][0])
+    s, m, _ = runs[0]
+    assert len(set(range(300)) - set(s.tolist())) < 5
+    assert np.mean(m[s < 300] == s[s < 300]) > 0.99
