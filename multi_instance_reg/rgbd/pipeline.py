@@ -55,6 +55,7 @@ class FrontEndConfig:
     refine: bool = param(True, "refine each instance by least squares on its correspondences re-selected with refine_thresh")
     refine_iterations: int = param(3, "refinement rounds per instance", 1, 50)
     refine_thresh: float = param(0.008, "metres: residual below which a correspondence joins an instance during refinement", 0.0005, 1.0)
+    min_score: float = param(0.7, "drop an instance whose score (mean of 1 - residual / ecc.inlier_thresh over its inliers) is below this; mirrored fits score 0.6-0.65, true ones 0.8-0.95 on the synthetic scenes (0 = keep all)", 0.0, 1.0)
     max_overlap: float = param(0.3, "drop an instance when more than this share of its box volume lies inside a stronger instance's box (1 = keep all)", 0.0, 1.0)
 
 
@@ -62,8 +63,9 @@ def rgbd_ecc_config() -> ECCConfig:
     """ECCConfig.metric() tuned on the synthetic tabletop scenes: no gamma cut. A far or
     partly hidden instance gives 6-15 correspondences while a near one gives 150-200, so the
     paper's "drop clusters under gamma x the largest" loses exactly the small ones; spurious
-    clusters are removed by min_cluster_size and the front end's overlap test instead."""
-    return replace(ECCConfig.metric(), gamma_thresh=0.0)
+    clusters are removed by the front end's overlap and score tests instead, which also lets
+    min_cluster_size drop to 3 (more than 3 inliers)."""
+    return replace(ECCConfig.metric(), gamma_thresh=0.0, min_cluster_size=3)
 
 
 @dataclass(frozen=True)
@@ -201,30 +203,38 @@ class InstanceRegistration:
         return FrameResult(instances, t, kp_uv, src.astype(np.float32), tgt.astype(np.float32), labels, n_kp)
 
     def _finalise(self, src, tgt, transforms) -> tuple[list[Instance], np.ndarray]:
-        """Assign correspondences to their nearest instance, drop instances that overlap a
-        stronger one (two instances cannot fill the same space: such a duplicate is usually a
-        mirrored fit to texture that repeats on two faces) or end up too small; score the rest."""
+        """Assign correspondences to their nearest instance; drop instances that end up too
+        small, fit loosely, or overlap a stronger one (two instances cannot fill the same
+        space: such a duplicate is usually a mirrored fit to texture repeated on two faces)."""
         ecc = self.config.ecc
         thresh = ecc.inlier_thresh
+        fe = self.config.frontend
         kept = list(range(len(transforms)))
         while True:
             labels, res = assign_nearest(src, tgt, [transforms[k] for k in kept], thresh)
             counts = np.bincount(labels[labels >= 0], minlength=len(kept))
-            order = [kept[i] for i in np.argsort(-counts, kind="stable") if counts[i] > ecc.min_cluster_size]
+            scores = instance_scores(labels, res, thresh, len(kept))
+            # Too small, or too loose (a mirrored pose on texture repeated on two faces) ...
+            order = [kept[i] for i in np.argsort(-counts, kind="stable")
+                     if counts[i] > ecc.min_cluster_size and scores[i] >= fe.min_score]
+            # ... or in the space of a stronger instance.
             survivors = []
             for k in order:
-                if all(box_overlap(self.model, transforms[k], transforms[j], self._box_grid) <= self.config.frontend.max_overlap
+                if all(box_overlap(self.model, transforms[k], transforms[j], self._box_grid) <= fe.max_overlap
                        for j in survivors):
                     survivors.append(k)
             if survivors == kept:
                 break
             kept = survivors
-        instances = []
-        for new_id, k in enumerate(kept):
-            inl = labels == new_id
-            score = float(np.mean(1.0 - res[inl] / thresh)) if inl.any() else 0.0
-            instances.append(Instance(new_id, transforms[k], int(inl.sum()), score))
+        instances = [Instance(i, transforms[k], int((labels == i).sum()), float(scores[i])) for i, k in enumerate(kept)]
         return instances, labels
+
+
+def instance_scores(labels: np.ndarray, residual: np.ndarray, thresh: float, count: int) -> np.ndarray:
+    """Per instance, the mean of 1 - residual / thresh over its inliers (0 without inliers)."""
+    inl = labels >= 0
+    sums = np.bincount(labels[inl], weights=1.0 - residual[inl] / thresh, minlength=count)
+    return sums / np.maximum(np.bincount(labels[inl], minlength=count), 1)
 
 
 def assign_nearest(src, tgt, transforms, thresh) -> tuple[np.ndarray, np.ndarray]:
