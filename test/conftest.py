@@ -13,9 +13,9 @@ import pytest
 # Integration tests pick their own ROS_DOMAIN_ID; keep DDS discovery on this machine.
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 
-SCENE_FRAMES = 6
-SCENE_INSTANCES = 8
-CAPTURE_VIEWS = 6
+SCENES = 3
+SCENE_FRAMES = 2
+CAPTURE_VIEWS = 8
 
 
 @pytest.fixture(scope="session")
@@ -37,11 +37,10 @@ def capture_bag(capture_bags):
 
 @pytest.fixture(scope="session")
 def scene_bag(bag_dir):
-    from multi_instance_reg.synthetic.scene import generate_scene_bag
+    """The benchmark's first scenes (4, 12 and 6 instances, 3 distractors each), 2 frames each."""
+    from multi_instance_reg.tools.bench_frames import generate_benchmark_bag
 
-    path = bag_dir / "scene"
-    generate_scene_bag(path, instances=SCENE_INSTANCES, distractors=3, frames=SCENE_FRAMES, seed=1)
-    return path
+    return generate_benchmark_bag(bag_dir / "scene", scenes=SCENES, frames=SCENE_FRAMES, seed=0)
 
 
 @pytest.fixture(scope="session")

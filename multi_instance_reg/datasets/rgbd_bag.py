@@ -223,6 +223,8 @@ def read_rgbd_frames(path, colour_topic: str = COLOUR_TOPIC, depth_topic: str = 
 
 def _object_description(reader, path) -> dict | None:
     conns = [c for c in reader.connections if c.topic == GT_OBJECT_TOPIC]
+    if not conns:   # (an empty connection list would read every message)
+        return None
     for conn, _, raw in reader.messages(connections=conns):
         try:
             return json.loads(reader.deserialize(raw, conn.msgtype).data)

@@ -157,6 +157,8 @@ class BuildSettings:
     depth_window: int = 5
     voxel: float = 0.003                               # metres: dense cloud resolution
     min_keypoints: int = 10
+    tilts: tuple[float, ...] = (2.0,)                  # simulated view tilts (ASIFT); () = off
+    tilt_directions: int = 2                           # directions per tilt (0 .. 180 deg)
     seed: int = 0
 
 
@@ -232,14 +234,60 @@ def _voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
     return (sums / counts[:, None]).astype(np.float32)
 
 
+def simulated_tilts(tilts: tuple[float, ...], directions: int) -> list[np.ndarray]:
+    """2x3 affine maps that make a view look as if seen more obliquely (ASIFT's view
+    simulation): rotate by phi, then compress by 1/t along x. The identity comes first."""
+    maps = [np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])]
+    for t in tilts:
+        for k in range(directions):
+            phi = np.pi * k / directions
+            c, s_ = np.cos(phi), np.sin(phi)
+            maps.append(np.array([[c / t, -s_ / t, 0.0], [s_, c, 0.0]]))
+    return maps
+
+
+def _warp(image: np.ndarray, A: np.ndarray, interpolation) -> tuple[np.ndarray, np.ndarray]:
+    """Warp with the linear part of A, shifted so that the whole image stays in view."""
+    h, w = image.shape[:2]
+    corners = np.array([[0, 0], [w, 0], [0, h], [w, h]], dtype=np.float64) @ A[:, :2].T
+    lo, hi = corners.min(axis=0), corners.max(axis=0)
+    A = A.copy()
+    A[:, 2] = -lo
+    size = (int(np.ceil(hi[0] - lo[0])), int(np.ceil(hi[1] - lo[1])))
+    return cv2.warpAffine(image, A, size, flags=interpolation, borderMode=cv2.BORDER_CONSTANT), A
+
+
 def view_keypoints(view: CaptureView, mask: np.ndarray, settings: BuildSettings
                    ) -> tuple[np.ndarray, np.ndarray]:
     """SIFT keypoints on the object in one view, lifted with the object's own depth only:
-    (xyz (K, 3) float32 in the view's optical frame, descriptors (K, 128) float32)."""
+    (xyz (K, 3) float32 in the view's optical frame, descriptors (K, 128) float32).
+
+    With ``settings.tilts``, SIFT also runs on the view warped to look more oblique, and the
+    keypoints found there are mapped back to the view's pixels before lifting: the model
+    then also holds the descriptors an instance seen at a grazing angle produces."""
     detect_mask = cv2.dilate(mask.astype(np.uint8), np.ones((5, 5), np.uint8))
-    uv, desc = extract_sift(view.rgb, settings.sift, detect_mask)
     # Depth outside the object is blanked, so the window median never mixes in the table.
     obj_depth = np.where(mask, view.depth_m, 0.0).astype(np.float32)
+    all_uv, all_desc = [], []
+    for A in simulated_tilts(settings.tilts, settings.tilt_directions):
+        if np.allclose(A[:, :2], np.eye(2)):
+            uv, desc = extract_sift(view.rgb, settings.sift, detect_mask)
+        else:
+            # Anti-alias along the compressed direction before warping (ASIFT uses 0.8 sqrt(t^2 - 1)).
+            t = 1.0 / np.linalg.det(A[:, :2])
+            img, A_full = _warp(view.rgb, A, cv2.INTER_LINEAR)
+            blur_sigma = 0.8 * np.sqrt(max(t * t - 1.0, 0.0))
+            img = cv2.GaussianBlur(img, (0, 0), sigmaX=blur_sigma, sigmaY=0.01) if blur_sigma > 0 else img
+            m, _ = _warp(detect_mask, A, cv2.INTER_NEAREST)
+            uv_w, desc = extract_sift(img, settings.sift, m)
+            if len(uv_w) == 0:
+                continue
+            inv = cv2.invertAffineTransform(A_full)
+            uv = (uv_w.astype(np.float64) @ inv[:, :2].T + inv[:, 2]).astype(np.float32)
+        all_uv.append(uv)
+        all_desc.append(desc)
+    uv = np.concatenate(all_uv) if all_uv else np.zeros((0, 2), np.float32)
+    desc = np.concatenate(all_desc) if all_desc else np.zeros((0, 128), np.float32)
     z = lookup_depth(obj_depth, uv, settings.depth_window, *settings.depth_range)
     ok = z > 0
     xyz = backproject(undistort_pixels(uv[ok], view.intrinsics), z[ok], view.intrinsics)

@@ -2,7 +2,7 @@
 
     mireg bench frames [BAG ...] [--model MODEL.npz | --capture BAG ...] [--params FILE.yaml]
 
-Without BAGs, synthetic scene bags are generated first in a temporary directory: ``--scenes``
+Without BAGs, a synthetic scene bag is generated first in a temporary directory: ``--scenes``
 tabletop scenes with 4 to 12 instances plus distractors at 640x480, ``--frames`` frames each.
 Without --model, the model is built from capture bags (default: generated, the object
 resting on its bottom, its top and both long sides, so that the model sees every face). Prints MHF1, MHR, MHP, MF, the
@@ -83,17 +83,26 @@ def generate_capture_bags(workdir: Path, object_name=None, seed: int = 0, views:
     return paths
 
 
-def generate_scene_bags(workdir: Path, object_name=None, scenes: int = 6, frames: int = 5, seed: int = 0) -> list[Path]:
-    """Tabletop scenes with 4 to 12 instances and 3 distractors each."""
-    from ..synthetic.scene import DEFAULT_OBJECT, generate_scene_bag
+def generate_benchmark_bag(path: Path, object_name=None, scenes: int = 6, frames: int = 5, seed: int = 0) -> Path:
+    """One bag holding ``scenes`` tabletop scenes (4 to 12 instances of the object, 3
+    distractors each; seeds seed+100, seed+101, ...), ``frames`` consecutive frames of each,
+    with ground truth: the benchmark's (and the tests') scene set."""
+    from ..datasets.bag_writer import RealSenseBagWriter
+    from ..synthetic.scene import DEFAULT_OBJECT, make_tabletop_scene
 
-    paths = []
-    for k in range(scenes):
-        path = Path(workdir) / f"scene_{k:02d}"
-        generate_scene_bag(path, object_name or DEFAULT_OBJECT, instances=INSTANCES_PER_SCENE[k % len(INSTANCES_PER_SCENE)],
-                           distractors=3, frames=frames, seed=seed + 100 + k)
-        paths.append(path)
-    return paths
+    frame_period_ns = 33_333_333
+    stamp = 1_700_000_000_000_000_000
+    with RealSenseBagWriter(path) as bag:
+        for k in range(scenes):
+            scene = make_tabletop_scene(object_name or DEFAULT_OBJECT, INSTANCES_PER_SCENE[k % len(INSTANCES_PER_SCENE)],
+                                        distractors=3, frames=frames, seed=seed + 100 + k)
+            if k == 0:
+                bag.write_object_description(stamp, scene.description())
+            for frame in scene.frames():
+                bag.write_frame(stamp, frame.rgb, frame.depth_mm, scene.intrinsics, poses=frame.poses,
+                                visibility=frame.visibility)
+                stamp += frame_period_ns
+    return Path(path)
 
 
 def model_from_captures(captures) -> "object":
@@ -135,8 +144,8 @@ def run(args) -> int:
         tmp = Path(tmp)
         bags = list(args.bags)
         if not bags:
-            print(f"generating {args.scenes} scene bags of {args.frames} frames ...", file=sys.stderr)
-            bags = generate_scene_bags(tmp, args.object, args.scenes, args.frames, args.seed)
+            print(f"generating {args.scenes} scenes of {args.frames} frames ...", file=sys.stderr)
+            bags = [generate_benchmark_bag(tmp / "scenes", args.object, args.scenes, args.frames, args.seed)]
         if args.model:
             model = load_model(args.model)
         else:

@@ -30,6 +30,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--roi", default=None, help="x,y,w,h pixel box around the object (default: whole image)")
     parser.add_argument("--depth-range", nargs=2, type=float, metavar=("MIN", "MAX"), default=(0.1, 4.0),
                         help="metres: depth kept for the object (default 0.1 4.0)")
+    parser.add_argument("--tilts", default="2",
+                        help="simulated view tilts, comma-separated (ASIFT-style: SIFT also on each view warped "
+                             "to look more oblique, so that instances seen at grazing angles match); '' = off (default 2)")
     parser.add_argument("--name", default=None, help="object name stored in the model (default: from the bag)")
     parser.add_argument("--topics", nargs=3, metavar=("COLOUR", "DEPTH", "INFO"), default=None,
                         help="colour, aligned depth and camera_info topics (default: realsense-ros names)")
@@ -161,7 +164,13 @@ def run(args) -> int:
         views = views_from_png(args.rgb, args.depth, args.intrinsics, args.depth_scale)
     else:
         raise InputError("give a capture bag, or --rgb, --depth and --intrinsics")
-    settings = BuildSettings(roi=parse_roi(args.roi), depth_range=(lo, hi))
+    try:
+        tilts = tuple(float(t) for t in args.tilts.split(",") if t.strip())
+    except ValueError:
+        raise InputError(f"--tilts must be numbers like '2' or '1.5,2', got '{args.tilts}'") from None
+    if any(t <= 1.0 for t in tilts):
+        raise InputError(f"--tilts must be greater than 1 (1 is the view itself), got '{args.tilts}'")
+    settings = BuildSettings(roi=parse_roi(args.roi), depth_range=(lo, hi), tilts=tilts)
     name = args.name or (description or {}).get("name", "") or ""
     model = build_model(views, settings, name=name, register_view=register_view_with_ecc)
     save_model(model, out)

@@ -58,10 +58,11 @@ def load_config(params_path):
 
 
 class Progress:
-    """A one-line progress bar on stderr."""
+    """A one-line progress bar on stderr, drawn only when stderr is a terminal."""
 
     def __init__(self, total: int, enabled: bool = True, width: int = 30):
-        self.total, self.enabled, self.width = max(total, 1), enabled, width
+        self.total, self.width = max(total, 1), width
+        self.enabled = enabled and sys.stderr.isatty()
         self.t0 = time.perf_counter()
 
     def update(self, done: int, extra: str = "") -> None:
@@ -143,36 +144,38 @@ def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_
         out.has_ground_truth = bag.has_ground_truth
         total = bag.num_colour_messages if not max_frames else min(max_frames, bag.num_colour_messages)
         bar = Progress(total, progress)
-        for index, frame in enumerate(bag):
-            if max_frames and index >= max_frames:
-                break
-            try:
-                result = reg.register_frame(frame.rgb, frame.depth_m, frame.intrinsics)
-            except InputError as exc:
-                skip_reasons[str(exc)] = skip_reasons.get(str(exc), 0) + 1
-                out.skipped += 1
-                bar.update(index + 1, f"(skipped {out.skipped})")
-                continue
-            out.frames.append({
-                "stamp_ns": int(frame.stamp_ns), "frame_id": frame.frame_id,
-                "latency_ms": round(float(result.timings_ms["total"]), 3),
-                "instances": [{"id": int(i.id), "T": np.round(i.T, 7).tolist(), "inliers": int(i.inliers),
-                               "score": round(float(i.score), 5)} for i in result.instances]})
-            out.timings.append(dict(result.timings_ms))
-            out.found.append(len(result.instances))
-            if frame.gt_poses is not None:
-                est = estimates_in_object_frame(model, [i.T for i in result.instances])
-                score = evaluate_frame(frame.gt_poses, est, frame.gt_visibility, min_visibility, max_rre_deg, max_rte)
-                out.scores.append(score)
-                out.present.append(score.n_gt)
-                out.hits.append(score.hits)
-            else:
-                out.present.append(-1)
-                out.hits.append(-1)
-            if on_frame is not None:
-                on_frame(index, frame, result)
-            bar.update(index + 1)
-        bar.close()
+        try:
+            for index, frame in enumerate(bag):
+                if max_frames and index >= max_frames:
+                    break
+                try:
+                    result = reg.register_frame(frame.rgb, frame.depth_m, frame.intrinsics)
+                except InputError as exc:
+                    skip_reasons[str(exc)] = skip_reasons.get(str(exc), 0) + 1
+                    out.skipped += 1
+                    bar.update(index + 1, f"(skipped {out.skipped})")
+                    continue
+                out.frames.append({
+                    "stamp_ns": int(frame.stamp_ns), "frame_id": frame.frame_id,
+                    "latency_ms": round(float(result.timings_ms["total"]), 3),
+                    "instances": [{"id": int(i.id), "T": np.round(i.T, 7).tolist(), "inliers": int(i.inliers),
+                                   "score": round(float(i.score), 5)} for i in result.instances]})
+                out.timings.append(dict(result.timings_ms))
+                out.found.append(len(result.instances))
+                if frame.gt_poses is not None:
+                    est = estimates_in_object_frame(model, [i.T for i in result.instances])
+                    score = evaluate_frame(frame.gt_poses, est, frame.gt_visibility, min_visibility, max_rre_deg, max_rte)
+                    out.scores.append(score)
+                    out.present.append(score.n_gt)
+                    out.hits.append(score.hits)
+                else:
+                    out.present.append(-1)
+                    out.hits.append(-1)
+                if on_frame is not None:
+                    on_frame(index, frame, result)
+                bar.update(index + 1)
+        finally:
+            bar.close()
         for reason, n in bag.skipped.reasons.items():
             skip_reasons[reason] = skip_reasons.get(reason, 0) + n
         out.skipped += bag.skipped.count
