@@ -7,8 +7,12 @@ from multi_instance_reg.params import flatten, param_specs, read_params_yaml, wi
 
 def test_every_ecc_parameter_has_description_and_range():
     for spec in param_specs(ECCConfig()):
-        assert spec.description and spec.low is not None and spec.high is not None, spec.name
-        assert spec.low <= spec.default <= spec.high, spec.name
+        assert spec.description, spec.name
+        if spec.choices is not None:
+            assert spec.default in spec.choices, spec.name
+        else:
+            assert spec.low is not None and spec.high is not None, spec.name
+            assert spec.low <= spec.default <= spec.high, spec.name
 
 
 def test_overrides_are_checked():

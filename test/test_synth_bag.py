@@ -122,7 +122,7 @@ def test_capture_bag_and_previews(tmp_path):
 
 
 def test_cli_writes_a_bag_and_reports_bad_input(tmp_path, capsys):
-    out = tmp_path / "cli"
+    out = tmp_path / "new" / "cli"           # parent folders are made as needed
     assert cli.main(["synth", "scene", "-o", str(out), "--instances", "2", "--distractors", "0",
                      "--frames", "2", "--seed", "3", "--storage", "mcap"]) == 0
     line = capsys.readouterr().out.strip()

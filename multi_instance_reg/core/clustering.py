@@ -7,18 +7,24 @@ are merged, the merged representation being the element-wise minimum, until the 
 distance exceeds ``min_dist_thresh``.
 
 The authors' code recomputes a full N x N distance matrix and takes a global argmin per
-merge, O(N^3) in all. This implementation gives the same merges with far less work:
-- dot products of untouched groups never change, so they are computed once (one GEMM);
+merge, O(N^3) in all. This implementation makes the same merges with far less work:
+- dot products of groups a merge does not touch never change, so they are computed once;
 - for a merged group m = min(p, q) and any group r, <m, r> <= min(<p, r>, <q, r>) because all
-  entries are non-negative; that bound (and the Tanimoto bound it implies) rules out almost
-  every pair, and the exact dot product is computed only for pairs that could still merge;
+  entries are non-negative; that bound rules out almost every pair, and the exact dot
+  product is computed only for pairs that could still merge;
 - candidate pairs wait in a heap; entries of groups that changed since are skipped, so
-  nothing is ever rescanned. Ties break by index, so results are deterministic.
+  nothing is ever rescanned. Ties break by index, so results are deterministic;
+- vectors are stored sparsely (the spatial weight zeroes most of G), and a merged vector's
+  support is the intersection of its parts', so it only ever shrinks.
 """
 from __future__ import annotations
 
 import numba
 import numpy as np
+
+# Above this fraction of non-zeros, the initial dot products are one dense GEMM (BLAS);
+# below it, a sparse product over the non-zeros is cheaper.
+_DENSE_PRODUCT_ABOVE = 0.2
 
 
 @numba.njit(cache=True, fastmath=True)
@@ -27,20 +33,6 @@ def _tanimoto_distance(dot, sq_a, sq_b):
     if denom <= 0.0:
         return 1.0
     return 1.0 - dot / denom
-
-
-@numba.njit(cache=True, fastmath=True)
-def _exact_dot(P, a, k, support, n_support):
-    # Dense rows vectorise (SIMD) and beat a gather over the support unless it is small.
-    s = np.float32(0.0)
-    if 32 * n_support < P.shape[1]:
-        for t in range(n_support):
-            c = support[t]
-            s += P[a, c] * P[k, c]
-    else:
-        for c in range(P.shape[1]):
-            s += P[a, c] * P[k, c]
-    return np.float64(s)
 
 
 # A binary min-heap of (key, entry) held in two parallel arrays, keys inline so sifting
@@ -91,23 +83,73 @@ def _heap_pop(hkey, hval, size):
 
 
 @numba.njit(cache=True)
-def _agglomerate(P, S, max_dist, stats):
-    n = P.shape[0]
+def _grow(arr, cap):
+    out = np.empty(cap, dtype=arr.dtype)
+    out[: len(arr)] = arr
+    return out
+
+
+@numba.njit(cache=True)
+def _to_rows(G):
+    """Row-wise sparse form (CSR) of a dense matrix: indptr, column indices, values."""
+    n = G.shape[0]
+    indptr = np.zeros(n + 1, dtype=np.int64)
+    for i in range(n):
+        c = 0
+        for j in range(n):
+            c += G[i, j] > 0.0
+        indptr[i + 1] = indptr[i] + c
+    indices = np.empty(indptr[n], dtype=np.int32)
+    values = np.empty(indptr[n], dtype=np.float32)
+    for i in range(n):
+        p = indptr[i]
+        for j in range(n):
+            if G[i, j] > 0.0:
+                indices[p] = j
+                values[p] = G[i, j]
+                p += 1
+    return indptr, indices, values
+
+
+@numba.njit(cache=True, parallel=True, fastmath=True)
+def _sparse_gram(indptr, indices, values, n):
+    """S = G G for a symmetric sparse G: row i accumulates G[i, c] * G[c, :]."""
+    S = np.zeros((n, n), dtype=np.float32)
+    for i in numba.prange(n):
+        for p in range(indptr[i], indptr[i + 1]):
+            c = indices[p]
+            g = values[p]
+            for q in range(indptr[c], indptr[c + 1]):
+                S[i, indices[q]] += g * values[q]
+    return S
+
+
+@numba.njit(cache=True)
+def _agglomerate(indptr, indices, values, S, max_dist, stats):
+    n = S.shape[0]
+    # Row i's current entries are indices/values[indptr[i] : indptr[i] + rowlen[i]].
+    rowlen = np.empty(n, dtype=np.int64)
     sq = np.empty(n, dtype=np.float64)
     for i in range(n):
+        rowlen[i] = indptr[i + 1] - indptr[i]
         sq[i] = S[i, i]
     active = np.ones(n, dtype=np.bool_)
     version = np.zeros(n, dtype=np.int64)
     parent = np.arange(n)
-    support = np.empty(n, dtype=np.int64)
+    candidate = np.zeros(n, dtype=np.bool_)
+    dense_a = np.zeros(n, dtype=np.float32)   # scratch: the merged vector, scattered
+    dense_b = np.zeros(n, dtype=np.float32)
+    # d(p, q) <= max_dist  <=>  <p, q> >= t / (1 + t) * (|p|^2 + |q|^2) with t = 1 - max_dist;
+    # the multiplicative form is cheap, and the slack keeps rounding from losing a pair.
+    t = 1.0 - max_dist
+    merge_ratio = t / (1.0 + t) * (1.0 - 1e-6)
 
-    # Entry storage: the initial candidate pairs (counted first, so the hot loop never
-    # reallocates) plus room for merges; it grows by doubling if merges need more.
+    # Heap entries: the initial candidate pairs (counted first, so the hot loops never
+    # reallocate) plus room for merges; storage grows by doubling between merges.
     n_initial = 0
     for i in range(n):
         for j in range(i + 1, n):
-            if _tanimoto_distance(S[i, j], sq[i], sq[j]) <= max_dist:
-                n_initial += 1
+            n_initial += S[i, j] >= merge_ratio * (sq[i] + sq[j])
     cap = n_initial + 4 * n + 16
     hkey = np.empty(cap, dtype=np.float64)
     ea = np.empty(cap, dtype=np.int64)
@@ -118,13 +160,14 @@ def _agglomerate(P, S, max_dist, stats):
     n_entries = 0
     for i in range(n):
         for j in range(i + 1, n):
+            if S[i, j] < merge_ratio * (sq[i] + sq[j]):
+                continue
             d = _tanimoto_distance(S[i, j], sq[i], sq[j])
             if d <= max_dist:
                 hkey[n_entries] = d
                 ea[n_entries] = i
                 eb[n_entries] = j
                 n_entries += 1
-    # Heapify bottom-up: O(n_entries).
     for e in range(n_entries):
         heap[e] = e
     size = n_entries
@@ -139,7 +182,7 @@ def _agglomerate(P, S, max_dist, stats):
         if not (active[a] and active[b] and version[a] == eva[e] and version[b] == evb[e]):
             continue
         stats[1] += 1
-        # Room for every push this merge can make, reserved here and not inside the loop
+        # Room for every push this merge can make, reserved here and not inside the loops
         # below: reassigning arrays there makes numba refcount them on every iteration.
         if n_entries + n > cap:
             cap = 2 * (n_entries + n)
@@ -149,46 +192,59 @@ def _agglomerate(P, S, max_dist, stats):
             eva = _grow(eva, cap)
             evb = _grow(evb, cap)
             heap = _grow(heap, cap)
-        # Merge b into a: element-wise minimum.
-        n_support = 0
+        # Merge b into a: element-wise minimum, on the intersection of the supports.
+        pb = indptr[b]
+        for q in range(pb, pb + rowlen[b]):
+            dense_b[indices[q]] = values[q]
+        pa = indptr[a]
+        kept = pa
         s_aa = 0.0
-        for c in range(n):
-            v = min(P[a, c], P[b, c])
-            P[a, c] = v
+        for q in range(pa, pa + rowlen[a]):
+            c = indices[q]
+            v = min(values[q], dense_b[c])
             if v > 0.0:
-                support[n_support] = c
-                n_support += 1
+                indices[kept] = c
+                values[kept] = v
+                dense_a[c] = v
+                kept += 1
                 s_aa += v * v
+        rowlen[a] = kept - pa
+        for q in range(pb, pb + rowlen[b]):
+            dense_b[indices[q]] = 0.0
         sq[a] = s_aa
         S[a, a] = s_aa
         active[b] = False
         parent[b] = a
         version[a] += 1
         # New dot products of a: the bound min(<p_a, r>, <p_b, r>) everywhere, made exact
-        # only where the bound still allows a merge.
-        # Only row a is rewritten (contiguous): a column entry S[k, a] left stale is still an
-        # upper bound, since a's vector only ever shrinks. Exact values go both ways.
+        # only where the bound still allows a merge. Only row a is rewritten (contiguous):
+        # a column entry S[k, a] left stale is still an upper bound, since a's vector only
+        # ever shrinks. First a branch-free pass (it vectorises), then the few candidates.
         for k in range(n):
-            if k == a or not active[k]:
-                continue
             bound = min(S[a, k], S[b, k])
             S[a, k] = bound
-            if _tanimoto_distance(bound, sq[a], sq[k]) <= max_dist:
-                s = _exact_dot(P, a, k, support, n_support)
-                stats[2] += 1
-                stats[3] += n_support
-                S[a, k] = s
-                S[k, a] = s
-                dk = _tanimoto_distance(s, sq[a], sq[k])
-                if dk <= max_dist:
-                    lo = min(a, k)
-                    hi = max(a, k)
-                    ea[n_entries] = lo
-                    eb[n_entries] = hi
-                    eva[n_entries] = version[lo]
-                    evb[n_entries] = version[hi]
-                    size = _heap_push(hkey, heap, size, dk, n_entries)
-                    n_entries += 1
+            candidate[k] = bound >= merge_ratio * (sq[a] + sq[k])
+        for k in range(n):
+            if not candidate[k] or k == a or not active[k]:
+                continue
+            s = 0.0
+            for q in range(indptr[k], indptr[k] + rowlen[k]):
+                s += dense_a[indices[q]] * values[q]
+            stats[2] += 1
+            S[a, k] = s
+            S[k, a] = s
+            dk = _tanimoto_distance(s, sq[a], sq[k])
+            if dk <= max_dist:
+                lo = min(a, k)
+                hi = max(a, k)
+                ea[n_entries] = lo
+                eb[n_entries] = hi
+                eva[n_entries] = version[lo]
+                evb[n_entries] = version[hi]
+                size = _heap_push(hkey, heap, size, dk, n_entries)
+                n_entries += 1
+        for q in range(pa, pa + rowlen[a]):
+            dense_a[indices[q]] = 0.0
     # Resolve merge chains into cluster labels 0..C-1 (first appearance order).
     labels = np.empty(n, dtype=np.int64)
     root_label = -np.ones(n, dtype=np.int64)
@@ -204,19 +260,21 @@ def _agglomerate(P, S, max_dist, stats):
     return labels
 
 
-@numba.njit(cache=True)
-def _grow(arr, cap):
-    out = np.empty(cap, dtype=arr.dtype)
-    out[: len(arr)] = arr
-    return out
+def cluster_compatibility_vectors(G: np.ndarray, min_dist_thresh: float = 0.2,
+                                  stats: np.ndarray | None = None) -> np.ndarray:
+    """Cluster labels (N,) int64, 0..C-1, from the agglomerative clustering of G's rows.
 
-
-def cluster_compatibility_vectors(G: np.ndarray, min_dist_thresh: float = 0.2) -> np.ndarray:
-    """Cluster labels (N,) int64, 0..C-1, from the agglomerative clustering of G's rows."""
+    ``stats``, if given (4 int64), receives: initial candidate pairs, merges, exact dot
+    products computed, 0.
+    """
     n = len(G)
     if n == 0:
         return np.zeros(0, dtype=np.int64)
-    P = np.array(G, dtype=np.float32, order="C", copy=True)
-    S = P @ P  # G is symmetric: row dot products, one GEMM.
-    stats = np.zeros(4, dtype=np.int64)
-    return _agglomerate(P, S, float(min_dist_thresh), stats)
+    G = np.ascontiguousarray(G, dtype=np.float32)
+    indptr, indices, values = _to_rows(G)
+    if indptr[-1] > _DENSE_PRODUCT_ABOVE * n * n:
+        S = G @ G  # G is symmetric: all row dot products in one GEMM
+    else:
+        S = _sparse_gram(indptr, indices, values, n)
+    stats = np.zeros(4, dtype=np.int64) if stats is None else stats
+    return _agglomerate(indptr, indices, values, S, float(min_dist_thresh), stats)

@@ -15,6 +15,7 @@ from ..errors import InputError
 from .clustering import cluster_compatibility_vectors
 from .compatibility import compatibility_matrix
 from .config import ECCConfig
+from .sampling import choose_sample
 from .refinement import assign, fit_transforms, merge_duplicates, relabel, residuals
 
 
@@ -59,7 +60,7 @@ class ECC:
         n = len(x)
         if n < 3:
             return self._empty(len(src), int((~valid).sum()), n)
-        sample = self.sample(n)
+        sample = self.sample(x, y)
         xs, ys = x[sample], y[sample]
         t1 = time.perf_counter()
         G = compatibility_matrix(xs, ys, cfg.spatial_sigma)
@@ -78,13 +79,13 @@ class ECC:
         return RegistrationResult(T, full_labels, counts, scores, int((~valid).sum()), len(sample), timings)
 
     # -- stages ---------------------------------------------------------------------------
-    def sample(self, n: int) -> np.ndarray:
-        """Indices of the correspondences to cluster: all, or a seeded uniform sample."""
-        m = self.config.max_correspondences
-        if m <= 0 or n <= m:
-            return np.arange(n)
-        rng = np.random.default_rng(self.config.seed)
-        return np.sort(rng.choice(n, size=m, replace=False))
+    def sample(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Indices of the correspondences to cluster: all, or a seeded sample of them."""
+        cfg = self.config
+        return choose_sample(len(x), cfg.max_correspondences, cfg.sampling,
+                             np.random.default_rng(cfg.seed), x, y,
+                             radius=cfg.spatial_sigma, tolerance=cfg.sampling_tolerance,
+                             exponent=cfg.sampling_exponent)
 
     def refine(self, x: np.ndarray, y: np.ndarray, labels: np.ndarray) -> np.ndarray:
         """Fit, merge duplicates, re-assign; repeat until the partition stops changing."""

@@ -48,7 +48,7 @@ class RealSenseBagWriter:
     """A rosbag2 writer for D455-style RGB-D streams plus ground truth.
 
     ``storage`` is "sqlite3" (default, what ``ros2 bag record`` writes) or "mcap". The path
-    must not exist yet (rosbag2 never overwrites).
+    must not exist yet (rosbag2 never overwrites); missing parent folders are created.
     """
 
     def __init__(self, path, storage: str = "sqlite3"):
@@ -61,8 +61,7 @@ class RealSenseBagWriter:
         if self.path.exists():
             raise InputError(f"output '{self.path}' already exists; rosbag2 does not overwrite, "
                              "so remove it or choose another path")
-        if not self.path.parent.exists():
-            raise InputError(f"the folder '{self.path.parent}' for output '{self.path}' does not exist")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
         self.typestore = get_typestore(Stores.ROS2_JAZZY)
         self._types = self.typestore.types
         plugin = StoragePlugin.SQLITE3 if storage == "sqlite3" else StoragePlugin.MCAP

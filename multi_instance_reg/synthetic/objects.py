@@ -77,7 +77,8 @@ OBJECTS: dict[str, ObjectSpec] = {spec.name: spec for spec in (
                resting=(("+z", 0.45), ("-z", 0.35), ("+y", 0.1), ("-y", 0.1)),
                label="CRUNCH", label_colour=(30, 60, 170)),
     ObjectSpec("cereal_box", "box", (0.19, 0.07, 0.27),
-               _box_faces("chelsea", "chelsea", ("chelsea", "chelsea", "rocket", "rocket")),
+               # Front and back: photos; the narrow sides: small print (like nutrition facts).
+               _box_faces("rocket", "rocket", ("page", "page", "chelsea", "camera")),
                resting=(("+z", 0.6), ("-y", 0.15), ("+y", 0.15), ("-z", 0.1)),
                label="OATY", label_colour=(200, 120, 20)),
     ObjectSpec("snack_bar", "box", (0.12, 0.04, 0.02),
@@ -90,11 +91,11 @@ OBJECTS: dict[str, ObjectSpec] = {spec.name: spec for spec in (
                resting=(("+z", 0.8), ("+x", 0.2)), label="FIZZ", label_colour=(20, 140, 60)),
     # Distractors: other pictures, other sizes.
     ObjectSpec("book", "box", (0.21, 0.15, 0.03),
-               _box_faces("retina", "retina", ("page", "page", "text", "text")),
+               _box_faces("retina", "retina", ("text", "text", "text", "text")),
                resting=(("+z", 0.6), ("-z", 0.4)), tint=(235, 225, 200),
                label="ATLAS", label_colour=(40, 40, 40)),
     ObjectSpec("toy_block", "box", (0.07, 0.07, 0.07),
-               _box_faces("camera", "clock", ("camera", "clock", "camera", "clock")),
+               _box_faces("logo", "clock", ("logo", "clock", "logo", "clock")),
                resting=(("+z", 0.3), ("-z", 0.2), ("+x", 0.25), ("-y", 0.25)),
                tint=(250, 200, 120)),
     ObjectSpec("tea_tin", "cylinder", (0.085, 0.085, 0.11),

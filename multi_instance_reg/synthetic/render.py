@@ -151,6 +151,7 @@ class Renderer:
         R = T_cam_world[:3, :3]
         t = T_cam_world[:3, 3]
         light_cam = R @ LIGHT_DIR_WORLD
+        labels_touched = False      # until an object is drawn, labels are all LABEL_NOTHING
         image_window = (0, 0, W, H)
         wide_window = (-W, -H, 2 * W, 2 * H)
         for prim in primitives:
@@ -182,7 +183,9 @@ class Renderer:
                 continue
             # copyto(where=) is faster than boolean indexing on large boxes (no compaction).
             np.copyto(zr, z, where=draw)
-            np.copyto(labels[y0:y1, x0:x1], np.int16(prim.label), where=draw)
+            if prim.label != LABEL_NOTHING or labels_touched:
+                np.copyto(labels[y0:y1, x0:x1], np.int16(prim.label), where=draw)
+                labels_touched = True
             np.copyto(radiance[y0:y1, x0:x1], colour_fn(draw), where=draw[:, :, None])
         return RenderOutput(radiance, zbuf, labels, coverage)
 

@@ -9,7 +9,8 @@ Python API (what tests, the demo and the tools call):
   yaw; some touch, some are stacked or lean on another, some are occluded or leave the view.
 - ``make_capture_scene(object_name, seed=0, views=10, resolution="640x480")``: the object
   alone on the table seen from ``views`` viewpoints around it (elevation 30-60 deg,
-  0.4-0.6 m), the way a user scans it to build the stored model.
+  0.4-0.6 m), the way a user scans it to build the stored model; half way the object is
+  turned over, so every face is seen (the ground-truth pose follows it).
 - ``SyntheticScene.render_frame(i) -> RenderedFrame`` / ``SyntheticScene.frames()``: per frame
   ``rgb`` (H, W, 3) uint8, ``depth_mm`` (H, W) uint16 (0 = invalid), ``depth_true_m`` (H, W)
   float32 noise-free (0 = nothing), ``K`` (3, 3), ``poses`` (K, 4, 4) object -> colour optical
@@ -39,7 +40,7 @@ from ..messages import CameraIntrinsics
 from ..transforms import invert_transform, make_transform
 from .objects import (BOX_FACES, DEFAULT_OBJECT, ENVIRONMENT_SIZE, OBJECTS, ObjectSpec, environment_texture,
                       get_object, object_textures)
-from .render import AMBIENT, DIFFUSE, LIGHT_DIR_WORLD, LABEL_NOTHING, CylinderSide, Quad, Renderer, Texture
+from .render import AMBIENT, DIFFUSE, LIGHT_DIR_WORLD, CylinderSide, Quad, Renderer, Texture
 from .sensor import d455_intrinsics, simulate_colour, simulate_depth
 
 FRAME_RATE_HZ = 30.0
@@ -143,9 +144,8 @@ class _Table:
     def __init__(self):
         self.placed: list[Placement] = []
 
-    def collides(self, pose, half, ignore=None) -> bool:
-        return any(p is not ignore and _obb_overlap(pose, half, p.pose, p.spec.half_extents)
-                   for p in self.placed)
+    def collides(self, pose, half) -> bool:
+        return any(_obb_overlap(pose, half, p.pose, p.spec.half_extents) for p in self.placed)
 
     def slide_to_contact(self, pose, half, target: np.ndarray, direction: np.ndarray, other: Placement):
         """Move ``pose`` along -``direction`` from far away towards ``target`` until it just
@@ -180,9 +180,9 @@ def place_objects(target: ObjectSpec, instances: int, distractor_specs: list[Obj
     items = [(target, k) for k in range(instances)] + \
             [(spec, _DISTRACTOR_LABEL0 + j) for j, spec in enumerate(distractor_specs)]
     order = rng.permutation(len(items))
-    # Region: about 2.8 times the summed footprints, 4:3.
+    # Region: about 2.4 times the summed footprints, 4:3.
     footprint = sum(s.dimensions_m[0] * max(s.dimensions_m[1], s.dimensions_m[2]) for s, _ in items)
-    area = max(0.12, 2.8 * footprint)
+    area = max(0.1, 2.4 * footprint)
     half = np.array([np.sqrt(area * 4 / 3) / 2, np.sqrt(area * 3 / 4) / 2])
     table = _Table()
     for idx in order:
@@ -295,15 +295,16 @@ def _clearance(eye: np.ndarray, placements: list[Placement]) -> float:
 def sweep_trajectory(placements: list[Placement], frames: int, rng) -> list[np.ndarray]:
     """A smooth hand-held sweep over the table from the front: camera -> world poses at 30 Hz.
 
-    Distance to the looked-at point 0.5-1.0 m (up to 1.4 m for crowded tables), elevation
-    ~35-65 deg, azimuth swinging +-12-22 deg, plus a few millimetres of hand shake.
+    Distance to the looked-at point 0.5-0.9 m (up to ~1.35 m for crowded tables), elevation
+    ~40-70 deg, azimuth swinging +-12-22 deg, plus a few millimetres of hand shake. Most
+    instances end up 0.5-1.0 m from the camera.
     """
     centres = np.array([p.pose[:3, 3] for p in placements])
     centre = np.array([centres[:, 0].mean(), centres[:, 1].mean(), 0.03])
     # Back off for crowded tables so that most of them fits in the view (up to ~1.25 m).
     spread = np.percentile(np.linalg.norm(centres[:, :2] - centre[:2], axis=1), 80)
-    r0 = min(max(rng.uniform(0.64, 0.8), 1.05 * spread), 1.25)
-    el0 = np.radians(rng.uniform(42, 56))
+    r0 = min(max(rng.uniform(0.6, 0.75), 0.9 * spread), 1.2)
+    el0 = np.radians(rng.uniform(45, 62))
     az0 = np.radians(-90 + rng.uniform(-20, 20))
     amp_az = np.radians(rng.uniform(12, 22))
     amp_el = np.radians(rng.uniform(4, 8))
@@ -478,16 +479,20 @@ class SyntheticScene:
     camera_poses: list[np.ndarray]       # camera -> world, one per frame
     intrinsics: CameraIntrinsics
     seed: int
-    primitives: list = field(default_factory=list)
+    # (first frame, placements) from which frame on the objects lie differently, e.g. a
+    # capture where the user turns the object over half way; same objects, same labels.
+    later_placements: list = field(default_factory=list)
 
     def __post_init__(self):
-        if not self.primitives:
-            wall_y = max(0.45, max(p.pose[1, 3] for p in self.placements) + 0.3)
-            if self.kind == "capture":
-                wall_y = 1.0
-            self.primitives = environment_primitives(wall_y, self.placements)
-            for p in self.placements:
-                self.primitives += object_primitives(p)
+        wall_y = max(0.45, max(p.pose[1, 3] for p in self.placements) + 0.3)
+        if self.kind == "capture":
+            wall_y = 1.0
+        self._stages = []           # (first frame, placements, primitives)
+        for start, placements in [(0, self.placements)] + sorted(self.later_placements, key=lambda s: s[0]):
+            prims = environment_primitives(wall_y, placements)
+            for p in placements:
+                prims += object_primitives(p)
+            self._stages.append((start, placements, prims))
         self._renderer = Renderer(self.intrinsics.K, self.intrinsics.width, self.intrinsics.height)
 
     @property
@@ -513,8 +518,9 @@ class SyntheticScene:
     def render_frame(self, index: int) -> RenderedFrame:
         T_wc = self.camera_poses[index]
         T_cw = invert_transform(T_wc)
-        instances = self.instances
-        out = self._renderer.render(self.primitives, T_cw, count_labels=[p.label for p in instances])
+        _, placements, primitives = [st for st in self._stages if st[0] <= index][-1]
+        instances = [p for p in placements if p.is_instance]
+        out = self._renderer.render(primitives, T_cw, count_labels=[p.label for p in instances])
         noise_seed = int(np.random.SeedSequence([self.seed, index, 17]).generate_state(1)[0])
         rgb = simulate_colour(out.radiance, noise_seed)
         depth_mm = simulate_depth(out.depth_m, float(self.intrinsics.K[0, 0]), noise_seed + 1)
@@ -570,8 +576,17 @@ def make_capture_scene(object_name: str = DEFAULT_OBJECT, seed: int = 0, views: 
     pose = make_transform(_resting_rotation(spec, up, rng.uniform(0, 2 * np.pi), rng), [0.0, 0.0, 0.0])
     pose[2, 3] -= _lowest_z(pose, spec.half_extents)
     placement = Placement(spec, pose, 0, "free")
-    poses = capture_viewpoints(placement, int(views), rng)
-    return SyntheticScene("capture", spec, [placement], poses, d455_intrinsics(resolution), int(seed))
+    # Half way the user turns the object over (180 deg about a horizontal axis, same spot),
+    # so that the model also holds the face it first stood on; each half goes all around.
+    flipped = placement.pose.copy()
+    flipped[:3, :3] = _rot_x(np.pi) @ flipped[:3, :3]
+    flipped[2, 3] -= _lowest_z(flipped, spec.half_extents)
+    turned = Placement(spec, flipped, 0, "free")
+    first = int(views) - int(views) // 2
+    poses = capture_viewpoints(placement, first, rng) + capture_viewpoints(turned, int(views) - first, rng)
+    later = [(first, [turned])]
+    return SyntheticScene("capture", spec, [placement], poses, d455_intrinsics(resolution), int(seed),
+                          later_placements=later)
 
 
 # ----------------------------------------------------------------------------------------------

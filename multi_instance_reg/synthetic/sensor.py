@@ -3,12 +3,13 @@
 Colour: mild optical blur, vignetting, then shot + read noise, rgb8.
 Depth (aligned to colour, 16UC1 millimetres, 0 = no measurement):
 - noise sigma_z = DEPTH_NOISE_PER_M * z^2 (z in metres), about 1.8 mm at 1 m and 7 mm at 2 m,
-  the quadratic growth of a stereo camera's error (the D455 data sheet: <= 2 % at 4 m);
+  the quadratic growth of a stereo camera's error (29 mm at 4 m, under the 2 % at 4 m
+  that the D455 data sheet allows);
 - 0 at depth discontinuities (3x3 depth spread above 2.5 % of the depth), in the stereo
   occlusion shadow left of foreground edges (95 mm baseline), in random small dropout blobs
   (~2 % of pixels) and outside the range [MIN_RANGE_M, MAX_RANGE_M].
 The images are rendered without lens distortion, so camera_info says plumb_bob with all
-five coefficients 0 (what realsense-ros reports for the D455 colour stream).
+five coefficients 0.
 """
 from __future__ import annotations
 
@@ -25,7 +26,7 @@ MIN_RANGE_M = 0.3
 MAX_RANGE_M = 6.0
 STEREO_BASELINE_M = 0.095
 EDGE_SPREAD_REL = 0.025        # 3x3 depth spread / depth above which a pixel is invalid
-DROPOUT_THRESHOLD = 0.97      # of a smoothed uniform field: ~2 % of pixels in blobs of ~8 px
+DROPOUT_THRESHOLD = 0.97       # of a smoothed uniform field: ~2 % of pixels in blobs of ~8 px
 
 RESOLUTIONS = ("640x480", "1280x720")
 

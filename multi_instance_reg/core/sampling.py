@@ -1,0 +1,97 @@
+"""Which correspondences to cluster when there are too many (ECC paper, Sec. 3.6).
+
+The paper samples uniformly. At high outlier ratios that keeps too few inliers per instance
+to form a cluster (at 95 % outliers and N = 6000, a sample of 1024 holds ~50 inliers spread
+over up to 20 instances). ``consistency`` sampling keeps the correspondences that agree with
+many spatial neighbours instead: for each correspondence, it counts the neighbours within
+``radius`` (in the target cloud) whose pairwise distances are preserved to within
+``tolerance``, | |x_i - x_j| - |y_i - y_j| | < tolerance, then draws the sample without
+replacement with weights (count + 1)^exponent (Efraimidis-Spirakis keys). Inliers of one
+instance preserve distances among themselves, outliers only by chance, so they are drawn
+far more often; drawing rather than taking the top counts keeps every instance covered
+when most correspondences are inliers (taking the top starved the sparser instances).
+"""
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+_CELL_BITS = 20
+_CELL_OFFSET = 1 << (_CELL_BITS - 1)
+
+
+@numba.njit(cache=True)
+def _cell_keys(points, cell):
+    keys = np.empty(len(points), dtype=np.int64)
+    for i in range(len(points)):
+        k = 0
+        for a in range(3):
+            c = int(np.floor(points[i, a] / cell)) + _CELL_OFFSET
+            c = min(max(c, 0), (1 << _CELL_BITS) - 1)
+            k = (k << _CELL_BITS) | c
+        keys[i] = k
+    return keys
+
+
+@numba.njit(cache=True, parallel=True)
+def _consistency_counts(src, tgt, ref_src, ref_tgt, ref_keys, radius, tolerance):
+    # ref_* are sorted by cell key; each query visits its 27 neighbouring cells.
+    n = len(src)
+    counts = np.zeros(n, dtype=np.int64)
+    r2 = radius * radius
+    for i in numba.prange(n):
+        base = np.empty(3, dtype=np.int64)
+        for a in range(3):
+            base[a] = int(np.floor(tgt[i, a] / radius)) + _CELL_OFFSET
+        c = 0
+        for dx in range(-1, 2):
+            for dy in range(-1, 2):
+                for dz in range(-1, 2):
+                    kx, ky, kz = base[0] + dx, base[1] + dy, base[2] + dz
+                    if min(kx, ky, kz) < 0 or max(kx, ky, kz) >= (1 << _CELL_BITS):
+                        continue
+                    key = (((kx << _CELL_BITS) | ky) << _CELL_BITS) | kz
+                    lo = np.searchsorted(ref_keys, key)
+                    hi = np.searchsorted(ref_keys, key + 1)
+                    for j in range(lo, hi):
+                        ex = tgt[i, 0] - ref_tgt[j, 0]
+                        ey = tgt[i, 1] - ref_tgt[j, 1]
+                        ez = tgt[i, 2] - ref_tgt[j, 2]
+                        e2 = ex * ex + ey * ey + ez * ez
+                        if e2 >= r2 or e2 == 0.0:
+                            continue
+                        sx = src[i, 0] - ref_src[j, 0]
+                        sy = src[i, 1] - ref_src[j, 1]
+                        sz = src[i, 2] - ref_src[j, 2]
+                        if abs(np.sqrt(sx * sx + sy * sy + sz * sz) - np.sqrt(e2)) < tolerance:
+                            c += 1
+        counts[i] = c
+    return counts
+
+
+def consistency_scores(src, tgt, radius: float, tolerance: float, rng: np.random.Generator,
+                       reference_size: int = 4096) -> np.ndarray:
+    """Per correspondence: how many of its neighbours (from a random reference subset of at
+    most ``reference_size``) keep their distance to it within ``tolerance``."""
+    n = len(src)
+    ref = np.arange(n) if n <= reference_size else rng.choice(n, reference_size, replace=False)
+    keys = _cell_keys(tgt[ref], radius)
+    order = np.argsort(keys, kind="stable")
+    ref = ref[order]
+    return _consistency_counts(src, tgt, np.ascontiguousarray(src[ref]), np.ascontiguousarray(tgt[ref]),
+                               keys[order], float(radius), float(tolerance))
+
+
+def choose_sample(n: int, size: int, method: str, rng: np.random.Generator, src=None, tgt=None,
+                  radius: float = 0.0, tolerance: float = 0.0, exponent: float = 6.0) -> np.ndarray:
+    """Sorted indices of the ``size`` correspondences to cluster (all when n <= size).
+
+    ``consistency`` needs radius > 0 and tolerance > 0; otherwise sampling is uniform."""
+    if size <= 0 or n <= size:
+        return np.arange(n)
+    if method == "consistency" and radius > 0 and tolerance > 0:
+        counts = consistency_scores(src, tgt, radius, tolerance, rng)
+        # Weighted sampling without replacement: the largest log(u) / w win.
+        keys = np.log(rng.random(n)) / (counts + 1.0) ** exponent
+        return np.sort(np.argsort(-keys, kind="stable")[:size])
+    return np.sort(rng.choice(n, size=size, replace=False))
