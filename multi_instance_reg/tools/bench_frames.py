@@ -11,6 +11,7 @@ median RTE / RRE of the hits, the latency per frame (p50, p95) and each stage's 
 from __future__ import annotations
 
 import json
+import os
 import sys
 import tempfile
 from pathlib import Path
@@ -128,7 +129,9 @@ def format_report(metrics: dict) -> str:
         f"present: visible fraction >= {metrics['min_visibility']})",
         f"MHF1 {metrics['MHF1']:.3f}  MHR {metrics['MHR']:.3f}  MHP {metrics['MHP']:.3f}  MF {metrics['MF']:.3f}",
         f"median RTE {'-' if rte is None else f'{rte * 1000:.2f} mm'}  median RRE {'-' if rre is None else f'{rre:.2f} deg'}",
-        f"latency per frame: p50 {lat['total']['p50']:.1f} ms  p95 {lat['total']['p95']:.1f} ms",
+        f"latency per frame: p50 {lat['total']['p50']:.1f} ms  p95 {lat['total']['p95']:.1f} ms  "
+        f"(CPU time per frame, all threads: p50 {metrics['cpu_ms_per_frame']['p50']:.1f} ms; "
+        f"load average during the run {metrics.get('load_average', float('nan')):.2f} on {os.cpu_count()} cores)",
         "stages (p50 / p95 ms): " + "  ".join(f"{s} {lat[s]['p50']:.1f} / {lat[s]['p95']:.1f}"
                                             for s in ("sift", "matching", "lifting", "ecc", "refinement")),
     ]
@@ -156,15 +159,19 @@ def run(args) -> int:
             model = model_from_captures(captures)
             print(f"model: {model.num_keypoints} keypoints from {len(captures)} capture bag(s)", file=sys.stderr)
         total = ReplayResult()
+        load = []
         for bag in bags:
             r = replay(bag, model, config, None, args.max_rre_deg, args.max_rte, progress=sys.stderr.isatty(),
                        min_visibility=args.min_visibility)
-            for name in ("frames", "timings", "scores", "present", "found", "hits"):
+            for name in ("frames", "timings", "cpu_ms", "scores", "present", "found", "hits"):
                 getattr(total, name).extend(getattr(r, name))
             total.skipped += r.skipped
+            load.append(os.getloadavg()[0])
     if not total.scores:
         raise InputError("the scene bags have no ground truth (/ground_truth/poses); the benchmark needs it")
     metrics = metrics_dict(total, args.max_rre_deg, args.max_rte, args.min_visibility)
+    # Other processes on a shared machine slow every stage: say how busy it was.
+    metrics["load_average"] = float(np.mean(load)) if load else float("nan")
     print(format_report(metrics))
     if args.json:
         Path(args.json).write_text(json.dumps(metrics, indent=2))

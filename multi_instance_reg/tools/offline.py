@@ -84,6 +84,7 @@ class Progress:
 class ReplayResult:
     frames: list[dict] = field(default_factory=list)          # poses.json entries
     timings: list[dict] = field(default_factory=list)         # per frame, ms by stage
+    cpu_ms: list[float] = field(default_factory=list)         # per frame, CPU time of this process (all threads)
     scores: list = field(default_factory=list)                # metrics.SceneScore per frame with ground truth
     present: list[int] = field(default_factory=list)          # per frame: ground-truth instances (-1 without)
     found: list[int] = field(default_factory=list)
@@ -148,6 +149,7 @@ def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_
             for index, frame in enumerate(bag):
                 if max_frames and index >= max_frames:
                     break
+                cpu0 = time.process_time()
                 try:
                     result = reg.register_frame(frame.rgb, frame.depth_m, frame.intrinsics)
                 except InputError as exc:
@@ -161,6 +163,7 @@ def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_
                     "instances": [{"id": int(i.id), "T": np.round(i.T, 7).tolist(), "inliers": int(i.inliers),
                                    "score": round(float(i.score), 5)} for i in result.instances]})
                 out.timings.append(dict(result.timings_ms))
+                out.cpu_ms.append((time.process_time() - cpu0) * 1e3)
                 out.found.append(len(result.instances))
                 if frame.gt_poses is not None:
                     est = estimates_in_object_frame(model, [i.T for i in result.instances])
@@ -192,7 +195,9 @@ def metrics_dict(result: ReplayResult, max_rre_deg: float, max_rte: float, min_v
     summary = summarize(result.scores)
     return {**summary, "max_rre_deg": max_rre_deg, "max_rte": max_rte, "min_visibility": min_visibility,
             "frames": len(result.frames), "frames_with_ground_truth": len(result.scores),
-            "skipped_frames": result.skipped, "latency_ms": result.latency_summary()}
+            "skipped_frames": result.skipped, "latency_ms": result.latency_summary(),
+            "cpu_ms_per_frame": {"p50": float(np.percentile(result.cpu_ms, 50)) if result.cpu_ms else None,
+                                 "p95": float(np.percentile(result.cpu_ms, 95)) if result.cpu_ms else None}}
 
 
 # --------------------------------------------------------------------------- pictures
