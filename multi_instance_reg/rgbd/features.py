@@ -55,40 +55,18 @@ def extract_sift(rgb: np.ndarray, settings: SiftSettings = SiftSettings(),
     return uv, desc.astype(np.float32, copy=False)
 
 
-@dataclass
-class Detection:
-    """SIFT keypoints of one image, before their descriptors are computed."""
-    uv: np.ndarray          # (K, 2) float32 pixel coordinates in the input image
-    keypoints: list         # cv2.KeyPoint, in the (possibly rescaled) detection image
-    gray: np.ndarray        # the detection image
-
-
-def detect_sift(rgb: np.ndarray, settings: SiftSettings = SiftSettings()) -> Detection:
-    """Keypoints only. Describing costs about twice as much as detecting, so the pipeline
-    describes only the keypoints that survive the depth and table-plane checks."""
-    gray = to_gray(rgb)
-    s = float(settings.upsample)
-    if s != 1.0:
-        gray = cv2.resize(gray, None, fx=s, fy=s, interpolation=cv2.INTER_LINEAR if s > 1 else cv2.INTER_AREA)
-    kps = _detector(settings).detect(gray, None)
-    uv = np.array([k.pt for k in kps], dtype=np.float32).reshape(-1, 2)
-    if s != 1.0:
-        uv = (uv + 0.5) / s - 0.5
-    return Detection(uv, list(kps), gray)
-
-
-def describe_sift(detection: Detection, keep: np.ndarray, settings: SiftSettings = SiftSettings()
-                  ) -> tuple[np.ndarray, np.ndarray]:
-    """Descriptors of the kept keypoints: (indices into detection.uv (K',) int64, (K', 128) float32)."""
-    idx = np.flatnonzero(keep)
-    if len(idx) == 0:
-        return idx.astype(np.int64), np.zeros((0, 128), np.float32)
-    chosen = [detection.keypoints[i] for i in idx]
-    kps, desc = _detector(settings).compute(detection.gray, chosen)
-    if desc is None:
-        return np.zeros(0, np.int64), np.zeros((0, 128), np.float32)
-    if len(kps) != len(idx):
-        # OpenCV may drop keypoints it cannot describe: find the survivors by position.
-        where = {(k.pt, k.size, k.angle, k.octave): i for k, i in zip(chosen, idx)}
-        idx = np.array([where[(k.pt, k.size, k.angle, k.octave)] for k in kps], dtype=np.int64)
-    return idx.astype(np.int64), desc.astype(np.float32, copy=False)
+def extract_sift_in_region(rgb: np.ndarray, mask: np.ndarray, settings: SiftSettings = SiftSettings(),
+                           margin: int = 16) -> tuple[np.ndarray, np.ndarray]:
+    """SIFT keypoints inside ``mask`` (H, W, nonzero = search here), computed on the bounding
+    box of the mask plus ``margin`` pixels only: the Gaussian pyramid, SIFT's main cost, is
+    built for that crop. Returns (uv (K, 2) float32 full-image pixels, (K, 128) float32)."""
+    ys, xs = np.nonzero(mask)
+    if len(xs) == 0:
+        return np.zeros((0, 2), np.float32), np.zeros((0, 128), np.float32)
+    h, w = mask.shape
+    x0, x1 = max(int(xs.min()) - margin, 0), min(int(xs.max()) + margin + 1, w)
+    y0, y1 = max(int(ys.min()) - margin, 0), min(int(ys.max()) + margin + 1, h)
+    uv, desc = extract_sift(rgb[y0:y1, x0:x1], settings, mask[y0:y1, x0:x1])
+    if len(uv):
+        uv = uv + np.array([x0, y0], np.float32)
+    return uv, desc

@@ -15,6 +15,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field, replace
 
+import cv2
 import numpy as np
 
 from ..core import ECC, ECCConfig
@@ -22,7 +23,7 @@ from ..errors import InputError
 from ..messages import CameraIntrinsics
 from ..params import param
 from ..transforms import apply_transform, rigid_fit
-from .features import SiftSettings, describe_sift, detect_sift
+from .features import SiftSettings, extract_sift_in_region
 from .lifting import backproject, lookup_depth, off_planes, support_planes, undistort_pixels
 from .matching import DescriptorMatcher, prepare_descriptors
 from .model import ObjectModel
@@ -138,6 +139,37 @@ class InstanceRegistration:
                                           fe.ratio, fe.ratio_separation, method=fe.matcher)
         self._ecc = ECC(self.config.ecc)
         self._box_grid = box_grid(model.extent)
+        self._planes: list = []
+        self._rays, self._rays_key = None, None
+
+    def _search_mask(self, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> np.ndarray:
+        """(H, W) uint8: pixels with depth in range that are not on a removed plane, dilated
+        by the depth window so that keypoints next to a hole keep their chance."""
+        fe = self.config.frontend
+        valid = (depth_m >= fe.depth_min) & (depth_m <= fe.depth_max)
+        self._planes = []
+        if fe.remove_planes > 0:
+            self._planes = support_planes(depth_m, intrinsics, fe.remove_planes, fe.plane_thresh, fe.plane_min_share)
+        if self._planes:
+            rays = self._pixel_rays(intrinsics)                     # (H, W, 3), z = 1
+            for n, d in self._planes:
+                valid &= (rays @ n) * depth_m + d > fe.plane_thresh
+        r = max(fe.depth_window // 2, 1)
+        return cv2.dilate(valid.astype(np.uint8), np.ones((2 * r + 1, 2 * r + 1), np.uint8))
+
+    def _pixel_rays(self, intrinsics: CameraIntrinsics) -> np.ndarray:
+        """Viewing ray (z = 1) of every pixel, cached per camera (distortion ignored: it only
+        shapes the search mask, the keypoints themselves are undistorted)."""
+        key = (intrinsics.width, intrinsics.height, tuple(np.asarray(intrinsics.K).ravel()))
+        if self._rays_key != key:
+            K = intrinsics.K
+            u = (np.arange(intrinsics.width) - K[0, 2]) / K[0, 0]
+            v = (np.arange(intrinsics.height) - K[1, 2]) / K[1, 1]
+            rays = np.ones((intrinsics.height, intrinsics.width, 3), np.float32)
+            rays[:, :, 0] = u[None, :]
+            rays[:, :, 1] = v[:, None]
+            self._rays, self._rays_key = rays, key
+        return self._rays
 
     def warm_up(self) -> None:
         """Run the clustering once on a small made-up problem, so that one-off costs (the ECC
@@ -154,28 +186,29 @@ class InstanceRegistration:
         t = {s: 0.0 for s in STAGES}
         t0 = time.perf_counter()
 
-        # Detect.
-        det = detect_sift(rgb, self._sift)
+        # Where an instance can be: valid depth, off the table (and walls). SIFT runs only on
+        # the box around that region and keeps keypoints inside it: one pyramid on a crop,
+        # descriptors only where they can be used.
+        search = self._search_mask(depth_m, intrinsics)
         t1 = time.perf_counter()
-        n_kp = len(det.uv)
 
-        # Lift. Keypoints without depth, or on the table (and walls), cannot belong to an
-        # instance: they are dropped before the costly part of SIFT (descriptors) and matching.
-        z = lookup_depth(depth_m, det.uv, fe.depth_window, fe.depth_min, fe.depth_max, fe.depth_max_spread)
-        scene_xyz = np.zeros((n_kp, 3), np.float32)
-        ok = z > 0
-        scene_xyz[ok] = backproject(undistort_pixels(det.uv[ok], intrinsics), z[ok], intrinsics)
-        if fe.remove_planes > 0 and ok.any():
-            planes = support_planes(depth_m, intrinsics, fe.remove_planes, fe.plane_thresh, fe.plane_min_share)
-            ok[ok] = off_planes(scene_xyz[ok], planes, fe.plane_thresh)
+        # Detect and describe.
+        uv, desc = extract_sift_in_region(rgb, search, self._sift)
+        n_kp = len(uv)
         t2 = time.perf_counter()
-        t["lifting"] = (t2 - t1) * 1e3
+        t["sift"] = (t2 - t1) * 1e3
 
-        # Describe the survivors.
-        kept, desc = describe_sift(det, ok, self._sift)
-        uv, scene_xyz = det.uv[kept], scene_xyz[kept]
+        # Lift: window-median depth, undistortion, back-projection; the plane test again on
+        # the lifted point (the search mask was dilated).
+        z = lookup_depth(depth_m, uv, fe.depth_window, fe.depth_min, fe.depth_max, fe.depth_max_spread)
+        ok = z > 0
+        scene_xyz = backproject(undistort_pixels(uv[ok], intrinsics), z[ok], intrinsics)
+        uv, desc = uv[ok], desc[ok]
+        if self._planes:
+            keep = off_planes(scene_xyz, self._planes, fe.plane_thresh)
+            uv, desc, scene_xyz = uv[keep], desc[keep], scene_xyz[keep]
         t3 = time.perf_counter()
-        t["sift"] = (t1 - t0 + t3 - t2) * 1e3
+        t["lifting"] = (t1 - t0 + t3 - t2) * 1e3
 
         # Match, one-to-many: every scene keypoint to its nearest model descriptor.
         scene_idx, model_idx, _ = self._matcher.match(prepare_descriptors(desc, fe.root_sift))
