@@ -13,6 +13,7 @@ class SiftSettings:
     contrast_threshold: float = 0.02   # OpenCV default 0.04
     edge_threshold: float = 10.0
     upsample: float = 1.0              # image scale before SIFT: > 1 more keypoints on small objects, < 1 faster
+    octave_layers: int = 3             # scales per octave (Lowe: 3)
 
 
 _DETECTORS: dict[SiftSettings, cv2.SIFT] = {}
@@ -21,8 +22,8 @@ _DETECTORS: dict[SiftSettings, cv2.SIFT] = {}
 def _detector(settings: SiftSettings):
     det = _DETECTORS.get(settings)
     if det is None:
-        det = cv2.SIFT_create(nfeatures=settings.nfeatures, contrastThreshold=settings.contrast_threshold,
-                              edgeThreshold=settings.edge_threshold)
+        det = cv2.SIFT_create(nfeatures=settings.nfeatures, nOctaveLayers=settings.octave_layers,
+                              contrastThreshold=settings.contrast_threshold, edgeThreshold=settings.edge_threshold)
         _DETECTORS[settings] = det
     return det
 

@@ -38,6 +38,7 @@ class FrontEndConfig:
     sift_nfeatures: int = param(0, "SIFT: keep at most this many keypoints per frame (0 = all)", 0, 100000)
     sift_contrast_threshold: float = param(0.02, "SIFT contrast threshold (OpenCV default 0.04; lower finds more keypoints on weak texture)", 0.001, 0.5)
     sift_edge_threshold: float = param(10.0, "SIFT edge threshold (OpenCV default 10)", 1.0, 100.0)
+    sift_octave_layers: int = param(3, "SIFT scales per octave (Lowe: 3; 2 is faster, finds fewer keypoints)", 1, 6)
     sift_upsample: float = param(1.0, "scale the image by this before SIFT (1 = off; > 1 finds more keypoints on small objects, < 1 is faster)", 0.25, 4.0)
     # Matching.
     ratio: float = param(0.8, "ratio test: best descriptor distance / second-best (second among model points more than ratio_separation away in 3D) must be below this", 0.1, 1.0)
@@ -134,7 +135,8 @@ class InstanceRegistration:
         self.model = model
         self.config = config or PipelineConfig()
         fe = self.config.frontend
-        self._sift = SiftSettings(fe.sift_nfeatures, fe.sift_contrast_threshold, fe.sift_edge_threshold, fe.sift_upsample)
+        self._sift = SiftSettings(fe.sift_nfeatures, fe.sift_contrast_threshold, fe.sift_edge_threshold, fe.sift_upsample,
+                                  fe.sift_octave_layers)
         self._matcher = DescriptorMatcher(prepare_descriptors(model.descriptors, fe.root_sift), model.keypoints_xyz,
                                           fe.ratio, fe.ratio_separation, method=fe.matcher)
         self._ecc = ECC(self.config.ecc)
