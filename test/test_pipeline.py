@@ -199,3 +199,13 @@ def test_bad_frames_and_models_raise_clear_errors(object_model):
         InstanceRegistration(empty)
     result = reg.register_frame(rgb, depth, INTRINSICS)     # a blank frame is fine: nothing found
     assert result.instances == [] and result.timings_ms["total"] > 0
+
+
+def test_blas_thread_limit_reaches_the_loaded_libraries():
+    import scipy.linalg  # noqa: F401  (scipy brings its own OpenBLAS)
+
+    from multi_instance_reg.rgbd.threads import limit_blas_threads, loaded_openblas_libraries
+
+    libs = loaded_openblas_libraries()
+    assert libs, "numpy's OpenBLAS should be mapped into the process"
+    assert limit_blas_threads(1) == len(libs)

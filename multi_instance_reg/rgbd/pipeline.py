@@ -27,6 +27,7 @@ from .features import SiftSettings, extract_sift_in_region
 from .lifting import backproject, lookup_depth, off_planes, support_planes, undistort_pixels
 from .matching import DescriptorMatcher, prepare_descriptors
 from .model import ObjectModel
+from .threads import limit_blas_threads
 
 STAGES = ("sift", "matching", "lifting", "ecc", "refinement", "total")
 
@@ -53,6 +54,8 @@ class FrontEndConfig:
     plane_thresh: float = param(0.01, "metres: keypoints closer than this to a removed plane are dropped", 0.001, 0.1)
     plane_min_share: float = param(0.2, "a plane is removed only if it holds at least this share of the valid depth pixels", 0.01, 1.0)
     depth_max_spread: float = param(0.02, "metres: drop a keypoint whose window depths spread more than this around the median (a depth edge); 0 = keep all", 0.0, 10.0)
+    # Process.
+    blas_threads: int = param(1, "threads of the BLAS libraries in this process (0 = leave as they are); 1 stops their busy-waiting threads from competing with SIFT on 2 cores", 0, 64)
     # Per-instance refinement.
     refine: bool = param(False, "refine each instance by least squares on its correspondences re-selected with refine_thresh (measured on the synthetic scenes: no change in median RTE/RRE, so off by default)")
     refine_iterations: int = param(3, "refinement rounds per instance", 1, 50)
@@ -135,6 +138,8 @@ class InstanceRegistration:
         self.model = model
         self.config = config or PipelineConfig()
         fe = self.config.frontend
+        if fe.blas_threads > 0:
+            limit_blas_threads(fe.blas_threads)
         self._sift = SiftSettings(fe.sift_nfeatures, fe.sift_contrast_threshold, fe.sift_edge_threshold, fe.sift_upsample,
                                   fe.sift_octave_layers)
         self._matcher = DescriptorMatcher(prepare_descriptors(model.descriptors, fe.root_sift), model.keypoints_xyz,
