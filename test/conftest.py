@@ -1,7 +1,8 @@
 """Shared, session-scoped test data: small synthetic bags from the generator and a model.
 
-Fixtures (paths): ``capture_bag`` (the object alone, several views), ``scene_bag`` (several
-instances plus distractors, with ground truth), ``object_model`` (built from capture_bag).
+Fixtures (paths): ``capture_bag`` (the object alone, several views), ``capture_bags`` (that
+and three more, the object resting on its top and long sides), ``scene_bag`` (several
+instances plus distractors, with ground truth), ``object_model`` (built from capture_bags).
 """
 from __future__ import annotations
 
@@ -12,9 +13,8 @@ import pytest
 # Integration tests pick their own ROS_DOMAIN_ID; keep DDS discovery on this machine.
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 
-SCENE_OBJECT = None        # the generator's default object
-SCENE_FRAMES = 6
-SCENE_INSTANCES = 8
+SCENES = 3
+SCENE_FRAMES = 2
 CAPTURE_VIEWS = 8
 
 
@@ -24,29 +24,28 @@ def bag_dir(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
-def capture_bag(bag_dir):
-    from multi_instance_reg.synthetic.scene import generate_capture_bag
+def capture_bags(bag_dir):
+    from multi_instance_reg.tools.bench_frames import generate_capture_bags
 
-    path = bag_dir / "capture"
-    generate_capture_bag(path, seed=0, views=CAPTURE_VIEWS)
-    return path
+    return generate_capture_bags(bag_dir, seed=0, views=CAPTURE_VIEWS)
+
+
+@pytest.fixture(scope="session")
+def capture_bag(capture_bags):
+    return capture_bags[0]      # the generator's own capture: the object upright
 
 
 @pytest.fixture(scope="session")
 def scene_bag(bag_dir):
-    from multi_instance_reg.synthetic.scene import generate_scene_bag
+    """The benchmark's first scenes (4, 12 and 6 instances, 3 distractors each), 2 frames each."""
+    from multi_instance_reg.tools.bench_frames import generate_benchmark_bag
 
-    path = bag_dir / "scene"
-    generate_scene_bag(path, instances=SCENE_INSTANCES, distractors=3, frames=SCENE_FRAMES, seed=1)
-    return path
+    return generate_benchmark_bag(bag_dir / "scene", scenes=SCENES, frames=SCENE_FRAMES, seed=0)
 
 
 @pytest.fixture(scope="session")
-def object_model(capture_bag, bag_dir):
-    from multi_instance_reg.rgbd.model import BuildSettings, build_model, save_model
-    from multi_instance_reg.tools.build_model import register_view_with_ecc, views_from_bag
+def object_model(capture_bags, bag_dir):
+    from multi_instance_reg.rgbd.model import save_model
+    from multi_instance_reg.tools.bench_frames import model_from_captures
 
-    views, description = views_from_bag(capture_bag, None, None)
-    model = build_model(views, BuildSettings(), name=(description or {}).get("name", ""),
-                        register_view=register_view_with_ecc)
-    return save_model(model, bag_dir / "model.npz")
+    return save_model(model_from_captures(capture_bags), bag_dir / "model.npz")

@@ -191,3 +191,19 @@ def test_build_model_from_the_capture_bag(capture_bag, tmp_path):
     one_line_error(res, "build-model", "outside the bag")
     res = cli("build-model", capture_bag, "-o", tmp_path / "x.npz", "--topics", "/x", "/y", "/z")
     one_line_error(res, "build-model", "has no topic /x, /y, /z")
+
+
+def test_offline_reads_the_node_parameter_file(scene_bag, object_model, tmp_path):
+    good = tmp_path / "params.yaml"
+    good.write_text("instance_registration:\n  ros__parameters:\n    model_path: ''\n    sync_slop_s: 0.02\n"
+                    "    frontend:\n      ratio: 0.75\n    ecc:\n      inlier_thresh: 0.012\n")
+    res = cli("offline", scene_bag, "--model", object_model, "-o", tmp_path / "out", "--params", good, "--max-frames", 1)
+    assert res.returncode == 0, res.stderr
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("instance_registration:\n  ros__parameters:\n    frontend:\n      ratio: 5.0\n")
+    res = cli("offline", scene_bag, "--model", object_model, "-o", tmp_path / "out2", "--params", bad)
+    one_line_error(res, "offline", "frontend.ratio=5.0 is out of range")
+    typo = tmp_path / "typo.yaml"
+    typo.write_text("instance_registration:\n  ros__parameters:\n    frontend:\n      ratoi: 0.7\n")
+    res = cli("offline", scene_bag, "--model", object_model, "-o", tmp_path / "out3", "--params", typo)
+    one_line_error(res, "offline", "unknown parameter(s) frontend.ratoi")

@@ -24,6 +24,7 @@ DEPTH_TOPIC = "/camera/camera/aligned_depth_to_color/image_raw"
 INFO_TOPIC = "/camera/camera/color/camera_info"
 GT_POSES_TOPIC = "/ground_truth/poses"
 GT_OBJECT_TOPIC = "/ground_truth/object"
+GT_VISIBILITY_TOPIC = "/ground_truth/visibility"   # std_msgs/Float32MultiArray: visible fraction per instance
 
 
 @dataclass
@@ -34,6 +35,7 @@ class RGBDFrame:
     depth_m: np.ndarray                  # (H, W) float32 metres, 0 = invalid
     intrinsics: CameraIntrinsics
     gt_poses: np.ndarray | None = None   # (K, 4, 4) object frame -> optical frame, or None without ground truth
+    gt_visibility: np.ndarray | None = None   # (K,) visible fraction of each instance, when the bag has it
 
 
 @dataclass
@@ -93,6 +95,7 @@ class RGBDBag:
             raise InputError(f"bag {self.path} has no topic {', '.join(missing)}; topics present: {present} "
                              f"(choose others with --topics COLOUR DEPTH INFO)")
         self.has_ground_truth = gt_topic in topics
+        self.has_visibility = self.has_ground_truth and GT_VISIBILITY_TOPIC in topics
         self.num_colour_messages = int(topics[colour_topic].msgcount)
         self.object_description = _object_description(self._reader, self.path)
 
@@ -113,11 +116,14 @@ class RGBDBag:
         wanted = {self.colour_topic, self.depth_topic, self.info_topic}
         if self.has_ground_truth:
             wanted.add(self.gt_topic)
+        if self.has_visibility:
+            wanted.add(GT_VISIBILITY_TOPIC)
         conns = [c for c in reader.connections if c.topic in wanted]
         colour_q: deque = deque()   # (stamp, message)
         depth_q: deque = deque()
         gt: dict[int, np.ndarray] = {}
-        state = {"info": None, "gt_latest": -1}
+        visibility: dict[int, np.ndarray] = {}
+        state = {"info": None, "gt_latest": -1, "vis_latest": -1}
 
         def decode(raw, conn):
             return reader.deserialize(raw, conn.msgtype)
@@ -134,7 +140,8 @@ class RGBDBag:
                         depth_q.popleft()
                         self.skipped.add("depth image without colour")
                     continue
-                waiting_gt = (self.has_ground_truth and tc not in gt and state["gt_latest"] < tc)
+                waiting_gt = (self.has_ground_truth and tc not in gt and state["gt_latest"] < tc) or \
+                    (self.has_visibility and tc not in visibility and state["vis_latest"] < tc)
                 waiting_info = state["info"] is None
                 if (waiting_gt or waiting_info) and not flush and len(colour_q) < self.max_pending:
                     return
@@ -143,13 +150,14 @@ class RGBDBag:
                 if state["info"] is None:
                     self.skipped.add("no camera_info before the image")
                     continue
-                frame = self._make_frame(tc, c, d, state["info"], gt.pop(tc, None))
-                for old in [s for s in gt if s < tc]:
-                    del gt[old]
+                frame = self._make_frame(tc, c, d, state["info"], gt.pop(tc, None), visibility.pop(tc, None))
+                for table in (gt, visibility):
+                    for old in [s for s in table if s < tc]:
+                        del table[old]
                 if frame is not None:
                     yield frame
 
-        for conn, _, raw in reader.messages(connections=conns):
+        for conn, bag_time, raw in reader.messages(connections=conns):
             try:
                 msg = decode(raw, conn)
             except Exception as exc:  # a corrupt message: skip it, keep the stream going
@@ -160,6 +168,12 @@ class RGBDBag:
                     state["info"] = camera_info_to_intrinsics(msg)
                 except InputError as exc:
                     self.skipped.add(str(exc))
+                continue
+            if conn.topic == GT_VISIBILITY_TOPIC:
+                # Float32MultiArray has no header: it shares the bag time of its frame's poses.
+                visibility[int(bag_time)] = np.asarray(msg.data, dtype=np.float32)
+                state["vis_latest"] = max(state["vis_latest"], int(bag_time))
+                yield from emit_ready(flush=False)
                 continue
             stamp = _stamp_ns(msg)
             if conn.topic == self.colour_topic:
@@ -178,14 +192,16 @@ class RGBDBag:
         for _ in depth_q:
             self.skipped.add("depth image without colour")
 
-    def _make_frame(self, stamp, colour_msg, depth_msg, info, gt_poses) -> RGBDFrame | None:
+    def _make_frame(self, stamp, colour_msg, depth_msg, info, gt_poses, gt_visibility) -> RGBDFrame | None:
         try:
             rgb = colour_to_rgb(colour_msg)
             depth = depth_to_metres(depth_msg)
         except InputError as exc:
             self.skipped.add(str(exc))
             return None
-        return RGBDFrame(stamp, str(colour_msg.header.frame_id), rgb, depth, info, gt_poses)
+        if gt_visibility is not None and (gt_poses is None or len(gt_visibility) != len(gt_poses)):
+            gt_visibility = None
+        return RGBDFrame(stamp, str(colour_msg.header.frame_id), rgb, depth, info, gt_poses, gt_visibility)
 
 
 def read_rgbd_frames(path, colour_topic: str = COLOUR_TOPIC, depth_topic: str = DEPTH_TOPIC,
@@ -207,6 +223,8 @@ def read_rgbd_frames(path, colour_topic: str = COLOUR_TOPIC, depth_topic: str = 
 
 def _object_description(reader, path) -> dict | None:
     conns = [c for c in reader.connections if c.topic == GT_OBJECT_TOPIC]
+    if not conns:   # (an empty connection list would read every message)
+        return None
     for conn, _, raw in reader.messages(connections=conns):
         try:
             return json.loads(reader.deserialize(raw, conn.msgtype).data)

@@ -78,3 +78,64 @@ def depth_to_cloud(depth_m: np.ndarray, intrinsics: CameraIntrinsics, mask: np.n
     uv = np.stack([cols_full, rows_full], axis=1).astype(np.float64)
     pts = backproject(undistort_pixels(uv, intrinsics), d[rows, cols], intrinsics)
     return pts, np.stack([rows_full, cols_full], axis=1)
+
+
+def fit_dominant_plane(points: np.ndarray, thresh: float, iterations: int = 200, seed: int = 0,
+                       max_sample: int = 5000) -> tuple[np.ndarray, float, np.ndarray] | None:
+    """RANSAC plane n.x + d = 0 (|n| = 1, oriented towards the camera: d > 0) with the most
+    points within ``thresh``, refined by least squares on its inliers.
+
+    Returns (n, d, inlier mask over ``points``) or None for fewer than 50 points.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    if len(points) < 50:
+        return None
+    rng = np.random.default_rng(seed)
+    sample = points if len(points) <= max_sample else points[rng.choice(len(points), max_sample, replace=False)]
+    # All hypotheses at once: (I, 3) normals from random triples.
+    tri = sample[rng.integers(0, len(sample), size=(iterations, 3))]
+    normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    norms = np.linalg.norm(normals, axis=1)
+    ok = norms > 1e-12
+    if not ok.any():
+        return None
+    normals = normals[ok] / norms[ok, None]
+    offsets = -np.einsum("ij,ij->i", normals, tri[ok, 0])
+    counts = (np.abs(sample @ normals.T + offsets) < thresh).sum(axis=0)
+    best = int(np.argmax(counts))
+    n, d = normals[best], offsets[best]
+    inl = np.abs(points @ n + d) < thresh
+    if inl.sum() >= 3:  # least-squares refit on the inliers
+        c = points[inl].mean(axis=0)
+        _, _, vt = np.linalg.svd(points[inl] - c, full_matrices=False)
+        n = vt[2]
+        d = -n @ c
+        inl = np.abs(points @ n + d) < thresh
+    if d < 0:  # orient the normal towards the camera (the origin is on the positive side)
+        n, d = -n, -d
+    return n, float(d), inl
+
+
+def support_planes(depth_m: np.ndarray, intrinsics: CameraIntrinsics, count: int = 1, thresh: float = 0.01,
+                   min_share: float = 0.2, stride: int = 8, seed: int = 0) -> list[tuple[np.ndarray, float]]:
+    """Up to ``count`` dominant planes of a depth image (the table, then e.g. a wall), each
+    holding at least ``min_share`` of the valid pixels; found on a sparse pixel grid."""
+    pts, _ = depth_to_cloud(depth_m, intrinsics, stride=stride)
+    pts = pts.astype(np.float64)
+    total = len(pts)
+    planes = []
+    for k in range(count):
+        plane = fit_dominant_plane(pts, thresh, iterations=100, seed=seed + k)
+        if plane is None or plane[2].sum() < min_share * total:
+            break
+        planes.append((plane[0], plane[1]))
+        pts = pts[~plane[2]]
+    return planes
+
+
+def off_planes(points: np.ndarray, planes, thresh: float) -> np.ndarray:
+    """(N,) bool: points more than ``thresh`` in front of every plane (on the camera's side)."""
+    keep = np.ones(len(points), bool)
+    for n, d in planes:
+        keep &= points @ n + d > thresh
+    return keep

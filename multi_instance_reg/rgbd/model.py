@@ -26,7 +26,7 @@ from ..errors import InputError
 from ..messages import CameraIntrinsics
 from ..transforms import apply_transform, invert_transform, make_transform
 from .features import SiftSettings, extract_sift
-from .lifting import backproject, depth_to_cloud, lookup_depth, undistort_pixels
+from .lifting import backproject, depth_to_cloud, fit_dominant_plane, lookup_depth, undistort_pixels
 
 MODEL_SCHEMA_VERSION = 1
 _REQUIRED = ("schema_version", "keypoints_xyz", "descriptors", "points_xyz", "extent", "T_capture_model")
@@ -151,46 +151,15 @@ class BuildSettings:
     roi: tuple[int, int, int, int] | None = None       # x, y, w, h in pixels
     depth_range: tuple[float, float] = (0.1, 4.0)      # metres
     plane_thresh: float = 0.01                         # metres: table points within this of the plane are removed
+    edge_thresh: float = 0.015                         # metres: depth step between neighbours that separates blobs
+    min_blob_pixels: int = 200                         # blobs smaller than this are never the object
     sift: SiftSettings = field(default_factory=lambda: SiftSettings(contrast_threshold=0.02, upsample=1.0))
     depth_window: int = 5
     voxel: float = 0.003                               # metres: dense cloud resolution
     min_keypoints: int = 10
+    tilts: tuple[float, ...] = (2.0,)                  # simulated view tilts (ASIFT); () = off
+    tilt_directions: int = 2                           # directions per tilt (0 .. 180 deg)
     seed: int = 0
-
-
-def fit_dominant_plane(points: np.ndarray, thresh: float, iterations: int = 200, seed: int = 0
-                       ) -> tuple[np.ndarray, float, np.ndarray] | None:
-    """RANSAC plane n.x + d = 0 (|n| = 1, oriented towards the camera: d > 0) with the most
-    points within ``thresh``; returns (n, d, inlier mask) refined by least squares, or None."""
-    if len(points) < 50:
-        return None
-    rng = np.random.default_rng(seed)
-    sample = points if len(points) <= 5000 else points[rng.choice(len(points), 5000, replace=False)]
-    best_count, best = 0, None
-    for _ in range(iterations):
-        p = sample[rng.choice(len(sample), 3, replace=False)]
-        n = np.cross(p[1] - p[0], p[2] - p[0])
-        norm = np.linalg.norm(n)
-        if norm < 1e-9:
-            continue
-        n = n / norm
-        d = -n @ p[0]
-        count = int((np.abs(sample @ n + d) < thresh).sum())
-        if count > best_count:
-            best_count, best = count, (n, d)
-    if best is None:
-        return None
-    n, d = best
-    inl = np.abs(points @ n + d) < thresh
-    if inl.sum() >= 3:  # least-squares refit on the inliers
-        c = points[inl].mean(axis=0)
-        _, _, vt = np.linalg.svd(points[inl] - c, full_matrices=False)
-        n = vt[2]
-        d = -n @ c
-        inl = np.abs(points @ n + d) < thresh
-    if d < 0:  # orient the normal towards the camera (the origin is on the positive side)
-        n, d = -n, -d
-    return n, float(d), inl
 
 
 def object_mask(view: CaptureView, settings: BuildSettings) -> tuple[np.ndarray, tuple[np.ndarray, float] | None]:
@@ -224,13 +193,35 @@ def object_mask(view: CaptureView, settings: BuildSettings) -> tuple[np.ndarray,
             mask[rc[keep, 0], rc[keep, 1]] = True
         else:
             plane = None
-    mask_u8 = cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
-    n_lab, lab, stats, _ = cv2.connectedComponentsWithStats(mask_u8, connectivity=8)
-    if n_lab <= 1:
+    # Cut the mask along depth edges, so that an object in front of a wall stays a blob of its own.
+    d = np.where(np.isfinite(depth), depth, 0.0)
+    edge = np.zeros_like(mask)
+    edge[:, :-1] |= np.abs(d[:, 1:] - d[:, :-1]) > settings.edge_thresh
+    edge[:-1, :] |= np.abs(d[1:, :] - d[:-1, :]) > settings.edge_thresh
+    mask_u8 = cv2.morphologyEx((mask & ~edge).astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
+    n_lab, lab, stats, centroids = cv2.connectedComponentsWithStats(mask_u8, connectivity=4)
+    areas = stats[1:, cv2.CC_STAT_AREA]
+    big = np.nonzero(areas >= max(settings.min_blob_pixels, 1))[0]
+    if n_lab <= 1 or len(big) == 0:
         raise InputError("nothing is left of the object after removing the table plane; "
                          "check --roi and --depth-range")
-    biggest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
-    return lab == biggest, (plane[:2] if plane is not None else None)
+    # The object is the blob nearest the centre of the ROI (or image): a scan keeps it in view,
+    # while walls and table remnants sit towards the edges.
+    if settings.roi is not None:
+        x, y, rw, rh = settings.roi
+        centre = np.array([x + rw / 2.0, y + rh / 2.0])
+    else:
+        centre = np.array([w / 2.0, h / 2.0])
+    dist = np.linalg.norm(centroids[1:][big] - centre, axis=1)
+    chosen = 1 + int(big[np.argmin(dist)])
+    obj = lab == chosen
+    # Give back the edge pixels that border the object and lie at its depth (its silhouette).
+    ring = cv2.dilate(obj.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool) & mask & ~obj
+    if ring.any():
+        near = np.abs(d[ring] - np.median(d[obj])) < max(settings.edge_thresh, 0.5 * float(np.ptp(d[obj])))
+        rr, cc = np.nonzero(ring)
+        obj[rr[near], cc[near]] = True
+    return obj, (plane[:2] if plane is not None else None)
 
 
 def _voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
@@ -243,14 +234,60 @@ def _voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
     return (sums / counts[:, None]).astype(np.float32)
 
 
+def simulated_tilts(tilts: tuple[float, ...], directions: int) -> list[np.ndarray]:
+    """2x3 affine maps that make a view look as if seen more obliquely (ASIFT's view
+    simulation): rotate by phi, then compress by 1/t along x. The identity comes first."""
+    maps = [np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])]
+    for t in tilts:
+        for k in range(directions):
+            phi = np.pi * k / directions
+            c, s_ = np.cos(phi), np.sin(phi)
+            maps.append(np.array([[c / t, -s_ / t, 0.0], [s_, c, 0.0]]))
+    return maps
+
+
+def _warp(image: np.ndarray, A: np.ndarray, interpolation) -> tuple[np.ndarray, np.ndarray]:
+    """Warp with the linear part of A, shifted so that the whole image stays in view."""
+    h, w = image.shape[:2]
+    corners = np.array([[0, 0], [w, 0], [0, h], [w, h]], dtype=np.float64) @ A[:, :2].T
+    lo, hi = corners.min(axis=0), corners.max(axis=0)
+    A = A.copy()
+    A[:, 2] = -lo
+    size = (int(np.ceil(hi[0] - lo[0])), int(np.ceil(hi[1] - lo[1])))
+    return cv2.warpAffine(image, A, size, flags=interpolation, borderMode=cv2.BORDER_CONSTANT), A
+
+
 def view_keypoints(view: CaptureView, mask: np.ndarray, settings: BuildSettings
                    ) -> tuple[np.ndarray, np.ndarray]:
     """SIFT keypoints on the object in one view, lifted with the object's own depth only:
-    (xyz (K, 3) float32 in the view's optical frame, descriptors (K, 128) float32)."""
+    (xyz (K, 3) float32 in the view's optical frame, descriptors (K, 128) float32).
+
+    With ``settings.tilts``, SIFT also runs on the view warped to look more oblique, and the
+    keypoints found there are mapped back to the view's pixels before lifting: the model
+    then also holds the descriptors an instance seen at a grazing angle produces."""
     detect_mask = cv2.dilate(mask.astype(np.uint8), np.ones((5, 5), np.uint8))
-    uv, desc = extract_sift(view.rgb, settings.sift, detect_mask)
     # Depth outside the object is blanked, so the window median never mixes in the table.
     obj_depth = np.where(mask, view.depth_m, 0.0).astype(np.float32)
+    all_uv, all_desc = [], []
+    for A in simulated_tilts(settings.tilts, settings.tilt_directions):
+        if np.allclose(A[:, :2], np.eye(2)):
+            uv, desc = extract_sift(view.rgb, settings.sift, detect_mask)
+        else:
+            # Anti-alias along the compressed direction before warping (ASIFT uses 0.8 sqrt(t^2 - 1)).
+            t = 1.0 / np.linalg.det(A[:, :2])
+            img, A_full = _warp(view.rgb, A, cv2.INTER_LINEAR)
+            blur_sigma = 0.8 * np.sqrt(max(t * t - 1.0, 0.0))
+            img = cv2.GaussianBlur(img, (0, 0), sigmaX=blur_sigma, sigmaY=0.01) if blur_sigma > 0 else img
+            m, _ = _warp(detect_mask, A, cv2.INTER_NEAREST)
+            uv_w, desc = extract_sift(img, settings.sift, m)
+            if len(uv_w) == 0:
+                continue
+            inv = cv2.invertAffineTransform(A_full)
+            uv = (uv_w.astype(np.float64) @ inv[:, :2].T + inv[:, 2]).astype(np.float32)
+        all_uv.append(uv)
+        all_desc.append(desc)
+    uv = np.concatenate(all_uv) if all_uv else np.zeros((0, 2), np.float32)
+    desc = np.concatenate(all_desc) if all_desc else np.zeros((0, 128), np.float32)
     z = lookup_depth(obj_depth, uv, settings.depth_window, *settings.depth_range)
     ok = z > 0
     xyz = backproject(undistort_pixels(uv[ok], view.intrinsics), z[ok], view.intrinsics)
@@ -300,7 +337,9 @@ def build_model(views: list[CaptureView], settings: BuildSettings = BuildSetting
                          f"or capture a better textured view")
     cloud = _voxel_downsample(np.concatenate(clouds), settings.voxel)
 
-    # Model axes: z up from the table (towards the camera) if a table was found.
+    # Model axes: z up from the table (towards the camera) if a table was found, x and y along
+    # the sides of the object's smallest rectangle on the table; else the cloud's principal axes.
+    pts = cloud.astype(np.float64)
     if plane0 is not None:
         z_axis = plane0[0]    # oriented towards the camera, i.e. up from the table
         x_axis = np.array([1.0, 0.0, 0.0]) - z_axis * z_axis[0]
@@ -308,10 +347,18 @@ def build_model(views: list[CaptureView], settings: BuildSettings = BuildSetting
             x_axis = np.array([0.0, 1.0, 0.0]) - z_axis * z_axis[1]
         x_axis /= np.linalg.norm(x_axis)
         R = np.stack([x_axis, np.cross(z_axis, x_axis), z_axis], axis=1)
+        (_, _), (_, _), angle = cv2.minAreaRect((pts @ R[:, :2]).astype(np.float32))
+        c, s_ = np.cos(np.radians(angle)), np.sin(np.radians(angle))
+        R = R @ np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
     else:
-        R = np.eye(3)
-    local = cloud.astype(np.float64) @ R            # capture coords expressed along the model axes
-    lo, hi = np.percentile(local, 1, axis=0), np.percentile(local, 99, axis=0)
+        _, _, vt = np.linalg.svd(pts - pts.mean(axis=0), full_matrices=False)
+        R = vt.T * np.array([1.0, 1.0, np.linalg.det(vt.T)])   # a proper rotation
+    local = pts @ R                                   # capture coords expressed along the model axes
+    lo, hi = np.percentile(local, 0.5, axis=0), np.percentile(local, 99.5, axis=0)
+    if plane0 is not None and 0 < lo[2] - (-plane0[1]) <= 2 * settings.plane_thresh:
+        # The object stands on the table: its box reaches down to the plane (n.p + d = 0,
+        # i.e. local z = -d); the slice just above the plane went with the table.
+        lo[2] = -plane0[1]
     centre = R @ ((lo + hi) / 2.0)
     T_capture_model = make_transform(R, centre)
     T_model_capture = invert_transform(T_capture_model)
@@ -330,4 +377,4 @@ def build_model(views: list[CaptureView], settings: BuildSettings = BuildSetting
 
 
 __all__ = ["ObjectModel", "save_model", "load_model", "MODEL_SCHEMA_VERSION", "CaptureView", "BuildSettings",
-           "build_model", "object_mask", "fit_dominant_plane", "view_keypoints"]
+           "build_model", "object_mask", "view_keypoints"]

@@ -1,11 +1,13 @@
 """``mireg build-model``: the stored object model from a capture bag, or from PNG files.
 
-    mireg build-model CAPTURE_BAG -o MODEL.npz [--frames 0,10,20 | 0:60:10] [--roi x,y,w,h] [--depth-range 0.2 1.5]
+    mireg build-model CAPTURE_BAG [MORE_BAGS ...] -o MODEL.npz [--frames 0,10,20 | 0:60:10] [--roi x,y,w,h] [--depth-range 0.2 1.5]
     mireg build-model --rgb colour.png --depth depth.png --intrinsics fx,fy,cx,cy -o MODEL.npz
 
 The object is isolated by the ROI and depth range, the removal of the dominant (table) plane
-and the largest remaining blob. Several frames are merged with their ground-truth poses when
-the bag has them, else by registering each frame to the model built so far.
+and the blob nearest the image centre. Several frames are merged with their ground-truth
+poses when the bag has them, else by registering each frame to the model built so far.
+Several bags of one object (e.g. upright, then upside down, so that the model sees every
+face) are merged the same way; the first frame of the first bag defines the capture frame.
 """
 from __future__ import annotations
 
@@ -20,7 +22,7 @@ HELP = "build the stored object model (npz) from a capture bag or colour/depth P
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("bag", nargs="?", help="capture bag (rosbag2 directory, .db3 or .mcap)")
+    parser.add_argument("bag", nargs="*", help="capture bag(s) (rosbag2 directory, .db3 or .mcap)")
     parser.add_argument("-o", "--output", required=True, help="model file to write (.npz)")
     parser.add_argument("--frames", default=None,
                         help="frames of the bag to merge: indices '0,10,20' or a range 'start:stop:step' "
@@ -28,6 +30,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--roi", default=None, help="x,y,w,h pixel box around the object (default: whole image)")
     parser.add_argument("--depth-range", nargs=2, type=float, metavar=("MIN", "MAX"), default=(0.1, 4.0),
                         help="metres: depth kept for the object (default 0.1 4.0)")
+    parser.add_argument("--tilts", default="2",
+                        help="simulated view tilts, comma-separated (ASIFT-style: SIFT also on each view warped "
+                             "to look more oblique, so that instances seen at grazing angles match); '' = off (default 2)")
     parser.add_argument("--name", default=None, help="object name stored in the model (default: from the bag)")
     parser.add_argument("--topics", nargs=3, metavar=("COLOUR", "DEPTH", "INFO"), default=None,
                         help="colour, aligned depth and camera_info topics (default: realsense-ros names)")
@@ -150,12 +155,22 @@ def run(args) -> int:
         raise InputError("give either a capture bag or --rgb/--depth PNG files, not both")
     description = None
     if args.bag:
-        views, description = views_from_bag(args.bag, args.frames, args.topics)
+        views = []
+        for bag in args.bag:
+            more, desc = views_from_bag(bag, args.frames, args.topics)
+            views += more
+            description = description or desc
     elif args.rgb or args.depth:
         views = views_from_png(args.rgb, args.depth, args.intrinsics, args.depth_scale)
     else:
         raise InputError("give a capture bag, or --rgb, --depth and --intrinsics")
-    settings = BuildSettings(roi=parse_roi(args.roi), depth_range=(lo, hi))
+    try:
+        tilts = tuple(float(t) for t in args.tilts.split(",") if t.strip())
+    except ValueError:
+        raise InputError(f"--tilts must be numbers like '2' or '1.5,2', got '{args.tilts}'") from None
+    if any(t <= 1.0 for t in tilts):
+        raise InputError(f"--tilts must be greater than 1 (1 is the view itself), got '{args.tilts}'")
+    settings = BuildSettings(roi=parse_roi(args.roi), depth_range=(lo, hi), tilts=tilts)
     name = args.name or (description or {}).get("name", "") or ""
     model = build_model(views, settings, name=name, register_view=register_view_with_ecc)
     save_model(model, out)

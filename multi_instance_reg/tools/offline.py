@@ -36,6 +36,9 @@ def add_arguments(parser) -> None:
                         help="colour, aligned depth and camera_info topics (default: realsense-ros names)")
     parser.add_argument("--max-rre-deg", type=float, default=10.0, help="hit: rotation error below this (default 10 deg)")
     parser.add_argument("--max-rte", type=float, default=0.02, help="hit: translation error below this (default 0.02 m)")
+    parser.add_argument("--min-visibility", type=float, default=0.25,
+                        help="instances with a smaller visible fraction (/ground_truth/visibility) are not counted "
+                             "as present (default 0.25)")
     parser.add_argument("--max-frames", type=int, default=0, help="stop after this many frames (0 = all)")
     parser.add_argument("--overlays", type=int, default=4, help="overlay pictures to write with ground truth (default 4)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -55,10 +58,11 @@ def load_config(params_path):
 
 
 class Progress:
-    """A one-line progress bar on stderr."""
+    """A one-line progress bar on stderr, drawn only when stderr is a terminal."""
 
     def __init__(self, total: int, enabled: bool = True, width: int = 30):
-        self.total, self.enabled, self.width = max(total, 1), enabled, width
+        self.total, self.width = max(total, 1), width
+        self.enabled = enabled and sys.stderr.isatty()
         self.t0 = time.perf_counter()
 
     def update(self, done: int, extra: str = "") -> None:
@@ -80,6 +84,7 @@ class Progress:
 class ReplayResult:
     frames: list[dict] = field(default_factory=list)          # poses.json entries
     timings: list[dict] = field(default_factory=list)         # per frame, ms by stage
+    cpu_ms: list[float] = field(default_factory=list)         # per frame, CPU time of this process (all threads)
     scores: list = field(default_factory=list)                # metrics.SceneScore per frame with ground truth
     present: list[int] = field(default_factory=list)          # per frame: ground-truth instances (-1 without)
     found: list[int] = field(default_factory=list)
@@ -107,12 +112,28 @@ def estimates_in_object_frame(model, transforms: np.ndarray) -> np.ndarray:
     return transforms @ invert_transform(model.T_object_model)
 
 
+def evaluate_frame(T_gt, T_est, visibility=None, min_visibility: float = 0.0, max_rre_deg: float = 10.0,
+                   max_rte: float = 0.02):
+    """Score one frame. Instances less visible than ``min_visibility`` are not "present": they
+    do not count against recall, and an estimate that hits one is neither credit nor blame."""
+    from ..metrics import evaluate_scene
+
+    T_gt = np.asarray(T_gt, dtype=np.float64).reshape(-1, 4, 4)
+    T_est = np.asarray(T_est, dtype=np.float64).reshape(-1, 4, 4)
+    if visibility is None or min_visibility <= 0:
+        return evaluate_scene(T_gt, T_est, max_rre_deg, max_rte)
+    seen = np.asarray(visibility) >= min_visibility
+    full = evaluate_scene(T_gt, T_est, max_rre_deg, max_rte)
+    drop = {e for (g, e), hit in zip(full.pairs, full.hit) if hit and not seen[g]}
+    keep = [e for e in range(len(T_est)) if e not in drop]
+    return evaluate_scene(T_gt[seen], T_est[keep], max_rre_deg, max_rte)
+
+
 def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_rte: float = 0.02,
-           max_frames: int = 0, on_frame=None, progress: bool = True) -> ReplayResult:
+           max_frames: int = 0, on_frame=None, progress: bool = True, min_visibility: float = 0.0) -> ReplayResult:
     """Run every frame of a bag through InstanceRegistration. ``on_frame(index, frame,
     FrameResult)`` is called for each processed frame (pictures are drawn there)."""
     from ..datasets.rgbd_bag import RGBDBag
-    from ..metrics import evaluate_scene
     from ..rgbd.pipeline import InstanceRegistration
 
     reg = InstanceRegistration(model, config)
@@ -124,36 +145,40 @@ def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_
         out.has_ground_truth = bag.has_ground_truth
         total = bag.num_colour_messages if not max_frames else min(max_frames, bag.num_colour_messages)
         bar = Progress(total, progress)
-        for index, frame in enumerate(bag):
-            if max_frames and index >= max_frames:
-                break
-            try:
-                result = reg.register_frame(frame.rgb, frame.depth_m, frame.intrinsics)
-            except InputError as exc:
-                skip_reasons[str(exc)] = skip_reasons.get(str(exc), 0) + 1
-                out.skipped += 1
-                bar.update(index + 1, f"(skipped {out.skipped})")
-                continue
-            out.frames.append({
-                "stamp_ns": int(frame.stamp_ns), "frame_id": frame.frame_id,
-                "latency_ms": round(float(result.timings_ms["total"]), 3),
-                "instances": [{"id": int(i.id), "T": np.round(i.T, 7).tolist(), "inliers": int(i.inliers),
-                               "score": round(float(i.score), 5)} for i in result.instances]})
-            out.timings.append(dict(result.timings_ms))
-            out.found.append(len(result.instances))
-            if frame.gt_poses is not None:
-                est = estimates_in_object_frame(model, [i.T for i in result.instances])
-                score = evaluate_scene(frame.gt_poses, est, max_rre_deg, max_rte)
-                out.scores.append(score)
-                out.present.append(len(frame.gt_poses))
-                out.hits.append(score.hits)
-            else:
-                out.present.append(-1)
-                out.hits.append(-1)
-            if on_frame is not None:
-                on_frame(index, frame, result)
-            bar.update(index + 1)
-        bar.close()
+        try:
+            for index, frame in enumerate(bag):
+                if max_frames and index >= max_frames:
+                    break
+                cpu0 = time.process_time()
+                try:
+                    result = reg.register_frame(frame.rgb, frame.depth_m, frame.intrinsics)
+                except InputError as exc:
+                    skip_reasons[str(exc)] = skip_reasons.get(str(exc), 0) + 1
+                    out.skipped += 1
+                    bar.update(index + 1, f"(skipped {out.skipped})")
+                    continue
+                out.frames.append({
+                    "stamp_ns": int(frame.stamp_ns), "frame_id": frame.frame_id,
+                    "latency_ms": round(float(result.timings_ms["total"]), 3),
+                    "instances": [{"id": int(i.id), "T": np.round(i.T, 7).tolist(), "inliers": int(i.inliers),
+                                   "score": round(float(i.score), 5)} for i in result.instances]})
+                out.timings.append(dict(result.timings_ms))
+                out.cpu_ms.append((time.process_time() - cpu0) * 1e3)
+                out.found.append(len(result.instances))
+                if frame.gt_poses is not None:
+                    est = estimates_in_object_frame(model, [i.T for i in result.instances])
+                    score = evaluate_frame(frame.gt_poses, est, frame.gt_visibility, min_visibility, max_rre_deg, max_rte)
+                    out.scores.append(score)
+                    out.present.append(score.n_gt)
+                    out.hits.append(score.hits)
+                else:
+                    out.present.append(-1)
+                    out.hits.append(-1)
+                if on_frame is not None:
+                    on_frame(index, frame, result)
+                bar.update(index + 1)
+        finally:
+            bar.close()
         for reason, n in bag.skipped.reasons.items():
             skip_reasons[reason] = skip_reasons.get(reason, 0) + n
         out.skipped += bag.skipped.count
@@ -164,13 +189,15 @@ def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_
     return out
 
 
-def metrics_dict(result: ReplayResult, max_rre_deg: float, max_rte: float) -> dict:
+def metrics_dict(result: ReplayResult, max_rre_deg: float, max_rte: float, min_visibility: float = 0.0) -> dict:
     from ..metrics import summarize
 
     summary = summarize(result.scores)
-    return {**summary, "max_rre_deg": max_rre_deg, "max_rte": max_rte,
+    return {**summary, "max_rre_deg": max_rre_deg, "max_rte": max_rte, "min_visibility": min_visibility,
             "frames": len(result.frames), "frames_with_ground_truth": len(result.scores),
-            "skipped_frames": result.skipped, "latency_ms": result.latency_summary()}
+            "skipped_frames": result.skipped, "latency_ms": result.latency_summary(),
+            "cpu_ms_per_frame": {"p50": float(np.percentile(result.cpu_ms, 50)) if result.cpu_ms else None,
+                                 "p95": float(np.percentile(result.cpu_ms, 95)) if result.cpu_ms else None}}
 
 
 # --------------------------------------------------------------------------- pictures
@@ -274,14 +301,14 @@ def run(args) -> int:
             cv2.imwrite(str(out_dir / f"overlay_{index:05d}.png"), img)
 
     result = replay(args.bag, model, config, args.topics, args.max_rre_deg, args.max_rte, args.max_frames,
-                    on_frame=on_frame, progress=not args.quiet)
+                    on_frame=on_frame, progress=not args.quiet, min_visibility=args.min_visibility)
     (out_dir / "poses.json").write_text(json.dumps({"frames": result.frames}))
     lat = result.latency_summary()["total"]
     line = f"{len(result.frames)} frames, latency p50 {lat['p50']:.1f} ms p95 {lat['p95']:.1f} ms"
     if result.skipped:
         line += f", {result.skipped} skipped ({result.skip_reasons})"
     if result.scores:
-        metrics = metrics_dict(result, args.max_rre_deg, args.max_rte)
+        metrics = metrics_dict(result, args.max_rre_deg, args.max_rte, args.min_visibility)
         (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
         cv2.imwrite(str(out_dir / "found_vs_present.png"),
                     draw_found_vs_present(result.present, result.found, result.hits))
