@@ -21,7 +21,7 @@ def test_live_replay_matches_offline_quality(scene_bag, object_model, tmp_path):
     from multi_instance_reg.tools.offline import estimates_in_object_frame, replay
 
     model = load_model(object_model)
-    offline = replay(scene_bag, model, PipelineConfig(), progress=False)
+    offline = replay(scene_bag, model, PipelineConfig(), progress=False, min_visibility=0.25)  # as listen
     by_stamp = {f["stamp_ns"]: f for f in offline.frames}
     last_stamp = offline.frames[-1]["stamp_ns"]
 

@@ -43,33 +43,31 @@ def prepare_data(out: Path, frames: int = 90, instances: int = 6, fresh: bool = 
     """Capture bag, scene bag and model under ``out`` (reused if already there)."""
     import shutil
 
-    from ..rgbd.model import BuildSettings, build_model, save_model
-    from ..synthetic.scene import generate_capture_bag, generate_scene_bag
-    from .build_model import register_view_with_ecc, views_from_bag
+    from ..rgbd.model import save_model
+    from ..synthetic.scene import generate_scene_bag
+    from .bench_frames import CAPTURE_POSES, generate_capture_bags, model_from_captures
 
     out.mkdir(parents=True, exist_ok=True)
-    capture, scene, model_path = out / "capture", out / "scene", out / "model.npz"
+    captures, scene, model_path = out / "captures", out / "scene", out / "model.npz"
     marker = out / "data.json"
     wanted = {"frames": frames, "instances": instances}
     if fresh or not marker.exists() or json.loads(marker.read_text()) != wanted:
-        for path in (capture, scene):
+        for path in (captures, scene):
             shutil.rmtree(path, ignore_errors=True)
         model_path.unlink(missing_ok=True)
         marker.unlink(missing_ok=True)
-    if not capture.exists():
-        quiet or _say("rendering the capture bag (the object alone, several views)")
-        generate_capture_bag(capture, seed=0, views=8)
+    if not captures.exists():
+        quiet or _say(f"rendering {len(CAPTURE_POSES)} capture bags (the object alone, resting on different "
+                      "sides, several views each)")
+        generate_capture_bags(captures, seed=0, views=8)
     if not scene.exists():
         quiet or _say(f"rendering the scene bag ({frames} frames, {instances} instances, distractors)")
         generate_scene_bag(scene, instances=instances, distractors=3, frames=frames, seed=1)
     if not model_path.exists():
-        quiet or _say("building the object model from the capture bag")
-        views, description = views_from_bag(capture, None, None)
-        model = build_model(views, BuildSettings(), name=(description or {}).get("name", ""),
-                            register_view=register_view_with_ecc)
-        save_model(model, model_path)
+        quiet or _say("building the object model from the capture bags")
+        save_model(model_from_captures(sorted(p for p in captures.iterdir() if p.is_dir())), model_path)
     marker.write_text(json.dumps(wanted))
-    return {"capture_bag": capture, "scene_bag": scene, "model": model_path}
+    return {"captures": captures, "scene_bag": scene, "model": model_path}
 
 
 class _Process:

@@ -41,30 +41,39 @@ def add_arguments(parser) -> None:
                         help="a hit needs a rotation error below this (default 10, as mireg offline)")
     parser.add_argument("--max-rte", type=float, default=0.02, metavar="M",
                         help="a hit needs a translation error below this (default 0.02 m, as mireg offline)")
+    parser.add_argument("--min-visibility", type=float, default=0.25, metavar="F",
+                        help="instances less visible than this (/ground_truth/visibility) do not count "
+                             "(default 0.25, as mireg offline)")
     parser.add_argument("--wait-for-node", type=float, default=0.0, metavar="S",
                         help="first wait up to S seconds for the node's poses publisher, then print 'listening'")
     parser.add_argument("--quiet", action="store_true", help="only the summary")
 
 
-def read_ground_truth(path: Path) -> dict[int, np.ndarray]:
-    """stamp_ns -> (K, 4, 4) ground-truth poses (object frame in the camera optical frame)."""
-    from ..datasets.rgbd_bag import _open_reader
+def read_ground_truth(path: Path) -> dict[int, tuple[np.ndarray, np.ndarray | None]]:
+    """stamp_ns -> ((K, 4, 4) ground-truth poses, object frame in the camera optical frame;
+    (K,) visible fraction of each instance, or None when the bag has no visibility)."""
+    from ..datasets.rgbd_bag import GT_VISIBILITY_TOPIC, _open_reader
     from ..transforms import pose_to_matrix
 
     reader = _open_reader(path)
     try:
-        connections = [c for c in reader.connections if c.topic == GT_TOPIC]
-        if not connections:
+        connections = [c for c in reader.connections if c.topic in (GT_TOPIC, GT_VISIBILITY_TOPIC)]
+        if not any(c.topic == GT_TOPIC for c in connections):
             raise InputError(f"bag {path} has no {GT_TOPIC} topic to score against")
-        truth = {}
-        for connection, _, raw in reader.messages(connections=connections):
+        poses, visibility, stamp_at = {}, {}, {}
+        for connection, bag_time, raw in reader.messages(connections=connections):
             msg = reader.deserialize(raw, connection.msgtype)
+            if connection.topic == GT_VISIBILITY_TOPIC:
+                # Float32MultiArray has no header: it shares the bag time of its frame's poses.
+                visibility[bag_time] = np.asarray(msg.data, dtype=np.float32)
+                continue
             stamp = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
-            truth[stamp] = np.array([
+            stamp_at[bag_time] = stamp
+            poses[stamp] = np.array([
                 pose_to_matrix((p.position.x, p.position.y, p.position.z),
                                (p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w))
                 for p in msg.poses]).reshape(-1, 4, 4)
-        return truth
+        return {stamp: (poses[stamp], visibility.get(bag_time)) for bag_time, stamp in stamp_at.items()}
     finally:
         reader.close()
 
@@ -142,11 +151,11 @@ class Listener:
                 for i, T in zip(details["instances"], poses))
             gt = ""
             if self.truth is not None and stamp in self.truth:
-                gt = f" (truth: {len(self.truth[stamp])})"
+                gt = f" (truth: {len(self.truth[stamp][0])})"
             print(f"{stamp / 1e9:.3f} s: {len(poses)} instance(s){gt}, "
                   f"{details['latency_ms']:.0f} ms{': ' + insts if insts else ''}", flush=True)
 
-    def summary(self, max_rre_deg: float = 10.0, max_rte: float = 0.02) -> dict:
+    def summary(self, max_rre_deg: float = 10.0, max_rte: float = 0.02, min_visibility: float = 0.25) -> dict:
         latencies = [f["details"]["latency_ms"] for f in self.frames]
         # The newer of the two: details come with every processed frame, stats periodically.
         def seen(c):
@@ -162,20 +171,22 @@ class Listener:
             "overlays": self.overlays_written,
         }
         if self.truth is not None:
-            scored = [(self.object_poses(f["poses"]), self.truth[f["stamp_ns"]])
+            scored = [(self.object_poses(f["poses"]), *self.truth[f["stamp_ns"]])
                       for f in self.frames if f["stamp_ns"] in self.truth]
-            out.update(score_frames(scored, max_rre_deg, max_rte))
+            out.update(score_frames(scored, max_rre_deg, max_rte, min_visibility))
         return out
 
 
-def score_frames(pairs, max_rre_deg: float = 10.0, max_rte: float = 0.02) -> dict:
-    """MHR / MHP / MHF1 in % (means over frames) of (estimated, ground-truth) pose stacks."""
-    from ..metrics import evaluate_scene, summarize
+def score_frames(frames, max_rre_deg: float = 10.0, max_rte: float = 0.02, min_visibility: float = 0.25) -> dict:
+    """MHR / MHP / MHF1 in % (means over frames) of (estimated, ground truth, visibility)
+    triples, scored exactly as ``mireg offline`` does."""
+    from ..metrics import summarize
+    from .offline import evaluate_frame
 
-    s = summarize([evaluate_scene(gt, est, max_rre_deg, max_rte) for est, gt in pairs])
-    return {"frames_scored": len(pairs), "MHR": round(100 * s["MHR"], 1), "MHP": round(100 * s["MHP"], 1),
+    s = summarize([evaluate_frame(gt, est, vis, min_visibility, max_rre_deg, max_rte) for est, gt, vis in frames])
+    return {"frames_scored": len(frames), "MHR": round(100 * s["MHR"], 1), "MHP": round(100 * s["MHP"], 1),
             "MHF1": round(100 * s["MHF1"], 1), "MF": round(100 * s["MF"], 1),
-            "max_rre_deg": max_rre_deg, "max_rte": max_rte,
+            "max_rre_deg": max_rre_deg, "max_rte": max_rte, "min_visibility": min_visibility,
             "median_rre_deg": s["median_rre_deg"], "median_rte_m": s["median_rte"]}
 
 
@@ -186,7 +197,8 @@ def format_summary(summary: dict) -> str:
     if "MHF1" in summary:
         lines.insert(0, f"MHF1 {summary['MHF1']} % (MHR {summary['MHR']} %, MHP {summary['MHP']} %) over "
                         f"{summary['frames_scored']} frames with ground truth (hit: rotation < "
-                        f"{summary['max_rre_deg']:g} deg, translation < {summary['max_rte']:g} m)")
+                        f"{summary['max_rre_deg']:g} deg, translation < {summary['max_rte']:g} m; instances at least "
+                        f"{summary['min_visibility']:g} visible)")
     return "\n".join(lines)
 
 
@@ -248,7 +260,7 @@ def run(args) -> int:
     finally:
         node.destroy_node()
         rclpy.try_shutdown()
-    summary = listener.summary(args.max_rre_deg, args.max_rte)
+    summary = listener.summary(args.max_rre_deg, args.max_rte, args.min_visibility)
     print(format_summary(summary), flush=True)
     if args.summary:
         args.summary.parent.mkdir(parents=True, exist_ok=True)
