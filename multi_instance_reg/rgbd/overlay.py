@@ -44,6 +44,7 @@ def draw_overlay(rgb: np.ndarray, result, intrinsics: CameraIntrinsics, box_corn
         for a, b in _EDGES:
             cv2.line(out, tuple(pts[a]), tuple(pts[b]), colour, 2, cv2.LINE_AA)
         top = pts[np.argmin(pts[:, 1])]
-        cv2.putText(out, str(inst.id), (int(top[0]), int(top[1]) - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.6,
-                    colour, 2, cv2.LINE_AA)
+        org = (int(top[0]), int(top[1]) - 6)
+        cv2.putText(out, str(inst.id), org, cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 4, cv2.LINE_AA)
+        cv2.putText(out, str(inst.id), org, cv2.FONT_HERSHEY_SIMPLEX, 0.6, colour, 2, cv2.LINE_AA)
     return out
