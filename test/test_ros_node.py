@@ -7,6 +7,7 @@ quality over a rendered bag replayed with `mireg play` is in test_ros_replay.py.
 import json
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -191,3 +192,26 @@ def test_malformed_images_and_missing_camera_info_are_skipped_and_counted(model)
         out = stop(node)
     assert "no camera_info received" in out
     assert "skipping a malformed frame" in out
+
+
+def test_two_pipeline_processes_publish_in_order(model):
+    from geometry_msgs.msg import PoseArray
+
+    node = start_node(47, model, "pipeline_processes:=2")
+    probe = Probe(47)
+    try:
+        poses = probe.subscribe(PoseArray, "/instances/poses")
+        camera = CameraPublisher(probe)
+        assert camera.wait_for_subscribers(proc=node), stop(node)
+        rgb, depth, K = poster_frame()
+        sent = []
+        for _ in range(12):
+            sent.append(camera.send(rgb, depth, K))
+            time.sleep(0.03)
+        assert wait_until(lambda: poses and stamp_ns(poses[-1][1]) == sent[-1], 20, proc=node), stop(node)
+    finally:
+        probe.close()
+        out = stop(node)
+    got = [stamp_ns(m) for _, m in poses]
+    assert got == sorted(got) and set(got) <= set(sent), out
+    assert all(len(m.poses) == 1 for _, m in poses)

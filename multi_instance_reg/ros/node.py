@@ -69,6 +69,7 @@ class _Pair:
     colour: Image
     depth: Image
     received: float  # time.monotonic() when the pair was complete
+    sequence: int
 
 
 class InstanceRegistrationNode(Node):
@@ -87,8 +88,8 @@ class InstanceRegistrationNode(Node):
         if not self.settings.model_path:
             raise InputError("no model: pass -p model_path:=MODEL (build one with `mireg build-model`)")
         self.model = load_model(self.settings.model_path)
-        # The pipeline runs in a child process (see worker.py): it never holds our GIL.
-        self._pipeline = PipelineProcess(self.model, self.config)
+        # The pipeline runs in child processes (see worker.py): it never holds our GIL.
+        self._pipelines = PipelineProcess.start_many(self.model, self.config, self.settings.pipeline_processes)
 
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
@@ -107,6 +108,9 @@ class InstanceRegistrationNode(Node):
         self._have_intrinsics = threading.Event()
         self._latencies = deque(maxlen=LATENCY_WINDOW)
         self._marker_ids: set = set()
+        self._publish_lock = threading.Lock()
+        self._sequence = 0          # of synchronised pairs, to publish results in order
+        self._last_published = -1
         self._last_stats = time.monotonic()
 
         self._pub_poses = self.create_publisher(PoseArray, "/instances/poses", pub_qos)
@@ -119,8 +123,10 @@ class InstanceRegistrationNode(Node):
         self.create_subscription(CameraInfo, CAMERA_INFO_TOPIC, self._on_camera_info, sub_qos)
         self.create_timer(0.25, self._maybe_report)
 
-        self._worker = threading.Thread(target=self._work, name="pipeline", daemon=True)
-        self._worker.start()
+        self._workers = [threading.Thread(target=self._work, args=(p,), name=f"pipeline{k}", daemon=True)
+                         for k, p in enumerate(self._pipelines)]
+        for worker in self._workers:
+            worker.start()
         self.get_logger().info(
             f"ready: model {self.settings.model_path}, listening on "
             f"{self.resolve_topic_name(COLOUR_TOPIC)} + {self.resolve_topic_name(DEPTH_TOPIC)} "
@@ -165,21 +171,22 @@ class InstanceRegistrationNode(Node):
             return
         with self._counters_lock:
             self.counters.synchronised += 1
-            if self._slot.put(_Pair(pair[0], pair[1], now)):
+            self._sequence += 1
+            if self._slot.put(_Pair(pair[0], pair[1], now, self._sequence)):
                 self.counters.dropped += 1
 
     # ---- the worker -------------------------------------------------------------------
-    def _work(self) -> None:
+    def _work(self, pipeline) -> None:
         while not self._slot.closed:
             pair = self._slot.take(timeout=0.5)
             if pair is not None:
-                self._process(pair)
+                self._process(pair, pipeline)
 
     def _count(self, name: str) -> None:
         with self._counters_lock:
             setattr(self.counters, name, getattr(self.counters, name) + 1)
 
-    def _process(self, pair: _Pair) -> None:
+    def _process(self, pair: _Pair, pipeline) -> None:
         log = self.get_logger()
         if self._intrinsics is None:
             # At start-up the first camera_info can trail the first images: a reliable reader
@@ -194,7 +201,7 @@ class InstanceRegistrationNode(Node):
         try:
             rgb = colour_to_rgb(pair.colour)
             depth = depth_to_metres(pair.depth, self.settings.depth_scale)
-            result = self._pipeline.register(rgb, depth, intrinsics, self.config)  # checks sizes
+            result = pipeline.register(rgb, depth, intrinsics, self.config)  # checks sizes
         except InputError as exc:
             self._count("bad")
             log.warn(f"skipping a malformed frame: {exc}", throttle_duration_sec=2.0)
@@ -204,20 +211,26 @@ class InstanceRegistrationNode(Node):
             log.error(f"the pipeline failed on a frame: {exc}", throttle_duration_sec=2.0)
             return
         header = pair.colour.header
-        self._pub_poses.publish(conversions.pose_array(result.instances, header))
-        # Latency as a user sees it: pair complete -> poses out (waiting for the worker included).
-        latency_ms = (time.monotonic() - pair.received) * 1e3
-        with self._counters_lock:
-            self.counters.processed += 1
-            self._latencies.append(latency_ms)
-        counters = self.frame_counts()
-        self._pub_details.publish(conversions.details_message(
-            stamp_to_ns(header.stamp), header.frame_id, latency_ms, result.instances,
-            timings_ms={k: round(float(v), 2) for k, v in result.timings_ms.items()},
-            counters=counters))
-        markers, self._marker_ids = conversions.marker_array(
-            result.instances, header, np.zeros(3), self.model.extent, self._marker_ids)
-        self._pub_markers.publish(markers)
+        with self._publish_lock:
+            if pair.sequence < self._last_published:
+                # With several pipeline processes a newer frame can finish first: never go back.
+                self._count("dropped")
+                return
+            self._last_published = pair.sequence
+            self._pub_poses.publish(conversions.pose_array(result.instances, header))
+            # Latency as a user sees it: pair complete -> poses out (waiting for a worker included).
+            latency_ms = (time.monotonic() - pair.received) * 1e3
+            with self._counters_lock:
+                self.counters.processed += 1
+                self._latencies.append(latency_ms)
+            counters = self.frame_counts()
+            self._pub_details.publish(conversions.details_message(
+                stamp_to_ns(header.stamp), header.frame_id, latency_ms, result.instances,
+                timings_ms={k: round(float(v), 2) for k, v in result.timings_ms.items()},
+                counters=counters))
+            markers, self._marker_ids = conversions.marker_array(
+                result.instances, header, np.zeros(3), self.model.extent, self._marker_ids)
+            self._pub_markers.publish(markers)
         if self.settings.publish_debug_image or self._pub_debug.get_subscription_count() > 0:
             self._publish_debug_image(rgb, result, intrinsics, header)
 
@@ -262,8 +275,10 @@ class InstanceRegistrationNode(Node):
 
     def destroy_node(self):
         self._slot.close()
-        self._worker.join(timeout=5.0)
-        self._pipeline.close()
+        for worker in self._workers:
+            worker.join(timeout=5.0)
+        for pipeline in self._pipelines:
+            pipeline.close()
         return super().destroy_node()
 
 

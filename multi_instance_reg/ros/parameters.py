@@ -29,6 +29,8 @@ class NodeSettings:
     qos_reliability: str = param("reliable", "subscription reliability (read-only); best_effort loses large frames over Fast DDS",
                                  choices=("reliable", "best_effort"))
     qos_depth: int = param(10, "subscription and publisher queue depth (read-only)", 1, 1000)
+    pipeline_processes: int = param(1, "pipeline processes taking frames in turn (read-only); a second one shortens the wait "
+                                       "for a busy pipeline when a core is free for it", 1, 8)
     depth_scale: float = param(0.001, "metres per unit of a 16UC1 depth image (realsense-ros: 0.001, millimetres)", 1e-6, 1.0)
     publish_debug_image: bool = param(False, "draw and publish the debug image on every frame even with no subscriber "
                                              "(it is drawn whenever someone subscribes)")
@@ -36,7 +38,7 @@ class NodeSettings:
 
 
 # Fixed for the node's lifetime: they shape subscriptions or the loaded model.
-READ_ONLY = frozenset({"model_path", "qos_reliability", "qos_depth"})
+READ_ONLY = frozenset({"model_path", "qos_reliability", "qos_depth", "pipeline_processes"})
 
 
 def descriptor(spec: ParamSpec, read_only: bool = False) -> ParameterDescriptor:

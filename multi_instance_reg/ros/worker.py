@@ -47,12 +47,31 @@ class PipelineProcess:
     """``register(rgb, depth_m, intrinsics, config) -> FrameResult`` run in a child process. Raises InputError for a frame the pipeline refuses and
     RuntimeError when the pipeline failed (the child is restarted if it died)."""
 
-    def __init__(self, model, config, start_timeout: float = 300.0):
+    def __init__(self, model, config, start_timeout: float = 300.0, wait: bool = True):
         self._model = model
         self._start_timeout = start_timeout
-        self._start(config)
+        self._launch(config)
+        if wait:
+            self.wait_ready()
+
+    @classmethod
+    def start_many(cls, model, config, count: int) -> list["PipelineProcess"]:
+        """``count`` pipeline processes, started together (each spends seconds warming up)."""
+        started = [cls(model, config, wait=False) for _ in range(count)]
+        try:
+            for p in started:
+                p.wait_ready()
+        except InputError:
+            for p in started:
+                p.close()
+            raise
+        return started
 
     def _start(self, config) -> None:
+        self._launch(config)
+        self.wait_ready()
+
+    def _launch(self, config) -> None:
         # spawn, not fork: the parent runs DDS threads, which a fork would copy half-way.
         ctx = multiprocessing.get_context("spawn")
         self._conn, child_conn = ctx.Pipe()
@@ -60,6 +79,8 @@ class PipelineProcess:
                                  name="instance_registration_pipeline", daemon=True)
         self._proc.start()
         child_conn.close()
+
+    def wait_ready(self) -> None:
         if not self._conn.poll(self._start_timeout):
             self.close()
             raise InputError(f"the pipeline process did not start within {self._start_timeout:g} s")

@@ -40,6 +40,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--distinct-frames", type=int, default=30, metavar="N",
                         help="how many of the bag's frames to cycle through")
     parser.add_argument("--domain-id", type=int, default=77, help="ROS_DOMAIN_ID of the benchmark")
+    parser.add_argument("-p", "--param", action="append", default=[], metavar="NAME:=VALUE",
+                        help="a node parameter, as after --ros-args -p (repeatable)")
     parser.add_argument("--json", type=Path, metavar="FILE", help="also write the figures here")
 
 
@@ -230,10 +232,12 @@ def run(args) -> int:
     # The node's log goes to a file: an unread pipe would fill up and stall it on a long run.
     log = tempfile.NamedTemporaryFile("w+", prefix="bench_node_", suffix=".log")
     node = subprocess.Popen([sys.executable, "-m", "multi_instance_reg.ros.node", "--ros-args",
-                             "-p", f"model_path:={args.model}", "-p", "stats_log_period_s:=10.0"],
+                             "-p", f"model_path:={args.model}", "-p", "stats_log_period_s:=10.0",
+                             *[a for p in args.param for a in ("-p", p)]],
                             env=env, stdout=log, stderr=subprocess.STDOUT, text=True)
     bench = _Bench(messages, args.domain_id)
-    figures: dict = {"frames_distinct": len(messages), "image_size": [frames[0].rgb.shape[1], frames[0].rgb.shape[0]]}
+    figures: dict = {"node_params": args.param, "load_average_start": os.getloadavg()[0],
+                     "frames_distinct": len(messages), "image_size": [frames[0].rgb.shape[1], frames[0].rgb.shape[0]]}
     try:
         bench.wait_for_node(60.0, node)
         _, last = bench.publish(10, 10.0)   # warm-up: first-frame costs out of the figures
