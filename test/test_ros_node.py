@@ -215,3 +215,38 @@ def test_two_pipeline_processes_publish_in_order(model):
     got = [stamp_ns(m) for _, m in poses]
     assert got == sorted(got) and set(got) <= set(sent), out
     assert all(len(m.poses) == 1 for _, m in poses)
+
+
+def test_a_dead_pipeline_process_is_restarted_and_the_stream_goes_on(model):
+    import os
+    import signal
+    from pathlib import Path
+
+    from geometry_msgs.msg import PoseArray
+    from std_msgs.msg import String
+
+    node = start_node(49, model)
+    probe = Probe(49)
+    try:
+        poses = probe.subscribe(PoseArray, "/instances/poses")
+        stats = probe.subscribe(String, "/instance_registration/stats")
+        camera = CameraPublisher(probe)
+        assert camera.wait_for_subscribers(proc=node), stop(node)
+        rgb, depth, K = poster_frame()
+        camera.send(rgb, depth, K)
+        assert wait_until(lambda: len(poses) == 1, 15, proc=node), stop(node)
+        children = [int(c) for task in Path(f"/proc/{node.pid}/task").iterdir()
+                    for c in (task / "children").read_text().split()]
+        # The pipeline process (multiprocessing also starts its resource tracker).
+        (pipeline,) = [c for c in children if b"spawn_main" in Path(f"/proc/{c}/cmdline").read_bytes()]
+        os.kill(pipeline, signal.SIGKILL)
+        time.sleep(0.5)
+        camera.send(rgb, depth, K)   # lost with the process: counted as failed
+        assert wait_until(lambda: last_stats(stats).get("failed") == 1, 30, proc=node), stop(node)
+        camera.send(rgb, depth, K)   # the restarted process takes it
+        assert wait_until(lambda: len(poses) == 2, 30, proc=node), stop(node)
+        assert len(poses[-1][1].poses) == 1 and node.poll() is None
+    finally:
+        probe.close()
+        out = stop(node)
+    assert "the pipeline process died" in out
