@@ -250,3 +250,31 @@ def test_a_dead_pipeline_process_is_restarted_and_the_stream_goes_on(model):
         probe.close()
         out = stop(node)
     assert "the pipeline process died" in out
+
+
+def test_a_reliable_30hz_camera_loses_no_frame_and_the_newest_is_always_processed(model):
+    """Faster than the pipeline: every image arrives, every pair is processed or counted as
+    dropped (the newest kept), and the last frame's poses come out."""
+    from geometry_msgs.msg import PoseArray
+    from std_msgs.msg import String
+
+    node = start_node(52, model)
+    probe = Probe(52)
+    try:
+        poses = probe.subscribe(PoseArray, "/instances/poses")
+        stats = probe.subscribe(String, "/instance_registration/stats")
+        camera = CameraPublisher(probe)
+        assert camera.wait_for_subscribers(proc=node), stop(node)
+        rgb, depth, K = poster_frame()
+        start_time, sent = time.monotonic(), []
+        for k in range(60):
+            sent.append(camera.send(rgb, depth, K))
+            time.sleep(max(0.0, start_time + (k + 1) / 30 - time.monotonic()))
+        assert wait_until(lambda: poses and stamp_ns(poses[-1][1]) == sent[-1], 20, proc=node), stop(node)
+        assert wait_until(lambda: last_stats(stats).get("processed") == len(poses), 5)
+        counts = last_stats(stats)
+    finally:
+        probe.close()
+        stop(node)
+    assert counts["colour_received"] == 60 and counts["depth_received"] == 60, counts
+    assert counts["processed"] + counts["dropped"] == 60 and counts["unmatched"] == 0, counts
