@@ -69,6 +69,7 @@ class _Pair:
     colour: Image
     depth: Image
     received: float  # time.monotonic() when the pair was complete
+    received_ns: int  # the same moment on the wall clock (comparable with header stamps)
     sequence: int
 
 
@@ -172,7 +173,7 @@ class InstanceRegistrationNode(Node):
         with self._counters_lock:
             self.counters.synchronised += 1
             self._sequence += 1
-            if self._slot.put(_Pair(pair[0], pair[1], now, self._sequence)):
+            if self._slot.put(_Pair(pair[0], pair[1], now, time.time_ns(), self._sequence)):
                 self.counters.dropped += 1
 
     # ---- the worker -------------------------------------------------------------------
@@ -227,7 +228,7 @@ class InstanceRegistrationNode(Node):
             self._pub_details.publish(conversions.details_message(
                 stamp_to_ns(header.stamp), header.frame_id, latency_ms, result.instances,
                 timings_ms={k: round(float(v), 2) for k, v in result.timings_ms.items()},
-                counters=counters))
+                received_ns=pair.received_ns, published_ns=time.time_ns(), counters=counters))
             markers, self._marker_ids = conversions.marker_array(
                 result.instances, header, np.zeros(3), self.model.extent, self._marker_ids)
             self._pub_markers.publish(markers)

@@ -124,6 +124,9 @@ class _Bench:
         self.latencies: list[tuple[int, float]] = []   # (stamp_ns, ms)
         self.counters: dict = {}
         self.pipeline_ms: dict[int, float] = {}        # stamp_ns -> the pipeline's own time
+        self.node_ms: dict[int, float] = {}            # stamp_ns -> pair complete in the node -> poses out
+        self.wall: dict[int, tuple] = {}               # stamp_ns -> (pair complete, poses out) wall clock ns
+        self.received_at: dict[int, int] = {}          # stamp_ns -> poses received here, wall clock ns
         self.node.create_subscription(PoseArray, "/instances/poses", self._on_poses, qos)
         self.node.create_subscription(String, "/instances/details", self._on_details, qos)
         self.executor = SingleThreadedExecutor(context=self.context)
@@ -145,11 +148,14 @@ class _Bench:
         now = time.time_ns()
         stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
         self.latencies.append((stamp, (now - stamp) / 1e6))
+        self.received_at[stamp] = now
 
     def _on_details(self, msg):
         data = json.loads(msg.data)
         self.counters = data.get("counters", self.counters)
         self.pipeline_ms[data["stamp_ns"]] = data.get("timings_ms", {}).get("total")
+        self.node_ms[data["stamp_ns"]] = data.get("latency_ms")
+        self.wall[data["stamp_ns"]] = (data.get("received_ns"), data.get("published_ns"))
 
     def wait_for_node(self, timeout: float, proc) -> None:
         deadline = time.monotonic() + timeout
@@ -281,12 +287,24 @@ def run(args) -> int:
             rss = np.array([mb for _, mb in samples])
             lat = bench.window(first, last)
             tenth = max(1, len(lat) // 10)
+            pipe, extra = bench.overhead(first, last)
+            stamps = [stamp for stamp, _ in bench.latencies if first <= stamp <= last]
+            node_ms = np.array([bench.node_ms.get(s, np.nan) for s in stamps])
+            # Images in: stamp -> pair complete in the node; poses out: node publishes -> received here.
+            inbound = np.array([(bench.wall.get(s, (None,))[0] or np.nan) - s for s in stamps], float) / 1e6
+            outbound = np.array([bench.received_at[s] - (bench.wall.get(s, (0, None))[1] or np.nan) for s in stamps],
+                                float) / 1e6
+            tenths = [tuple(x[k * tenth:(k + 1) * tenth] for x in (lat, pipe, extra, node_ms, inbound, outbound))
+                      for k in range(10)]
             figures["long_replay"] = {
                 "frames_sent": args.rss_frames, "frames_with_poses": int(len(lat)),
                 "rss_mb_start": round(float(rss[0]), 1), "rss_mb_end": round(float(rss[-1]), 1),
                 "rss_mb_max": round(float(rss.max()), 1),
                 "rss_mb_samples": [(k, round(mb, 1)) for k, mb in samples],
-                "e2e_ms_p50_first_tenth": _pct(lat[:tenth], 50), "e2e_ms_p50_last_tenth": _pct(lat[-tenth:], 50)}
+                "e2e_ms_p50_first_tenth": _pct(lat[:tenth], 50), "e2e_ms_p50_last_tenth": _pct(lat[-tenth:], 50),
+                "by_tenth_p50_ms": [{"e2e": _pct(a, 50), "pipeline": _pct(b, 50), "node_and_dds": _pct(c, 50),
+                                     "in_node": _pct(d[np.isfinite(d)], 50), "images_in": _pct(e[np.isfinite(e)], 50),
+                                     "poses_out": _pct(f[np.isfinite(f)], 50)} for a, b, c, d, e, f in tenths]}
         figures["node_counters"] = bench.counters
     finally:
         bench.close()
