@@ -6,6 +6,7 @@ import importlib
 # name -> (module, one-line help)
 BENCHES = {
     "core": ("multi_instance_reg.tools.bench_core", "median time and peak memory of the ECC core at N = 256 ... 16384"),
+    "frames": ("multi_instance_reg.tools.bench_frames", "per-frame RGB-D pipeline on synthetic scene bags: MHF1, RTE/RRE, latency by stage"),
     "table1": ("multi_instance_reg.tools.bench_table1", "the paper's Table 1: MHR/MHP/MHF1 per outlier band, ECC vs sequential RANSAC"),
     "synth": ("multi_instance_reg.tools.bench_synth", "frames/s of the synthetic D455 bag generator at 640x480 and 1280x720"),
 }

@@ -15,6 +15,8 @@ from ..errors import InputError
 # name -> (module, one-line help)
 COMMANDS = {
     "register": ("multi_instance_reg.tools.register", "multi-instance registration of a correspondence set (npz in, npz out)"),
+    "build-model": ("multi_instance_reg.tools.build_model", "build the stored object model (npz) from a capture bag or colour/depth PNGs"),
+    "offline": ("multi_instance_reg.tools.offline", "replay a bag through the RGB-D pipeline: poses.json, metrics.json with ground truth"),
     "bench": ("multi_instance_reg.tools.bench", "benchmarks that print figures: table1, core, ..."),
     "synth": ("multi_instance_reg.tools.synth", "make synthetic D455 tabletop bags with ground truth (scene, capture)"),
 }

@@ -1,0 +1,242 @@
+"""RGB-D frames from a recorded bag: colour + aligned depth + camera_info (+ ground truth).
+
+Reads rosbag2 directories and bare .db3 / .mcap files (and ROS 1 .bag) with rosbags'
+AnyReader. Colour and depth are paired by header stamp (within ``max_dt_ns``), each frame
+gets the latest camera_info, and, when the bag has ``/ground_truth/poses``, the ground-truth
+poses of the same stamp. Frames that cannot be decoded are skipped and counted, never raised.
+"""
+from __future__ import annotations
+
+import json
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from ..errors import InputError
+from ..messages import CameraIntrinsics, camera_info_to_intrinsics, colour_to_rgb, depth_to_metres
+from ..transforms import pose_to_matrix
+
+COLOUR_TOPIC = "/camera/camera/color/image_raw"
+DEPTH_TOPIC = "/camera/camera/aligned_depth_to_color/image_raw"
+INFO_TOPIC = "/camera/camera/color/camera_info"
+GT_POSES_TOPIC = "/ground_truth/poses"
+GT_OBJECT_TOPIC = "/ground_truth/object"
+GT_VISIBILITY_TOPIC = "/ground_truth/visibility"   # std_msgs/Float32MultiArray: visible fraction per instance
+
+
+@dataclass
+class RGBDFrame:
+    stamp_ns: int
+    frame_id: str
+    rgb: np.ndarray                      # (H, W, 3) uint8 RGB
+    depth_m: np.ndarray                  # (H, W) float32 metres, 0 = invalid
+    intrinsics: CameraIntrinsics
+    gt_poses: np.ndarray | None = None   # (K, 4, 4) object frame -> optical frame, or None without ground truth
+    gt_visibility: np.ndarray | None = None   # (K,) visible fraction of each instance, when the bag has it
+
+
+@dataclass
+class SkipCounter:
+    """Frames that were left out, with the reason of each (the first few kept verbatim)."""
+    count: int = 0
+    reasons: dict[str, int] = field(default_factory=dict)
+
+    def add(self, reason: str) -> None:
+        self.count += 1
+        self.reasons[reason] = self.reasons.get(reason, 0) + 1
+
+    def summary(self) -> str:
+        return "; ".join(f"{n} x {r}" for r, n in sorted(self.reasons.items(), key=lambda kv: -kv[1]))
+
+
+def _stamp_ns(msg) -> int:
+    st = msg.header.stamp
+    return int(st.sec) * 1_000_000_000 + int(st.nanosec)
+
+
+def _open_reader(path):
+    from rosbags.highlevel import AnyReader, AnyReaderError
+    from rosbags.typesys import Stores, get_typestore
+
+    p = Path(path)
+    if not p.exists():
+        raise InputError(f"bag {p} does not exist")
+    try:
+        reader = AnyReader([p], default_typestore=get_typestore(Stores.ROS2_JAZZY))
+        reader.open()
+    except (AnyReaderError, Exception) as exc:  # rosbags raises several types for unreadable bags
+        if isinstance(exc, InputError):
+            raise
+        raise InputError(f"cannot read bag {p}: {exc or type(exc).__name__} (expected a rosbag2 directory, "
+                         f"a .db3 or a .mcap file)") from None
+    return reader
+
+
+class RGBDBag:
+    """A bag opened for RGB-D frames. Use as a context manager; iterate for RGBDFrame."""
+
+    def __init__(self, path, colour_topic: str = COLOUR_TOPIC, depth_topic: str = DEPTH_TOPIC,
+                 info_topic: str = INFO_TOPIC, gt_topic: str = GT_POSES_TOPIC, max_dt_ns: int = 5_000_000,
+                 max_pending: int = 30):
+        self.path = Path(path)
+        self.colour_topic, self.depth_topic, self.info_topic, self.gt_topic = colour_topic, depth_topic, info_topic, gt_topic
+        self.max_dt_ns = int(max_dt_ns)
+        self.max_pending = int(max_pending)
+        self.skipped = SkipCounter()
+        self._reader = _open_reader(self.path)
+        topics = self._reader.topics
+        missing = [t for t in (colour_topic, depth_topic, info_topic) if t not in topics]
+        if missing:
+            present = ", ".join(sorted(topics)) or "none"
+            self._reader.close()
+            raise InputError(f"bag {self.path} has no topic {', '.join(missing)}; topics present: {present} "
+                             f"(choose others with --topics COLOUR DEPTH INFO)")
+        self.has_ground_truth = gt_topic in topics
+        self.has_visibility = self.has_ground_truth and GT_VISIBILITY_TOPIC in topics
+        self.num_colour_messages = int(topics[colour_topic].msgcount)
+        self.object_description = _object_description(self._reader, self.path)
+
+    # -- context manager
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def close(self) -> None:
+        if self._reader is not None:
+            self._reader.close()
+            self._reader = None
+
+    def __iter__(self) -> Iterator[RGBDFrame]:
+        reader = self._reader
+        wanted = {self.colour_topic, self.depth_topic, self.info_topic}
+        if self.has_ground_truth:
+            wanted.add(self.gt_topic)
+        if self.has_visibility:
+            wanted.add(GT_VISIBILITY_TOPIC)
+        conns = [c for c in reader.connections if c.topic in wanted]
+        colour_q: deque = deque()   # (stamp, message)
+        depth_q: deque = deque()
+        gt: dict[int, np.ndarray] = {}
+        visibility: dict[int, np.ndarray] = {}
+        state = {"info": None, "gt_latest": -1, "vis_latest": -1}
+
+        def decode(raw, conn):
+            return reader.deserialize(raw, conn.msgtype)
+
+        def emit_ready(flush: bool):
+            while colour_q and depth_q:
+                (tc, c), (td, d) = colour_q[0], depth_q[0]
+                if abs(tc - td) > self.max_dt_ns:
+                    # The older one has no partner: the other stream has moved past it.
+                    if tc < td:
+                        colour_q.popleft()
+                        self.skipped.add("colour image without depth")
+                    else:
+                        depth_q.popleft()
+                        self.skipped.add("depth image without colour")
+                    continue
+                waiting_gt = (self.has_ground_truth and tc not in gt and state["gt_latest"] < tc) or \
+                    (self.has_visibility and tc not in visibility and state["vis_latest"] < tc)
+                waiting_info = state["info"] is None
+                if (waiting_gt or waiting_info) and not flush and len(colour_q) < self.max_pending:
+                    return
+                colour_q.popleft()
+                depth_q.popleft()
+                if state["info"] is None:
+                    self.skipped.add("no camera_info before the image")
+                    continue
+                frame = self._make_frame(tc, c, d, state["info"], gt.pop(tc, None), visibility.pop(tc, None))
+                for table in (gt, visibility):
+                    for old in [s for s in table if s < tc]:
+                        del table[old]
+                if frame is not None:
+                    yield frame
+
+        for conn, bag_time, raw in reader.messages(connections=conns):
+            try:
+                msg = decode(raw, conn)
+            except Exception as exc:  # a corrupt message: skip it, keep the stream going
+                self.skipped.add(f"undecodable {conn.topic} message ({type(exc).__name__})")
+                continue
+            if conn.topic == self.info_topic:
+                try:
+                    state["info"] = camera_info_to_intrinsics(msg)
+                except InputError as exc:
+                    self.skipped.add(str(exc))
+                continue
+            if conn.topic == GT_VISIBILITY_TOPIC:
+                # Float32MultiArray has no header: it shares the bag time of its frame's poses.
+                visibility[int(bag_time)] = np.asarray(msg.data, dtype=np.float32)
+                state["vis_latest"] = max(state["vis_latest"], int(bag_time))
+                yield from emit_ready(flush=False)
+                continue
+            stamp = _stamp_ns(msg)
+            if conn.topic == self.colour_topic:
+                colour_q.append((stamp, msg))
+            elif conn.topic == self.depth_topic:
+                depth_q.append((stamp, msg))
+            else:
+                gt[stamp] = np.array([pose_to_matrix((p.position.x, p.position.y, p.position.z),
+                                                     (p.orientation.x, p.orientation.y, p.orientation.z,
+                                                      p.orientation.w)) for p in msg.poses]).reshape(-1, 4, 4)
+                state["gt_latest"] = max(state["gt_latest"], stamp)
+            yield from emit_ready(flush=False)
+        yield from emit_ready(flush=True)
+        for _ in colour_q:
+            self.skipped.add("colour image without depth")
+        for _ in depth_q:
+            self.skipped.add("depth image without colour")
+
+    def _make_frame(self, stamp, colour_msg, depth_msg, info, gt_poses, gt_visibility) -> RGBDFrame | None:
+        try:
+            rgb = colour_to_rgb(colour_msg)
+            depth = depth_to_metres(depth_msg)
+        except InputError as exc:
+            self.skipped.add(str(exc))
+            return None
+        if gt_visibility is not None and (gt_poses is None or len(gt_visibility) != len(gt_poses)):
+            gt_visibility = None
+        return RGBDFrame(stamp, str(colour_msg.header.frame_id), rgb, depth, info, gt_poses, gt_visibility)
+
+
+def read_rgbd_frames(path, colour_topic: str = COLOUR_TOPIC, depth_topic: str = DEPTH_TOPIC,
+                     info_topic: str = INFO_TOPIC, skipped: SkipCounter | None = None) -> Iterator[RGBDFrame]:
+    """Yield the RGB-D frames of a bag in stamp order (see RGBDBag). Pass a SkipCounter to
+    learn how many frames were left out and why. Raises InputError at once (not lazily) if the
+    bag cannot be read or lacks a topic."""
+    bag = RGBDBag(path, colour_topic, depth_topic, info_topic)
+
+    def gen():
+        with bag:
+            yield from bag
+            if skipped is not None:
+                skipped.count += bag.skipped.count
+                for r, n in bag.skipped.reasons.items():
+                    skipped.reasons[r] = skipped.reasons.get(r, 0) + n
+    return gen()
+
+
+def _object_description(reader, path) -> dict | None:
+    conns = [c for c in reader.connections if c.topic == GT_OBJECT_TOPIC]
+    if not conns:   # (an empty connection list would read every message)
+        return None
+    for conn, _, raw in reader.messages(connections=conns):
+        try:
+            return json.loads(reader.deserialize(raw, conn.msgtype).data)
+        except (ValueError, AttributeError) as exc:
+            raise InputError(f"bag {path}: {GT_OBJECT_TOPIC} is not the expected JSON ({exc})") from None
+    return None
+
+
+def read_object_description(path) -> dict | None:
+    """The JSON object description on /ground_truth/object, or None if the bag has none."""
+    reader = _open_reader(path)
+    try:
+        return _object_description(reader, path)
+    finally:
+        reader.close()

@@ -1,0 +1,141 @@
+"""Keypoints to 3D: robust depth lookup, undistortion, back-projection (camera optical frame)."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from ..messages import CameraIntrinsics
+
+
+def lookup_depth(depth_m: np.ndarray, uv: np.ndarray, window: int = 5, depth_min: float = 0.1,
+                 depth_max: float = 4.0, max_spread: float = 0.0) -> np.ndarray:
+    """Depth in metres at each keypoint: the median of the valid pixels in a window x window
+    patch around it, so a single missing (0) pixel does not lose the keypoint.
+
+    Valid = finite and within [depth_min, depth_max]. Returns (K,) float32 with 0 where no
+    pixel of the window is valid, or (max_spread > 0) where the valid pixels straddle a depth
+    edge: some pixel differs from the median by more than max_spread.
+    """
+    uv = np.asarray(uv, dtype=np.float32).reshape(-1, 2)
+    h, w = depth_m.shape
+    out = np.zeros(len(uv), np.float32)
+    if len(uv) == 0:
+        return out
+    r = max(int(window), 1) // 2
+    cols = np.rint(uv[:, 0]).astype(np.int64)
+    rows = np.rint(uv[:, 1]).astype(np.int64)
+    inside = (cols >= 0) & (cols < w) & (rows >= 0) & (rows < h)
+    offs = np.arange(-r, r + 1)
+    rr = np.clip(rows[:, None, None] + offs[None, :, None], 0, h - 1)
+    cc = np.clip(cols[:, None, None] + offs[None, None, :], 0, w - 1)
+    patch = depth_m[rr, cc].reshape(len(uv), -1).astype(np.float32)
+    valid = np.isfinite(patch) & (patch >= depth_min) & (patch <= depth_max)
+    patch = np.where(valid, patch, np.nan)
+    any_valid = valid.any(axis=1) & inside
+    if not any_valid.any():
+        return out
+    med = np.nanmedian(patch[any_valid], axis=1)
+    if max_spread > 0:
+        spread = np.nanmax(np.abs(patch[any_valid] - med[:, None]), axis=1)
+        med = np.where(spread <= max_spread, med, 0.0)
+    out[any_valid] = med
+    return out
+
+
+def undistort_pixels(uv: np.ndarray, intrinsics: CameraIntrinsics) -> np.ndarray:
+    """Pixel coordinates as a distortion-free pinhole camera with the same K would see them."""
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    if len(uv) == 0 or not intrinsics.has_distortion:
+        return uv
+    K = np.asarray(intrinsics.K, dtype=np.float64)
+    D = np.asarray(intrinsics.D, dtype=np.float64)
+    if intrinsics.distortion_model == "equidistant":
+        und = cv2.fisheye.undistortPoints(uv.reshape(-1, 1, 2), K, D[:4], P=K)
+    else:
+        und = cv2.undistortPoints(uv.reshape(-1, 1, 2), K, D, P=K)
+    return und.reshape(-1, 2)
+
+
+def backproject(uv_undistorted: np.ndarray, depth: np.ndarray, intrinsics: CameraIntrinsics) -> np.ndarray:
+    """(K, 3) float32 points in the camera optical frame (z forward) from undistorted pixels and z depth."""
+    K = intrinsics.K
+    uv = np.asarray(uv_undistorted, dtype=np.float64).reshape(-1, 2)
+    z = np.asarray(depth, dtype=np.float64).reshape(-1)
+    x = (uv[:, 0] - K[0, 2]) / K[0, 0] * z
+    y = (uv[:, 1] - K[1, 2]) / K[1, 1] * z
+    return np.stack([x, y, z], axis=1).astype(np.float32)
+
+
+def depth_to_cloud(depth_m: np.ndarray, intrinsics: CameraIntrinsics, mask: np.ndarray | None = None,
+                   stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Back-project every valid (and masked) depth pixel: (points (P, 3) float32, pixel indices (P, 2) rows, cols)."""
+    d = depth_m[::stride, ::stride]
+    valid = np.isfinite(d) & (d > 0)
+    if mask is not None:
+        valid &= mask[::stride, ::stride].astype(bool)
+    rows, cols = np.nonzero(valid)
+    rows_full, cols_full = rows * stride, cols * stride
+    uv = np.stack([cols_full, rows_full], axis=1).astype(np.float64)
+    pts = backproject(undistort_pixels(uv, intrinsics), d[rows, cols], intrinsics)
+    return pts, np.stack([rows_full, cols_full], axis=1)
+
+
+def fit_dominant_plane(points: np.ndarray, thresh: float, iterations: int = 200, seed: int = 0,
+                       max_sample: int = 5000) -> tuple[np.ndarray, float, np.ndarray] | None:
+    """RANSAC plane n.x + d = 0 (|n| = 1, oriented towards the camera: d > 0) with the most
+    points within ``thresh``, refined by least squares on its inliers.
+
+    Returns (n, d, inlier mask over ``points``) or None for fewer than 50 points.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    if len(points) < 50:
+        return None
+    rng = np.random.default_rng(seed)
+    sample = points if len(points) <= max_sample else points[rng.choice(len(points), max_sample, replace=False)]
+    # All hypotheses at once: (I, 3) normals from random triples.
+    tri = sample[rng.integers(0, len(sample), size=(iterations, 3))]
+    normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    norms = np.linalg.norm(normals, axis=1)
+    ok = norms > 1e-12
+    if not ok.any():
+        return None
+    normals = normals[ok] / norms[ok, None]
+    offsets = -np.einsum("ij,ij->i", normals, tri[ok, 0])
+    counts = (np.abs(sample @ normals.T + offsets) < thresh).sum(axis=0)
+    best = int(np.argmax(counts))
+    n, d = normals[best], offsets[best]
+    inl = np.abs(points @ n + d) < thresh
+    if inl.sum() >= 3:  # least-squares refit on the inliers
+        c = points[inl].mean(axis=0)
+        _, _, vt = np.linalg.svd(points[inl] - c, full_matrices=False)
+        n = vt[2]
+        d = -n @ c
+        inl = np.abs(points @ n + d) < thresh
+    if d < 0:  # orient the normal towards the camera (the origin is on the positive side)
+        n, d = -n, -d
+    return n, float(d), inl
+
+
+def support_planes(depth_m: np.ndarray, intrinsics: CameraIntrinsics, count: int = 1, thresh: float = 0.01,
+                   min_share: float = 0.2, stride: int = 8, seed: int = 0) -> list[tuple[np.ndarray, float]]:
+    """Up to ``count`` dominant planes of a depth image (the table, then e.g. a wall), each
+    holding at least ``min_share`` of the valid pixels; found on a sparse pixel grid."""
+    pts, _ = depth_to_cloud(depth_m, intrinsics, stride=stride)
+    pts = pts.astype(np.float64)
+    total = len(pts)
+    planes = []
+    for k in range(count):
+        plane = fit_dominant_plane(pts, thresh, iterations=100, seed=seed + k)
+        if plane is None or plane[2].sum() < min_share * total:
+            break
+        planes.append((plane[0], plane[1]))
+        pts = pts[~plane[2]]
+    return planes
+
+
+def off_planes(points: np.ndarray, planes, thresh: float) -> np.ndarray:
+    """(N,) bool: points more than ``thresh`` in front of every plane (on the camera's side)."""
+    keep = np.ones(len(points), bool)
+    for n, d in planes:
+        keep &= points @ n + d > thresh
+    return keep

@@ -1,0 +1,389 @@
+"""The per-frame pipeline: one RGB-D frame in, one pose per visible instance out. No ROS.
+
+It reads like the method::
+
+    reg = InstanceRegistration(load_model("mug.npz"), PipelineConfig())
+    result = reg.register_frame(rgb, depth_m, intrinsics)
+    for inst in result.instances:       # sorted by inlier count, descending
+        inst.T                          # (4, 4) model frame -> camera optical frame, metres
+
+search region (depth in range, off the table and walls) -> detect (SIFT on that region) ->
+lift (window-median depth, undistortion) -> match (one-to-many, ratio test against another
+physical point) -> cluster (ECC in metres) -> recover small instances ECC left out ->
+refine (optional) and select (size, fit score, no two instances in one place).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+
+import cv2
+import numpy as np
+
+from ..core import ECC, ECCConfig
+from ..errors import InputError
+from ..messages import CameraIntrinsics
+from ..params import param
+from ..transforms import apply_transform, rigid_fit
+from .features import SiftSettings, extract_sift_in_region
+from .lifting import backproject, lookup_depth, off_planes, support_planes, undistort_pixels
+from .matching import DescriptorMatcher, prepare_descriptors
+from .model import ObjectModel
+from .threads import limit_blas_threads
+
+STAGES = ("sift", "matching", "lifting", "ecc", "refinement", "total")
+
+
+@dataclass(frozen=True)
+class FrontEndConfig:
+    """Settings of everything around the ECC core: detection, matching, lifting, refinement."""
+    # Detection.
+    sift_nfeatures: int = param(0, "SIFT: keep at most this many keypoints per frame (0 = all)", 0, 100000)
+    sift_contrast_threshold: float = param(0.02, "SIFT contrast threshold (OpenCV default 0.04; lower finds more keypoints on weak texture)", 0.001, 0.5)
+    sift_edge_threshold: float = param(10.0, "SIFT edge threshold (OpenCV default 10)", 1.0, 100.0)
+    sift_octave_layers: int = param(3, "SIFT scales per octave (Lowe: 3; 2 is faster, finds fewer keypoints)", 1, 6)
+    sift_upsample: float = param(1.0, "scale the image by this before SIFT (1 = off; > 1 finds more keypoints on small objects, < 1 is faster)", 0.25, 4.0)
+    # Matching.
+    ratio: float = param(0.8, "ratio test: best descriptor distance / second-best (second among model points more than ratio_separation away in 3D) must be below this", 0.1, 1.0)
+    ratio_separation: float = param(0.01, "metres: model points closer than this to the best match count as the same physical point in the ratio test", 0.0, 1.0)
+    matcher: str = param("flann", "descriptor search: flann (approximate kd-trees, about twice as fast) or brute_force (exact)", choices=("flann", "brute_force"))
+    root_sift: bool = param(True, "compare descriptors as RootSIFT (Hellinger kernel) instead of plain L2")
+    # Lifting.
+    depth_window: int = param(5, "side in pixels of the window whose median valid depth lifts a keypoint (odd)", 1, 31)
+    depth_min: float = param(0.1, "metres: ignore depth below this", 0.0, 100.0)
+    depth_max: float = param(4.0, "metres: ignore depth beyond this", 0.0, 100.0)
+    remove_planes: int = param(2, "search no keypoints on (or behind) up to this many dominant planes of the depth image: the table, then a wall (0 = search everywhere)", 0, 3)
+    plane_thresh: float = param(0.01, "metres: keypoints closer than this to a removed plane are dropped", 0.001, 0.1)
+    plane_min_share: float = param(0.2, "a plane is removed only if it holds at least this share of the valid depth pixels", 0.01, 1.0)
+    depth_max_spread: float = param(0.02, "metres: drop a keypoint whose window depths spread more than this around the median (a depth edge); 0 = keep all", 0.0, 10.0)
+    # Process.
+    blas_threads: int = param(1, "threads of the BLAS libraries in this process (0 = leave as they are); 1 stops their busy-waiting threads from competing with SIFT on 2 cores", 0, 64)
+    # Per-instance refinement.
+    refine: bool = param(False, "refine each instance by least squares on its correspondences re-selected with refine_thresh (measured on the synthetic scenes: no change in median RTE/RRE, so off by default)")
+    refine_iterations: int = param(3, "refinement rounds per instance", 1, 50)
+    refine_thresh: float = param(0.008, "metres: residual below which a correspondence joins an instance during refinement", 0.0005, 1.0)
+    # Selection.
+    recover: bool = param(True, "after ECC, look for small instances among the unassigned correspondences with a hard pairwise-distance test (the clustering misses clusters of 4-10 in hundreds of outliers)")
+    recover_min_inliers: int = param(5, "a recovered instance needs at least this many mutually consistent correspondences", 4, 1000)
+    recover_tolerance: float = param(0.01, "metres: two correspondences are consistent when their model and scene distances differ by less than this", 0.001, 0.1)
+    min_score: float = param(0.7, "drop an instance whose score (mean of 1 - residual / ecc.inlier_thresh over its inliers) is below this; mirrored fits score 0.6-0.65, true ones 0.8-0.95 on the synthetic scenes (0 = keep all)", 0.0, 1.0)
+    max_overlap: float = param(0.3, "drop an instance when more than this share of its box volume lies inside a stronger instance's box (1 = keep all)", 0.0, 1.0)
+
+
+def rgbd_ecc_config() -> ECCConfig:
+    """ECCConfig.metric() tuned on the synthetic tabletop scenes: no gamma cut. A far or
+    partly hidden instance gives 6-15 correspondences while a near one gives 150-200, so the
+    paper's "drop clusters under gamma x the largest" loses exactly the small ones; spurious
+    clusters are removed by the front end's overlap and score tests instead, which also lets
+    min_cluster_size drop to 3 (more than 3 inliers). The spatial weight is off: the plain
+    compatibility of the paper found slightly more of the small clusters here."""
+    return replace(ECCConfig.metric(), gamma_thresh=0.0, min_cluster_size=3, spatial_sigma=0.0)
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    """All settings of the per-frame pipeline; the ROS node declares one parameter per leaf."""
+    frontend: FrontEndConfig = field(default_factory=FrontEndConfig)
+    ecc: ECCConfig = field(default_factory=rgbd_ecc_config)
+
+
+@dataclass
+class Instance:
+    """One found instance of the object in a frame."""
+    id: int                 # index in this frame's result, 0 = most inliers (not tracked over frames)
+    T: np.ndarray           # (4, 4) float64, model frame -> camera optical frame, metres
+    inliers: int            # number of inlier correspondences
+    score: float            # in [0, 1]: mean of 1 - residual / ecc.inlier_thresh over the inliers
+
+
+@dataclass
+class FrameResult:
+    """Everything one frame produced; the node's debug image draws keypoints_uv with labels."""
+    instances: list[Instance]
+    timings_ms: dict[str, float]        # keys: STAGES
+    keypoints_uv: np.ndarray            # (N, 2) float32 pixel coordinates of the lifted matches
+    model_xyz: np.ndarray               # (N, 3) float32 matched model keypoints, model frame
+    scene_xyz: np.ndarray               # (N, 3) float32 lifted scene keypoints, camera frame
+    labels: np.ndarray                  # (N,) int64: instance id or -1 (outlier)
+    num_keypoints: int = 0              # SIFT keypoints detected in the frame
+
+    @staticmethod
+    def empty(timings_ms: dict[str, float], num_keypoints: int = 0) -> "FrameResult":
+        return FrameResult([], timings_ms, np.zeros((0, 2), np.float32), np.zeros((0, 3), np.float32),
+                           np.zeros((0, 3), np.float32), np.zeros(0, np.int64), num_keypoints)
+
+
+def check_frame(rgb: np.ndarray, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> None:
+    """Raise InputError if the frame cannot be registered (shapes, dtypes, sizes)."""
+    if not (isinstance(rgb, np.ndarray) and rgb.ndim == 3 and rgb.shape[2] == 3 and rgb.dtype == np.uint8):
+        raise InputError(f"colour image must be (H, W, 3) uint8 RGB, got {getattr(rgb, 'shape', None)} "
+                         f"{getattr(rgb, 'dtype', type(rgb).__name__)}")
+    if not (isinstance(depth_m, np.ndarray) and depth_m.ndim == 2 and np.issubdtype(depth_m.dtype, np.floating)):
+        raise InputError(f"depth image must be (H, W) float metres, got {getattr(depth_m, 'shape', None)} "
+                         f"{getattr(depth_m, 'dtype', type(depth_m).__name__)}")
+    if depth_m.shape != rgb.shape[:2]:
+        raise InputError(f"depth image is {depth_m.shape[1]}x{depth_m.shape[0]} but colour is "
+                         f"{rgb.shape[1]}x{rgb.shape[0]}; register depth to colour (aligned_depth_to_color)")
+    if not np.any(depth_m > 0):
+        raise InputError("depth image has no valid pixel (all zero); is the depth stream running and aligned to colour?")
+    if (intrinsics.width, intrinsics.height) != (rgb.shape[1], rgb.shape[0]):
+        raise InputError(f"camera_info is for {intrinsics.width}x{intrinsics.height} but the image is "
+                         f"{rgb.shape[1]}x{rgb.shape[0]}; use the colour stream's camera_info")
+
+
+class InstanceRegistration:
+    """Finds every instance of one stored object in RGB-D frames."""
+
+    def __init__(self, model: ObjectModel, config: PipelineConfig | None = None):
+        if model.num_keypoints < 3 or len(model.descriptors) != model.num_keypoints:
+            raise InputError(f"object model has {model.num_keypoints} keypoints and {len(model.descriptors)} descriptors; "
+                             f"rebuild it with `mireg build-model`")
+        self.model = model
+        self.config = config or PipelineConfig()
+        fe = self.config.frontend
+        if fe.blas_threads > 0:
+            limit_blas_threads(fe.blas_threads)
+        self._sift = SiftSettings(fe.sift_nfeatures, fe.sift_contrast_threshold, fe.sift_edge_threshold, fe.sift_upsample,
+                                  fe.sift_octave_layers)
+        self._matcher = DescriptorMatcher(prepare_descriptors(model.descriptors, fe.root_sift), model.keypoints_xyz,
+                                          fe.ratio, fe.ratio_separation, method=fe.matcher)
+        self._ecc = ECC(self.config.ecc)
+        self._box_grid = box_grid(model.extent)
+        self._planes: list = []
+        self._rays, self._rays_key = None, None
+
+    def _search_mask(self, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> np.ndarray:
+        """(H, W) uint8: pixels with depth in range that are not on a removed plane, dilated
+        by the depth window so that keypoints next to a hole keep their chance."""
+        fe = self.config.frontend
+        valid = (depth_m >= fe.depth_min) & (depth_m <= fe.depth_max)
+        self._planes = []
+        if fe.remove_planes > 0:
+            self._planes = support_planes(depth_m, intrinsics, fe.remove_planes, fe.plane_thresh, fe.plane_min_share)
+        if self._planes:
+            rays = self._pixel_rays(intrinsics)                     # (H, W, 3), z = 1
+            for n, d in self._planes:
+                valid &= (rays @ n) * depth_m + d > fe.plane_thresh
+        r = max(fe.depth_window // 2, 1)
+        return cv2.dilate(valid.astype(np.uint8), np.ones((2 * r + 1, 2 * r + 1), np.uint8))
+
+    def _pixel_rays(self, intrinsics: CameraIntrinsics) -> np.ndarray:
+        """Viewing ray (z = 1) of every pixel, cached per camera (distortion ignored: it only
+        shapes the search mask, the keypoints themselves are undistorted)."""
+        key = (intrinsics.width, intrinsics.height, tuple(np.asarray(intrinsics.K).ravel()))
+        if self._rays_key != key:
+            K = intrinsics.K
+            u = (np.arange(intrinsics.width) - K[0, 2]) / K[0, 0]
+            v = (np.arange(intrinsics.height) - K[1, 2]) / K[1, 1]
+            rays = np.ones((intrinsics.height, intrinsics.width, 3), np.float32)
+            rays[:, :, 0] = u[None, :]
+            rays[:, :, 1] = v[:, None]
+            self._rays, self._rays_key = rays, key
+        return self._rays
+
+    def warm_up(self) -> None:
+        """Run the clustering once on a small made-up problem, so that one-off costs (the ECC
+        core's compiled kernels) are not paid by the first real frame."""
+        rng = np.random.default_rng(0)
+        src = rng.uniform(-0.05, 0.05, (40, 3))
+        tgt = src + np.array([0.0, 0.0, 0.8])
+        self._ecc.register(src, tgt)
+
+    def register_frame(self, rgb: np.ndarray, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> FrameResult:
+        """rgb (H, W, 3) uint8, depth_m (H, W) float metres (0 = invalid), aligned to colour."""
+        check_frame(rgb, depth_m, intrinsics)
+        fe = self.config.frontend
+        t = {s: 0.0 for s in STAGES}
+        t0 = time.perf_counter()
+
+        # Where an instance can be: valid depth, off the table (and walls). SIFT runs only on
+        # the box around that region and keeps keypoints inside it: one pyramid on a crop,
+        # descriptors only where they can be used.
+        search = self._search_mask(depth_m, intrinsics)
+        t1 = time.perf_counter()
+
+        # Detect and describe.
+        uv, desc = extract_sift_in_region(rgb, search, self._sift)
+        n_kp = len(uv)
+        t2 = time.perf_counter()
+        t["sift"] = (t2 - t1) * 1e3
+
+        # Lift: window-median depth, undistortion, back-projection; the plane test again on
+        # the lifted point (the search mask was dilated).
+        z = lookup_depth(depth_m, uv, fe.depth_window, fe.depth_min, fe.depth_max, fe.depth_max_spread)
+        ok = z > 0
+        scene_xyz = backproject(undistort_pixels(uv[ok], intrinsics), z[ok], intrinsics)
+        uv, desc = uv[ok], desc[ok]
+        if self._planes:
+            keep = off_planes(scene_xyz, self._planes, fe.plane_thresh)
+            uv, desc, scene_xyz = uv[keep], desc[keep], scene_xyz[keep]
+        t3 = time.perf_counter()
+        t["lifting"] = (t1 - t0 + t3 - t2) * 1e3
+
+        # Match, one-to-many: every scene keypoint to its nearest model descriptor.
+        scene_idx, model_idx, _ = self._matcher.match(prepare_descriptors(desc, fe.root_sift))
+        t4 = time.perf_counter()
+        t["matching"] = (t4 - t3) * 1e3
+
+        src = self.model.keypoints_xyz[model_idx].astype(np.float64)
+        tgt = scene_xyz[scene_idx].astype(np.float64)
+        kp_uv = uv[scene_idx].astype(np.float32)
+        if len(src) < 3:
+            t["total"] = (time.perf_counter() - t0) * 1e3
+            res = FrameResult.empty(t, n_kp)
+            res.keypoints_uv, res.model_xyz, res.scene_xyz = kp_uv, src.astype(np.float32), tgt.astype(np.float32)
+            res.labels = np.full(len(src), -1, np.int64)
+            return res
+
+        # Cluster.
+        reg = self._ecc.register(src, tgt)
+        t5 = time.perf_counter()
+        t["ecc"] = (t5 - t4) * 1e3
+
+        # Refine each instance, drop duplicates that overlap a stronger one, assign, score.
+        transforms = [np.asarray(T, dtype=np.float64) for T in reg.transforms]
+        if fe.refine:
+            transforms = [refine_transform(T, src, tgt, fe.refine_thresh, fe.refine_iterations) for T in transforms]
+        if fe.recover:
+            _, res = assign_nearest(src, tgt, transforms, self.config.ecc.inlier_thresh)
+            leftover = np.flatnonzero(res >= self.config.ecc.inlier_thresh)
+            transforms += recover_small_instances(src, tgt, leftover, float(np.linalg.norm(self.model.extent)),
+                                                  fe.recover_tolerance, fe.recover_min_inliers,
+                                                  self.config.ecc.inlier_thresh)
+        instances, labels = self._finalise(src, tgt, transforms)
+        t["refinement"] = (time.perf_counter() - t5) * 1e3
+        t["total"] = (time.perf_counter() - t0) * 1e3
+        return FrameResult(instances, t, kp_uv, src.astype(np.float32), tgt.astype(np.float32), labels, n_kp)
+
+    def _finalise(self, src, tgt, transforms) -> tuple[list[Instance], np.ndarray]:
+        """Assign correspondences to their nearest instance; drop instances that end up too
+        small, fit loosely, or overlap a stronger one (two instances cannot fill the same
+        space: such a duplicate is usually a mirrored fit to texture repeated on two faces)."""
+        ecc = self.config.ecc
+        thresh = ecc.inlier_thresh
+        fe = self.config.frontend
+        kept = list(range(len(transforms)))
+        while True:
+            labels, res = assign_nearest(src, tgt, [transforms[k] for k in kept], thresh)
+            counts = np.bincount(labels[labels >= 0], minlength=len(kept))
+            scores = instance_scores(labels, res, thresh, len(kept))
+            # Too small, or too loose (a mirrored pose on texture repeated on two faces) ...
+            order = [kept[i] for i in np.argsort(-counts, kind="stable")
+                     if counts[i] > ecc.min_cluster_size and scores[i] >= fe.min_score]
+            # ... or in the space of a stronger instance.
+            survivors = []
+            for k in order:
+                if all(box_overlap(self.model, transforms[k], transforms[j], self._box_grid) <= fe.max_overlap
+                       for j in survivors):
+                    survivors.append(k)
+            if survivors == kept:
+                break
+            kept = survivors
+        instances = [Instance(i, transforms[k], int((labels == i).sum()), float(scores[i])) for i, k in enumerate(kept)]
+        return instances, labels
+
+
+def recover_small_instances(src: np.ndarray, tgt: np.ndarray, candidates: np.ndarray, diameter: float,
+                            tolerance: float, min_inliers: int, inlier_thresh: float, max_instances: int = 20
+                            ) -> list[np.ndarray]:
+    """Rigid transforms for small groups of mutually consistent correspondences.
+
+    Two correspondences are consistent when their model-side and scene-side distances agree
+    within ``tolerance`` and both lie within one object (``diameter``). Greedily: take the
+    correspondence with the most consistent partners, shrink it and its partners to a set
+    where every pair is consistent, fit, re-select inliers, keep the fit if it has at least
+    ``min_inliers``; remove them and repeat. A random group of 5 passing 10 pairwise tests at
+    1 cm is rare; the caller's score and overlap tests catch the rest.
+    """
+    idx = np.asarray(candidates, dtype=np.int64)
+    if len(idx) < min_inliers:
+        return []
+    x, y = src[idx], tgt[idx]
+    dx = np.linalg.norm(x[:, None] - x[None], axis=2)
+    dy = np.linalg.norm(y[:, None] - y[None], axis=2)
+    C = (np.abs(dx - dy) < tolerance) & (dy < diameter) & (dx > 0.005) & (dy > 0.005)
+    alive = np.ones(len(idx), bool)
+    found = []
+    for _ in range(max_instances * 3):
+        deg = (C & alive[None, :] & alive[:, None]).sum(axis=1)
+        seed = int(np.argmax(deg))
+        if deg[seed] < min_inliers - 1:
+            break
+        group = np.flatnonzero(C[seed] & alive)
+        group = np.append(group, seed)
+        sub = C[np.ix_(group, group)] | np.eye(len(group), dtype=bool)
+        while len(group) >= min_inliers and not sub.all():
+            worst = int(np.argmin(sub.sum(axis=1)))
+            group = np.delete(group, worst)
+            sub = np.delete(np.delete(sub, worst, axis=0), worst, axis=1)
+        if len(group) < min_inliers:
+            alive[seed] = False
+            continue
+        T = rigid_fit(x[group], y[group])
+        for _ in range(3):
+            inl = alive & (np.linalg.norm(apply_transform(T, x) - y, axis=1) < inlier_thresh)
+            if inl.sum() < 3:
+                break
+            T = rigid_fit(x[inl], y[inl])
+        inl = alive & (np.linalg.norm(apply_transform(T, x) - y, axis=1) < inlier_thresh)
+        if inl.sum() >= min_inliers:
+            found.append(T)
+            alive &= ~inl
+            if len(found) >= max_instances:
+                break
+        else:
+            alive[seed] = False
+    return found
+
+
+def instance_scores(labels: np.ndarray, residual: np.ndarray, thresh: float, count: int) -> np.ndarray:
+    """Per instance, the mean of 1 - residual / thresh over its inliers (0 without inliers)."""
+    inl = labels >= 0
+    sums = np.bincount(labels[inl], weights=1.0 - residual[inl] / thresh, minlength=count)
+    return sums / np.maximum(np.bincount(labels[inl], minlength=count), 1)
+
+
+def assign_nearest(src, tgt, transforms, thresh) -> tuple[np.ndarray, np.ndarray]:
+    """Each correspondence to the transform with the smallest residual, -1 if that is above
+    thresh. Returns (labels (N,), residual to the assigned transform (N,))."""
+    if not transforms:
+        return np.full(len(src), -1, np.int64), np.full(len(src), np.inf)
+    res = np.stack([np.linalg.norm(apply_transform(T, src) - tgt, axis=1) for T in transforms], axis=1)
+    best = res.argmin(axis=1)
+    r = res[np.arange(len(src)), best]
+    return np.where(r < thresh, best, -1).astype(np.int64), r
+
+
+def box_overlap(model: ObjectModel, T_a: np.ndarray, T_b: np.ndarray, grid: np.ndarray) -> float:
+    """Share of instance b's box volume (``grid``: points inside the model's box, model frame)
+    that lies inside instance a's box: near 0 for touching or stacked instances, large for two
+    fits to one physical object."""
+    inside_a = apply_transform(np.linalg.inv(T_a) @ T_b, grid)
+    half = np.asarray(model.extent, dtype=np.float64) / 2.0
+    return float(np.mean(np.all(np.abs(inside_a) <= half, axis=1))) if len(grid) else 0.0
+
+
+def box_grid(extent, steps: int = 5, fill: float = 0.8) -> np.ndarray:
+    """(steps^3, 3) points evenly filling the central ``fill`` of the model's box."""
+    axes = [np.linspace(-fill * e / 2.0, fill * e / 2.0, steps) for e in np.asarray(extent, dtype=np.float64)]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+
+
+def refine_transform(T: np.ndarray, src: np.ndarray, tgt: np.ndarray, thresh: float, iterations: int) -> np.ndarray:
+    """Least squares on the correspondences within ``thresh`` of T, repeated: a tighter
+    re-selection than the clustering's inlier threshold, so depth noise at the edges and
+    near-miss matches stop pulling the pose."""
+    for _ in range(iterations):
+        sel = np.linalg.norm(apply_transform(T, src) - tgt, axis=1) < thresh
+        if sel.sum() < 3:
+            break
+        T_new = rigid_fit(src[sel], tgt[sel])
+        converged = np.allclose(T_new, T, atol=1e-7)
+        T = T_new
+        if converged:
+            break
+    return T
+
+
+__all__ = ["FrontEndConfig", "PipelineConfig", "Instance", "FrameResult", "InstanceRegistration",
+           "check_frame", "refine_transform", "recover_small_instances", "assign_nearest", "box_overlap", "box_grid", "STAGES"]

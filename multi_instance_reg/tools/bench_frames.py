@@ -1,0 +1,178 @@
+"""``mireg bench frames``: accuracy and latency of the per-frame pipeline on scene bags.
+
+    mireg bench frames [BAG ...] [--model MODEL.npz | --capture BAG ...] [--params FILE.yaml]
+
+Without BAGs, a synthetic scene bag is generated first in a temporary directory: ``--scenes``
+tabletop scenes with 4 to 12 instances plus distractors at 640x480, ``--frames`` frames each.
+Without --model, the model is built from capture bags (default: generated, the object
+resting on its bottom, its top and both long sides, so that the model sees every face). Prints MHF1, MHR, MHP, MF, the
+median RTE / RRE of the hits, the latency per frame (p50, p95) and each stage's p50 / p95.
+"""
+from __future__ import annotations
+
+import json
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+
+HELP = "per-frame pipeline on scene bags: MHF1/MHR/MHP/MF, RTE/RRE, latency by stage"
+
+INSTANCES_PER_SCENE = (4, 12, 6, 10, 8, 5, 11, 7, 9)
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("bags", nargs="*", help="scene bags with ground truth (default: generate --scenes of them)")
+    parser.add_argument("--model", default=None, help="object model (.npz); default: built from --capture")
+    parser.add_argument("--capture", nargs="+", default=None, help="capture bag(s) to build the model from (default: generate)")
+    parser.add_argument("--params", default=None, help="the node's parameter YAML (frontend.* and ecc.* are used)")
+    parser.add_argument("--object", default=None, help="object of the generated bags (default: the generator's)")
+    parser.add_argument("--scenes", type=int, default=6, help="generated scenes (default 6; instances 4..12)")
+    parser.add_argument("--frames", type=int, default=5, help="frames per generated scene (default 5)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the generated bags (default 0)")
+    parser.add_argument("--max-rre-deg", type=float, default=10.0, help="hit: rotation error below this (default 10 deg)")
+    parser.add_argument("--max-rte", type=float, default=0.02, help="hit: translation error below this (default 0.02 m)")
+    parser.add_argument("--min-visibility", type=float, default=0.25,
+                        help="instances less visible than this are not counted as present (default 0.25)")
+    parser.add_argument("--json", default=None, help="also write the figures to this JSON file")
+
+
+# Rotation (object frame) that turns the upright object's "up" axis (+z) into another.
+_TO_UP = {
+    "+z": np.eye(3),
+    "-z": np.diag([1.0, -1.0, -1.0]),
+    "+y": np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]),
+    "-y": np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]),
+}
+CAPTURE_POSES = ("+z", "-z", "+y", "-y")
+
+
+def capture_scene_resting_on(up: str, object_name=None, seed: int = 0, views: int = 8):
+    """The generator's capture scene with the object resting so that its ``up`` axis points
+    up (the generator itself scans it upright): scanning an object in several resting poses
+    is how its model gets to see every face."""
+    from ..synthetic.scene import (DEFAULT_OBJECT, Placement, SyntheticScene, capture_viewpoints,
+                                   make_capture_scene)
+
+    base = make_capture_scene(object_name or DEFAULT_OBJECT, seed, views)
+    if up == "+z":
+        return base
+    upright = base.placements[0]
+    pose = upright.pose.copy()
+    pose[:3, :3] = pose[:3, :3] @ _TO_UP[up].T
+    pose[2, 3] = float(np.sum(np.abs(pose[2, :3]) * upright.spec.half_extents))   # lowest point on the table
+    placement = Placement(upright.spec, pose, 0, "free")
+    cameras = capture_viewpoints(placement, views, np.random.default_rng([seed, 5, CAPTURE_POSES.index(up)]))
+    return SyntheticScene("capture", upright.spec, [placement], cameras, base.intrinsics, seed)
+
+
+def generate_capture_bags(workdir: Path, object_name=None, seed: int = 0, views: int = 8,
+                          poses=CAPTURE_POSES) -> list[Path]:
+    """Capture bags of the object in several resting poses (default: on its bottom, top and
+    both long sides)."""
+    from ..synthetic.scene import write_scene_bag
+
+    paths = []
+    for up in poses:
+        path = Path(workdir) / f"capture_{'pos' if up[0] == '+' else 'neg'}{up[1]}_up"
+        write_scene_bag(capture_scene_resting_on(up, object_name, seed, views), path)
+        paths.append(path)
+    return paths
+
+
+def generate_benchmark_bag(path: Path, object_name=None, scenes: int = 6, frames: int = 5, seed: int = 0) -> Path:
+    """One bag holding ``scenes`` tabletop scenes (4 to 12 instances of the object, 3
+    distractors each; seeds seed+100, seed+101, ...), ``frames`` consecutive frames of each,
+    with ground truth: the benchmark's (and the tests') scene set."""
+    from ..datasets.bag_writer import RealSenseBagWriter
+    from ..synthetic.scene import DEFAULT_OBJECT, make_tabletop_scene
+
+    frame_period_ns = 33_333_333
+    stamp = 1_700_000_000_000_000_000
+    with RealSenseBagWriter(path) as bag:
+        for k in range(scenes):
+            scene = make_tabletop_scene(object_name or DEFAULT_OBJECT, INSTANCES_PER_SCENE[k % len(INSTANCES_PER_SCENE)],
+                                        distractors=3, frames=frames, seed=seed + 100 + k)
+            if k == 0:
+                bag.write_object_description(stamp, scene.description())
+            for frame in scene.frames():
+                bag.write_frame(stamp, frame.rgb, frame.depth_mm, scene.intrinsics, poses=frame.poses,
+                                visibility=frame.visibility)
+                stamp += frame_period_ns
+    return Path(path)
+
+
+def model_from_captures(captures) -> "object":
+    from ..rgbd.model import BuildSettings, build_model
+    from .build_model import register_view_with_ecc, views_from_bag
+
+    views, description = [], None
+    for bag in captures:
+        more, desc = views_from_bag(bag, None, None)
+        views += more
+        description = description or desc
+    return build_model(views, BuildSettings(), name=(description or {}).get("name", ""),
+                       register_view=register_view_with_ecc)
+
+
+def format_report(metrics: dict) -> str:
+    lat = metrics["latency_ms"]
+    rte, rre = metrics["median_rte"], metrics["median_rre_deg"]
+    lines = [
+        f"frames {metrics['frames']} (with ground truth {metrics['frames_with_ground_truth']}, skipped {metrics['skipped_frames']}); "
+        f"instances present {metrics['gt']}, found {metrics['est']}, hits {metrics['hits']} "
+        f"(hit: RRE < {metrics['max_rre_deg']} deg and RTE < {metrics['max_rte'] * 100:g} cm; "
+        f"present: visible fraction >= {metrics['min_visibility']})",
+        f"MHF1 {metrics['MHF1']:.3f}  MHR {metrics['MHR']:.3f}  MHP {metrics['MHP']:.3f}  MF {metrics['MF']:.3f}",
+        f"median RTE {'-' if rte is None else f'{rte * 1000:.2f} mm'}  median RRE {'-' if rre is None else f'{rre:.2f} deg'}",
+        f"latency per frame: p50 {lat['total']['p50']:.1f} ms  p95 {lat['total']['p95']:.1f} ms  "
+        f"(CPU time per frame, all threads: p50 {metrics['cpu_ms_per_frame']['p50']:.1f} ms; "
+        f"load average during the run {metrics.get('load_average', float('nan')):.2f} on {os.cpu_count()} cores)",
+        "stages (p50 / p95 ms): " + "  ".join(f"{s} {lat[s]['p50']:.1f} / {lat[s]['p95']:.1f}"
+                                            for s in ("sift", "matching", "lifting", "ecc", "refinement")),
+    ]
+    return "\n".join(lines)
+
+
+def run(args) -> int:
+    from ..rgbd.model import load_model
+    from .offline import ReplayResult, load_config, metrics_dict, replay
+
+    config = load_config(args.params)
+    with tempfile.TemporaryDirectory(prefix="mireg_bench_frames_") as tmp:
+        tmp = Path(tmp)
+        bags = list(args.bags)
+        if not bags:
+            print(f"generating {args.scenes} scenes of {args.frames} frames ...", file=sys.stderr)
+            bags = [generate_benchmark_bag(tmp / "scenes", args.object, args.scenes, args.frames, args.seed)]
+        if args.model:
+            model = load_model(args.model)
+        else:
+            captures = args.capture
+            if not captures:
+                print("generating capture bags (4 resting poses) ...", file=sys.stderr)
+                captures = generate_capture_bags(tmp, args.object, args.seed)
+            model = model_from_captures(captures)
+            print(f"model: {model.num_keypoints} keypoints from {len(captures)} capture bag(s)", file=sys.stderr)
+        total = ReplayResult()
+        load = []
+        for bag in bags:
+            r = replay(bag, model, config, None, args.max_rre_deg, args.max_rte, progress=sys.stderr.isatty(),
+                       min_visibility=args.min_visibility)
+            for name in ("frames", "timings", "cpu_ms", "scores", "present", "found", "hits"):
+                getattr(total, name).extend(getattr(r, name))
+            total.skipped += r.skipped
+            load.append(os.getloadavg()[0])
+    if not total.scores:
+        raise InputError("the scene bags have no ground truth (/ground_truth/poses); the benchmark needs it")
+    metrics = metrics_dict(total, args.max_rre_deg, args.max_rte, args.min_visibility)
+    # Other processes on a shared machine slow every stage: say how busy it was.
+    metrics["load_average"] = float(np.mean(load)) if load else float("nan")
+    print(format_report(metrics))
+    if args.json:
+        Path(args.json).write_text(json.dumps(metrics, indent=2))
+    return 0

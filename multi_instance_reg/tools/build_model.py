@@ -1,0 +1,180 @@
+"""``mireg build-model``: the stored object model from a capture bag, or from PNG files.
+
+    mireg build-model CAPTURE_BAG [MORE_BAGS ...] -o MODEL.npz [--frames 0,10,20 | 0:60:10] [--roi x,y,w,h] [--depth-range 0.2 1.5]
+    mireg build-model --rgb colour.png --depth depth.png --intrinsics fx,fy,cx,cy -o MODEL.npz
+
+The object is isolated by the ROI and depth range, the removal of the dominant (table) plane
+and the blob nearest the image centre. Several frames are merged with their ground-truth
+poses when the bag has them, else by registering each frame to the model built so far.
+Several bags of one object (e.g. upright, then upside down, so that the model sees every
+face) are merged the same way; the first frame of the first bag defines the capture frame.
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+
+HELP = "build the stored object model (npz) from a capture bag or colour/depth PNGs"
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("bag", nargs="*", help="capture bag(s) (rosbag2 directory, .db3 or .mcap)")
+    parser.add_argument("-o", "--output", required=True, help="model file to write (.npz)")
+    parser.add_argument("--frames", default=None,
+                        help="frames of the bag to merge: indices '0,10,20' or a range 'start:stop:step' "
+                             "(default: up to 12 spread over the bag with ground truth, else the first)")
+    parser.add_argument("--roi", default=None, help="x,y,w,h pixel box around the object (default: whole image)")
+    parser.add_argument("--depth-range", nargs=2, type=float, metavar=("MIN", "MAX"), default=(0.1, 4.0),
+                        help="metres: depth kept for the object (default 0.1 4.0)")
+    parser.add_argument("--tilts", default="2",
+                        help="simulated view tilts, comma-separated (ASIFT-style: SIFT also on each view warped "
+                             "to look more oblique, so that instances seen at grazing angles match); '' = off (default 2)")
+    parser.add_argument("--name", default=None, help="object name stored in the model (default: from the bag)")
+    parser.add_argument("--topics", nargs=3, metavar=("COLOUR", "DEPTH", "INFO"), default=None,
+                        help="colour, aligned depth and camera_info topics (default: realsense-ros names)")
+    png = parser.add_argument_group("from PNG files instead of a bag")
+    png.add_argument("--rgb", help="colour PNG (8-bit)")
+    png.add_argument("--depth", help="depth PNG (16-bit, millimetres by default)")
+    png.add_argument("--depth-scale", type=float, default=0.001, help="metres per depth PNG unit (default 0.001)")
+    png.add_argument("--intrinsics", help="fx,fy,cx,cy of the colour image")
+
+
+def parse_roi(text: str | None):
+    if text is None:
+        return None
+    try:
+        x, y, w, h = (int(v) for v in text.split(","))
+    except ValueError:
+        raise InputError(f"--roi must be x,y,w,h in whole pixels, got '{text}'") from None
+    return x, y, w, h
+
+
+def parse_frames(text: str | None, n_frames: int, has_gt: bool) -> list[int]:
+    if text is None:
+        if has_gt and n_frames > 1:
+            return sorted(set(np.linspace(0, n_frames - 1, min(12, n_frames)).round().astype(int).tolist()))
+        return [0]
+    try:
+        if ":" in text:
+            parts = [int(p) if p else None for p in text.split(":")]
+            idx = list(range(n_frames))[slice(*parts)]
+        else:
+            idx = sorted({int(p) for p in text.split(",") if p.strip()})
+    except ValueError:
+        raise InputError(f"--frames must be '0,10,20' or 'start:stop:step', got '{text}'") from None
+    bad = [i for i in idx if not 0 <= i < n_frames]
+    if bad or not idx:
+        raise InputError(f"--frames {text} selects {bad or 'no'} frame(s) outside the bag's {n_frames} frames")
+    return idx
+
+
+def views_from_bag(path, frames_text, topics) -> tuple[list, dict | None]:
+    from ..datasets.rgbd_bag import RGBDBag
+    from ..rgbd.model import CaptureView
+
+    kwargs = dict(zip(("colour_topic", "depth_topic", "info_topic"), topics)) if topics else {}
+    with RGBDBag(path, **kwargs) as bag:
+        want = set(parse_frames(frames_text, bag.num_colour_messages, bag.has_ground_truth))
+        views = []
+        for i, frame in enumerate(bag):
+            if i in want:
+                T = None
+                if frame.gt_poses is not None and len(frame.gt_poses):
+                    if len(frame.gt_poses) > 1:
+                        raise InputError(f"capture bag {path} shows {len(frame.gt_poses)} instances in frame {i}; "
+                                         f"a capture bag must show the object once")
+                    T = frame.gt_poses[0]
+                views.append(CaptureView(frame.rgb, frame.depth_m, frame.intrinsics, T))
+            if i >= max(want):
+                break
+        description = bag.object_description
+    if not views:
+        raise InputError(f"bag {path} yielded none of the frames {sorted(want)} (skipped: {bag.skipped.summary() or 'none'})")
+    return views, description
+
+
+def views_from_png(rgb_path, depth_path, intrinsics_text, depth_scale) -> list:
+    import cv2
+
+    from ..messages import CameraIntrinsics
+    from ..rgbd.model import CaptureView
+
+    if not (rgb_path and depth_path and intrinsics_text):
+        raise InputError("building from PNG files needs --rgb, --depth and --intrinsics fx,fy,cx,cy")
+    bgr = cv2.imread(str(rgb_path), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise InputError(f"cannot read colour image {rgb_path}")
+    depth_raw = cv2.imread(str(depth_path), cv2.IMREAD_UNCHANGED)
+    if depth_raw is None:
+        raise InputError(f"cannot read depth image {depth_path}")
+    if depth_raw.ndim != 2 or depth_raw.dtype != np.uint16:
+        raise InputError(f"depth image {depth_path} must be a single-channel 16-bit PNG, got "
+                         f"{depth_raw.dtype} with shape {depth_raw.shape}")
+    if depth_raw.shape != bgr.shape[:2]:
+        raise InputError(f"depth image is {depth_raw.shape[1]}x{depth_raw.shape[0]} but colour is "
+                         f"{bgr.shape[1]}x{bgr.shape[0]}; the depth must be aligned to colour")
+    try:
+        fx, fy, cx, cy = (float(v) for v in intrinsics_text.split(","))
+    except ValueError:
+        raise InputError(f"--intrinsics must be fx,fy,cx,cy, got '{intrinsics_text}'") from None
+    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+    intr = CameraIntrinsics(K=K, width=bgr.shape[1], height=bgr.shape[0])
+    return [CaptureView(np.ascontiguousarray(bgr[:, :, ::-1]), depth_raw.astype(np.float32) * depth_scale, intr)]
+
+
+def register_view_with_ecc(xyz, desc, model_xyz, model_desc):
+    """View -> capture transform of a view without ground truth: match its keypoints to the
+    model built so far and keep ECC's best instance (None if it finds none)."""
+    from ..core import ECC, ECCConfig
+    from ..rgbd.matching import DescriptorMatcher, prepare_descriptors
+
+    matcher = DescriptorMatcher(prepare_descriptors(model_desc), model_xyz, ratio=0.8, separation=0.01)
+    s_idx, m_idx, _ = matcher.match(prepare_descriptors(desc))
+    if len(s_idx) < 6:
+        return None
+    res = ECC(ECCConfig.metric()).register(xyz[s_idx].astype(np.float64), model_xyz[m_idx].astype(np.float64))
+    if len(res.transforms) == 0:
+        return None
+    return np.asarray(res.transforms[0])
+
+
+def run(args) -> int:
+    from ..rgbd.model import BuildSettings, build_model, save_model
+
+    out = Path(args.output)
+    if out.suffix != ".npz":
+        raise InputError(f"output {out} must end in .npz")
+    lo, hi = args.depth_range
+    if not 0 <= lo < hi:
+        raise InputError(f"--depth-range {lo} {hi}: need 0 <= MIN < MAX (metres)")
+    if args.bag and (args.rgb or args.depth):
+        raise InputError("give either a capture bag or --rgb/--depth PNG files, not both")
+    description = None
+    if args.bag:
+        views = []
+        for bag in args.bag:
+            more, desc = views_from_bag(bag, args.frames, args.topics)
+            views += more
+            description = description or desc
+    elif args.rgb or args.depth:
+        views = views_from_png(args.rgb, args.depth, args.intrinsics, args.depth_scale)
+    else:
+        raise InputError("give a capture bag, or --rgb, --depth and --intrinsics")
+    try:
+        tilts = tuple(float(t) for t in args.tilts.split(",") if t.strip())
+    except ValueError:
+        raise InputError(f"--tilts must be numbers like '2' or '1.5,2', got '{args.tilts}'") from None
+    if any(t <= 1.0 for t in tilts):
+        raise InputError(f"--tilts must be greater than 1 (1 is the view itself), got '{args.tilts}'")
+    settings = BuildSettings(roi=parse_roi(args.roi), depth_range=(lo, hi), tilts=tilts)
+    name = args.name or (description or {}).get("name", "") or ""
+    model = build_model(views, settings, name=name, register_view=register_view_with_ecc)
+    save_model(model, out)
+    print(f"model {out}: {model.num_keypoints} keypoints from {len(views)} view(s), {len(model.points_xyz)} cloud points, "
+          f"extent {np.round(model.extent, 3).tolist()} m" + (", with T_object_model" if model.T_object_model is not None else ""),
+          file=sys.stderr)
+    return 0

@@ -1,0 +1,321 @@
+"""``mireg offline``: replay a recorded bag through the per-frame pipeline, without ROS.
+
+    mireg offline BAG --model MODEL.npz -o OUTDIR [--params FILE.yaml] [--topics COLOUR DEPTH INFO]
+
+Writes OUTDIR/poses.json (the public contract below). When the bag carries ground truth it
+also writes OUTDIR/metrics.json, overlay_*.png (each instance's box with its id) and
+found_vs_present.png (instances found against instances present, frame by frame).
+
+poses.json: {"frames": [{"stamp_ns": int, "frame_id": str, "latency_ms": float,
+             "instances": [{"id": int, "T": [[4 x 4]], "inliers": int, "score": float}]}]}
+T maps the model frame into the camera optical frame (metres).
+"""
+from __future__ import annotations
+
+import json
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+
+HELP = "replay a bag through the pipeline: poses.json, and metrics.json + pictures with ground truth"
+
+STAGE_ORDER = ("sift", "matching", "lifting", "ecc", "refinement", "total")
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("bag", help="rosbag2 directory, .db3 or .mcap")
+    parser.add_argument("--model", required=True, help="object model (.npz) from `mireg build-model`")
+    parser.add_argument("-o", "--output", required=True, help="output directory")
+    parser.add_argument("--params", default=None, help="the node's parameter YAML (frontend.* and ecc.* are used)")
+    parser.add_argument("--topics", nargs=3, metavar=("COLOUR", "DEPTH", "INFO"), default=None,
+                        help="colour, aligned depth and camera_info topics (default: realsense-ros names)")
+    parser.add_argument("--max-rre-deg", type=float, default=10.0, help="hit: rotation error below this (default 10 deg)")
+    parser.add_argument("--max-rte", type=float, default=0.02, help="hit: translation error below this (default 0.02 m)")
+    parser.add_argument("--min-visibility", type=float, default=0.25,
+                        help="instances with a smaller visible fraction (/ground_truth/visibility) are not counted "
+                             "as present (default 0.25)")
+    parser.add_argument("--max-frames", type=int, default=0, help="stop after this many frames (0 = all)")
+    parser.add_argument("--overlays", type=int, default=4, help="overlay pictures to write with ground truth (default 4)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def load_config(params_path):
+    """PipelineConfig with the frontend.* and ecc.* entries of a node parameter file applied."""
+    from ..params import read_params_yaml, with_overrides
+    from ..rgbd.pipeline import PipelineConfig
+
+    config = PipelineConfig()
+    if params_path is None:
+        return config
+    values = read_params_yaml(params_path)
+    ours = {k: v for k, v in values.items() if k.split(".", 1)[0] in ("frontend", "ecc")}
+    return with_overrides(config, ours)
+
+
+class Progress:
+    """A one-line progress bar on stderr, drawn only when stderr is a terminal."""
+
+    def __init__(self, total: int, enabled: bool = True, width: int = 30):
+        self.total, self.width = max(total, 1), width
+        self.enabled = enabled and sys.stderr.isatty()
+        self.t0 = time.perf_counter()
+
+    def update(self, done: int, extra: str = "") -> None:
+        if not self.enabled:
+            return
+        frac = min(done / self.total, 1.0)
+        bar = "#" * int(frac * self.width) + "." * (self.width - int(frac * self.width))
+        rate = done / max(time.perf_counter() - self.t0, 1e-9)
+        sys.stderr.write(f"\r[{bar}] {done}/{self.total} frames {rate:.1f}/s {extra}")
+        sys.stderr.flush()
+
+    def close(self) -> None:
+        if self.enabled:
+            sys.stderr.write("\n")
+            sys.stderr.flush()
+
+
+@dataclass
+class ReplayResult:
+    frames: list[dict] = field(default_factory=list)          # poses.json entries
+    timings: list[dict] = field(default_factory=list)         # per frame, ms by stage
+    cpu_ms: list[float] = field(default_factory=list)         # per frame, CPU time of this process (all threads)
+    scores: list = field(default_factory=list)                # metrics.SceneScore per frame with ground truth
+    present: list[int] = field(default_factory=list)          # per frame: ground-truth instances (-1 without)
+    found: list[int] = field(default_factory=list)
+    hits: list[int] = field(default_factory=list)
+    skipped: int = 0
+    skip_reasons: str = ""
+    has_ground_truth: bool = False
+
+    def latency_summary(self) -> dict:
+        out = {}
+        for stage in STAGE_ORDER:
+            vals = np.array([t[stage] for t in self.timings]) if self.timings else np.zeros(0)
+            out[stage] = {"p50": float(np.percentile(vals, 50)) if len(vals) else None,
+                          "p95": float(np.percentile(vals, 95)) if len(vals) else None}
+        return out
+
+
+def estimates_in_object_frame(model, transforms: np.ndarray) -> np.ndarray:
+    """Estimated model->camera transforms as object->camera, comparable with ground truth."""
+    from ..transforms import invert_transform
+
+    transforms = np.asarray(transforms, dtype=np.float64).reshape(-1, 4, 4)
+    if model.T_object_model is None:
+        return transforms
+    return transforms @ invert_transform(model.T_object_model)
+
+
+def evaluate_frame(T_gt, T_est, visibility=None, min_visibility: float = 0.0, max_rre_deg: float = 10.0,
+                   max_rte: float = 0.02):
+    """Score one frame. Instances less visible than ``min_visibility`` are not "present": they
+    do not count against recall, and an estimate that hits one is neither credit nor blame."""
+    from ..metrics import evaluate_scene
+
+    T_gt = np.asarray(T_gt, dtype=np.float64).reshape(-1, 4, 4)
+    T_est = np.asarray(T_est, dtype=np.float64).reshape(-1, 4, 4)
+    if visibility is None or min_visibility <= 0:
+        return evaluate_scene(T_gt, T_est, max_rre_deg, max_rte)
+    seen = np.asarray(visibility) >= min_visibility
+    full = evaluate_scene(T_gt, T_est, max_rre_deg, max_rte)
+    drop = {e for (g, e), hit in zip(full.pairs, full.hit) if hit and not seen[g]}
+    keep = [e for e in range(len(T_est)) if e not in drop]
+    return evaluate_scene(T_gt[seen], T_est[keep], max_rre_deg, max_rte)
+
+
+def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_rte: float = 0.02,
+           max_frames: int = 0, on_frame=None, progress: bool = True, min_visibility: float = 0.0) -> ReplayResult:
+    """Run every frame of a bag through InstanceRegistration. ``on_frame(index, frame,
+    FrameResult)`` is called for each processed frame (pictures are drawn there)."""
+    from ..datasets.rgbd_bag import RGBDBag
+    from ..rgbd.pipeline import InstanceRegistration
+
+    reg = InstanceRegistration(model, config)
+    reg.warm_up()   # compile the ECC core's kernels now, not inside the first frame's latency
+    kwargs = dict(zip(("colour_topic", "depth_topic", "info_topic"), topics)) if topics else {}
+    out = ReplayResult()
+    skip_reasons: dict[str, int] = {}
+    with RGBDBag(bag_path, **kwargs) as bag:
+        out.has_ground_truth = bag.has_ground_truth
+        total = bag.num_colour_messages if not max_frames else min(max_frames, bag.num_colour_messages)
+        bar = Progress(total, progress)
+        try:
+            for index, frame in enumerate(bag):
+                if max_frames and index >= max_frames:
+                    break
+                cpu0 = time.process_time()
+                try:
+                    result = reg.register_frame(frame.rgb, frame.depth_m, frame.intrinsics)
+                except InputError as exc:
+                    skip_reasons[str(exc)] = skip_reasons.get(str(exc), 0) + 1
+                    out.skipped += 1
+                    bar.update(index + 1, f"(skipped {out.skipped})")
+                    continue
+                out.frames.append({
+                    "stamp_ns": int(frame.stamp_ns), "frame_id": frame.frame_id,
+                    "latency_ms": round(float(result.timings_ms["total"]), 3),
+                    "instances": [{"id": int(i.id), "T": np.round(i.T, 7).tolist(), "inliers": int(i.inliers),
+                                   "score": round(float(i.score), 5)} for i in result.instances]})
+                out.timings.append(dict(result.timings_ms))
+                out.cpu_ms.append((time.process_time() - cpu0) * 1e3)
+                out.found.append(len(result.instances))
+                if frame.gt_poses is not None:
+                    est = estimates_in_object_frame(model, [i.T for i in result.instances])
+                    score = evaluate_frame(frame.gt_poses, est, frame.gt_visibility, min_visibility, max_rre_deg, max_rte)
+                    out.scores.append(score)
+                    out.present.append(score.n_gt)
+                    out.hits.append(score.hits)
+                else:
+                    out.present.append(-1)
+                    out.hits.append(-1)
+                if on_frame is not None:
+                    on_frame(index, frame, result)
+                bar.update(index + 1)
+        finally:
+            bar.close()
+        for reason, n in bag.skipped.reasons.items():
+            skip_reasons[reason] = skip_reasons.get(reason, 0) + n
+        out.skipped += bag.skipped.count
+    out.skip_reasons = "; ".join(f"{n} x {r}" for r, n in sorted(skip_reasons.items(), key=lambda kv: -kv[1]))
+    if not out.frames:
+        raise InputError(f"no frame of {bag_path} could be processed ({out.skipped} skipped: "
+                         f"{out.skip_reasons or 'the bag has no complete colour + depth + camera_info frame'})")
+    return out
+
+
+def metrics_dict(result: ReplayResult, max_rre_deg: float, max_rte: float, min_visibility: float = 0.0) -> dict:
+    from ..metrics import summarize
+
+    summary = summarize(result.scores)
+    return {**summary, "max_rre_deg": max_rre_deg, "max_rte": max_rte, "min_visibility": min_visibility,
+            "frames": len(result.frames), "frames_with_ground_truth": len(result.scores),
+            "skipped_frames": result.skipped, "latency_ms": result.latency_summary(),
+            "cpu_ms_per_frame": {"p50": float(np.percentile(result.cpu_ms, 50)) if result.cpu_ms else None,
+                                 "p95": float(np.percentile(result.cpu_ms, 95)) if result.cpu_ms else None}}
+
+
+# --------------------------------------------------------------------------- pictures
+
+def draw_overlay(rgb: np.ndarray, intrinsics, model, instances, gt_poses=None) -> np.ndarray:
+    """BGR picture: each instance's model box projected (green) with its id; ground truth in grey."""
+    import cv2
+
+    from ..transforms import apply_transform
+
+    img = np.ascontiguousarray(rgb[:, :, ::-1]).copy()
+    corners = model.box_corners()
+    edges = [(0, 1), (2, 3), (4, 5), (6, 7), (0, 2), (1, 3), (4, 6), (5, 7), (0, 4), (1, 5), (2, 6), (3, 7)]
+    K = intrinsics.K
+
+    def project(T):
+        p = apply_transform(T, corners)
+        if np.any(p[:, 2] <= 1e-3):
+            return None
+        return np.stack([K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2], K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]], 1)
+
+    if gt_poses is not None and model.T_object_model is not None:
+        for T in gt_poses:
+            uv = project(T @ model.T_object_model)
+            if uv is not None:
+                for a, b in edges:
+                    cv2.line(img, tuple(np.round(uv[a]).astype(int)), tuple(np.round(uv[b]).astype(int)),
+                             (160, 160, 160), 1, cv2.LINE_AA)
+    for inst in instances:
+        uv = project(inst.T)
+        if uv is None:
+            continue
+        for a, b in edges:
+            cv2.line(img, tuple(np.round(uv[a]).astype(int)), tuple(np.round(uv[b]).astype(int)),
+                     (0, 220, 0), 2, cv2.LINE_AA)
+        c = apply_transform(inst.T, np.zeros((1, 3)))[0]
+        if c[2] > 0:
+            org = (int(K[0, 0] * c[0] / c[2] + K[0, 2]) - 6, int(K[1, 1] * c[1] / c[2] + K[1, 2]) + 6)
+            cv2.putText(img, str(inst.id), org, cv2.FONT_HERSHEY_SIMPLEX, 0.7, (0, 0, 0), 4, cv2.LINE_AA)
+            cv2.putText(img, str(inst.id), org, cv2.FONT_HERSHEY_SIMPLEX, 0.7, (0, 255, 255), 2, cv2.LINE_AA)
+    return img
+
+
+def draw_found_vs_present(present, found, hits, width: int = 900, height: int = 360) -> np.ndarray:
+    """BGR line plot per frame: instances present (ground truth), found, and hits."""
+    import cv2
+
+    img = np.full((height, width, 3), 255, np.uint8)
+    left, right, top, bottom = 50, 20, 40, 40
+    n = len(found)
+    ymax = max([1] + list(present) + list(found))
+    def xy(i, v):
+        x = left + (i / max(n - 1, 1)) * (width - left - right)
+        y = height - bottom - v / ymax * (height - top - bottom)
+        return int(round(x)), int(round(y))
+    cv2.line(img, (left, height - bottom), (width - right, height - bottom), (0, 0, 0), 1)
+    cv2.line(img, (left, top), (left, height - bottom), (0, 0, 0), 1)
+    for v in range(0, ymax + 1, max(1, ymax // 6)):
+        _, y = xy(0, v)
+        cv2.line(img, (left - 4, y), (width - right, y), (225, 225, 225), 1)
+        cv2.putText(img, str(v), (10, y + 5), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.putText(img, f"frame (0..{n - 1})", (width // 2 - 50, height - 10), cv2.FONT_HERSHEY_SIMPLEX, 0.5,
+                (0, 0, 0), 1, cv2.LINE_AA)
+    # Wide lines under narrow ones, so equal series stay visible.
+    series = [("present", present, (190, 190, 190), 9), ("found", found, (230, 140, 40), 5), ("hits", hits, (0, 150, 0), 2)]
+    for k, (label, vals, colour, thick) in enumerate(series):
+        pts = [xy(i, v) for i, v in enumerate(vals) if v >= 0]
+        if len(pts) == 1:
+            cv2.circle(img, pts[0], thick, colour, -1)
+        if len(pts) > 1:
+            cv2.polylines(img, [np.array(pts, np.int32)], False, colour, thick, cv2.LINE_AA)
+        cv2.line(img, (left + 10 + 130 * k, 20), (left + 40 + 130 * k, 20), colour, thick)
+        cv2.putText(img, label, (left + 46 + 130 * k, 25), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
+    return img
+
+
+def run(args) -> int:
+    import cv2
+
+    from ..rgbd.model import load_model
+
+    model = load_model(args.model)
+    config = load_config(args.params)
+    out_dir = Path(args.output)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError(f"output {out_dir} exists and is not a directory")
+    # Pictures are drawn for a few frames spread over the bag; the frame count is known only
+    # roughly (colour messages), which is good enough for spreading.
+    from ..datasets.rgbd_bag import RGBDBag
+    kwargs = dict(zip(("colour_topic", "depth_topic", "info_topic"), args.topics)) if args.topics else {}
+    with RGBDBag(args.bag, **kwargs) as bag:
+        n_est = bag.num_colour_messages if not args.max_frames else min(args.max_frames, bag.num_colour_messages)
+        has_gt = bag.has_ground_truth
+    picks = set(np.linspace(0, max(n_est - 1, 0), min(args.overlays, n_est)).round().astype(int).tolist()) \
+        if has_gt and args.overlays > 0 else set()
+    out_dir.mkdir(parents=True, exist_ok=True)
+
+    def on_frame(index, frame, result):
+        if index in picks:
+            img = draw_overlay(frame.rgb, frame.intrinsics, model, result.instances, frame.gt_poses)
+            cv2.imwrite(str(out_dir / f"overlay_{index:05d}.png"), img)
+
+    result = replay(args.bag, model, config, args.topics, args.max_rre_deg, args.max_rte, args.max_frames,
+                    on_frame=on_frame, progress=not args.quiet, min_visibility=args.min_visibility)
+    (out_dir / "poses.json").write_text(json.dumps({"frames": result.frames}))
+    lat = result.latency_summary()["total"]
+    line = f"{len(result.frames)} frames, latency p50 {lat['p50']:.1f} ms p95 {lat['p95']:.1f} ms"
+    if result.skipped:
+        line += f", {result.skipped} skipped ({result.skip_reasons})"
+    if result.scores:
+        metrics = metrics_dict(result, args.max_rre_deg, args.max_rte, args.min_visibility)
+        (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
+        cv2.imwrite(str(out_dir / "found_vs_present.png"),
+                    draw_found_vs_present(result.present, result.found, result.hits))
+        rte = metrics["median_rte"]
+        rre = metrics["median_rre_deg"]
+        line += (f"; MHF1 {metrics['MHF1']:.3f} MHR {metrics['MHR']:.3f} MHP {metrics['MHP']:.3f} MF {metrics['MF']:.3f}"
+                 f", median RTE {'-' if rte is None else f'{rte * 1000:.1f} mm'}"
+                 f" RRE {'-' if rre is None else f'{rre:.2f} deg'}")
+    print(f"mireg offline: {line}; wrote {out_dir}", file=sys.stderr)
+    return 0

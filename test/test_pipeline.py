@@ -1,0 +1,211 @@
+"""The per-frame pipeline and its parts: lifting, undistortion, matching, bad inputs."""
+import cv2
+import numpy as np
+import pytest
+from planar_scene import INTRINSICS, K, card_pose, render_planes, table
+from skimage import data
+
+from multi_instance_reg.errors import InputError
+from multi_instance_reg.messages import CameraIntrinsics
+from multi_instance_reg.rgbd.features import SiftSettings, extract_sift
+from multi_instance_reg.rgbd.lifting import backproject, lookup_depth, undistort_pixels
+from multi_instance_reg.rgbd.matching import DescriptorMatcher, prepare_descriptors
+from multi_instance_reg.transforms import apply_transform, invert_transform
+
+
+def lifted_on_plane(uv, depth, T_plane, window=5, max_spread=0.02):
+    z = lookup_depth(depth, uv, window, 0.1, 4.0, max_spread)
+    ok = z > 0
+    xyz = backproject(undistort_pixels(uv[ok], INTRINSICS), z[ok], INTRINSICS)
+    # Distance of each lifted point from the plane (object z = 0).
+    return ok, apply_transform(invert_transform(T_plane), xyz.astype(np.float64))[:, 2]
+
+
+def test_lifting_accuracy_on_a_rendered_plane():
+    T = card_pose(rx=25, ry=-20, rz=30, t=(0.05, 0.02, 0.7))
+    rgb, depth = render_planes(data.astronaut(), (0.3, 0.3), [T])
+    uv, _ = extract_sift(rgb, SiftSettings())
+    assert len(uv) > 100
+    ok, off_plane = lifted_on_plane(uv, depth, T)
+    assert ok.mean() > 0.9          # only keypoints on the border lose their depth
+    assert np.median(np.abs(off_plane)) < 0.0005 and np.percentile(np.abs(off_plane), 95) < 0.002
+
+
+def test_window_median_survives_missing_pixels_and_noise():
+    T = card_pose(rx=20, t=(0.0, 0.0, 0.8))
+    rgb, depth = render_planes(data.astronaut(), (0.4, 0.4), [T])
+    uv, _ = extract_sift(rgb, SiftSettings())
+    rng = np.random.default_rng(0)
+    holes = depth.copy()
+    holes[rng.random(depth.shape) < 0.3] = 0.0                        # 30 % of pixels missing
+    holes = np.where(holes > 0, holes + rng.normal(0, 0.003, depth.shape), 0).astype(np.float32)
+    ok1, err1 = lifted_on_plane(uv, holes, T, window=1)              # the centre pixel alone
+    ok5, err5 = lifted_on_plane(uv, holes, T, window=5)
+    assert ok1.mean() < 0.75 and ok5.mean() > 0.9
+    assert np.median(np.abs(err5)) < np.median(np.abs(err1))
+
+
+def test_depth_edge_keypoints_are_dropped():
+    depth = np.full((20, 20), 0.5, np.float32)
+    depth[:, 10:] = 0.9
+    uv = np.array([[5.0, 5.0], [10.0, 5.0], [15.0, 5.0]], np.float32)
+    z = lookup_depth(depth, uv, 5, 0.1, 4.0, max_spread=0.02)
+    np.testing.assert_allclose(z, [0.5, 0.0, 0.9])
+    z = lookup_depth(depth, uv, 5, 0.1, 4.0, max_spread=0.0)
+    assert z[1] in (np.float32(0.5), np.float32(0.9))
+    assert lookup_depth(depth, np.array([[-5.0, 3.0]]), 5)[0] == 0       # outside the image
+
+
+def test_undistortion_inverts_the_distortion_model():
+    D = np.array([-0.055, 0.066, 0.0004, -0.0008, -0.021])
+    intr = CameraIntrinsics(K=K, width=640, height=480, D=D)
+    rng = np.random.default_rng(1)
+    pts = np.column_stack([rng.uniform(-0.5, 0.5, 50), rng.uniform(-0.4, 0.4, 50), np.ones(50)])
+    ideal = (pts @ K.T)[:, :2]
+    distorted, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), K, D)
+    assert np.abs(distorted.reshape(-1, 2) - ideal).max() > 1.0       # the distortion is not negligible
+    np.testing.assert_allclose(undistort_pixels(distorted.reshape(-1, 2), intr), ideal, atol=0.05)
+    no_d = CameraIntrinsics(K=K, width=640, height=480)
+    np.testing.assert_array_equal(undistort_pixels(ideal, no_d), ideal)
+
+
+def test_ratio_test_ignores_copies_of_the_same_physical_point():
+    rng = np.random.default_rng(0)
+    base = rng.random((50, 128)).astype(np.float32)
+    xyz = rng.uniform(-0.1, 0.1, (50, 3))
+    # The model holds every point twice (two views): two noisy copies of a descriptor, 2 mm apart;
+    # the scene sees a third copy, as far from either.
+    def noisy():
+        return base + rng.normal(0, 0.02, base.shape).astype(np.float32)
+    model_desc = prepare_descriptors(np.vstack([noisy(), noisy()]))
+    model_xyz = np.vstack([xyz, xyz + 0.002])
+    scene = prepare_descriptors(noisy())
+    s, m, r = DescriptorMatcher(model_desc, model_xyz, ratio=0.8, separation=0.01).match(scene)
+    assert len(s) == 50 and np.all(m % 50 == s)
+    # The textbook test (separation 0) rejects them: the copy is as close as the original.
+    s0, _, _ = DescriptorMatcher(model_desc, model_xyz, ratio=0.8, separation=0.0).match(scene)
+    assert len(s0) < 10
+
+
+def test_one_to_many_matching_maps_several_scene_points_to_one_model_point():
+    rng = np.random.default_rng(2)
+    model_desc = prepare_descriptors(rng.random((30, 128)).astype(np.float32))
+    model_xyz = rng.uniform(-0.1, 0.1, (30, 3))
+    scene = np.vstack([model_desc[:10], model_desc[:10]])
+    s, m, _ = DescriptorMatcher(model_desc, model_xyz).match(scene)
+    assert len(s) == 20 and np.all(m == np.tile(np.arange(10), 2))
+
+
+@pytest.mark.parametrize("method", ["flann", "brute_force"])
+def test_matchers_agree_and_flann_is_deterministic(method):
+    rng = np.random.default_rng(3)
+    model_desc = prepare_descriptors(rng.random((800, 128)).astype(np.float32))
+    model_xyz = rng.uniform(-0.1, 0.1, (800, 3))
+    scene = prepare_descriptors(np.vstack([model_desc[:300] + rng.normal(0, 0.01, (300, 128)).astype(np.float32),
+                                           rng.random((200, 128)).astype(np.float32)]))
+    runs = [DescriptorMatcher(model_desc, model_xyz, method=method).match(scene) for _ in range(2)]
+    np.testing.assert_array_equal(runs[0][0], runs[1][0])
+    s, m, _ = runs[0]
+    assert len(set(range(300)) - set(s.tolist())) < 5
+    assert np.mean(m[s < 300] == s[s < 300]) > 0.99
+
+
+# --------------------------------------------------------------------------- on rendered frames
+
+@pytest.fixture(scope="module")
+def rendered_frame():
+    from multi_instance_reg.synthetic.scene import make_tabletop_scene
+
+    scene = make_tabletop_scene(instances=6, distractors=2, frames=1, seed=3)
+    return scene, scene.render_frame(0)
+
+
+def test_lifting_accuracy_on_a_rendered_frame(rendered_frame):
+    scene, frame = rendered_frame
+    depth = frame.depth_mm.astype(np.float32) / 1000.0        # with the simulated D455 noise and holes
+    uv, _ = extract_sift(frame.rgb, SiftSettings())
+    truth = frame.depth_true_m[np.clip(np.rint(uv[:, 1]).astype(int), 0, 479), np.clip(np.rint(uv[:, 0]).astype(int), 0, 639)]
+    on_objects = frame.instance_mask[np.clip(np.rint(uv[:, 1]).astype(int), 0, 479),
+                                     np.clip(np.rint(uv[:, 0]).astype(int), 0, 639)] >= 0
+    z5 = lookup_depth(depth, uv, 5, 0.1, 4.0, 0.02)
+    z1 = lookup_depth(depth, uv, 1, 0.1, 4.0, 0.0)
+    ok5 = (z5 > 0) & (truth > 0) & on_objects
+    ok1 = (z1 > 0) & (truth > 0) & on_objects
+    err5 = np.abs(z5[ok5] - truth[ok5])
+    err1 = np.abs(z1[ok1] - truth[ok1])
+    assert ok5.sum() > 200
+    assert np.median(err5) < 0.003 and np.percentile(err5, 90) < 0.01
+    assert np.median(err5) <= np.median(err1)
+    # Back-projected points sit on the true surface: compare with the noise-free depth lifted alike.
+    xyz = backproject(undistort_pixels(uv[ok5], scene.intrinsics), z5[ok5], scene.intrinsics)
+    xyz_true = backproject(undistort_pixels(uv[ok5], scene.intrinsics), truth[ok5], scene.intrinsics)
+    assert np.median(np.linalg.norm(xyz - xyz_true, axis=1)) < 0.003
+
+
+def test_register_frame_finds_the_instances(rendered_frame, object_model):
+    from multi_instance_reg.metrics import evaluate_scene
+    from multi_instance_reg.rgbd.model import load_model
+    from multi_instance_reg.rgbd.pipeline import STAGES, InstanceRegistration
+
+    scene, frame = rendered_frame
+    model = load_model(object_model)
+    reg = InstanceRegistration(model)
+    result = reg.register_frame(frame.rgb, frame.depth_mm.astype(np.float32) / 1000.0, scene.intrinsics)
+    assert set(result.timings_ms) == set(STAGES)
+    assert [i.id for i in result.instances] == list(range(len(result.instances)))
+    assert all(a.inliers >= b.inliers for a, b in zip(result.instances, result.instances[1:]))
+    assert len(result.labels) == len(result.keypoints_uv) == len(result.model_xyz) == len(result.scene_xyz)
+    assert set(np.unique(result.labels)) <= set(range(-1, len(result.instances)))
+    visible = frame.visibility >= 0.5
+    est = np.array([i.T for i in result.instances]).reshape(-1, 4, 4) @ np.linalg.inv(model.T_object_model)
+    score = evaluate_scene(frame.poses[visible], est, 10.0, 0.02)
+    assert score.hits >= visible.sum() - 1 and len(result.instances) <= visible.sum() + 1
+    assert np.median(score.rte[score.hit]) < 0.005
+
+
+def test_no_instance_in_a_scene_without_the_object(object_model):
+    from multi_instance_reg.rgbd.model import load_model
+    from multi_instance_reg.rgbd.pipeline import InstanceRegistration
+    from multi_instance_reg.synthetic.scene import make_tabletop_scene
+
+    reg = InstanceRegistration(load_model(object_model))
+    # Another object's instances, and distractors that do not include ours (seed chosen so).
+    scene = make_tabletop_scene("cereal_box", instances=6, distractors=3, frames=2, seed=7)
+    assert "snack_box" not in scene.description()["distractors"]
+    for frame in scene.frames():
+        result = reg.register_frame(frame.rgb, frame.depth_mm.astype(np.float32) / 1000.0, scene.intrinsics)
+        assert result.instances == []
+
+
+def test_bad_frames_and_models_raise_clear_errors(object_model):
+    from multi_instance_reg.rgbd.model import load_model
+    from multi_instance_reg.rgbd.pipeline import InstanceRegistration
+
+    model = load_model(object_model)
+    reg = InstanceRegistration(model)
+    rgb = np.zeros((480, 640, 3), np.uint8)
+    depth = np.full((480, 640), 0.8, np.float32)
+    with pytest.raises(InputError, match="depth image is 320x240 but colour is 640x480"):
+        reg.register_frame(rgb, depth[:240, :320], INTRINSICS)
+    with pytest.raises(InputError, match="no valid pixel"):
+        reg.register_frame(rgb, np.zeros_like(depth), INTRINSICS)
+    with pytest.raises(InputError, match="colour image must be"):
+        reg.register_frame(rgb[:, :, 0], depth, INTRINSICS)
+    with pytest.raises(InputError, match="camera_info is for"):
+        reg.register_frame(rgb, depth, CameraIntrinsics(K=K, width=1280, height=720))
+    import dataclasses
+    empty = dataclasses.replace(model, keypoints_xyz=np.zeros((0, 3), np.float32), descriptors=np.zeros((0, 128), np.float32))
+    with pytest.raises(InputError, match="0 keypoints"):
+        InstanceRegistration(empty)
+    result = reg.register_frame(rgb, depth, INTRINSICS)     # a blank frame is fine: nothing found
+    assert result.instances == [] and result.timings_ms["total"] > 0
+
+
+def test_blas_thread_limit_reaches_the_loaded_libraries():
+    import scipy.linalg  # noqa: F401  (scipy brings its own OpenBLAS)
+
+    from multi_instance_reg.rgbd.threads import limit_blas_threads, loaded_openblas_libraries
+
+    libs = loaded_openblas_libraries()
+    assert libs, "numpy's OpenBLAS should be mapped into the process"
+    assert limit_blas_threads(1) == len(libs)
