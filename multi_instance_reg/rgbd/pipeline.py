@@ -29,7 +29,7 @@ from .features import SiftSettings, extract_sift_in_region
 from .lifting import backproject, lookup_depth, off_planes, support_planes, undistort_pixels
 from .matching import DescriptorMatcher, prepare_descriptors
 from .model import ObjectModel
-from .threads import limit_blas_threads
+from ..threads import limit_blas_threads
 
 STAGES = ("sift", "matching", "lifting", "ecc", "refinement", "total")
 
