@@ -98,22 +98,21 @@ def _grow(arr, cap):
 
 
 @numba.njit(cache=True)
-def _to_rows(G, keep_zeros):
-    """Row-wise sparse form (CSR) of a dense matrix: indptr, column indices, values.
-    With keep_zeros every entry is kept: full rows, read as contiguous vectors."""
+def _to_rows(G):
+    """Row-wise sparse form (CSR) of a dense matrix: indptr, column indices, values."""
     n = G.shape[0]
     indptr = np.zeros(n + 1, dtype=np.int64)
     for i in range(n):
         c = 0
         for j in range(n):
-            c += keep_zeros or G[i, j] > 0.0
+            c += G[i, j] > 0.0
         indptr[i + 1] = indptr[i] + c
     indices = np.empty(indptr[n], dtype=np.int32)
     values = np.empty(indptr[n], dtype=np.float32)
     for i in range(n):
         p = indptr[i]
         for j in range(n):
-            if keep_zeros or G[i, j] > 0.0:
+            if G[i, j] > 0.0:
                 indices[p] = j
                 values[p] = G[i, j]
                 p += 1
@@ -214,22 +213,23 @@ def _agglomerate(indptr, indices, values, S, max_dist, dense, stats):
         # Merge b into a: element-wise minimum, on the intersection of the supports.
         pb = indptr[b]
         for q in range(pb, pb + rowlen[b]):
-            dense_b[indices[q]] = values[q]
+            dense_b[q - pb if dense else indices[q]] = values[q]
         pa = indptr[a]
         kept = pa
         s_aa = 0.0
         for q in range(pa, pa + rowlen[a]):
-            c = indices[q]
+            c = q - pa if dense else indices[q]
             v = min(values[q], dense_b[c])
             if v > 0.0 or dense:  # dense rows keep their zeros: they stay full rows
-                indices[kept] = c
+                if not dense:
+                    indices[kept] = c
                 values[kept] = v
                 dense_a[c] = v
                 kept += 1
                 s_aa += v * v
         rowlen[a] = kept - pa
         for q in range(pb, pb + rowlen[b]):
-            dense_b[indices[q]] = 0.0
+            dense_b[q - pb if dense else indices[q]] = 0.0
         sq[a] = s_aa
         S[a, a] = s_aa
         active[b] = False
@@ -261,7 +261,7 @@ def _agglomerate(indptr, indices, values, S, max_dist, dense, stats):
                 size = _heap_push(heap, size, _pack(dk, n_entries))
                 n_entries += 1
         for q in range(pa, pa + rowlen[a]):
-            dense_a[indices[q]] = 0.0
+            dense_a[q - pa if dense else indices[q]] = 0.0
     # Resolve merge chains into cluster labels 0..C-1 (first appearance order).
     labels = np.empty(n, dtype=np.int64)
     root_label = -np.ones(n, dtype=np.int64)
@@ -290,10 +290,16 @@ def cluster_compatibility_vectors(G: np.ndarray, min_dist_thresh: float = 0.2,
     G = np.ascontiguousarray(G, dtype=np.float32)
     density = np.count_nonzero(G) / G.size
     dense = density > _DENSE_ROWS_ABOVE
-    indptr, indices, values = _to_rows(G, dense)
     if density > _DENSE_PRODUCT_ABOVE:
         S = G @ G  # G is symmetric: all row dot products in one GEMM
+    if dense:
+        # Full rows need no column indices: the rows of a copy of G are used as they are.
+        indptr = np.arange(0, n * n + 1, n, dtype=np.int64)
+        indices = np.zeros(0, dtype=np.int32)
+        values = G.reshape(-1).copy()
     else:
-        S = _sparse_gram(indptr, indices, values, n)
+        indptr, indices, values = _to_rows(G)
+        if density <= _DENSE_PRODUCT_ABOVE:
+            S = _sparse_gram(indptr, indices, values, n)
     stats = np.zeros(4, dtype=np.int64) if stats is None else stats
     return _agglomerate(indptr, indices, values, S, float(min_dist_thresh), dense, stats)
