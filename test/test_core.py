@@ -158,6 +158,18 @@ def test_registration_finds_every_instance():
     assert 0 < result.scores.min() and result.scores.max() <= 1
 
 
+def test_scores_belong_to_their_instances():
+    s = make_band("10-50", 1, seed=2)[0]
+    cfg = ECCConfig.modelnet()
+    r = ECC(cfg).register(s.src, s.tgt)
+    assert len(r) > 3
+    for m in range(len(r)):
+        inl = r.inliers(m)
+        res = np.linalg.norm(s.src[inl] @ r.transforms[m][:3, :3].T + r.transforms[m][:3, 3] - s.tgt[inl], axis=1)
+        assert r.scores[m] == pytest.approx(np.mean(1 - res / cfg.inlier_thresh))
+        assert 0 <= r.scores[m] <= 1
+
+
 def test_permuting_rows_permutes_labels_only():
     s = make_band("50-70", 1, seed=5)[0]
     cfg = ECCConfig.modelnet()

@@ -105,6 +105,7 @@ def test_offline_reaches_the_quality_targets(replay):
     assert res.returncode == 0, res.stderr
     m = json.loads((out / "metrics.json").read_text())
     assert m["max_rre_deg"] == 10.0 and m["max_rte"] == 0.02
+    print("offline replay metrics:", {k: m[k] for k in ("MHF1", "MHR", "MHP", "MF", "median_rte", "median_rre_deg")})
     assert m["MHF1"] >= 0.95, m
     assert m["median_rte"] <= 0.005 and m["median_rre_deg"] <= 2.0, m
     assert set(m["latency_ms"]) == {"sift", "matching", "lifting", "ecc", "refinement", "total"}

@@ -204,7 +204,7 @@ def test_bad_frames_and_models_raise_clear_errors(object_model):
 def test_blas_thread_limit_reaches_the_loaded_libraries():
     import scipy.linalg  # noqa: F401  (scipy brings its own OpenBLAS)
 
-    from multi_instance_reg.rgbd.threads import limit_blas_threads, loaded_openblas_libraries
+    from multi_instance_reg.threads import limit_blas_threads, loaded_openblas_libraries
 
     libs = loaded_openblas_libraries()
     assert libs, "numpy's OpenBLAS should be mapped into the process"

@@ -138,18 +138,18 @@ class ECC:
         T = fit_transforms(x, y, sel_labels, len(cand))
         errors = residuals(x, y, T)
         final = assign(errors, cfg.inlier_thresh)
-        counts = np.bincount(final[final >= 0], minlength=len(cand))
+        inlier = final >= 0
+        # Score of a transform: mean of 1 - residual / inlier_thresh over its inliers.
+        closeness = 1.0 - errors[np.arange(n), np.maximum(final, 0)] / cfg.inlier_thresh
+        counts = np.bincount(final[inlier], minlength=len(cand))
+        scores = np.bincount(final[inlier], weights=closeness[inlier], minlength=len(cand)) / np.maximum(counts, 1)
+        # Sort by inlier count and renumber the labels to match; empty transforms go.
         order = np.argsort(-counts, kind="stable")
         order = order[counts[order] > 0]
         rank = -np.ones(len(cand) + 1, dtype=np.int64)
         rank[order] = np.arange(len(order))
         final = rank[final]  # -1 maps through rank[-1] = -1
-        err = errors[np.arange(n), np.maximum(final, 0)] if n else np.zeros(0)
-        inlier_err = np.where(final >= 0, 1.0 - err / cfg.inlier_thresh, 0.0)
-        counts = counts[order]
-        scores = np.bincount(np.maximum(final, 0), weights=inlier_err * (final >= 0),
-                             minlength=len(order))[: len(order)] / np.maximum(counts, 1)
-        return T[order], final, counts.astype(np.int64), scores
+        return T[order], final, counts[order].astype(np.int64), scores[order]
 
     # -- empty results ---------------------------------------------------------------------
     @staticmethod

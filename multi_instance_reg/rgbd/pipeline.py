@@ -7,8 +7,10 @@ It reads like the method::
     for inst in result.instances:       # sorted by inlier count, descending
         inst.T                          # (4, 4) model frame -> camera optical frame, metres
 
-detect (SIFT) -> match (one-to-many, ratio test) -> lift (window-median depth, undistortion)
--> cluster (ECC in metres) -> refine (per-instance least squares on re-selected inliers).
+search region (depth in range, off the table and walls) -> detect (SIFT on that region) ->
+lift (window-median depth, undistortion) -> match (one-to-many, ratio test against another
+physical point) -> cluster (ECC in metres) -> recover small instances ECC left out ->
+refine (optional) and select (size, fit score, no two instances in one place).
 """
 from __future__ import annotations
 
@@ -27,7 +29,7 @@ from .features import SiftSettings, extract_sift_in_region
 from .lifting import backproject, lookup_depth, off_planes, support_planes, undistort_pixels
 from .matching import DescriptorMatcher, prepare_descriptors
 from .model import ObjectModel
-from .threads import limit_blas_threads
+from ..threads import limit_blas_threads
 
 STAGES = ("sift", "matching", "lifting", "ecc", "refinement", "total")
 
@@ -60,6 +62,7 @@ class FrontEndConfig:
     refine: bool = param(False, "refine each instance by least squares on its correspondences re-selected with refine_thresh (measured on the synthetic scenes: no change in median RTE/RRE, so off by default)")
     refine_iterations: int = param(3, "refinement rounds per instance", 1, 50)
     refine_thresh: float = param(0.008, "metres: residual below which a correspondence joins an instance during refinement", 0.0005, 1.0)
+    # Selection.
     recover: bool = param(True, "after ECC, look for small instances among the unassigned correspondences with a hard pairwise-distance test (the clustering misses clusters of 4-10 in hundreds of outliers)")
     recover_min_inliers: int = param(5, "a recovered instance needs at least this many mutually consistent correspondences", 4, 1000)
     recover_tolerance: float = param(0.01, "metres: two correspondences are consistent when their model and scene distances differ by less than this", 0.001, 0.1)
@@ -90,7 +93,7 @@ class Instance:
     id: int                 # index in this frame's result, 0 = most inliers (not tracked over frames)
     T: np.ndarray           # (4, 4) float64, model frame -> camera optical frame, metres
     inliers: int            # number of inlier correspondences
-    score: float            # in [0, 1], from the ECC core (mean of 1 - residual / inlier_thresh)
+    score: float            # in [0, 1]: mean of 1 - residual / ecc.inlier_thresh over the inliers
 
 
 @dataclass

@@ -16,6 +16,7 @@ import numpy as np
 
 from ..core import ECC
 from ..synthetic.correspondences import make_sized_scene
+from ..threads import limit_blas_threads
 from .register import add_ecc_arguments, ecc_config_from_args
 
 
@@ -45,6 +46,7 @@ def _reset_peak_rss() -> bool:
 
 
 def run(args) -> int:
+    limit_blas_threads(1)  # see multi_instance_reg.threads: spinning BLAS threads slow the kernels
     config = ecc_config_from_args(args)
     ecc = ECC(config)
     rng = np.random.default_rng(args.seed)

@@ -17,6 +17,7 @@ from ..core import ECC
 from ..core.baseline import sequential_ransac
 from ..metrics import evaluate_scene, summarize
 from ..synthetic.correspondences import BANDS, make_band
+from ..threads import limit_blas_threads
 from .register import add_ecc_arguments, ecc_config_from_args
 
 PAPER_TABLE1 = {"10-50": (96.08, 99.73, 97.03, 0.62), "50-70": (93.99, 99.49, 95.51, 0.55),
@@ -47,6 +48,7 @@ def _evaluate(method, scenes):
 
 
 def run(args) -> int:
+    limit_blas_threads(1)  # see multi_instance_reg.threads: spinning BLAS threads slow the kernels
     config = ecc_config_from_args(args)
     ecc = ECC(config)
     warm = make_band("50-70", 1, seed=12345)[0]

@@ -12,6 +12,7 @@ import numpy as np
 from ..core import ECC, ECCConfig
 from ..metrics import evaluate_scene
 from ..synthetic.correspondences import BANDS, make_band
+from ..threads import limit_blas_threads
 
 
 def main(argv=None) -> int:
@@ -19,6 +20,7 @@ def main(argv=None) -> int:
     parser.add_argument("--band", choices=list(BANDS), default="50-70")
     parser.add_argument("--seed", type=int, default=1)
     args = parser.parse_args(argv)
+    limit_blas_threads(1)  # see multi_instance_reg.threads
     scene = make_band(args.band, 1, args.seed)[0]
     ecc = ECC(ECCConfig.modelnet())
     ecc.register(scene.src[:300], scene.tgt[:300])  # load the compiled kernels first

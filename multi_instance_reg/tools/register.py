@@ -16,6 +16,7 @@ import numpy as np
 
 from ..core import ECC, ECCConfig
 from ..errors import InputError
+from ..threads import limit_blas_threads
 from ..params import param_specs, read_params_yaml, with_overrides
 
 PRESETS = {"paper": ECCConfig.paper, "modelnet": ECCConfig.modelnet, "metric": ECCConfig.metric}
@@ -79,6 +80,7 @@ def load_correspondences(path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def run(args) -> int:
+    limit_blas_threads(1)  # see multi_instance_reg.threads: spinning BLAS threads slow the kernels
     config = ecc_config_from_args(args)
     src, tgt = load_correspondences(args.input)
     t0 = time.perf_counter()

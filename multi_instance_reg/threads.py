@@ -4,7 +4,9 @@ numpy, scipy and OpenCV each bring their own OpenBLAS. After every call its work
 busy-wait for more work; on a 2-core machine they then compete with OpenCV's SIFT threads.
 Measured on the synthetic scenes, 2 cores shared with other work: 259 ms per frame with the
 default pools, 137 ms with one BLAS thread (SIFT alone went from 134 to 73 ms). The matrix
-products of the pipeline are small, so one BLAS thread costs nothing measurable.
+products of the pipeline are small, so one BLAS thread costs nothing measurable. The ECC
+core's numba kernels suffer the same way (their OpenMP threads against BLAS's): the core
+tools set one BLAS thread too.
 
 Setting OPENBLAS_NUM_THREADS works only before numpy is first imported; this works at any
 time, through the libraries' own ``*_set_num_threads`` entry points (as threadpoolctl does).
