@@ -17,14 +17,18 @@ $(STAMP): requirements.txt setup.py setup.cfg package.xml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(PY) -m multi_instance_reg.tools.demo_core
+	$(PY) -m multi_instance_reg.tools.demo
 
 test: $(STAMP)
 	$(PY) -m pytest -q test
 
+# Figures quoted in the README; each line prints its own table (about 15 minutes in all).
 bench: $(STAMP)
 	$(VENV)/bin/mireg bench core
 	$(VENV)/bin/mireg bench table1 --samples-per-band 20
+	$(VENV)/bin/mireg bench synth
+	$(VENV)/bin/mireg bench frames
+	$(VENV)/bin/mireg bench node
 
 clean:
 	rm -rf $(VENV) out
