@@ -72,7 +72,7 @@ class ECC:
             labels = self.upsample(xs, ys, labels, x, y)
         T, labels_valid, counts, scores = self.select(x, y, labels)
         t4 = time.perf_counter()
-        timings.update(preprocess=(t1 - t0) * 1e3, compatibility=(t2 - t1) * 1e3,
+        timings.update(sampling=(t1 - t0) * 1e3, compatibility=(t2 - t1) * 1e3,
                        clustering=(t3 - t2) * 1e3, refinement=(t4 - t3) * 1e3, total=(t4 - t0) * 1e3)
         full_labels = -np.ones(len(src), dtype=np.int64)
         full_labels[valid] = labels_valid
