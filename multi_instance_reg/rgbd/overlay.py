@@ -24,6 +24,24 @@ def project(points_cam: np.ndarray, intrinsics: CameraIntrinsics) -> np.ndarray:
     return uv
 
 
+def draw_box(img: np.ndarray, T: np.ndarray, box_corners: np.ndarray, intrinsics: CameraIntrinsics,
+             colour, thickness: int = 2, label: str | None = None) -> bool:
+    """Draw the box ``box_corners`` (8, 3, model frame) posed by ``T`` (model -> camera) into
+    ``img`` in place, with ``label`` above it; False when the box is behind the camera."""
+    uv = project(apply_transform(np.asarray(T, dtype=np.float64), box_corners), intrinsics)
+    if not np.all(np.isfinite(uv)) or np.abs(uv).max() > 1e5:
+        return False
+    pts = np.round(uv).astype(np.int32)
+    for a, b in _EDGES:
+        cv2.line(img, tuple(pts[a]), tuple(pts[b]), colour, thickness, cv2.LINE_AA)
+    if label is not None:
+        top = pts[np.argmin(pts[:, 1])]
+        org = (int(top[0]), int(top[1]) - 6)
+        cv2.putText(img, label, org, cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 4, cv2.LINE_AA)
+        cv2.putText(img, label, org, cv2.FONT_HERSHEY_SIMPLEX, 0.6, colour, 2, cv2.LINE_AA)
+    return True
+
+
 def draw_overlay(rgb: np.ndarray, result, intrinsics: CameraIntrinsics, box_corners: np.ndarray,
                  colour_of) -> np.ndarray:
     """A copy of ``rgb`` with ``result.keypoints_uv`` as dots coloured by ``result.labels``
@@ -36,15 +54,5 @@ def draw_overlay(rgb: np.ndarray, result, intrinsics: CameraIntrinsics, box_corn
         cv2.circle(out, (int(round(u)), int(round(v))), 3 if inlier else 1, colour_of(int(label)),
                    -1 if inlier else 1, cv2.LINE_AA)
     for inst in result.instances:
-        colour = colour_of(int(inst.id))
-        uv = project(apply_transform(np.asarray(inst.T, dtype=np.float64), box_corners), intrinsics)
-        if not np.all(np.isfinite(uv)) or np.abs(uv).max() > 1e5:
-            continue
-        pts = np.round(uv).astype(np.int32)
-        for a, b in _EDGES:
-            cv2.line(out, tuple(pts[a]), tuple(pts[b]), colour, 2, cv2.LINE_AA)
-        top = pts[np.argmin(pts[:, 1])]
-        org = (int(top[0]), int(top[1]) - 6)
-        cv2.putText(out, str(inst.id), org, cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 4, cv2.LINE_AA)
-        cv2.putText(out, str(inst.id), org, cv2.FONT_HERSHEY_SIMPLEX, 0.6, colour, 2, cv2.LINE_AA)
+        draw_box(out, inst.T, box_corners, intrinsics, colour_of(int(inst.id)), label=str(inst.id))
     return out

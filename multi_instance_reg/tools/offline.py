@@ -204,40 +204,15 @@ def metrics_dict(result: ReplayResult, max_rre_deg: float, max_rte: float, min_v
 
 def draw_overlay(rgb: np.ndarray, intrinsics, model, instances, gt_poses=None) -> np.ndarray:
     """BGR picture: each instance's model box projected (green) with its id; ground truth in grey."""
-    import cv2
-
-    from ..transforms import apply_transform
+    from ..rgbd.overlay import draw_box
 
     img = np.ascontiguousarray(rgb[:, :, ::-1]).copy()
     corners = model.box_corners()
-    edges = [(0, 1), (2, 3), (4, 5), (6, 7), (0, 2), (1, 3), (4, 6), (5, 7), (0, 4), (1, 5), (2, 6), (3, 7)]
-    K = intrinsics.K
-
-    def project(T):
-        p = apply_transform(T, corners)
-        if np.any(p[:, 2] <= 1e-3):
-            return None
-        return np.stack([K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2], K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]], 1)
-
     if gt_poses is not None and model.T_object_model is not None:
         for T in gt_poses:
-            uv = project(T @ model.T_object_model)
-            if uv is not None:
-                for a, b in edges:
-                    cv2.line(img, tuple(np.round(uv[a]).astype(int)), tuple(np.round(uv[b]).astype(int)),
-                             (160, 160, 160), 1, cv2.LINE_AA)
+            draw_box(img, T @ model.T_object_model, corners, intrinsics, (160, 160, 160), thickness=1)
     for inst in instances:
-        uv = project(inst.T)
-        if uv is None:
-            continue
-        for a, b in edges:
-            cv2.line(img, tuple(np.round(uv[a]).astype(int)), tuple(np.round(uv[b]).astype(int)),
-                     (0, 220, 0), 2, cv2.LINE_AA)
-        c = apply_transform(inst.T, np.zeros((1, 3)))[0]
-        if c[2] > 0:
-            org = (int(K[0, 0] * c[0] / c[2] + K[0, 2]) - 6, int(K[1, 1] * c[1] / c[2] + K[1, 2]) + 6)
-            cv2.putText(img, str(inst.id), org, cv2.FONT_HERSHEY_SIMPLEX, 0.7, (0, 0, 0), 4, cv2.LINE_AA)
-            cv2.putText(img, str(inst.id), org, cv2.FONT_HERSHEY_SIMPLEX, 0.7, (0, 255, 255), 2, cv2.LINE_AA)
+        draw_box(img, inst.T, corners, intrinsics, (0, 220, 0), label=str(inst.id))
     return img
 
 
