@@ -12,6 +12,8 @@ import threading
 import time
 from pathlib import Path
 
+from multi_instance_reg.ros.background import BackgroundNode
+
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -56,33 +58,15 @@ def stop(proc: subprocess.Popen, timeout: float = 10.0) -> str:
     return proc.stdout.read() if proc.stdout else ""
 
 
-class Probe:
+class Probe(BackgroundNode):
     """An rclpy node in this test process, on its own context and domain, spun in a thread."""
 
     def __init__(self, domain_id: int, name: str = "test_probe"):
-        import rclpy
-        from rclpy.context import Context
-        from rclpy.executors import SingleThreadedExecutor
-
         os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-        self.context = Context()
-        rclpy.init(context=self.context, domain_id=domain_id)
-        self.node = rclpy.create_node(name, context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
+        super().__init__(name, domain_id)
         self.received: dict[str, list] = {}
         self._lock = threading.Lock()
-        self._thread = threading.Thread(target=self._spin, daemon=True)
-        self._thread.start()
-
-    def _spin(self):
-        while self.context.ok():
-            try:
-                self.executor.spin_once(timeout_sec=0.05)
-            except Exception:
-                if not self.context.ok():
-                    return
-                raise
+        self.start()
 
     def subscribe(self, msg_type, topic: str, depth: int = 50) -> list:
         from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -101,14 +85,6 @@ class Probe:
 
         qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE)
         return self.node.create_publisher(msg_type, topic, qos)
-
-    def close(self):
-        import rclpy
-
-        rclpy.try_shutdown(context=self.context)
-        self._thread.join(5)
-        self.executor.shutdown()
-        self.node.destroy_node()
 
 
 def wait_until(predicate, timeout: float, interval: float = 0.05, proc: subprocess.Popen | None = None) -> bool:

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..ros.background import BackgroundNode
 
 HELP = "the ROS node's end-to-end latency, latency under overload and memory over a long replay"
 COLOUR_TOPIC = "/camera/camera/color/image_raw"
@@ -103,20 +104,15 @@ def rss_mb(pid: int) -> float:
     return total
 
 
-class _Bench:
+class _Bench(BackgroundNode):
     def __init__(self, messages, domain_id: int):
-        import rclpy
         from geometry_msgs.msg import PoseArray
-        from rclpy.context import Context
-        from rclpy.executors import SingleThreadedExecutor
         from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
         from sensor_msgs.msg import CameraInfo, Image
         from std_msgs.msg import String
 
+        super().__init__("mireg_bench_node", domain_id)
         self.messages = messages
-        self.context = Context()
-        rclpy.init(context=self.context, domain_id=domain_id)
-        self.node = rclpy.create_node("mireg_bench_node", context=self.context)
         qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
         self.pub_colour = self.node.create_publisher(Image, COLOUR_TOPIC, qos)
         self.pub_depth = self.node.create_publisher(Image, DEPTH_TOPIC, qos)
@@ -129,20 +125,7 @@ class _Bench:
         self.received_at: dict[int, int] = {}          # stamp_ns -> poses received here, wall clock ns
         self.node.create_subscription(PoseArray, "/instances/poses", self._on_poses, qos)
         self.node.create_subscription(String, "/instances/details", self._on_details, qos)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
-        import threading
-        self._thread = threading.Thread(target=self._spin, daemon=True)
-        self._thread.start()
-
-    def _spin(self):
-        while self.context.ok():
-            try:
-                self.executor.spin_once(timeout_sec=0.05)
-            except Exception:
-                if not self.context.ok():
-                    return
-                raise
+        self.start()
 
     def _on_poses(self, msg):
         now = time.time_ns()
@@ -202,14 +185,6 @@ class _Bench:
                  if first <= stamp <= last and self.pipeline_ms.get(stamp) is not None]
         pipe = np.array([p for p, _ in pairs])
         return pipe, np.array([e - p for p, e in pairs])
-
-    def close(self):
-        import rclpy
-
-        rclpy.try_shutdown(context=self.context)
-        self._thread.join(5)
-        self.node.destroy_node()
-
 
 def _settle(bench: _Bench, last_stamp: int, seconds: float = 20.0) -> None:
     """Wait for the poses of the last frame sent: the node always processes the newest one."""
