@@ -16,7 +16,7 @@ from .clustering import cluster_compatibility_vectors
 from .compatibility import compatibility_matrix
 from .config import ECCConfig
 from .sampling import choose_sample
-from .refinement import assign, fit_transforms, merge_duplicates, relabel, residuals
+from .refinement import assign, fit_transforms, instance_scores, merge_duplicates, relabel, residuals
 
 
 @dataclass
@@ -138,11 +138,8 @@ class ECC:
         T = fit_transforms(x, y, sel_labels, len(cand))
         errors = residuals(x, y, T)
         final = assign(errors, cfg.inlier_thresh)
-        inlier = final >= 0
-        # Score of a transform: mean of 1 - residual / inlier_thresh over its inliers.
-        closeness = 1.0 - errors[np.arange(n), np.maximum(final, 0)] / cfg.inlier_thresh
-        counts = np.bincount(final[inlier], minlength=len(cand))
-        scores = np.bincount(final[inlier], weights=closeness[inlier], minlength=len(cand)) / np.maximum(counts, 1)
+        counts = np.bincount(final[final >= 0], minlength=len(cand))
+        scores = instance_scores(final, errors[np.arange(n), np.maximum(final, 0)], cfg.inlier_thresh, len(cand))
         # Sort by inlier count and renumber the labels to match; empty transforms go.
         order = np.argsort(-counts, kind="stable")
         order = order[counts[order] > 0]

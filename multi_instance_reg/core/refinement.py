@@ -54,6 +54,13 @@ def assign(errors: np.ndarray, inlier_thresh: float) -> np.ndarray:
     return np.where(best_err <= inlier_thresh, best, -1).astype(np.int64)
 
 
+def instance_scores(labels: np.ndarray, residual: np.ndarray, thresh: float, count: int) -> np.ndarray:
+    """Per instance, the mean of 1 - residual / thresh over its inliers (0 without inliers)."""
+    inl = labels >= 0
+    sums = np.bincount(labels[inl], weights=1.0 - residual[inl] / thresh, minlength=count)
+    return sums / np.maximum(np.bincount(labels[inl], minlength=count), 1)
+
+
 def merge_duplicates(inlier_sets: np.ndarray, iou_thresh: float) -> np.ndarray:
     """Indices of transforms to keep: of two whose inlier sets overlap with IoU >= iou_thresh,
     the one with more outliers (fewer inliers) is dropped. inlier_sets: (N, M) bool."""

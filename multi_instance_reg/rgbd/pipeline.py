@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 
 from ..core import ECC, ECCConfig
+from ..core.refinement import instance_scores, residuals
 from ..errors import InputError
 from ..messages import CameraIntrinsics
 from ..params import param
@@ -336,19 +337,12 @@ def recover_small_instances(src: np.ndarray, tgt: np.ndarray, candidates: np.nda
     return found
 
 
-def instance_scores(labels: np.ndarray, residual: np.ndarray, thresh: float, count: int) -> np.ndarray:
-    """Per instance, the mean of 1 - residual / thresh over its inliers (0 without inliers)."""
-    inl = labels >= 0
-    sums = np.bincount(labels[inl], weights=1.0 - residual[inl] / thresh, minlength=count)
-    return sums / np.maximum(np.bincount(labels[inl], minlength=count), 1)
-
-
 def assign_nearest(src, tgt, transforms, thresh) -> tuple[np.ndarray, np.ndarray]:
     """Each correspondence to the transform with the smallest residual, -1 if that is above
     thresh. Returns (labels (N,), residual to the assigned transform (N,))."""
     if not transforms:
         return np.full(len(src), -1, np.int64), np.full(len(src), np.inf)
-    res = np.stack([np.linalg.norm(apply_transform(T, src) - tgt, axis=1) for T in transforms], axis=1)
+    res = residuals(src, tgt, np.asarray(transforms, dtype=np.float64))
     best = res.argmin(axis=1)
     r = res[np.arange(len(src)), best]
     return np.where(r < thresh, best, -1).astype(np.int64), r
