@@ -44,27 +44,28 @@ def _consistency_counts(src, tgt, ref_src, ref_tgt, ref_keys, radius, tolerance)
         for a in range(3):
             base[a] = int(np.floor(tgt[i, a] / radius)) + _CELL_OFFSET
         c = 0
+        # The three cells along z of one (x, y) are consecutive keys: one range each (at
+        # the grid's edge the range may take in a far cell; the distance test drops it).
         for dx in range(-1, 2):
             for dy in range(-1, 2):
-                for dz in range(-1, 2):
-                    kx, ky, kz = base[0] + dx, base[1] + dy, base[2] + dz
-                    if min(kx, ky, kz) < 0 or max(kx, ky, kz) >= (1 << _CELL_BITS):
+                kx, ky = base[0] + dx, base[1] + dy
+                if min(kx, ky) < 0 or max(kx, ky) >= (1 << _CELL_BITS):
+                    continue
+                key = (((kx << _CELL_BITS) | ky) << _CELL_BITS) | base[2]
+                lo = np.searchsorted(ref_keys, key - 1)
+                hi = np.searchsorted(ref_keys, key + 2)
+                for j in range(lo, hi):
+                    ex = tgt[i, 0] - ref_tgt[j, 0]
+                    ey = tgt[i, 1] - ref_tgt[j, 1]
+                    ez = tgt[i, 2] - ref_tgt[j, 2]
+                    e2 = ex * ex + ey * ey + ez * ez
+                    if e2 >= r2 or e2 == 0.0:
                         continue
-                    key = (((kx << _CELL_BITS) | ky) << _CELL_BITS) | kz
-                    lo = np.searchsorted(ref_keys, key)
-                    hi = np.searchsorted(ref_keys, key + 1)
-                    for j in range(lo, hi):
-                        ex = tgt[i, 0] - ref_tgt[j, 0]
-                        ey = tgt[i, 1] - ref_tgt[j, 1]
-                        ez = tgt[i, 2] - ref_tgt[j, 2]
-                        e2 = ex * ex + ey * ey + ez * ez
-                        if e2 >= r2 or e2 == 0.0:
-                            continue
-                        sx = src[i, 0] - ref_src[j, 0]
-                        sy = src[i, 1] - ref_src[j, 1]
-                        sz = src[i, 2] - ref_src[j, 2]
-                        if abs(np.sqrt(sx * sx + sy * sy + sz * sz) - np.sqrt(e2)) < tolerance:
-                            c += 1
+                    sx = src[i, 0] - ref_src[j, 0]
+                    sy = src[i, 1] - ref_src[j, 1]
+                    sz = src[i, 2] - ref_src[j, 2]
+                    if abs(np.sqrt(sx * sx + sy * sy + sz * sz) - np.sqrt(e2)) < tolerance:
+                        c += 1
         counts[i] = c
     return counts
 
