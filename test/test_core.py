@@ -94,6 +94,31 @@ def test_clustering_matches_the_plain_algorithm(seed, sigma):
     assert _same_partition(fast, slow)
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_sparse_and_dense_products_give_the_same_clusters(seed, monkeypatch):
+    from multi_instance_reg.core import clustering
+    s = make_sized_scene(np.random.default_rng(seed), 600, 0.6, 5)
+    order = np.argsort(s.tgt[:, 0])  # spatial order, as ECC.sample gives it
+    G = compatibility_matrix(s.src[order], s.tgt[order], 2.0)
+    indptr, indices, values, row_end = clustering._to_rows(G)
+    S = clustering._sparse_gram(G, indptr, indices, values, row_end)
+    assert np.allclose(S, G.astype(np.float64) @ G, rtol=1e-4, atol=1e-4)
+    labels = {}
+    for name, cost in (("sparse", 0.0), ("dense", 1e12)):
+        monkeypatch.setattr(clustering, "_SPARSE_PRODUCT_COST", cost)
+        labels[name] = cluster_compatibility_vectors(G, 0.2)
+    assert _same_partition(labels["sparse"], labels["dense"])
+
+
+def test_residuals_are_alignment_errors():
+    rng = np.random.default_rng(3)
+    x, y = rng.normal(size=(50, 3)), rng.normal(size=(50, 3))
+    Ts = np.stack([random_T(rng) for _ in range(4)])
+    expected = np.linalg.norm(np.einsum("mij,nj->nmi", Ts[:, :3, :3], x) + Ts[:, :3, 3] - y[:, None], axis=2)
+    assert np.allclose(residuals(x, y, Ts), expected)
+    assert residuals(x, y, np.zeros((0, 4, 4))).shape == (50, 0)
+
+
 def test_clustering_separates_two_instances():
     rng = np.random.default_rng(1)
     src, tgt, _, truth = two_instance_scene(rng)

@@ -36,6 +36,15 @@ class RegistrationResult:
         return np.flatnonzero(self.labels == m)
 
 
+def principal_coordinate(points: np.ndarray) -> np.ndarray:
+    """Each point's coordinate along the points' axis of largest spread, the axis pointing
+    to the farthest point, so that a rigid motion of the points changes nothing."""
+    centred = points - points.mean(0)
+    _, vectors = np.linalg.eigh(centred.T @ centred)
+    coordinate = centred @ vectors[:, -1]
+    return -coordinate if -coordinate.min() > coordinate.max() else coordinate
+
+
 def _as_points(name: str, a) -> np.ndarray:
     a = np.asarray(a, dtype=np.float64)
     if a.ndim != 2 or a.shape[1] != 3:
@@ -70,6 +79,10 @@ class ECC:
         labels = self.refine(xs, ys, labels)
         if len(sample) < n:
             labels = self.upsample(xs, ys, labels, x, y)
+        else:  # the sample is every row, in another order
+            labels_all = np.empty(n, dtype=np.int64)
+            labels_all[sample] = labels
+            labels = labels_all
         T, labels_valid, counts, scores = self.select(x, y, labels)
         t4 = time.perf_counter()
         timings.update(sampling=(t1 - t0) * 1e3, compatibility=(t2 - t1) * 1e3,
@@ -80,12 +93,16 @@ class ECC:
 
     # -- stages ---------------------------------------------------------------------------
     def sample(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """Indices of the correspondences to cluster: all, or a seeded sample of them."""
+        """Indices of the correspondences to cluster (all, or a seeded sample of them), in
+        spatial order: along the targets' principal axis, so that compatible pairs, which
+        are close in space, lie near the diagonal of G and the clustering's sparse product
+        skips the rest. The order changes no result but ties (broken by index)."""
         cfg = self.config
-        return choose_sample(len(x), cfg.max_correspondences, cfg.sampling,
-                             np.random.default_rng(cfg.seed), x, y,
-                             radius=cfg.spatial_sigma, tolerance=cfg.sampling_tolerance,
-                             exponent=cfg.sampling_exponent)
+        sample = choose_sample(len(x), cfg.max_correspondences, cfg.sampling,
+                               np.random.default_rng(cfg.seed), x, y,
+                               radius=cfg.spatial_sigma, tolerance=cfg.sampling_tolerance,
+                               exponent=cfg.sampling_exponent)
+        return sample[np.lexsort((principal_coordinate(x[sample]), principal_coordinate(y[sample])))]
 
     def refine(self, x: np.ndarray, y: np.ndarray, labels: np.ndarray) -> np.ndarray:
         """Fit, merge duplicates, re-assign; repeat until the partition stops changing."""
