@@ -14,6 +14,10 @@ time, through the libraries' own ``*_set_num_threads`` entry points (as threadpo
 from __future__ import annotations
 
 import ctypes
+import os
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
 
 _SETTERS = ("openblas_set_num_threads", "scipy_openblas_set_num_threads64_", "scipy_openblas_set_num_threads",
             "openblas_set_num_threads64_")
@@ -45,3 +49,21 @@ def limit_blas_threads(count: int = 1) -> int:
                 done += 1
                 break
     return done
+
+
+_POOL: ThreadPoolExecutor | None = None
+
+
+def map_in_chunks(function, rows: np.ndarray, min_chunk: int = 256) -> list:
+    """``function`` applied to consecutive chunks of ``rows``, one per core, in a shared
+    thread pool; the results in order. For calls that release the GIL and use one core
+    (OpenCV's FLANN search): on 2 cores, half the time."""
+    global _POOL
+    cores = os.cpu_count() or 1
+    parts = int(min(cores, max(1, len(rows) // min_chunk)))
+    if parts <= 1:
+        return [function(rows)]
+    if _POOL is None:
+        _POOL = ThreadPoolExecutor(cores, thread_name_prefix="mireg")
+    bounds = np.linspace(0, len(rows), parts + 1).astype(int)
+    return list(_POOL.map(function, [rows[a:b] for a, b in zip(bounds[:-1], bounds[1:])]))

@@ -102,12 +102,20 @@ def test_matchers_agree_and_flann_is_deterministic(method):
     model_desc = prepare_descriptors(rng.random((800, 128)).astype(np.float32))
     model_xyz = rng.uniform(-0.1, 0.1, (800, 3))
     scene = prepare_descriptors(np.vstack([model_desc[:300] + rng.normal(0, 0.01, (300, 128)).astype(np.float32),
-                                           rng.random((200, 128)).astype(np.float32)]))
+                                           rng.random((300, 128)).astype(np.float32)]))  # 2 search threads
     runs = [DescriptorMatcher(model_desc, model_xyz, method=method).match(scene) for _ in range(2)]
     np.testing.assert_array_equal(runs[0][0], runs[1][0])
     s, m, _ = runs[0]
     assert len(set(range(300)) - set(s.tolist())) < 5
     assert np.mean(m[s < 300] == s[s < 300]) > 0.99
+
+
+def test_work_split_over_threads_comes_back_in_order():
+    from multi_instance_reg.threads import map_in_chunks
+    rows = np.arange(1000)
+    parts = map_in_chunks(lambda chunk: chunk * 2, rows, min_chunk=100)
+    assert len(parts) >= 1 and np.array_equal(np.concatenate(parts), rows * 2)
+    assert len(map_in_chunks(lambda chunk: chunk, rows[:50], min_chunk=100)) == 1
 
 
 # --------------------------------------------------------------------------- on rendered frames

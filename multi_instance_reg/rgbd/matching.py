@@ -12,6 +12,8 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..threads import map_in_chunks
+
 MATCHERS = ("flann", "brute_force")
 
 
@@ -94,8 +96,10 @@ class DescriptorMatcher:
     def _match_knn(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The same test on the approximate k nearest neighbours; when all of them are the
         best one's physical point, the match is unambiguous."""
-        idx, d2 = self._flann.knnSearch(q, self.neighbours, params={"checks": self.flann_checks})
-        idx = idx.astype(np.int64)
+        parts = map_in_chunks(lambda rows: self._flann.knnSearch(rows, self.neighbours,
+                                                                 params={"checks": self.flann_checks}), q)
+        idx = np.concatenate([p[0] for p in parts]).astype(np.int64)
+        d2 = np.concatenate([p[1] for p in parts])
         dist = np.sqrt(np.maximum(d2, 0.0))          # FLANN's L2 gives squared distances
         best = idx[:, 0]
         gap = np.linalg.norm(self.xyz[idx[:, 1:]] - self.xyz[best][:, None, :], axis=2)
