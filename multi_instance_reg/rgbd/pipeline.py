@@ -162,24 +162,24 @@ class InstanceRegistration:
         if fe.remove_planes > 0:
             self._planes = support_planes(depth_m, intrinsics, fe.remove_planes, fe.plane_thresh, fe.plane_min_share)
         if self._planes:
-            rays = self._pixel_rays(intrinsics)                     # (H, W, 3), z = 1
+            u, v = self._pixel_rays(intrinsics)
             for n, d in self._planes:
-                valid &= (rays @ n) * depth_m + d > fe.plane_thresh
+                # n . (u, v, 1) z + d, the ray's dot product separable into a row and a column.
+                along = (np.float32(n[0]) * u)[None, :] + (np.float32(n[1]) * v + np.float32(n[2]))[:, None]
+                valid &= along * depth_m + np.float32(d) > fe.plane_thresh
         r = max(fe.depth_window // 2, 1)
         return cv2.dilate(valid.astype(np.uint8), np.ones((2 * r + 1, 2 * r + 1), np.uint8))
 
-    def _pixel_rays(self, intrinsics: CameraIntrinsics) -> np.ndarray:
-        """Viewing ray (z = 1) of every pixel, cached per camera (distortion ignored: it only
-        shapes the search mask, the keypoints themselves are undistorted)."""
+    def _pixel_rays(self, intrinsics: CameraIntrinsics) -> tuple[np.ndarray, np.ndarray]:
+        """Viewing rays (u, v, 1) of the pixels as (W,) u and (H,) v float32, cached per
+        camera (distortion ignored: it only shapes the search mask, the keypoints themselves
+        are undistorted)."""
         key = (intrinsics.width, intrinsics.height, tuple(np.asarray(intrinsics.K).ravel()))
         if self._rays_key != key:
             K = intrinsics.K
-            u = (np.arange(intrinsics.width) - K[0, 2]) / K[0, 0]
-            v = (np.arange(intrinsics.height) - K[1, 2]) / K[1, 1]
-            rays = np.ones((intrinsics.height, intrinsics.width, 3), np.float32)
-            rays[:, :, 0] = u[None, :]
-            rays[:, :, 1] = v[:, None]
-            self._rays, self._rays_key = rays, key
+            u = ((np.arange(intrinsics.width) - K[0, 2]) / K[0, 0]).astype(np.float32)
+            v = ((np.arange(intrinsics.height) - K[1, 2]) / K[1, 1]).astype(np.float32)
+            self._rays, self._rays_key = (u, v), key
         return self._rays
 
     def warm_up(self) -> None:
