@@ -359,18 +359,20 @@ def cluster_compatibility_vectors(G: np.ndarray, min_dist_thresh: float = 0.2,
     if n == 0:
         return np.zeros(0, dtype=np.int64)
     G = np.ascontiguousarray(G, dtype=np.float32)
-    indptr, indices, values, row_end = _to_rows(G)
-    if _SPARSE_PRODUCT_COST * _sparse_product_work(indptr, indices, row_end) < float(n) ** 3:
-        S = _sparse_gram(G, indptr, indices, values, row_end)
-    else:
-        S = G @ G  # G is symmetric: all row dot products in one GEMM
-    if len(values) > _DENSE_ROWS_ABOVE * n * n:
-        # Full rows need no column indices: the rows of a copy of G are used as they are.
+    if np.count_nonzero(G) > _DENSE_ROWS_ABOVE * n * n:
+        # Dense: one GEMM (the sparse product cannot win here), and full rows need no
+        # column indices: the rows of a copy of G are used as they are.
+        S = G @ G  # G is symmetric: all row dot products at once
         indptr = np.arange(0, n * n + 1, n, dtype=np.int64)
         indices = np.zeros(0, dtype=np.int32)
         values = G.reshape(-1).copy()
         dense = True
     else:
+        indptr, indices, values, row_end = _to_rows(G)
+        if _SPARSE_PRODUCT_COST * _sparse_product_work(indptr, indices, row_end) < float(n) ** 3:
+            S = _sparse_gram(G, indptr, indices, values, row_end)
+        else:
+            S = G @ G
         dense = False
     stats = np.zeros(4, dtype=np.int64) if stats is None else stats
     return _agglomerate(G, indptr, indices, values, S, float(min_dist_thresh), dense, stats)
