@@ -36,3 +36,5 @@ def test_colcon_build_installs_the_ros_layout(tmp_path):
     assert sorted(p.name for p in (share / "launch").glob("*.py")) == sorted(p.name for p in (ROOT / "launch").glob("*.py"))
     # `ros2 run multi_instance_reg <exe>` looks in lib/<package>.
     assert (install / "lib" / "multi_instance_reg" / "mireg").exists()
+    # The Fast DDS profile travels with the Python package (ros/transport.py finds it there).
+    assert list(install.glob("lib/python*/site-packages/multi_instance_reg/ros/fastdds_large_data.xml"))

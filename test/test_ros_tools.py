@@ -36,3 +36,15 @@ def test_demo_runs_end_to_end_and_leaves_overlays_and_a_summary(tmp_path):
     assert "MHF1" in done.stdout and "mean latency" in done.stdout and "frames dropped" in done.stdout
     for log in ("node.log", "listen.log", "play.log"):
         assert (out / log).stat().st_size > 0
+
+
+def test_large_data_profile_is_used_unless_the_user_chose_one():
+    from multi_instance_reg.ros.transport import PROFILE, use_large_data_profile
+
+    assert PROFILE.is_file() and "<segment_size>" in PROFILE.read_text()
+    env = {}
+    assert use_large_data_profile(env) and env["FASTRTPS_DEFAULT_PROFILES_FILE"] == str(PROFILE)
+    own = {"FASTRTPS_DEFAULT_PROFILES_FILE": "/etc/mine.xml"}
+    assert not use_large_data_profile(own) and own["FASTRTPS_DEFAULT_PROFILES_FILE"] == "/etc/mine.xml"
+    other = {"RMW_IMPLEMENTATION": "rmw_cyclonedds_cpp"}
+    assert not use_large_data_profile(other) and "FASTRTPS_DEFAULT_PROFILES_FILE" not in other

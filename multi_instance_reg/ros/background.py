@@ -14,7 +14,10 @@ class BackgroundNode:
         from rclpy.context import Context
         from rclpy.executors import SingleThreadedExecutor
 
+        from .transport import use_large_data_profile
+
         os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+        use_large_data_profile()
         self.context = Context()
         rclpy.init(context=self.context, domain_id=domain_id)
         self.node = rclpy.create_node(name, context=self.context)

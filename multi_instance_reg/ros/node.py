@@ -44,6 +44,7 @@ from ..params import param_specs, with_overrides
 from . import conversions
 from .parameters import READ_ONLY, NodeSettings, check_parameters, declare, node_settings, node_specs
 from .sync import ApproximateTimeSync, LatestSlot, stamp_to_ns
+from .transport import use_large_data_profile
 
 NODE_NAME = "instance_registration"
 COLOUR_TOPIC = "/camera/camera/color/image_raw"
@@ -285,6 +286,7 @@ class InstanceRegistrationNode(Node):
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv if argv is None else argv
+    use_large_data_profile()
     try:
         rclpy.init(args=argv)
     except Exception as exc:  # rcl's own error for malformed --ros-args, with a C backtrace

@@ -220,6 +220,9 @@ def run(args) -> int:
     from std_msgs.msg import String
 
     listener = Listener(truth, args.quiet, args.save_overlays, args.overlay_every, model)
+    from ..ros.transport import use_large_data_profile
+
+    use_large_data_profile()   # images through shared memory (ros/transport.py)
     rclpy.init()
     node = rclpy.create_node("mireg_listen")
     qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50, reliability=ReliabilityPolicy.RELIABLE)

@@ -72,6 +72,9 @@ def _play(reader, args) -> int:
         raise InputError(f"bag {args.bag} has no messages to play")
     types = {c.topic: message_class(c.msgtype) for c in connections}
 
+    from ..ros.transport import use_large_data_profile
+
+    use_large_data_profile()   # images through shared memory (ros/transport.py)
     rclpy.init()
     node = rclpy.create_node("mireg_play")
     try:

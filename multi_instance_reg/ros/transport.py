@@ -1,0 +1,35 @@
+"""The DDS transport for camera-sized messages.
+
+Fast DDS's default shared-memory segment (512 KiB) is smaller than one 640x480 colour image,
+so images travel as UDP fragments instead (measured here: publish -> callback p50 14 ms for
+640x480 rgb8, 3 ms through a large enough segment). ``fastdds_large_data.xml`` gives the
+shared-memory transport a 64 MiB segment. Every ROS process of this package uses it unless the
+user chose a profile of their own; the camera driver needs it too, since the sender's segment
+is the one that carries a sample:
+
+    export FASTRTPS_DEFAULT_PROFILES_FILE=$(python -m multi_instance_reg.ros.transport)
+
+Run as a module, this prints the profile's path.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+PROFILE = Path(__file__).with_name("fastdds_large_data.xml")
+_PROFILE_VARIABLES = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE")
+
+
+def use_large_data_profile(environ=os.environ) -> bool:
+    """Point Fast DDS at the large-data profile unless a profile is already chosen (or another
+    middleware is). Call before rclpy.init; returns whether it was set."""
+    if any(environ.get(v) for v in _PROFILE_VARIABLES):
+        return False
+    if environ.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp") not in ("rmw_fastrtps_cpp", "rmw_fastrtps_dynamic_cpp"):
+        return False
+    environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(PROFILE)
+    return True
+
+
+if __name__ == "__main__":
+    print(PROFILE)
