@@ -130,3 +130,36 @@ def test_looping_streams_that_drift_apart_lose_only_the_pairs_at_the_wrap():
     pairs = [p for p in out if p is not None]
     assert all(c[1] == d[1] for c, d in pairs)  # never a pair from different laps
     assert len(pairs) >= 18 - 2 * 2
+
+
+def _feed(slot, items, period):
+    for item in items:
+        slot.put(item)
+        time.sleep(period)
+
+
+def test_latest_slot_waits_for_the_next_item_when_the_waiting_one_is_old():
+    slot = LatestSlot()
+    period = 0.1
+    _feed(slot, range(4), period)            # learns the interval; item 3 has waited ~1 period
+    feeder = threading.Thread(target=lambda: (time.sleep(0.01), slot.put(4)))
+    feeder.start()
+    assert slot.take(timeout=1, fresher=True) == 4   # the next one, not the stale 3
+    feeder.join()
+    assert slot.replaced == 4
+    # A fresh item is taken at once; without fresher, an old one too.
+    slot.put(5)
+    t0 = time.monotonic()
+    assert slot.take(timeout=1, fresher=True) == 5 and time.monotonic() - t0 < period / 2
+    slot.put(6)
+    time.sleep(period)
+    assert slot.take(timeout=1) == 6
+
+
+def test_latest_slot_gives_up_waiting_when_no_newer_item_comes():
+    slot = LatestSlot()
+    period = 0.1
+    _feed(slot, range(4), period)
+    t0 = time.monotonic()
+    assert slot.take(timeout=1, fresher=True) == 3        # waited until 1.25 intervals, then took it
+    assert 0.1 * period < time.monotonic() - t0 < 0.5

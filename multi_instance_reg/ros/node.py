@@ -180,7 +180,7 @@ class InstanceRegistrationNode(Node):
     # ---- the worker -------------------------------------------------------------------
     def _work(self, pipeline) -> None:
         while not self._slot.closed:
-            pair = self._slot.take(timeout=0.5)
+            pair = self._slot.take(timeout=0.5, fresher=self.settings.wait_for_fresher)
             if pair is not None:
                 self._process(pair, pipeline)
 

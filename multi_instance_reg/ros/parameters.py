@@ -31,6 +31,8 @@ class NodeSettings:
     qos_depth: int = param(10, "subscription and publisher queue depth (read-only)", 1, 1000)
     pipeline_processes: int = param(1, "pipeline processes taking frames in turn (read-only); a second one shortens the wait "
                                        "for a busy pipeline when a core is free for it", 1, 8)
+    wait_for_fresher: bool = param(True, "when the newest frame has waited more than half a frame interval for the busy pipeline, "
+                                         "take the next one (due sooner) instead: at 30 Hz ~13 ms less latency for ~4 % fewer frames processed")
     depth_scale: float = param(0.001, "metres per unit of a 16UC1 depth image (realsense-ros: 0.001, millimetres)", 1e-6, 1.0)
     publish_debug_image: bool = param(False, "draw and publish the debug image on every frame even with no subscriber "
                                              "(it is drawn whenever someone subscribes)")

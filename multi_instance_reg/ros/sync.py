@@ -9,7 +9,9 @@ and aligned depth carry the same stamp.
 """
 from __future__ import annotations
 
+import statistics
 import threading
+import time
 from collections import deque
 from dataclasses import dataclass
 from typing import Any
@@ -115,32 +117,59 @@ class LatestSlot:
 
     This is what keeps latency from queueing up: when frames arrive faster than they are
     processed, the worker always gets the newest one and the replaced ones are counted.
+
+    ``take(fresher=True)`` also avoids starting on a frame that has already waited more than
+    half the interval between frames: the next one is then due sooner than this one is old,
+    so it waits for that one (up to 1.25 intervals after the last arrival, then takes what
+    is there). With the pipeline slower than the camera the worker frees up at a random
+    moment, so this cuts the mean wait from half an interval to an eighth (30 Hz: ~17 -> ~4
+    ms) for about 1/8 interval of idle time per frame processed.
     """
+
+    PERIOD_SAMPLES = 15  # arrival intervals whose median is the frame interval
 
     def __init__(self):
         self._cond = threading.Condition()
         self._item = None
         self._has_item = False
         self._closed = False
+        self._put_at = None                                  # time.monotonic() of the last put
+        self._intervals = deque(maxlen=self.PERIOD_SAMPLES)
         self.replaced = 0
 
     def put(self, item) -> bool:
         """Store ``item``; True if it replaced one that was never taken."""
         with self._cond:
+            now = time.monotonic()
+            if self._put_at is not None:
+                self._intervals.append(now - self._put_at)
+            self._put_at = now
             replaced = self._has_item
             if replaced:
                 self.replaced += 1
             self._item, self._has_item = item, True
-            self._cond.notify()
+            self._cond.notify_all()
             return replaced
 
-    def take(self, timeout: float | None = None):
-        """The waiting item (and empties the slot), or None on timeout or close."""
+    def take(self, timeout: float | None = None, fresher: bool = False):
+        """The waiting item (and empties the slot), or None on timeout or close; with
+        ``fresher``, the next item instead when it is due sooner than this one is old."""
         with self._cond:
             if not self._has_item and not self._closed:
                 self._cond.wait(timeout)
             if not self._has_item:
                 return None
+            if fresher and len(self._intervals) >= 3:
+                period = statistics.median(self._intervals)
+                waited_for = self._put_at
+                deadline = waited_for + 1.25 * period
+                if time.monotonic() - waited_for > 0.5 * period:
+                    while self._put_at == waited_for and not self._closed:
+                        left = deadline - time.monotonic()
+                        if left <= 0 or not self._cond.wait(left):
+                            break
+                if not self._has_item:  # another worker took it meanwhile
+                    return None
             item, self._item, self._has_item = self._item, None, False
             return item
 
