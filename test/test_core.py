@@ -100,7 +100,8 @@ def test_sparse_and_dense_products_give_the_same_clusters(seed, monkeypatch):
     s = make_sized_scene(np.random.default_rng(seed), 600, 0.6, 5)
     order = np.argsort(s.tgt[:, 0])  # spatial order, as ECC.sample gives it
     G = compatibility_matrix(s.src[order], s.tgt[order], 2.0)
-    indptr, indices, values, row_end = clustering._to_rows(G)
+    counts, row_end = clustering._row_counts(G)
+    indptr, indices, values = clustering._to_rows(G, counts)
     S = clustering._sparse_gram(G, indptr, indices, values, row_end)
     assert np.allclose(S, G.astype(np.float64) @ G, rtol=1e-4, atol=1e-4)
     labels = {}

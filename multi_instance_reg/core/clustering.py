@@ -98,30 +98,42 @@ def _grow(arr, cap):
     return out
 
 
-@numba.njit(cache=True)
-def _to_rows(G):
-    """Row-wise sparse form (CSR) of a dense matrix: indptr, column indices, values, and
-    each row's end (one past its last non-zero column)."""
+@numba.njit(cache=True, parallel=True)
+def _row_counts(G):
+    """Per row: the number of non-zeros and the end (one past the last non-zero column)."""
+    n = G.shape[0]
+    counts = np.zeros(n, dtype=np.int64)
+    row_end = np.zeros(n, dtype=np.int64)
+    for i in numba.prange(n):
+        row = G[i]
+        c = 0
+        end = 0
+        for j in range(n):
+            if row[j] > 0.0:
+                c += 1
+                end = j + 1
+        counts[i] = c
+        row_end[i] = end
+    return counts, row_end
+
+
+@numba.njit(cache=True, parallel=True)
+def _to_rows(G, counts):
+    """Row-wise sparse form (CSR) of a dense matrix: indptr, column indices, values."""
     n = G.shape[0]
     indptr = np.zeros(n + 1, dtype=np.int64)
-    row_end = np.zeros(n, dtype=np.int64)
-    for i in range(n):
-        c = 0
-        for j in range(n):
-            if G[i, j] > 0.0:
-                c += 1
-                row_end[i] = j + 1
-        indptr[i + 1] = indptr[i] + c
+    indptr[1:] = np.cumsum(counts)
     indices = np.empty(indptr[n], dtype=np.int32)
     values = np.empty(indptr[n], dtype=np.float32)
-    for i in range(n):
+    for i in numba.prange(n):
+        row = G[i]
         p = indptr[i]
         for j in range(n):
-            if G[i, j] > 0.0:
+            if row[j] > 0.0:
                 indices[p] = j
-                values[p] = G[i, j]
+                values[p] = row[j]
                 p += 1
-    return indptr, indices, values, row_end
+    return indptr, indices, values
 
 
 @numba.njit(cache=True)
@@ -145,28 +157,38 @@ def _mirror_upper(S):
                     S[i, j] = S[j, i]
 
 
-@numba.njit(cache=True, parallel=True, fastmath=True)
+@numba.njit(cache=True, fastmath=True)
+def _gram_row(G, indptr, indices, values, row_end, S, i):
+    """Row i of S = G G from column i on: G[i, c] * G[c, i:row_end[c]] summed over the
+    non-zeros c of row i."""
+    n = G.shape[0]
+    acc = np.zeros(n - i, dtype=np.float32)
+    for p in range(indptr[i], indptr[i + 1]):
+        c = indices[p]
+        length = row_end[c] - i
+        if length <= 0:
+            continue
+        g = values[p]
+        # Slices starting at 0: the loop index is provably non-negative, so numba needs
+        # no wrap-around check and the loop vectorises.
+        dst = acc[:length]
+        src = G[c, i:i + length]
+        for k in range(length):
+            dst[k] += g * src[k]
+    S[i, i:] = acc
+
+
+@numba.njit(cache=True, parallel=True)
 def _sparse_gram(G, indptr, indices, values, row_end):
-    """S = G G for a sparse symmetric G: row i of the upper triangle accumulates
-    G[i, c] * G[c, i:row_end[c]] over the non-zeros c of row i, then it is mirrored.
+    """S = G G for a sparse symmetric G: the upper triangle row by row, then mirrored.
     Correspondences sorted along space keep row_end close to the diagonal."""
     n = G.shape[0]
     S = np.empty((n, n), dtype=np.float32)
-    for i in numba.prange(n):
-        acc = np.zeros(n - i, dtype=np.float32)
-        for p in range(indptr[i], indptr[i + 1]):
-            c = indices[p]
-            length = row_end[c] - i
-            if length <= 0:
-                continue
-            g = values[p]
-            # Slices starting at 0: the loop index is provably non-negative, so numba
-            # needs no wrap-around check and the loop vectorises.
-            dst = acc[:length]
-            src = G[c, i:i + length]
-            for k in range(length):
-                dst[k] += g * src[k]
-        S[i, i:] = acc
+    # Row i's work shrinks with i: each task takes a row from both ends to stay balanced.
+    for t in numba.prange((n + 1) // 2):
+        _gram_row(G, indptr, indices, values, row_end, S, t)
+        if n - 1 - t != t:
+            _gram_row(G, indptr, indices, values, row_end, S, n - 1 - t)
     _mirror_upper(S)
     return S
 
@@ -359,7 +381,8 @@ def cluster_compatibility_vectors(G: np.ndarray, min_dist_thresh: float = 0.2,
     if n == 0:
         return np.zeros(0, dtype=np.int64)
     G = np.ascontiguousarray(G, dtype=np.float32)
-    if np.count_nonzero(G) > _DENSE_ROWS_ABOVE * n * n:
+    counts, row_end = _row_counts(G)
+    if counts.sum() > _DENSE_ROWS_ABOVE * n * n:
         # Dense: one GEMM (the sparse product cannot win here), and full rows need no
         # column indices: the rows of a copy of G are used as they are.
         S = G @ G  # G is symmetric: all row dot products at once
@@ -368,7 +391,7 @@ def cluster_compatibility_vectors(G: np.ndarray, min_dist_thresh: float = 0.2,
         values = G.reshape(-1).copy()
         dense = True
     else:
-        indptr, indices, values, row_end = _to_rows(G)
+        indptr, indices, values = _to_rows(G, counts)
         if _SPARSE_PRODUCT_COST * _sparse_product_work(indptr, indices, row_end) < float(n) ** 3:
             S = _sparse_gram(G, indptr, indices, values, row_end)
         else:
