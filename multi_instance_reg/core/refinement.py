@@ -5,22 +5,47 @@ import numba
 import numpy as np
 
 
+@numba.njit(cache=True)
+def _cluster_moments(src, tgt, labels, n_clusters):
+    """Per cluster: member count, centroids of src and tgt, and the cross-covariance
+    H = sum (x - mu_x)(y - mu_y)^T (two passes: centred sums stay accurate far from the origin)."""
+    counts = np.zeros(n_clusters)
+    mu_x = np.zeros((n_clusters, 3))
+    mu_y = np.zeros((n_clusters, 3))
+    for i in range(len(labels)):
+        k = labels[i]
+        if k < 0:
+            continue
+        counts[k] += 1.0
+        for a in range(3):
+            mu_x[k, a] += src[i, a]
+            mu_y[k, a] += tgt[i, a]
+    for k in range(n_clusters):
+        if counts[k] > 0:
+            for a in range(3):
+                mu_x[k, a] /= counts[k]
+                mu_y[k, a] /= counts[k]
+    H = np.zeros((n_clusters, 3, 3))
+    for i in range(len(labels)):
+        k = labels[i]
+        if k < 0:
+            continue
+        for a in range(3):
+            xa = src[i, a] - mu_x[k, a]
+            for b in range(3):
+                H[k, a, b] += xa * (tgt[i, b] - mu_y[k, b])
+    return counts, mu_x, mu_y, H
+
+
 def fit_transforms(src: np.ndarray, tgt: np.ndarray, labels: np.ndarray, n_clusters: int) -> np.ndarray:
     """Kabsch fit of every cluster at once: (n_clusters, 4, 4), det(R) = +1.
 
     Clusters with fewer than 3 members still get a proper rotation (the SVD picks one in the
     unconstrained directions); callers decide which sizes they trust.
     """
-    keep = labels >= 0
-    lab, x, y = labels[keep], src[keep], tgt[keep]
-    counts = np.bincount(lab, minlength=n_clusters).astype(np.float64)
-    safe = np.maximum(counts, 1.0)[:, None]
-    mu_x = np.stack([np.bincount(lab, x[:, i], n_clusters) for i in range(3)], 1) / safe
-    mu_y = np.stack([np.bincount(lab, y[:, i], n_clusters) for i in range(3)], 1) / safe
-    xc = x - mu_x[lab]
-    yc = y - mu_y[lab]
-    outer = (xc[:, :, None] * yc[:, None, :]).reshape(-1, 9)
-    H = np.stack([np.bincount(lab, outer[:, i], n_clusters) for i in range(9)], 1).reshape(-1, 3, 3)
+    _, mu_x, mu_y, H = _cluster_moments(np.ascontiguousarray(src, dtype=np.float64),
+                                        np.ascontiguousarray(tgt, dtype=np.float64),
+                                        np.ascontiguousarray(labels, dtype=np.int64), int(n_clusters))
     U, _, Vt = np.linalg.svd(H)
     V = np.transpose(Vt, (0, 2, 1))
     Ut = np.transpose(U, (0, 2, 1))
