@@ -43,8 +43,11 @@ def test_large_data_profile_is_used_unless_the_user_chose_one():
 
     assert PROFILE.is_file() and "<segment_size>" in PROFILE.read_text()
     env = {}
-    assert use_large_data_profile(env) and env["FASTRTPS_DEFAULT_PROFILES_FILE"] == str(PROFILE)
+    assert use_large_data_profile(env, free_shared_memory=2**34)
+    assert env["FASTRTPS_DEFAULT_PROFILES_FILE"] == str(PROFILE)
     own = {"FASTRTPS_DEFAULT_PROFILES_FILE": "/etc/mine.xml"}
     assert not use_large_data_profile(own) and own["FASTRTPS_DEFAULT_PROFILES_FILE"] == "/etc/mine.xml"
     other = {"RMW_IMPLEMENTATION": "rmw_cyclonedds_cpp"}
     assert not use_large_data_profile(other) and "FASTRTPS_DEFAULT_PROFILES_FILE" not in other
+    small_shm = {}
+    assert not use_large_data_profile(small_shm, free_shared_memory=64 * 2**20) and not small_shm
