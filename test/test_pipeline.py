@@ -217,3 +217,17 @@ def test_blas_thread_limit_reaches_the_loaded_libraries():
     libs = loaded_openblas_libraries()
     assert libs, "numpy's OpenBLAS should be mapped into the process"
     assert limit_blas_threads(1) == len(libs)
+
+
+def test_box_overlaps_of_instances():
+    from multi_instance_reg.rgbd.pipeline import box_grid, box_overlaps
+
+    class Model:
+        extent = np.array([0.2, 0.1, 0.05])
+    same, shifted, far = np.eye(4), np.eye(4), np.eye(4)
+    shifted[0, 3] = 0.1      # half a box length along x
+    far[0, 3] = 1.0
+    O = box_overlaps(Model, [same, shifted, far], box_grid(Model.extent))
+    assert O.shape == (3, 3) and np.allclose(np.diag(O), 1.0)
+    assert 0.3 < O[0, 1] < 0.7 and O[0, 2] == 0.0 and O[2, 0] == 0.0
+    assert box_overlaps(Model, [], box_grid(Model.extent)).shape == (0, 0)

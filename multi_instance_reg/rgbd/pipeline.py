@@ -266,6 +266,7 @@ class InstanceRegistration:
         thresh = ecc.inlier_thresh
         fe = self.config.frontend
         kept = list(range(len(transforms)))
+        overlap = box_overlaps(self.model, transforms, self._box_grid)
         while True:
             labels, res = assign_nearest(src, tgt, [transforms[k] for k in kept], thresh)
             counts = np.bincount(labels[labels >= 0], minlength=len(kept))
@@ -276,8 +277,7 @@ class InstanceRegistration:
             # ... or in the space of a stronger instance.
             survivors = []
             for k in order:
-                if all(box_overlap(self.model, transforms[k], transforms[j], self._box_grid) <= fe.max_overlap
-                       for j in survivors):
+                if all(overlap[k, j] <= fe.max_overlap for j in survivors):
                     survivors.append(k)
             if survivors == kept:
                 break
@@ -350,13 +350,19 @@ def assign_nearest(src, tgt, transforms, thresh) -> tuple[np.ndarray, np.ndarray
     return np.where(r < thresh, best, -1).astype(np.int64), r
 
 
-def box_overlap(model: ObjectModel, T_a: np.ndarray, T_b: np.ndarray, grid: np.ndarray) -> float:
-    """Share of instance b's box volume (``grid``: points inside the model's box, model frame)
-    that lies inside instance a's box: near 0 for touching or stacked instances, large for two
-    fits to one physical object."""
-    inside_a = apply_transform(np.linalg.inv(T_a) @ T_b, grid)
+def box_overlaps(model: ObjectModel, transforms, grid: np.ndarray) -> np.ndarray:
+    """(M, M): entry [a, b] is the share of instance b's box volume (``grid``: points inside
+    the model's box, model frame) that lies inside instance a's box: near 0 for touching or
+    stacked instances, large for two fits to one physical object."""
+    T = np.asarray(transforms, dtype=np.float64).reshape(-1, 4, 4)
+    if len(T) == 0 or len(grid) == 0:
+        return np.zeros((len(T), len(T)))
+    # b's grid in the camera frame, then in every a's model frame: (a, b, point, xyz).
+    in_camera = np.einsum("bij,pj->bpi", T[:, :3, :3], grid) + T[:, None, :3, 3]
+    T_inv = np.linalg.inv(T)
+    in_a = np.einsum("aij,bpj->abpi", T_inv[:, :3, :3], in_camera) + T_inv[:, None, None, :3, 3]
     half = np.asarray(model.extent, dtype=np.float64) / 2.0
-    return float(np.mean(np.all(np.abs(inside_a) <= half, axis=1))) if len(grid) else 0.0
+    return np.all(np.abs(in_a) <= half, axis=3).mean(axis=2)
 
 
 def box_grid(extent, steps: int = 5, fill: float = 0.8) -> np.ndarray:
@@ -382,4 +388,4 @@ def refine_transform(T: np.ndarray, src: np.ndarray, tgt: np.ndarray, thresh: fl
 
 
 __all__ = ["FrontEndConfig", "PipelineConfig", "Instance", "FrameResult", "InstanceRegistration",
-           "check_frame", "refine_transform", "recover_small_instances", "assign_nearest", "box_overlap", "box_grid", "STAGES"]
+           "check_frame", "refine_transform", "recover_small_instances", "assign_nearest", "box_overlaps", "box_grid", "STAGES"]
