@@ -12,8 +12,10 @@ merge, O(N^3) in all. This implementation makes the same merges with far less wo
 - for a merged group m = min(p, q) and any group r, <m, r> <= min(<p, r>, <q, r>) because all
   entries are non-negative; that bound rules out almost every pair, and the exact dot
   product is computed only for pairs that could still merge;
-- candidate pairs wait in a heap; entries of groups that changed since are skipped, so
-  nothing is ever rescanned. Ties break by index, so results are deterministic;
+- candidate pairs wait in per-group lists sorted by distance, and a heap holds each group's
+  best one: a pop per merge rather than per pair. Entries whose partner changed since the
+  list was built are skipped, so nothing is ever rescanned. Ties break by index, so results
+  are deterministic;
 - vectors are stored sparsely (the spatial weight zeroes most of G), and a merged vector's
   support is the intersection of its parts', so it only ever shrinks.
 """
@@ -39,10 +41,10 @@ def _tanimoto_distance(dot, sq_a, sq_b):
     return 1.0 - dot / denom
 
 
-# The merge queue: a 4-ary min-heap of int64 items packing (distance, entry): the distance,
-# in [0, 1], as a fixed-point number in the high bits (steps of 1e-9), the entry index in
-# the low bits, which also breaks ties deterministically. One array and 4 children per
-# level cut the time per pop to a third of a binary heap of (key, value) pairs.
+# The merge queue: a 4-ary min-heap of int64 items packing (distance, index): the distance,
+# in [0, 1], as a fixed-point number in the high bits (steps of 1e-9), a group or partner
+# index in the low bits, which also breaks ties deterministically. One array and 4 children
+# per level cut the time per pop to a third of a binary heap of (key, value) pairs.
 @numba.njit(cache=True)
 def _pack(distance, entry):
     return (np.int64(distance * 1073741824.0) << 32) | entry
@@ -83,12 +85,12 @@ def _sift_down(heap, size, i):
 
 @numba.njit(cache=True)
 def _heap_pop(heap, size):
-    entry = heap[0] & 0xFFFFFFFF
+    item = heap[0]
     size -= 1
     if size > 0:
         heap[0] = heap[size]
         _sift_down(heap, size, 0)
-    return entry, size
+    return item, size
 
 
 @numba.njit(cache=True)
@@ -212,6 +214,12 @@ def _dot_with_row(dense, indices, values, start, length, n):
 
 
 @numba.njit(cache=True)
+def _row_heap_push(heap, size, item, queued, row):
+    queued[row] = item
+    return _heap_push(heap, size, item)
+
+
+@numba.njit(cache=True)
 def _agglomerate(G, indptr, indices, values, S, max_dist, dense, stats):
     n = S.shape[0]
     # Row i's current entries are indices/values[indptr[i] : indptr[i] + rowlen[i]].
@@ -221,7 +229,6 @@ def _agglomerate(G, indptr, indices, values, S, max_dist, dense, stats):
         rowlen[i] = indptr[i + 1] - indptr[i]
         sq[i] = S[i, i]
     active = np.ones(n, dtype=np.bool_)
-    version = np.zeros(n, dtype=np.int64)
     parent = np.arange(n)
     candidate = np.zeros(n, dtype=np.bool_)
     pristine = np.ones(n, dtype=np.bool_)     # group still a single row of G, unmerged
@@ -232,10 +239,18 @@ def _agglomerate(G, indptr, indices, values, S, max_dist, dense, stats):
     t = 1.0 - max_dist
     merge_ratio = t / (1.0 + t) * (1.0 - 1e-6)
 
-    # Heap entries: the initial candidate pairs (counted first, so the hot loops never
-    # reallocate) plus room for merges; storage grows by doubling between merges.
+    # Candidate pairs live in per-group lists sorted by distance: keys _pack(d, partner) in
+    # pool[start[g]:stop[g]], the next unread at head[g]. A group's list is rebuilt whenever
+    # it changes; an entry is stale once its partner changed after the list was built
+    # (changed_at[k] >= built_at[g]) or left. A heap holds one item per group, keyed by the
+    # distance of its head: pops are per merge, not per candidate pair.
     # Loops run over slices indexed from 0 throughout: numba then knows the index is not
     # negative, drops its wrap-around check and vectorises (3x faster here).
+    start = np.zeros(n, dtype=np.int64)
+    stop = np.zeros(n, dtype=np.int64)
+    head = np.zeros(n, dtype=np.int64)
+    built_at = np.zeros(n, dtype=np.int64)
+    changed_at = -np.ones(n, dtype=np.int64)
     n_initial = 0
     for i in range(n - 1):
         row = S[i, i + 1:]
@@ -243,45 +258,62 @@ def _agglomerate(G, indptr, indices, values, S, max_dist, dense, stats):
         for k in range(n - 1 - i):
             n_initial += row[k] >= merge_ratio * (sq[i] + sq_rest[k])
     cap = n_initial + 4 * n + 16
-    ea = np.empty(cap, dtype=np.int64)
-    eb = np.empty(cap, dtype=np.int64)
-    eva = np.zeros(cap, dtype=np.int64)
-    evb = np.zeros(cap, dtype=np.int64)
-    heap = np.empty(cap, dtype=np.int64)
-    n_entries = 0
+    pool = np.empty(cap, dtype=np.int64)
+    used = 0
     for i in range(n - 1):
         row = S[i, i + 1:]
         sq_rest = sq[i + 1:]
+        start[i] = used
         for k in range(n - 1 - i):
             if row[k] < merge_ratio * (sq[i] + sq_rest[k]):
                 continue
             d = _tanimoto_distance(row[k], sq[i], sq_rest[k])
             if d <= max_dist:
-                heap[n_entries] = _pack(d, n_entries)
-                ea[n_entries] = i
-                eb[n_entries] = i + 1 + k
-                n_entries += 1
-    size = n_entries
-    for i in range((size - 2) // 4, -1, -1):
-        _sift_down(heap, size, i)
-    stats[0] = n_entries
+                pool[used] = _pack(d, i + 1 + k)
+                used += 1
+        stop[i] = used
+        head[i] = start[i]
+        pool[start[i]:used] = np.sort(pool[start[i]:used])
+    start[n - 1] = stop[n - 1] = head[n - 1] = used
+    stats[0] = used
+    heap = np.empty(2 * n + 16, dtype=np.int64)  # at most one live item per group, plus outdated ones
+    queued = -np.ones(n, dtype=np.int64)      # the one live heap item of each group
+    size = 0
+    for i in range(n):
+        if head[i] < stop[i]:
+            size = _row_heap_push(heap, size, ((pool[head[i]] >> 32) << 32) | i, queued, i)
+    merges = 0
 
     while size > 0:
-        e, size = _heap_pop(heap, size)
-        a = ea[e]
-        b = eb[e]
-        if not (active[a] and active[b] and version[a] == eva[e] and version[b] == evb[e]):
+        item, size = _heap_pop(heap, size)
+        r = item & 0xFFFFFFFF
+        if not active[r] or queued[r] != item:
             continue
+        queued[r] = -1
+        # Skip the stale entries at the head of r's list.
+        h = head[r]
+        while h < stop[r]:
+            k = pool[h] & 0xFFFFFFFF
+            if active[k] and changed_at[k] < built_at[r]:
+                break
+            h += 1
+        head[r] = h
+        if h == stop[r]:
+            continue
+        if (pool[h] >> 32) != (item >> 32):
+            # Its best pair is now a worse one: requeue, something else may come first.
+            size = _row_heap_push(heap, size, ((pool[h] >> 32) << 32) | r, queued, r)
+            continue
+        k = pool[h] & 0xFFFFFFFF
+        a = min(r, k)
+        b = max(r, k)
         stats[1] += 1
-        # Room for every push this merge can make, reserved here and not inside the loops
+        merges += 1
+        # Room for every entry this merge can add, reserved here and not inside the loops
         # below: reassigning arrays there makes numba refcount them on every iteration.
-        if n_entries + n > cap:
-            cap = 2 * (n_entries + n)
-            ea = _grow(ea, cap)
-            eb = _grow(eb, cap)
-            eva = _grow(eva, cap)
-            evb = _grow(evb, cap)
-            heap = _grow(heap, cap)
+        if used + n > cap:
+            cap = 2 * (used + n)
+            pool = _grow(pool, cap)
         # Merge b into a: element-wise minimum, on the intersection of the supports.
         pa, pb = indptr[a], indptr[b]
         va = values[pa:pa + rowlen[a]]
@@ -318,7 +350,7 @@ def _agglomerate(G, indptr, indices, values, S, max_dist, dense, stats):
         pristine[a] = False
         active[b] = False
         parent[b] = a
-        version[a] += 1
+        changed_at[a] = merges
         # New dot products of a: the bound min(<p_a, r>, <p_b, r>) everywhere, made exact
         # only where the bound still allows a merge. Only row a is rewritten (contiguous):
         # a column entry S[k, a] left stale is still an upper bound, since a's vector only
@@ -329,6 +361,7 @@ def _agglomerate(G, indptr, indices, values, S, max_dist, dense, stats):
             bound = min(row_a[k], row_b[k])
             row_a[k] = bound
             candidate[k] = bound >= merge_ratio * (s_aa + sq[k])
+        first = used
         for k in range(n):
             if not candidate[k] or k == a or not active[k]:
                 continue
@@ -343,18 +376,21 @@ def _agglomerate(G, indptr, indices, values, S, max_dist, dense, stats):
             S[k, a] = s
             dk = _tanimoto_distance(s, s_aa, sq[k])
             if dk <= max_dist:
-                lo = min(a, k)
-                hi = max(a, k)
-                ea[n_entries] = lo
-                eb[n_entries] = hi
-                eva[n_entries] = version[lo]
-                evb[n_entries] = version[hi]
-                size = _heap_push(heap, size, _pack(dk, n_entries))
-                n_entries += 1
+                pool[used] = _pack(dk, k)
+                used += 1
         if not dense:
             ca = indices[pa:pa + rowlen[a]]
             for q in range(len(ca)):
                 dense_a[ca[q]] = 0.0
+        # a's new list replaces the old one (whose entries all predate a's new vector).
+        pool[first:used] = np.sort(pool[first:used])
+        start[a] = head[a] = first
+        stop[a] = used
+        built_at[a] = merges + 1
+        if first < used:
+            if size + 1 > len(heap):
+                heap = _grow(heap, 2 * len(heap))
+            size = _row_heap_push(heap, size, ((pool[first] >> 32) << 32) | a, queued, a)
     # Resolve merge chains into cluster labels 0..C-1 (first appearance order).
     labels = np.empty(n, dtype=np.int64)
     root_label = -np.ones(n, dtype=np.int64)
