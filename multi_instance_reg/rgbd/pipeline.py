@@ -355,14 +355,18 @@ def box_overlaps(model: ObjectModel, transforms, grid: np.ndarray) -> np.ndarray
     the model's box, model frame) that lies inside instance a's box: near 0 for touching or
     stacked instances, large for two fits to one physical object."""
     T = np.asarray(transforms, dtype=np.float64).reshape(-1, 4, 4)
-    if len(T) == 0 or len(grid) == 0:
-        return np.zeros((len(T), len(T)))
-    # b's grid in the camera frame, then in every a's model frame: (a, b, point, xyz).
-    in_camera = np.einsum("bij,pj->bpi", T[:, :3, :3], grid) + T[:, None, :3, 3]
-    T_inv = np.linalg.inv(T)
-    in_a = np.einsum("aij,bpj->abpi", T_inv[:, :3, :3], in_camera) + T_inv[:, None, None, :3, 3]
-    half = np.asarray(model.extent, dtype=np.float64) / 2.0
-    return np.all(np.abs(in_a) <= half, axis=3).mean(axis=2)
+    m = len(T)
+    if m == 0 or len(grid) == 0:
+        return np.zeros((m, m))
+    R, t = T[:, :3, :3], T[:, :3, 3]
+    Rt = np.transpose(R, (0, 2, 1))
+    R_rel = Rt[:, None] @ R[None, :]                                         # R_a^T R_b
+    t_rel = np.einsum("aij,abj->abi", Rt, t[None, :, :] - t[:, None, :])     # R_a^T (t_b - t_a)
+    # b's grid in a's model frame for every pair at once: one (P, 3) x (3, M*M*3) product.
+    pts = (grid @ R_rel.transpose(3, 0, 1, 2).reshape(3, -1)).reshape(len(grid), m, m, 3) + t_rel
+    inside = np.abs(pts) <= np.asarray(model.extent, dtype=np.float64) / 2.0
+    # Per-axis ANDs: a reduction over a length-3 axis is ~4x slower.
+    return (inside[..., 0] & inside[..., 1] & inside[..., 2]).sum(axis=0) / len(grid)
 
 
 def box_grid(extent, steps: int = 5, fill: float = 0.8) -> np.ndarray:
