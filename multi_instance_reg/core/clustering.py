@@ -231,7 +231,6 @@ def _agglomerate(G, indptr, indices, values, S, max_dist, dense, stats):
     active = np.ones(n, dtype=np.bool_)
     parent = np.arange(n)
     candidate = np.zeros(n, dtype=np.bool_)
-    pristine = np.ones(n, dtype=np.bool_)     # group still a single row of G, unmerged
     dense_a = np.zeros(n, dtype=np.float32)   # scratch (sparse rows): the merged vector, scattered
     dense_b = np.zeros(n, dtype=np.float32)
     # d(p, q) <= max_dist  <=>  <p, q> >= t / (1 + t) * (|p|^2 + |q|^2) with t = 1 - max_dist;
@@ -250,7 +249,7 @@ def _agglomerate(G, indptr, indices, values, S, max_dist, dense, stats):
     stop = np.zeros(n, dtype=np.int64)
     head = np.zeros(n, dtype=np.int64)
     built_at = np.zeros(n, dtype=np.int64)
-    changed_at = -np.ones(n, dtype=np.int64)
+    changed_at = -np.ones(n, dtype=np.int64)     # merge count when last changed; -1 = still a row of G
     n_initial = 0
     for i in range(n - 1):
         row = S[i, i + 1:]
@@ -307,7 +306,6 @@ def _agglomerate(G, indptr, indices, values, S, max_dist, dense, stats):
         k = pool[h] & 0xFFFFFFFF
         a = min(r, k)
         b = max(r, k)
-        stats[1] += 1
         merges += 1
         # Room for every entry this merge can add, reserved here and not inside the loops
         # below: reassigning arrays there makes numba refcount them on every iteration.
@@ -347,7 +345,6 @@ def _agglomerate(G, indptr, indices, values, S, max_dist, dense, stats):
                 dense_b[cb[q]] = 0.0
         sq[a] = s_aa
         S[a, a] = s_aa
-        pristine[a] = False
         active[b] = False
         parent[b] = a
         changed_at[a] = merges
@@ -365,9 +362,9 @@ def _agglomerate(G, indptr, indices, values, S, max_dist, dense, stats):
         for k in range(n):
             if not candidate[k] or k == a or not active[k]:
                 continue
-            if not dense and pristine[k] and rowlen[a] < rowlen[k]:
+            if not dense and changed_at[k] < 0 and rowlen[a] < rowlen[k]:
                 # The merged vector's support (an intersection) is often the shorter:
-                # walk it and read the unmerged partner from its row of G.
+                # walk it and read the partner, never merged, from its row of G.
                 s = _dot_with_row(G[k], ca, va, 0, rowlen[a], n)
             else:
                 s = _dot_with_row(merged, indices, values, indptr[k], rowlen[k], n)
@@ -391,6 +388,7 @@ def _agglomerate(G, indptr, indices, values, S, max_dist, dense, stats):
             if size + 1 > len(heap):
                 heap = _grow(heap, 2 * len(heap))
             size = _row_heap_push(heap, size, ((pool[first] >> 32) << 32) | a, queued, a)
+    stats[1] = merges
     # Resolve merge chains into cluster labels 0..C-1 (first appearance order).
     labels = np.empty(n, dtype=np.int64)
     root_label = -np.ones(n, dtype=np.int64)

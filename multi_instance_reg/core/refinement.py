@@ -7,7 +7,7 @@ import numpy as np
 
 @numba.njit(cache=True)
 def _cluster_moments(src, tgt, labels, n_clusters):
-    """Per cluster: member count, centroids of src and tgt, and the cross-covariance
+    """Per cluster: centroids of src and tgt, and the cross-covariance
     H = sum (x - mu_x)(y - mu_y)^T (two passes: centred sums stay accurate far from the origin)."""
     counts = np.zeros(n_clusters)
     mu_x = np.zeros((n_clusters, 3))
@@ -34,7 +34,7 @@ def _cluster_moments(src, tgt, labels, n_clusters):
             xa = src[i, a] - mu_x[k, a]
             for b in range(3):
                 H[k, a, b] += xa * (tgt[i, b] - mu_y[k, b])
-    return counts, mu_x, mu_y, H
+    return mu_x, mu_y, H
 
 
 def fit_transforms(src: np.ndarray, tgt: np.ndarray, labels: np.ndarray, n_clusters: int) -> np.ndarray:
@@ -43,9 +43,9 @@ def fit_transforms(src: np.ndarray, tgt: np.ndarray, labels: np.ndarray, n_clust
     Clusters with fewer than 3 members still get a proper rotation (the SVD picks one in the
     unconstrained directions); callers decide which sizes they trust.
     """
-    _, mu_x, mu_y, H = _cluster_moments(np.ascontiguousarray(src, dtype=np.float64),
-                                        np.ascontiguousarray(tgt, dtype=np.float64),
-                                        np.ascontiguousarray(labels, dtype=np.int64), int(n_clusters))
+    mu_x, mu_y, H = _cluster_moments(np.ascontiguousarray(src, dtype=np.float64),
+                                     np.ascontiguousarray(tgt, dtype=np.float64),
+                                     np.ascontiguousarray(labels, dtype=np.int64), int(n_clusters))
     U, _, Vt = np.linalg.svd(H)
     V = np.transpose(Vt, (0, 2, 1))
     Ut = np.transpose(U, (0, 2, 1))
