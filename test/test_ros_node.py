@@ -24,6 +24,25 @@ def start_node(domain_id, model, *params):
     return start(args, domain_id)
 
 
+class live_node:
+    """``with live_node(domain_id, model, *params) as live``: the node as a process
+    (``live.proc``) and a probe on its domain (``live.probe``); both are closed when the block
+    ends, and ``live.out`` then holds the node's log."""
+
+    def __init__(self, domain_id, model, *params):
+        self.proc = start_node(domain_id, model, *params)
+        self.probe = Probe(domain_id)
+        self.out = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.probe.close()
+        self.out = stop(self.proc)
+        return False
+
+
 @pytest.fixture(scope="module")
 def model(tmp_path_factory):
     return poster_model(tmp_path_factory.mktemp("model") / "poster.npz")
@@ -64,9 +83,8 @@ def test_poses_markers_details_and_debug_image_for_a_live_stream(model):
     from std_msgs.msg import String
     from visualization_msgs.msg import Marker, MarkerArray
 
-    node = start_node(44, model)
-    probe = Probe(44)
-    try:
+    with live_node(44, model) as live:
+        node, probe = live.proc, live.probe
         poses = probe.subscribe(PoseArray, "/instances/poses")
         markers = probe.subscribe(MarkerArray, "/instances/markers")
         details = probe.subscribe(String, "/instances/details")
@@ -109,18 +127,15 @@ def test_poses_markers_details_and_debug_image_for_a_live_stream(model):
         assert wait_until(lambda: len(markers) == 7, 15)
         gone = markers[-1][1].markers
         assert gone and all(m.action == Marker.DELETE and m.id == 0 for m in gone)
-    finally:
-        probe.close()
-        out = stop(node)
+    out = live.out
     assert node.returncode == 0, out
 
 
 def test_parameter_changes_apply_on_the_next_frame_and_bad_ones_are_refused(model):
     from geometry_msgs.msg import PoseArray
 
-    node = start_node(45, model)
-    probe = Probe(45)
-    try:
+    with live_node(45, model) as live:
+        node, probe = live.proc, live.probe
         poses = probe.subscribe(PoseArray, "/instances/poses")
         camera = CameraPublisher(probe)
         assert camera.wait_for_subscribers(proc=node), stop(node)
@@ -148,9 +163,7 @@ def test_parameter_changes_apply_on_the_next_frame_and_bad_ones_are_refused(mode
         assert result.successful
         assert frame() == 1
         assert node.poll() is None
-    finally:
-        probe.close()
-        out = stop(node)
+    out = live.out
     assert "parameters changed: frontend.depth_max=0.3" in out
 
 
@@ -158,9 +171,8 @@ def test_malformed_images_and_missing_camera_info_are_skipped_and_counted(model)
     from geometry_msgs.msg import PoseArray
     from std_msgs.msg import String
 
-    node = start_node(46, model)
-    probe = Probe(46)
-    try:
+    with live_node(46, model) as live:
+        node, probe = live.proc, live.probe
         poses = probe.subscribe(PoseArray, "/instances/poses")
         stats = probe.subscribe(String, "/instance_registration/stats")
         camera = CameraPublisher(probe)
@@ -187,9 +199,7 @@ def test_malformed_images_and_missing_camera_info_are_skipped_and_counted(model)
         assert node.poll() is None
         assert wait_until(lambda: last_stats(stats)["processed"] == 1, 15)
         assert last_stats(stats)["failed"] == 0 and last_stats(stats)["bad"] == 4
-    finally:
-        probe.close()
-        out = stop(node)
+    out = live.out
     assert "no camera_info received" in out
     assert "skipping a malformed frame" in out
 
@@ -197,9 +207,8 @@ def test_malformed_images_and_missing_camera_info_are_skipped_and_counted(model)
 def test_two_pipeline_processes_publish_in_order(model):
     from geometry_msgs.msg import PoseArray
 
-    node = start_node(47, model, "pipeline_processes:=2")
-    probe = Probe(47)
-    try:
+    with live_node(47, model, "pipeline_processes:=2") as live:
+        node, probe = live.proc, live.probe
         poses = probe.subscribe(PoseArray, "/instances/poses")
         camera = CameraPublisher(probe)
         assert camera.wait_for_subscribers(proc=node), stop(node)
@@ -209,9 +218,7 @@ def test_two_pipeline_processes_publish_in_order(model):
             sent.append(camera.send(rgb, depth, K))
             time.sleep(0.03)
         assert wait_until(lambda: poses and stamp_ns(poses[-1][1]) == sent[-1], 20, proc=node), stop(node)
-    finally:
-        probe.close()
-        out = stop(node)
+    out = live.out
     got = [stamp_ns(m) for _, m in poses]
     assert got == sorted(got) and set(got) <= set(sent), out
     assert all(len(m.poses) == 1 for _, m in poses)
@@ -225,9 +232,8 @@ def test_a_dead_pipeline_process_is_restarted_and_the_stream_goes_on(model):
     from geometry_msgs.msg import PoseArray
     from std_msgs.msg import String
 
-    node = start_node(49, model)
-    probe = Probe(49)
-    try:
+    with live_node(49, model) as live:
+        node, probe = live.proc, live.probe
         poses = probe.subscribe(PoseArray, "/instances/poses")
         stats = probe.subscribe(String, "/instance_registration/stats")
         camera = CameraPublisher(probe)
@@ -246,9 +252,7 @@ def test_a_dead_pipeline_process_is_restarted_and_the_stream_goes_on(model):
         camera.send(rgb, depth, K)   # the restarted process takes it
         assert wait_until(lambda: len(poses) == 2, 30, proc=node), stop(node)
         assert len(poses[-1][1].poses) == 1 and node.poll() is None
-    finally:
-        probe.close()
-        out = stop(node)
+    out = live.out
     assert "the pipeline process died" in out
 
 
@@ -258,9 +262,8 @@ def test_a_reliable_30hz_camera_loses_no_frame_and_the_newest_is_always_processe
     from geometry_msgs.msg import PoseArray
     from std_msgs.msg import String
 
-    node = start_node(52, model)
-    probe = Probe(52)
-    try:
+    with live_node(52, model) as live:
+        node, probe = live.proc, live.probe
         poses = probe.subscribe(PoseArray, "/instances/poses")
         stats = probe.subscribe(String, "/instance_registration/stats")
         camera = CameraPublisher(probe)
@@ -273,8 +276,5 @@ def test_a_reliable_30hz_camera_loses_no_frame_and_the_newest_is_always_processe
         assert wait_until(lambda: poses and stamp_ns(poses[-1][1]) == sent[-1], 20, proc=node), stop(node)
         assert wait_until(lambda: last_stats(stats).get("processed") == len(poses), 5)
         counts = last_stats(stats)
-    finally:
-        probe.close()
-        stop(node)
     assert counts["colour_received"] == 60 and counts["depth_received"] == 60, counts
     assert counts["processed"] + counts["dropped"] == 60 and counts["unmatched"] == 0, counts
