@@ -109,6 +109,16 @@ OBJECTS: dict[str, ObjectSpec] = {spec.name: spec for spec in (
 
 DEFAULT_OBJECT = "snack_box"
 
+# Things that are in a scene without being catalogue objects: never a target, never drawn as
+# a distractor (so adding one here changes no existing scene).
+PROPS: dict[str, ObjectSpec] = {spec.name: spec for spec in (
+    # A forearm in a blue sleeve that passes between the camera and the table (the occluder of
+    # the tracking scenes); its axis is the cylinder's z.
+    ObjectSpec("forearm", "cylinder", (0.09, 0.09, 0.45),
+               (("side", "grass"), ("+z", "moon"), ("-z", "grass")),
+               resting=(("+x", 1.0),), tint=(95, 120, 175)),
+)}
+
 
 def get_object(name: str) -> ObjectSpec:
     try:
@@ -192,8 +202,8 @@ def face_size_m(spec: ObjectSpec, face: str) -> tuple[float, float]:
 
 @functools.lru_cache(maxsize=None)
 def object_textures(name: str) -> dict[str, np.ndarray]:
-    """Face name -> HxWx3 uint8 texture for object ``name`` (cached; treat as read-only)."""
-    spec = get_object(name)
+    """Face name -> HxWx3 uint8 texture for object or prop ``name`` (cached; treat as read-only)."""
+    spec = PROPS[name] if name in PROPS else get_object(name)
     textures = {}
     for face, picture in spec.faces:
         width_m, height_m = face_size_m(spec, face)

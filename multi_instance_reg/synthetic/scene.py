@@ -38,8 +38,9 @@ import numpy as np
 from ..errors import InputError
 from ..messages import CameraIntrinsics
 from ..transforms import invert_transform, make_transform
-from .objects import (BOX_FACES, DEFAULT_OBJECT, ENVIRONMENT_SIZE, OBJECTS, ObjectSpec, environment_texture,
-                      get_object, object_textures)
+from .objects import (BOX_FACES, DEFAULT_OBJECT, ENVIRONMENT_SIZE, OBJECTS, PROPS, ObjectSpec,
+                      environment_texture, get_object, object_textures)
+from .preview import box_corners
 from .render import AMBIENT, DIFFUSE, LIGHT_DIR_WORLD, CylinderSide, Quad, Renderer, Texture
 from .sensor import d455_intrinsics, simulate_colour, simulate_depth
 
@@ -48,10 +49,11 @@ START_STAMP_NS = 1_700_000_000 * 1_000_000_000
 MAX_INSTANCES = 20
 MAX_DISTRACTORS = 20
 LABEL_DISTRACTOR = -2
-_DISTRACTOR_LABEL0 = 1000        # internal render labels of distractors
+_DISTRACTOR_LABEL0 = 1000        # internal render labels of distractors (and of the occluder)
 TABLE_HALF_X = 1.6
 TABLE_FRONT_Y = -2.4
 MIN_CAMERA_CLEARANCE_M = 0.32    # camera to any object surface (the depth minimum is 0.3 m)
+MOTIONS = ("sweep", "static", "pan")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -169,21 +171,29 @@ class _Table:
         return at(hi + 1e-3)
 
 
+def footprint_area(specs) -> float:
+    """Summed footprints (m^2) of objects, each as its x size times its larger other size."""
+    return sum(s.dimensions_m[0] * max(s.dimensions_m[1], s.dimensions_m[2]) for s in specs)
+
+
 def place_objects(target: ObjectSpec, instances: int, distractor_specs: list[ObjectSpec], rng,
-                  arrangement_probs=(0.62, 0.2, 0.09, 0.09)) -> list[Placement]:
+                  arrangement_probs=(0.62, 0.2, 0.09, 0.09), region_half=None) -> list[Placement]:
     """Place ``instances`` copies of ``target`` and the distractors on the table.
 
     Each object is placed free (anywhere in the region), touching a neighbour, stacked on a
     flat top or leaning against a taller object, with probabilities ``arrangement_probs``;
-    if its arrangement fails it is placed free. No two objects interpenetrate.
+    if its arrangement fails it is placed free. No two objects interpenetrate. The region is
+    centred on the origin, 4:3 and about 2.4 times the summed footprints, unless
+    ``region_half`` gives its (x, y) half sizes (e.g. a strip along a camera pan).
     """
     items = [(target, k) for k in range(instances)] + \
             [(spec, _DISTRACTOR_LABEL0 + j) for j, spec in enumerate(distractor_specs)]
     order = rng.permutation(len(items))
     # Region: about 2.4 times the summed footprints, 4:3.
-    footprint = sum(s.dimensions_m[0] * max(s.dimensions_m[1], s.dimensions_m[2]) for s, _ in items)
-    area = max(0.1, 2.4 * footprint)
+    area = max(0.1, 2.4 * footprint_area([s for s, _ in items]))
     half = np.array([np.sqrt(area * 4 / 3) / 2, np.sqrt(area * 3 / 4) / 2])
+    if region_half is not None:
+        half = np.asarray(region_half, dtype=np.float64)
     table = _Table()
     for idx in order:
         spec, label = items[idx]
@@ -292,6 +302,15 @@ def _clearance(eye: np.ndarray, placements: list[Placement]) -> float:
                 for p in placements), default=np.inf)
 
 
+def _view_centre_and_distance(placements: list[Placement], rng) -> tuple[np.ndarray, float]:
+    """Where a hand-held camera looks (the objects' centre, 3 cm up) and from how far: 0.6-0.75
+    m, backing off for crowded tables so that most of them fits in the view (up to 1.2 m)."""
+    centres = np.array([p.pose[:3, 3] for p in placements])
+    centre = np.array([centres[:, 0].mean(), centres[:, 1].mean(), 0.03])
+    spread = np.percentile(np.linalg.norm(centres[:, :2] - centre[:2], axis=1), 80)
+    return centre, min(max(rng.uniform(0.6, 0.75), 0.9 * spread), 1.2)
+
+
 def sweep_trajectory(placements: list[Placement], frames: int, rng) -> list[np.ndarray]:
     """A smooth hand-held sweep over the table from the front: camera -> world poses at 30 Hz.
 
@@ -299,11 +318,7 @@ def sweep_trajectory(placements: list[Placement], frames: int, rng) -> list[np.n
     ~40-70 deg, azimuth swinging +-12-22 deg, plus a few millimetres of hand shake. Most
     instances end up 0.5-1.0 m from the camera.
     """
-    centres = np.array([p.pose[:3, 3] for p in placements])
-    centre = np.array([centres[:, 0].mean(), centres[:, 1].mean(), 0.03])
-    # Back off for crowded tables so that most of them fits in the view (up to ~1.25 m).
-    spread = np.percentile(np.linalg.norm(centres[:, :2] - centre[:2], axis=1), 80)
-    r0 = min(max(rng.uniform(0.6, 0.75), 0.9 * spread), 1.2)
+    centre, r0 = _view_centre_and_distance(placements, rng)
     el0 = np.radians(rng.uniform(45, 62))
     az0 = np.radians(-90 + rng.uniform(-20, 20))
     amp_az = np.radians(rng.uniform(12, 22))
@@ -333,6 +348,194 @@ def sweep_trajectory(placements: list[Placement], frames: int, rng) -> list[np.n
     return poses
 
 
+def static_viewpoint(placements: list[Placement], frames: int, rng) -> list[np.ndarray]:
+    """A camera that does not move (on a tripod): one pose, chosen like the middle of a sweep
+    (``sweep_trajectory``), repeated for every frame."""
+    centre, r = _view_centre_and_distance(placements, rng)
+    el = np.radians(rng.uniform(45, 62))
+    az = np.radians(-90 + rng.uniform(-20, 20))
+    for _attempt in range(20):
+        pose = look_at(_spherical(centre, r, az, el), centre)
+        if _clearance(pose[:3, 3], placements) >= MIN_CAMERA_CLEARANCE_M:
+            break
+        r += 0.05           # too close to a tall object: back off
+    return [pose.copy() for _ in range(frames)]
+
+
+PAN_SECONDS = 5.0           # one pass of a pan along the table; longer sequences pan back
+
+
+@dataclass
+class PanPlan:
+    """A slow hand-held pan along the table (world x), drawn before the objects are placed
+    because the objects are spread to suit it (``region_half``)."""
+    distance: float         # camera to looked-at point (m)
+    elevation: float        # rad
+    azimuth: float          # rad, about -90 deg: from the front of the table
+    travel: float           # how far the looked-at point moves along x in one pass (m)
+    direction: float        # +1 left to right, -1 right to left
+    shake_f: np.ndarray     # (3, 3) Hz, hand shake
+    shake_p: np.ndarray     # (3, 3) rad
+    phase: np.ndarray       # (3,) rad, slow wobble of distance, elevation and roll
+
+    @classmethod
+    def draw(cls, rng) -> "PanPlan":
+        return cls(distance=rng.uniform(0.55, 0.7), elevation=np.radians(rng.uniform(45, 58)),
+                   azimuth=np.radians(-90 + rng.uniform(-10, 10)), travel=rng.uniform(0.45, 0.7),
+                   direction=float(rng.choice([-1.0, 1.0])), shake_f=rng.uniform(0.8, 2.5, size=(3, 3)),
+                   shake_p=rng.uniform(0, 2 * np.pi, size=(3, 3)), phase=rng.uniform(0, 2 * np.pi, size=3))
+
+    def region_half(self, intrinsics: CameraIntrinsics, footprint_area: float) -> tuple[float, float]:
+        """Half sizes (x, y) of the strip to place the objects in: as wide as the view at the
+        looked-at point plus the travel, so that objects at either end are out of view at the
+        start or at the end of a pass (they enter and leave); as deep as the objects need at
+        the usual density (2.4 times their footprints), at least 0.36 m."""
+        view_width = self.distance * intrinsics.width / float(intrinsics.K[0, 0])
+        hx = 0.5 * (view_width + self.travel)
+        return hx, max(0.18, 2.4 * footprint_area / (4 * hx))
+
+    def trajectory(self, placements: list[Placement], frames: int) -> list[np.ndarray]:
+        """Camera -> world poses at 30 Hz. The looked-at point eases along x from one end of
+        the travel to the other in ``PAN_SECONDS`` (then back), with the distance and the
+        elevation wobbling by a few percent and a few millimetres of hand shake."""
+        centres = np.array([p.pose[:3, 3] for p in placements])
+        mid = np.array([0.5 * (centres[:, 0].min() + centres[:, 0].max()), centres[:, 1].mean(), 0.03])
+        distance = self.distance
+        for _attempt in range(20):
+            poses = []
+            for i in range(frames):
+                tsec = i / FRAME_RATE_HZ
+                w = 2 * np.pi * tsec
+                along = 0.5 * (1 - np.cos(np.pi * tsec / PAN_SECONDS)) - 0.5      # -0.5 .. 0.5
+                target = mid + np.array([self.direction * self.travel * along, 0.0, 0.0])
+                r = distance * (1 + 0.03 * np.sin(w / 4.0 + self.phase[0]))
+                el = self.elevation + np.radians(2.0) * np.sin(w / 5.0 + self.phase[1])
+                shake = 0.0025 * np.sin(w * self.shake_f + self.shake_p).sum(axis=1)
+                roll = np.radians(1.5) * np.sin(w / 3.0 + self.phase[2])
+                poses.append(look_at(_spherical(target, r, self.azimuth, el) + shake, target, roll))
+            if min(_clearance(P[:3, 3], placements) for P in poses) >= MIN_CAMERA_CLEARANCE_M:
+                return poses
+            distance += 0.05        # too close to a tall object somewhere: back off
+        return poses
+
+
+@dataclass
+class MovingObject:
+    """Something that moves through the scene and is not in the ground truth, e.g. an arm
+    passing in front of the camera: its object -> world pose per frame, None while it is
+    out of the scene. Rendered with a distractor label, so it hides what is behind it in
+    the ground-truth visibility too."""
+    spec: ObjectSpec
+    poses: list                     # per frame (4, 4) or None
+    label: int = _DISTRACTOR_LABEL0 + MAX_DISTRACTORS
+
+    @property
+    def frames(self) -> tuple[int, int]:
+        """First and last frame in which it is in the scene."""
+        present = [i for i, p in enumerate(self.poses) if p is not None]
+        return present[0], present[-1]
+
+    def primitives(self, index: int) -> list:
+        pose = self.poses[index]
+        return [] if pose is None else object_primitives(Placement(self.spec, pose, self.label))
+
+
+OCCLUDER_MIN_RANGE_M = 0.34      # where the arm may, it stays in the depth range (0.3 m) and a bit
+
+
+def _outside_view(T_world_camera: np.ndarray, pose: np.ndarray, spec: ObjectSpec,
+                  intrinsics: CameraIntrinsics) -> bool:
+    """Is the object's bounding box wholly beside the image (left or right) or behind?"""
+    T = invert_transform(T_world_camera) @ pose
+    pts = box_corners(spec.dimensions_m) @ T[:3, :3].T + T[:3, 3]
+    if np.all(pts[:, 2] <= 0.02):
+        return True
+    if np.any(pts[:, 2] <= 0.02):
+        return False
+    u = intrinsics.K[0, 0] * pts[:, 0] / pts[:, 2] + intrinsics.K[0, 2]
+    return bool(np.all(u < 0) or np.all(u > intrinsics.width))
+
+
+def occluder_path(camera_poses: list[np.ndarray], placements: list[Placement], intrinsics: CameraIntrinsics,
+                  rng) -> MovingObject:
+    """A forearm (``PROPS["forearm"]``) held level, pointing away from the camera, that
+    sweeps sideways across the view between the camera and the table: it enters from one
+    side at about a third of the sequence, crosses at constant speed and has left by about
+    two thirds. It touches no object, and passes as near the camera as the depth range lets
+    it (0.34 m), so that it hides whole instances (nearer parts have no depth, as on a D455).
+    InputError if objects stand so high that it cannot pass between them and the camera."""
+    spec = PROPS["forearm"]
+    n = len(camera_poses)
+    if n < 3:
+        raise InputError(f"an occluder needs at least 3 frames, got {n}")
+    first = min(n - 2, max(1, int(round(n * rng.uniform(0.3, 0.37)))))
+    last = min(n - 1, max(first + 1, int(round(n * rng.uniform(0.6, 0.67)))))
+    side = float(rng.choice([-1.0, 1.0]))           # +1: enters on the left, leaves on the right
+    yaw = np.radians(rng.uniform(-20, 20))
+    height_share = rng.uniform(0.5, 1.0)
+    radius = spec.radius
+    mid = camera_poses[(first + last) // 2]
+    eye, forward, right = mid[:3, 3], mid[:3, 2], mid[:3, 0]
+    across = np.array([right[0], right[1], 0.0]) / np.hypot(right[0], right[1])
+    axis = _rot_z(yaw) @ np.array([-across[1], across[0], 0.0])         # away from the camera
+    R = np.column_stack([[0.0, 0.0, 1.0], np.cross(axis, [0.0, 0.0, 1.0]), axis])
+    window = range(first, last + 1)
+
+    def path_at(z, back=0.0):
+        """Poses over the window with the arm at height z, centred where the middle frame's
+        optical axis crosses that height (or ``back`` metres nearer the camera along the arm);
+        it starts and ends just out of view of the cameras at the first and last frame."""
+        crossing = eye + forward * (eye[2] - z) / -forward[2] - back * axis
+
+        def pose_at(offset):
+            return make_transform(R, crossing + offset * across)
+        start, end = -0.1 * side, 0.1 * side
+        while not _outside_view(camera_poses[first], pose_at(start), spec, intrinsics) and abs(start) < 3:
+            start -= 0.02 * side
+        while not _outside_view(camera_poses[last], pose_at(end), spec, intrinsics) and abs(end) < 3:
+            end += 0.02 * side
+        return [pose_at(start + (end - start) * (i - first) / (last - first)) for i in window]
+
+    def touches_an_object(path):
+        centres = np.array([P[:3, 3] for P in path])
+        for p in placements:
+            # Exact box test only where the object's bounding sphere comes near the arm's axis.
+            d = p.pose[:3, 3] - centres
+            along = np.clip(d @ axis, -spec.half_extents[2], spec.half_extents[2])
+            gap = np.linalg.norm(d - along[:, None] * axis, axis=1) - radius - np.linalg.norm(p.spec.half_extents)
+            if any(_obb_overlap(path[j], spec.half_extents, p.pose, p.spec.half_extents, margin=0.015)
+                   for j in np.flatnonzero(gap < 0.03)):
+                return True
+        return False
+
+    # Height: 3 cm above every object and, if that leaves room, low enough for the depth range
+    # where the optical axis crosses it; never within 8 cm of the camera's height. When some
+    # objects stand too high for that, the highest height at which the arm passes in front of
+    # or beside them touching none, drawn back towards the camera if need be.
+    above_all = max(_top_z(p.pose, p.spec.half_extents) for p in placements) + radius + 0.03
+    in_range = eye[2] + (OCCLUDER_MIN_RANGE_M + radius) * forward[2]
+    highest = min(camera_poses[i][2, 3] for i in window) - radius - 0.08
+    if above_all <= highest:
+        z = above_all + height_share * (in_range - above_all) if in_range > above_all else above_all
+        path = path_at(min(z, highest))
+    else:
+        for back in (0.0, 0.1, 0.2):
+            for z in np.arange(highest, radius + 0.02, -0.01):
+                path = path_at(z, back)
+                if not touches_an_object(path):
+                    break
+            else:
+                continue
+            break
+        else:
+            raise InputError("the occluder does not fit between the camera and the objects (they stand too "
+                             "high for this camera path); use another seed, fewer or lower objects")
+    poses = [None] * n
+    for i, P in zip(window, path):
+        poses[i] = P
+    return MovingObject(spec, poses)
+
+
 def capture_viewpoints(placement: Placement, views: int, rng) -> list[np.ndarray]:
     """Camera -> world poses around one object: evenly spread azimuths with jitter,
     elevations alternating within 30-60 deg, 0.4-0.6 m from the object's centre."""
@@ -354,7 +557,7 @@ def capture_viewpoints(placement: Placement, views: int, rng) -> list[np.ndarray
 
 @functools.lru_cache(maxsize=None)
 def _object_texture(name: str, face: str) -> Texture:
-    spec = get_object(name)
+    spec = PROPS[name] if name in PROPS else get_object(name)
     return Texture(object_textures(name)[face], wrap=(spec.shape == "cylinder" and face == "side"))
 
 
@@ -482,6 +685,8 @@ class SyntheticScene:
     # (first frame, placements) from which frame on the objects lie differently, e.g. a
     # capture where the user turns the object over half way; same objects, same labels.
     later_placements: list = field(default_factory=list)
+    motion: str = "sweep"                # camera path of a "scene": sweep | static | pan
+    occluder: MovingObject | None = None
 
     def __post_init__(self):
         wall_y = max(0.45, max(p.pose[1, 3] for p in self.placements) + 0.3)
@@ -510,6 +715,14 @@ class SyntheticScene:
                   "distractors": [p.spec.name for p in self.placements if not p.is_instance],
                   "arrangements": [p.arrangement for p in self.instances],
                   "generator": "multi_instance_reg.synthetic"})
+        # Only when not the defaults, so that default bags stay byte for byte what they were.
+        if self.motion != "sweep":
+            d["motion"] = self.motion
+        if self.occluder is not None:
+            first, last = self.occluder.frames
+            d["occluder"] = {"name": self.occluder.spec.name, "shape": self.occluder.spec.shape,
+                             "dimensions_m": [float(v) for v in self.occluder.spec.dimensions_m],
+                             "frames": [first, last]}
         return d
 
     def stamp_ns(self, index: int) -> int:
@@ -519,6 +732,8 @@ class SyntheticScene:
         T_wc = self.camera_poses[index]
         T_cw = invert_transform(T_wc)
         _, placements, primitives = [st for st in self._stages if st[0] <= index][-1]
+        if self.occluder is not None:
+            primitives = primitives + self.occluder.primitives(index)
         instances = [p for p in placements if p.is_instance]
         out = self._renderer.render(primitives, T_cw, count_labels=[p.label for p in instances])
         noise_seed = int(np.random.SeedSequence([self.seed, index, 17]).generate_state(1)[0])
@@ -549,21 +764,39 @@ def _check_common(object_name: str, seed: int, resolution: str) -> ObjectSpec:
 
 
 def make_tabletop_scene(object_name: str = DEFAULT_OBJECT, instances: int = 6, distractors: int = 3,
-                        frames: int = 60, seed: int = 0, resolution: str = "640x480") -> SyntheticScene:
+                        frames: int = 60, seed: int = 0, resolution: str = "640x480", motion: str = "sweep",
+                        occluder: bool = False) -> SyntheticScene:
     spec = _check_common(object_name, seed, resolution)
+    if motion not in MOTIONS:
+        raise InputError(f"motion must be one of {', '.join(MOTIONS)}, got '{motion}'")
     if not 1 <= int(instances) <= MAX_INSTANCES:
         raise InputError(f"instances must be 1 to {MAX_INSTANCES}, got {instances}")
     if not 0 <= int(distractors) <= MAX_DISTRACTORS:
         raise InputError(f"distractors must be 0 to {MAX_DISTRACTORS}, got {distractors}")
     if int(frames) < 1:
         raise InputError(f"frames must be at least 1, got {frames}")
-    # Independent streams, so that e.g. the frame count does not change the placement.
-    rng_choose, rng_place, rng_path = (np.random.default_rng([int(seed), k]) for k in (1, 2, 3))
+    # Independent streams, so that e.g. the frame count does not change the placement, and
+    # the static camera, the pan and the occluder take nothing from the sweep's streams.
+    rng_choose, rng_place, rng_path, rng_motion, rng_occluder = (
+        np.random.default_rng([int(seed), k]) for k in (1, 2, 3, 6, 7))
+    intrinsics = d455_intrinsics(resolution)
     pool = [s for s in OBJECTS.values() if s.name != spec.name]
     distractor_specs = [pool[int(i)] for i in rng_choose.integers(len(pool), size=int(distractors))]
-    placements = place_objects(spec, int(instances), distractor_specs, rng_place)
-    poses = sweep_trajectory(placements, int(frames), rng_path)
-    return SyntheticScene("scene", spec, placements, poses, d455_intrinsics(resolution), int(seed))
+    if motion == "pan":
+        pan = PanPlan.draw(rng_motion)
+        footprint = footprint_area([spec] * int(instances) + distractor_specs)
+        placements = place_objects(spec, int(instances), distractor_specs, rng_place,
+                                   region_half=pan.region_half(intrinsics, footprint))
+        poses = pan.trajectory(placements, int(frames))
+    else:
+        placements = place_objects(spec, int(instances), distractor_specs, rng_place)
+        if motion == "static":
+            poses = static_viewpoint(placements, int(frames), rng_motion)
+        else:
+            poses = sweep_trajectory(placements, int(frames), rng_path)
+    moving = occluder_path(poses, placements, intrinsics, rng_occluder) if occluder else None
+    return SyntheticScene("scene", spec, placements, poses, intrinsics, int(seed), motion=motion,
+                          occluder=moving)
 
 
 def make_capture_scene(object_name: str = DEFAULT_OBJECT, seed: int = 0, views: int = 10,
@@ -634,9 +867,11 @@ def write_scene_bag(scene: SyntheticScene, out_path, storage: str = "sqlite3", p
 
 def generate_scene_bag(out_path, object_name: str = DEFAULT_OBJECT, instances: int = 6,
                        distractors: int = 3, frames: int = 60, seed: int = 0, storage: str = "sqlite3",
-                       resolution: str = "640x480", preview_dir=None) -> BagSummary:
+                       resolution: str = "640x480", preview_dir=None, motion: str = "sweep",
+                       occluder: bool = False) -> BagSummary:
     """Make a tabletop scene (see ``make_tabletop_scene``) and write it as a rosbag2."""
-    scene = make_tabletop_scene(object_name, instances, distractors, frames, seed, resolution)
+    scene = make_tabletop_scene(object_name, instances, distractors, frames, seed, resolution,
+                                motion=motion, occluder=occluder)
     return write_scene_bag(scene, out_path, storage, preview_dir)
 
 
