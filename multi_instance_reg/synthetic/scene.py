@@ -3,10 +3,13 @@
 Python API (what tests, the demo and the tools call):
 
 - ``make_tabletop_scene(object_name="snack_box", instances=6, distractors=3, frames=60,
-  seed=0, resolution="640x480") -> SyntheticScene``: K identical instances of a catalogue
-  object (:mod:`.objects`) and D distractors on a textured table in front of a wall, seen by a
-  hand-held camera sweeping at 30 Hz, 0.4-1.5 m away. Objects rest on the table with random
-  yaw; some touch, some are stacked or lean on another, some are occluded or leave the view.
+  seed=0, resolution="640x480", motion="sweep", occluder=False) -> SyntheticScene``: K
+  identical instances of a catalogue object (:mod:`.objects`) and D distractors on a textured
+  table in front of a wall, seen by a hand-held camera sweeping at 30 Hz, 0.4-1.5 m away.
+  Objects rest on the table with random yaw; some touch, some are stacked or lean on another,
+  some are occluded or leave the view. For tracking, ``motion="static"`` holds the camera
+  still, ``motion="pan"`` pans it slowly along objects spread in a strip (instances enter and
+  leave the view), and ``occluder=True`` passes an arm in front (``occluder_path``).
 - ``make_capture_scene(object_name, seed=0, views=10, resolution="640x480")``: the object
   alone on the table seen from ``views`` viewpoints around it (elevation 30-60 deg,
   0.4-0.6 m), the way a user scans it to build the stored model; half way the object is
@@ -17,7 +20,8 @@ Python API (what tests, the demo and the tools call):
   frame (metres), ``instance_mask`` (H, W) int16 (k = instance k, -1 table/wall, -2
   distractor), ``visibility`` (K,) visible fraction of each instance's silhouette, ``stamp_ns``.
 - ``generate_scene_bag(out_path, object_name=..., instances=..., distractors=..., frames=...,
-  seed=..., storage="sqlite3", resolution="640x480", preview_dir=None) -> BagSummary`` and
+  seed=..., storage="sqlite3", resolution="640x480", preview_dir=None, motion="sweep",
+  occluder=False) -> BagSummary`` and
   ``generate_capture_bag(out_path, object_name, seed=0, views=10, ...)``: the same written as a
   rosbag2 with realsense-ros topics plus /ground_truth/{poses,object,visibility}
   (:mod:`multi_instance_reg.datasets.bag_writer`).
