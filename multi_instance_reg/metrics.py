@@ -80,3 +80,59 @@ def summarize(scores: list[SceneScore]) -> dict:
         "gt": int(sum(s.n_gt for s in scores)),
         "est": int(sum(s.n_est for s in scores)),
     }
+
+
+class IdentityScore:
+    """Identity over a sequence (NOTES.md section 11): CLEAR MOT's MOTA and ID switches,
+    and IDF1 (Ristani et al. 2016).
+
+    Feed it frame by frame with the matched (ground-truth identity, track id) pairs of that
+    frame (the hits of ``evaluate_scene``'s one-to-one matching) and the counts of ground
+    truth and of estimates. An ID switch is a ground-truth object matched to another track
+    than the one it was last matched to. IDF1 assigns ground-truth objects to tracks one-to-
+    one over the whole sequence so as to maximise the frames they are matched in; those
+    frames are the IDTP, every other ground-truth frame an IDFN and every other estimate an
+    IDFP. (Co-occurrence is counted on the per-frame matches, not on every pair within the
+    gate: a close, conservative variant of the definition.)
+    """
+
+    def __init__(self):
+        self.gt = 0
+        self.est = 0
+        self.hits = 0
+        self.switches = 0
+        self._last: dict = {}
+        self._together: dict = {}
+
+    def add_frame(self, matches, n_gt: int, n_est: int) -> None:
+        self.gt += int(n_gt)
+        self.est += int(n_est)
+        for gt_key, track in matches:
+            self.hits += 1
+            if gt_key in self._last and self._last[gt_key] != track:
+                self.switches += 1
+            self._last[gt_key] = track
+            self._together[(gt_key, track)] = self._together.get((gt_key, track), 0) + 1
+
+    def summary(self) -> dict:
+        idtp = 0
+        if self._together:
+            gts = sorted({g for g, _ in self._together})
+            tracks = sorted({t for _, t in self._together})
+            count = np.zeros((len(gts), len(tracks)))
+            gi, ti = {g: i for i, g in enumerate(gts)}, {t: i for i, t in enumerate(tracks)}
+            for (g, t), n in self._together.items():
+                count[gi[g], ti[t]] = n
+            rows, cols = linear_sum_assignment(-count)
+            idtp = int(count[rows, cols].sum())
+        idfn, idfp = self.gt - idtp, self.est - idtp
+        fn, fp = self.gt - self.hits, self.est - self.hits
+        return {
+            "IDF1": 2 * idtp / (2 * idtp + idfp + idfn) if idtp or idfp or idfn else 1.0,
+            "IDP": idtp / self.est if self.est else 1.0,
+            "IDR": idtp / self.gt if self.gt else 1.0,
+            "id_switches": self.switches,
+            "id_switches_per_1000": 1000.0 * self.switches / self.gt if self.gt else 0.0,
+            "MOTA": 1.0 - (fn + fp + self.switches) / self.gt if self.gt else 1.0,
+            "object_frames": self.gt, "estimates": self.est, "matched": self.hits, "FN": fn, "FP": fp,
+        }

@@ -7,8 +7,11 @@ also writes OUTDIR/metrics.json, overlay_*.png (each instance's box with its id)
 found_vs_present.png (instances found against instances present, frame by frame).
 
 poses.json: {"frames": [{"stamp_ns": int, "frame_id": str, "latency_ms": float,
-             "instances": [{"id": int, "T": [[4 x 4]], "inliers": int, "score": float}]}]}
-T maps the model frame into the camera optical frame (metres).
+             "instances": [{"id": int, "T": [[4 x 4]], "inliers": int, "score": float,
+                            "track_id": int, "state": str, "source": str}]}]}
+T maps the model frame into the camera optical frame (metres). The tracker runs over the bag
+(every frame, in order) unless --no-tracking: then track_id, state and source are absent and
+every frame is solved alone. id is the rank of the instance in its frame by inliers.
 """
 from __future__ import annotations
 
@@ -24,7 +27,7 @@ from ..errors import InputError
 
 HELP = "replay a bag through the pipeline: poses.json, and metrics.json + pictures with ground truth"
 
-STAGE_ORDER = ("sift", "matching", "lifting", "ecc", "refinement", "total")
+STAGE_ORDER = ("sift", "matching", "lifting", "ecc", "refinement", "tracking", "total")
 
 
 def add_arguments(parser) -> None:
@@ -40,20 +43,36 @@ def add_arguments(parser) -> None:
                         help="instances with a smaller visible fraction (/ground_truth/visibility) are not counted "
                              "as present (default 0.25)")
     parser.add_argument("--max-frames", type=int, default=0, help="stop after this many frames (0 = all)")
+    parser.add_argument("--no-tracking", action="store_true",
+                        help="every frame alone, as before tracking existed: no track_id/state/source, ids are per-frame ranks")
+    parser.add_argument("--detect-every", type=int, default=1, metavar="N",
+                        help="run the detector on every N-th frame only and the tracker's depth update on every frame, "
+                             "as the live node does when detection is slower than the camera (default 1: every frame)")
     parser.add_argument("--overlays", type=int, default=4, help="overlay pictures to write with ground truth (default 4)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
 def load_config(params_path):
     """PipelineConfig with the frontend.* and ecc.* entries of a node parameter file applied."""
-    from ..params import read_params_yaml, with_overrides
     from ..rgbd.pipeline import PipelineConfig
 
-    config = PipelineConfig()
+    return _config_from_params(PipelineConfig(), params_path, ("frontend", "ecc"))
+
+
+def load_tracker_config(params_path):
+    """TrackerConfig with the tracking.* entries of a node parameter file applied."""
+    from ..tracking import TrackerConfig
+
+    return _config_from_params(TrackerConfig(), params_path, ("tracking",), strip=True)
+
+
+def _config_from_params(config, params_path, groups, strip: bool = False):
+    from ..params import read_params_yaml, with_overrides
+
     if params_path is None:
         return config
     values = read_params_yaml(params_path)
-    ours = {k: v for k, v in values.items() if k.split(".", 1)[0] in ("frontend", "ecc")}
+    ours = {(k.split(".", 1)[1] if strip else k): v for k, v in values.items() if k.split(".", 1)[0] in groups}
     return with_overrides(config, ours)
 
 
@@ -86,6 +105,8 @@ class ReplayResult:
     timings: list[dict] = field(default_factory=list)         # per frame, ms by stage
     cpu_ms: list[float] = field(default_factory=list)         # per frame, CPU time of this process (all threads)
     scores: list = field(default_factory=list)                # metrics.SceneScore per frame with ground truth
+    detection_scores: list = field(default_factory=list)      # the same for the detector alone (frames it ran on)
+    identity: object = None                                   # metrics.IdentityScore when tracking
     present: list[int] = field(default_factory=list)          # per frame: ground-truth instances (-1 without)
     found: list[int] = field(default_factory=list)
     hits: list[int] = field(default_factory=list)
@@ -116,30 +137,50 @@ def evaluate_frame(T_gt, T_est, visibility=None, min_visibility: float = 0.0, ma
                    max_rte: float = 0.02):
     """Score one frame. Instances less visible than ``min_visibility`` are not "present": they
     do not count against recall, and an estimate that hits one is neither credit nor blame."""
+    return match_frame(T_gt, T_est, visibility, min_visibility, max_rre_deg, max_rte)[0]
+
+
+def match_frame(T_gt, T_est, visibility=None, min_visibility: float = 0.0, max_rre_deg: float = 10.0,
+                max_rte: float = 0.02):
+    """``evaluate_frame``'s score, and its hits as (ground-truth index, estimate index) pairs
+    into the arrays given (the identities the tracking metrics need)."""
     from ..metrics import evaluate_scene
 
     T_gt = np.asarray(T_gt, dtype=np.float64).reshape(-1, 4, 4)
     T_est = np.asarray(T_est, dtype=np.float64).reshape(-1, 4, 4)
-    if visibility is None or min_visibility <= 0:
-        return evaluate_scene(T_gt, T_est, max_rre_deg, max_rte)
-    seen = np.asarray(visibility) >= min_visibility
-    full = evaluate_scene(T_gt, T_est, max_rre_deg, max_rte)
-    drop = {e for (g, e), hit in zip(full.pairs, full.hit) if hit and not seen[g]}
-    keep = [e for e in range(len(T_est)) if e not in drop]
-    return evaluate_scene(T_gt[seen], T_est[keep], max_rre_deg, max_rte)
+    gt_index, est_index = np.arange(len(T_gt)), np.arange(len(T_est))
+    if visibility is not None and min_visibility > 0:
+        seen = np.asarray(visibility) >= min_visibility
+        full = evaluate_scene(T_gt, T_est, max_rre_deg, max_rte)
+        drop = {e for (g, e), hit in zip(full.pairs, full.hit) if hit and not seen[g]}
+        gt_index, est_index = np.flatnonzero(seen), np.array([e for e in est_index if e not in drop], dtype=np.int64)
+    score = evaluate_scene(T_gt[gt_index], T_est[est_index], max_rre_deg, max_rte)
+    hits = [(int(gt_index[g]), int(est_index[e])) for (g, e), hit in zip(score.pairs, score.hit) if hit]
+    return score, hits
 
 
 def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_rte: float = 0.02,
-           max_frames: int = 0, on_frame=None, progress: bool = True, min_visibility: float = 0.0) -> ReplayResult:
-    """Run every frame of a bag through InstanceRegistration. ``on_frame(index, frame,
-    FrameResult)`` is called for each processed frame (pictures are drawn there)."""
+           max_frames: int = 0, on_frame=None, progress: bool = True, min_visibility: float = 0.0,
+           tracker_config=None, detect_every: int = 1) -> ReplayResult:
+    """Run every frame of a bag through InstanceRegistration and, with a ``tracker_config``,
+    through the InstanceTracker (detector on every ``detect_every``-th frame, the tracker's
+    depth update on every frame). ``on_frame(index, frame, instances)`` is called with what
+    is published for each processed frame (pictures are drawn there)."""
     from ..datasets.rgbd_bag import RGBDBag
-    from ..rgbd.pipeline import InstanceRegistration
+    from ..metrics import IdentityScore
+    from ..rgbd.pipeline import InstanceRegistration, check_frame
 
+    if detect_every < 1:
+        raise InputError(f"--detect-every must be at least 1, got {detect_every}")
     reg = InstanceRegistration(model, config)
     reg.warm_up()   # compile the ECC core's kernels now, not inside the first frame's latency
+    tracker = None
+    if tracker_config is not None:
+        from ..tracking import InstanceTracker
+
+        tracker = InstanceTracker(model, tracker_config)
     kwargs = dict(zip(("colour_topic", "depth_topic", "info_topic"), topics)) if topics else {}
-    out = ReplayResult()
+    out = ReplayResult(identity=IdentityScore() if tracker is not None else None)
     skip_reasons: dict[str, int] = {}
     with RGBDBag(bag_path, **kwargs) as bag:
         out.has_ground_truth = bag.has_ground_truth
@@ -150,32 +191,49 @@ def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_
                 if max_frames and index >= max_frames:
                     break
                 cpu0 = time.process_time()
+                detect = tracker is None or index % detect_every == 0
                 try:
-                    result = reg.register_frame(frame.rgb, frame.depth_m, frame.intrinsics)
+                    check_frame(frame.rgb, frame.depth_m, frame.intrinsics)
+                    result = reg.register_frame(frame.rgb, frame.depth_m, frame.intrinsics) if detect else None
                 except InputError as exc:
                     skip_reasons[str(exc)] = skip_reasons.get(str(exc), 0) + 1
                     out.skipped += 1
                     bar.update(index + 1, f"(skipped {out.skipped})")
                     continue
+                timings = dict(result.timings_ms) if result is not None else {s: 0.0 for s in STAGE_ORDER}
+                timings["tracking"] = 0.0
+                if tracker is not None:
+                    t0 = time.perf_counter()
+                    published = tracker.step(frame.stamp_ns, frame.depth_m, frame.intrinsics,
+                                             result.instances if result is not None else None)
+                    timings["tracking"] = (time.perf_counter() - t0) * 1e3
+                    timings["total"] += timings["tracking"]
+                else:
+                    published = result.instances
                 out.frames.append({
                     "stamp_ns": int(frame.stamp_ns), "frame_id": frame.frame_id,
-                    "latency_ms": round(float(result.timings_ms["total"]), 3),
-                    "instances": [{"id": int(i.id), "T": np.round(i.T, 7).tolist(), "inliers": int(i.inliers),
-                                   "score": round(float(i.score), 5)} for i in result.instances]})
-                out.timings.append(dict(result.timings_ms))
+                    "latency_ms": round(float(timings["total"]), 3),
+                    "instances": [instance_json(i) for i in sorted(published, key=lambda i: i.id)]})
+                out.timings.append(timings)
                 out.cpu_ms.append((time.process_time() - cpu0) * 1e3)
-                out.found.append(len(result.instances))
+                out.found.append(len(published))
                 if frame.gt_poses is not None:
-                    est = estimates_in_object_frame(model, [i.T for i in result.instances])
-                    score = evaluate_frame(frame.gt_poses, est, frame.gt_visibility, min_visibility, max_rre_deg, max_rte)
+                    est = estimates_in_object_frame(model, [i.T for i in published])
+                    score, hits = match_frame(frame.gt_poses, est, frame.gt_visibility, min_visibility, max_rre_deg, max_rte)
                     out.scores.append(score)
                     out.present.append(score.n_gt)
                     out.hits.append(score.hits)
+                    if tracker is not None:
+                        out.identity.add_frame([(g, published[e].track_id) for g, e in hits], score.n_gt, score.n_est)
+                        if result is not None:
+                            out.detection_scores.append(evaluate_frame(
+                                frame.gt_poses, estimates_in_object_frame(model, [i.T for i in result.instances]),
+                                frame.gt_visibility, min_visibility, max_rre_deg, max_rte))
                 else:
                     out.present.append(-1)
                     out.hits.append(-1)
                 if on_frame is not None:
-                    on_frame(index, frame, result)
+                    on_frame(index, frame, published)
                 bar.update(index + 1)
         finally:
             bar.close()
@@ -189,11 +247,24 @@ def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_
     return out
 
 
+def instance_json(inst) -> dict:
+    """One instance of poses.json; tracked ones add track_id, state and source."""
+    d = {"id": int(inst.id), "T": np.round(inst.T, 7).tolist(), "inliers": int(inst.inliers),
+         "score": round(float(inst.score), 5)}
+    if hasattr(inst, "track_id"):
+        d.update({"track_id": int(inst.track_id), "state": inst.state, "source": inst.source})
+    return d
+
+
 def metrics_dict(result: ReplayResult, max_rre_deg: float, max_rte: float, min_visibility: float = 0.0) -> dict:
     from ..metrics import summarize
 
     summary = summarize(result.scores)
-    return {**summary, "max_rre_deg": max_rre_deg, "max_rte": max_rte, "min_visibility": min_visibility,
+    extra = {}
+    if result.identity is not None:
+        extra["identity"] = result.identity.summary()
+        extra["detection_only"] = summarize(result.detection_scores)
+    return {**summary, **extra, "max_rre_deg": max_rre_deg, "max_rte": max_rte, "min_visibility": min_visibility,
             "frames": len(result.frames), "frames_with_ground_truth": len(result.scores),
             "skipped_frames": result.skipped, "latency_ms": result.latency_summary(),
             "cpu_ms_per_frame": {"p50": float(np.percentile(result.cpu_ms, 50)) if result.cpu_ms else None,
@@ -212,7 +283,7 @@ def draw_overlay(rgb: np.ndarray, intrinsics, model, instances, gt_poses=None) -
         for T in gt_poses:
             draw_box(img, T @ model.T_object_model, corners, intrinsics, (160, 160, 160), thickness=1)
     for inst in instances:
-        draw_box(img, inst.T, corners, intrinsics, (0, 220, 0), label=str(inst.id))
+        draw_box(img, inst.T, corners, intrinsics, (0, 220, 0), label=str(getattr(inst, "track_id", inst.id)))
     return img
 
 
@@ -270,13 +341,15 @@ def run(args) -> int:
         if has_gt and args.overlays > 0 else set()
     out_dir.mkdir(parents=True, exist_ok=True)
 
-    def on_frame(index, frame, result):
+    def on_frame(index, frame, instances):
         if index in picks:
-            img = draw_overlay(frame.rgb, frame.intrinsics, model, result.instances, frame.gt_poses)
+            img = draw_overlay(frame.rgb, frame.intrinsics, model, instances, frame.gt_poses)
             cv2.imwrite(str(out_dir / f"overlay_{index:05d}.png"), img)
 
     result = replay(args.bag, model, config, args.topics, args.max_rre_deg, args.max_rte, args.max_frames,
-                    on_frame=on_frame, progress=not args.quiet, min_visibility=args.min_visibility)
+                    on_frame=on_frame, progress=not args.quiet, min_visibility=args.min_visibility,
+                    tracker_config=None if args.no_tracking else load_tracker_config(args.params),
+                    detect_every=args.detect_every)
     (out_dir / "poses.json").write_text(json.dumps({"frames": result.frames}))
     lat = result.latency_summary()["total"]
     line = f"{len(result.frames)} frames, latency p50 {lat['p50']:.1f} ms p95 {lat['p95']:.1f} ms"
@@ -292,5 +365,9 @@ def run(args) -> int:
         line += (f"; MHF1 {metrics['MHF1']:.3f} MHR {metrics['MHR']:.3f} MHP {metrics['MHP']:.3f} MF {metrics['MF']:.3f}"
                  f", median RTE {'-' if rte is None else f'{rte * 1000:.1f} mm'}"
                  f" RRE {'-' if rre is None else f'{rre:.2f} deg'}")
+        if "identity" in metrics:
+            ident = metrics["identity"]
+            line += (f"; IDF1 {ident['IDF1']:.3f} ID switches {ident['id_switches']} MOTA {ident['MOTA']:.3f}"
+                     f" (detector alone: MHF1 {metrics['detection_only']['MHF1']:.3f})")
     print(f"mireg offline: {line}; wrote {out_dir}", file=sys.stderr)
     return 0

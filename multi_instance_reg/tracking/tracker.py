@@ -1,0 +1,353 @@
+"""Instances that keep their identity over frames. No ROS.
+
+    tracker = InstanceTracker(model, TrackerConfig())
+    for frame in frames:                                       # in order, every frame
+        out = tracker.step(stamp_ns, depth_m, intrinsics, detections)   # detections may be None
+        for inst in out:                                       # by track_id
+            inst.track_id, inst.state, inst.source, inst.T
+
+Each frame, every live track is first predicted (constant velocity), then corrected by the
+detections of that frame if there are any (one-to-one assignment, gated on position and
+orientation), then aligned to the depth image by projective ICP (``icp.py``). A detection
+found on an older frame (the live node's detector runs behind the camera) is fused with
+``add_detections(stamp_ns, detections)``: it is compared with each track's pose on that
+frame and moved forward by the motion the track has made since.
+
+Life of a track: born *tentative* from a detection no track claims; *confirmed* after
+``confirm_detections`` detections; a confirmed track neither detected nor confirmed by the
+depth on a frame is *coasting*, and ends when that lasts ``coast_s``. A tentative track ends
+at its first miss. Ids count up from 0 and are never reused.
+
+A detection whose position matches a track but whose orientation does not is the same object
+seen in one of its symmetric poses (a box turned 180 deg looks the same on its plain faces):
+the track keeps its orientation, unless ``flip_after`` detections in a row agree with each
+other on the other one (the track itself was the wrong one).
+"""
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+from scipy.spatial.transform import Rotation
+
+from ..messages import CameraIntrinsics
+from ..params import param
+from ..transforms import invert_transform, rotation_angle_deg
+from .icp import ProjectiveICP
+
+TENTATIVE, CONFIRMED, COASTING = "tentative", "confirmed", "coasting"
+DETECTION, TRACKING = "detection", "tracking"
+HISTORY = 90                     # poses kept per track, to fuse detections of older frames
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    """Settings of the tracker (ROS parameters ``tracking.*``)."""
+    gate_distance: float = param(0.03, "m: a detection can continue a track only if its position is within this of the track's (one-to-one assignment among those)", 0.001, 1.0)
+    gate_rotation_deg: float = param(30.0, "a detection within the position gate whose orientation differs by more than this is the object in a symmetric pose: the track keeps its own orientation", 1.0, 180.0)
+    flip_after: int = param(3, "detections in a row, agreeing with each other but not with their track's orientation, that turn the track to theirs", 1, 1000)
+    confirm_detections: int = param(2, "detections that confirm a new (tentative) track; a tentative track ends at its first miss", 1, 100)
+    coast_s: float = param(1.0, "s: a confirmed track that is neither detected nor confirmed by the depth for longer than this ends (it is published as coasting meanwhile)", 0.0, 60.0)
+    max_undetected_s: float = param(10.0, "s: a track kept by the depth alone, with no detection for longer than this, ends (0 = never)", 0.0, 3600.0)
+    duplicate_distance: float = param(0.015, "m: two tracks whose positions come closer than this follow one object: the younger ends", 0.0, 1.0)
+    smoothing: float = param(0.0, "pose smoothing, 0 = off (the published pose is the measured one) to 0.95 (heavy): weight of the prediction against the measurement, with a constant-velocity prediction so that a moving camera does not make poses lag", 0.0, 0.95)
+    publish_tentative: bool = param(False, "also publish tracks not yet confirmed (state tentative)")
+    icp: bool = param(True, "bring every track up to date on every frame by projective point-to-plane ICP of the model against the depth image (off: tracks move only with detections)")
+    icp_points: int = param(400, "model points used by the ICP of one track", 20, 20000)
+    icp_iterations: int = param(10, "ICP iterations per track and frame", 1, 100)
+    icp_max_distance: float = param(0.03, "m: depth pairs farther apart than this are ignored in the first ICP iteration (the gate shrinks to icp_inlier_distance by the last)", 0.001, 0.5)
+    icp_inlier_distance: float = param(0.006, "m: a model point counts as confirmed by the depth within this distance", 0.0005, 0.1)
+    icp_min_fitness: float = param(0.35, "share of the visible model points the depth must confirm for the track to count as seen on a frame (below: a miss, e.g. occluded)", 0.0, 1.0)
+
+
+@dataclass
+class TrackedInstance:
+    """One published track on one frame."""
+    track_id: int           # unique within a run, never reused
+    id: int                 # rank in this frame's list by inliers (as the per-frame Instance.id)
+    T: np.ndarray           # (4, 4) model frame -> camera optical frame (smoothed when smoothing > 0)
+    inliers: int            # correspondences of the last detection of this track
+    score: float            # score of the last detection of this track
+    state: str              # tentative | confirmed | coasting
+    source: str             # detection: a detection updated it since the last output; tracking: depth/prediction only
+    age_s: float            # since the track was born
+    fitness: float          # share of the visible model points the depth confirmed on this frame (0 without ICP)
+
+
+@dataclass
+class Track:
+    track_id: int
+    T: np.ndarray                       # measured (or predicted) pose on the latest frame
+    T_out: np.ndarray                   # published pose (smoothed)
+    born_ns: int
+    stamp_ns: int                       # frame of T
+    last_seen_ns: int
+    last_detected_ns: int
+    detections: int = 1
+    inliers: int = 0
+    score: float = 0.0
+    fitness: float = 0.0
+    state: str = TENTATIVE
+    detected_since_output: bool = True
+    velocity: np.ndarray = field(default_factory=lambda: np.zeros(6))   # twist per second (rotvec, translation)
+    history: deque = field(default_factory=lambda: deque(maxlen=HISTORY))   # (stamp_ns, T)
+    flip_votes: list = field(default_factory=list)                      # recent disagreeing orientations
+
+    def pose_at(self, stamp_ns: int) -> np.ndarray | None:
+        for s, T in reversed(self.history):
+            if s == stamp_ns:
+                return T
+            if s < stamp_ns:
+                return None
+        return None
+
+
+def proper_pose(T) -> np.ndarray:
+    """A copy of T with its rotation made exactly orthonormal (nearest rotation, by SVD):
+    poses are composed frame after frame, and a slightly scaled rotation would compound."""
+    T = np.array(T, dtype=np.float64)
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    T[:3, :3] = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+    return T
+
+
+def relative_twist(T_from: np.ndarray, T_to: np.ndarray) -> np.ndarray:
+    """(rotvec, translation) of D with T_to = D T_from."""
+    D = T_to @ invert_transform(T_from)
+    return np.concatenate([Rotation.from_matrix(D[:3, :3]).as_rotvec(), D[:3, 3]])
+
+
+def apply_twist(T: np.ndarray, twist: np.ndarray, scale: float = 1.0) -> np.ndarray:
+    out = np.eye(4)
+    R = Rotation.from_rotvec(scale * twist[:3]).as_matrix()
+    out[:3, :3] = R @ T[:3, :3]
+    out[:3, 3] = R @ T[:3, 3] + scale * twist[3:]
+    return out
+
+
+def blend(T_a: np.ndarray, T_b: np.ndarray, weight_b: float) -> np.ndarray:
+    """The pose ``weight_b`` of the way from T_a to T_b (rotation on the geodesic)."""
+    if weight_b >= 1.0:
+        return T_b.copy()
+    R_rel = Rotation.from_matrix(T_b[:3, :3] @ T_a[:3, :3].T).as_rotvec()
+    out = np.eye(4)
+    out[:3, :3] = Rotation.from_rotvec(weight_b * R_rel).as_matrix() @ T_a[:3, :3]
+    out[:3, 3] = (1 - weight_b) * T_a[:3, 3] + weight_b * T_b[:3, 3]
+    return out
+
+
+class InstanceTracker:
+    """Tracks of the instances of one object over a stream of frames (see the module doc)."""
+
+    def __init__(self, model, config: TrackerConfig | None = None, symmetries=None):
+        self.config = config or TrackerConfig()
+        self.model = model
+        self.tracks: list[Track] = []
+        self.next_id = 0
+        self.ended = 0                   # tracks ended so far
+        self.stamp_ns: int | None = None # latest frame
+        # Rotations (model frame) under which the object looks the same; identity first.
+        self.symmetries = [np.eye(3)] + [np.asarray(S, dtype=np.float64)[:3, :3] for S in (symmetries or [])]
+        c = self.config
+        self._icp = ProjectiveICP(model.points_xyz, c.icp_points, c.icp_iterations, c.icp_max_distance,
+                                  c.icp_inlier_distance) if c.icp else None
+
+    # ---- per frame -------------------------------------------------------------------
+    def step(self, stamp_ns: int, depth_m: np.ndarray | None, intrinsics: CameraIntrinsics | None,
+             detections=None) -> list[TrackedInstance]:
+        """Advance every track to this frame; ``detections`` (Instances found on this very
+        frame, or None when the detector did not run on it) correct them before the depth
+        alignment. Returns what to publish for this frame."""
+        self._predict(stamp_ns)
+        if detections is not None:
+            self._fuse(stamp_ns, detections)
+        self._align(stamp_ns, depth_m, intrinsics)
+        return self.output(intrinsics)
+
+    def add_detections(self, stamp_ns: int, detections) -> None:
+        """Detections found on an earlier frame (at most HISTORY frames back)."""
+        self._fuse(int(stamp_ns), detections)
+
+    # ---- stages ----------------------------------------------------------------------
+    def _predict(self, stamp_ns: int) -> None:
+        stamp_ns = int(stamp_ns)
+        for tr in self.tracks:
+            dt = (stamp_ns - tr.stamp_ns) * 1e-9
+            if dt > 0:
+                tr.T = apply_twist(tr.T, tr.velocity, dt)
+                tr.T_out = apply_twist(tr.T_out, tr.velocity, dt)
+                tr.stamp_ns = stamp_ns
+            tr.history.append((stamp_ns, tr.T.copy()))
+        self.stamp_ns = stamp_ns
+
+    def _closest_symmetric(self, T_det: np.ndarray, T_ref: np.ndarray) -> tuple[np.ndarray, float]:
+        """The detection turned by the model symmetry that brings it closest to T_ref, and
+        the remaining rotation angle (deg)."""
+        best, best_angle = T_det, np.inf
+        for S in self.symmetries:
+            T = T_det.copy()
+            T[:3, :3] = T_det[:3, :3] @ S
+            angle = rotation_angle_deg(T[:3, :3].T @ T_ref[:3, :3])
+            if angle < best_angle:
+                best, best_angle = T, angle
+        return best, best_angle
+
+    def _fuse(self, stamp_ns: int, detections) -> None:
+        c = self.config
+        dets = [d for d in detections]
+        candidates = [(tr, tr.pose_at(stamp_ns)) for tr in self.tracks]
+        candidates = [(tr, T) for tr, T in candidates if T is not None]
+        matched_dets: set[int] = set()
+        matched_tracks: set[int] = set()
+        if dets and candidates:
+            pos_d = np.array([np.asarray(d.T)[:3, 3] for d in dets])
+            pos_t = np.array([T[:3, 3] for _, T in candidates])
+            dist = np.linalg.norm(pos_t[:, None] - pos_d[None], axis=2)
+            cost = np.where(dist <= c.gate_distance, dist, 1e6)
+            rows, cols = linear_sum_assignment(cost)
+            for r, k in zip(rows, cols):
+                if cost[r, k] >= 1e6:
+                    continue
+                tr, T_then = candidates[r]
+                self._correct(tr, T_then, dets[k], stamp_ns)
+                matched_dets.add(k)
+                matched_tracks.add(tr.track_id)
+        # A tentative track that a detection round (on a frame it lived in) did not find ends.
+        missed = {tr.track_id for tr, _ in candidates if tr.state == TENTATIVE and tr.track_id not in matched_tracks}
+        self.ended += len(missed)
+        self.tracks = [tr for tr in self.tracks if tr.track_id not in missed]
+        for k, det in enumerate(dets):
+            if k not in matched_dets:
+                self._birth(det, stamp_ns, candidates)
+
+    def _correct(self, tr: Track, T_then: np.ndarray, det, stamp_ns: int) -> None:
+        """Fuse one detection (found on frame stamp_ns, where the track was at T_then)."""
+        c = self.config
+        T_det, angle = self._closest_symmetric(proper_pose(det.T), T_then)
+        if angle > c.gate_rotation_deg:
+            # The object as seen in another symmetric pose, or the track's own orientation
+            # was wrong: keep ours unless the detections keep agreeing on theirs.
+            votes = [R for R in tr.flip_votes if rotation_angle_deg(R.T @ T_det[:3, :3]) <= c.gate_rotation_deg]
+            tr.flip_votes = votes + [T_det[:3, :3]]
+            if len(tr.flip_votes) < c.flip_after:
+                T_det = T_det.copy()
+                T_det[:3, :3] = T_then[:3, :3]
+            else:
+                tr.flip_votes = []
+        else:
+            tr.flip_votes = []
+        # Carry the correction forward by the motion the track made since that frame.
+        motion = tr.T @ invert_transform(T_then)
+        tr.T = motion @ T_det
+        if tr.stamp_ns == stamp_ns and tr.history:
+            tr.history[-1] = (stamp_ns, tr.T.copy())
+        tr.detections += 1
+        tr.last_detected_ns = max(tr.last_detected_ns, stamp_ns)
+        tr.last_seen_ns = max(tr.last_seen_ns, stamp_ns)
+        tr.inliers, tr.score = int(det.inliers), float(det.score)
+        tr.detected_since_output = True
+        if tr.state == TENTATIVE and tr.detections >= c.confirm_detections:
+            tr.state = CONFIRMED
+
+    def _birth(self, det, stamp_ns: int, candidates) -> None:
+        T = proper_pose(det.T)
+        now = self.stamp_ns if self.stamp_ns is not None else stamp_ns
+        if now != stamp_ns and candidates:
+            # Found on an older frame: move it by the motion of the nearest track since then
+            # (objects rest; what moves them in the image is mostly the camera).
+            near = min(candidates, key=lambda c: np.linalg.norm(c[1][:3, 3] - T[:3, 3]))
+            T = near[0].T @ invert_transform(near[1]) @ T
+        tr = Track(self.next_id, T, T.copy(), born_ns=now, stamp_ns=now, last_seen_ns=now,
+                   last_detected_ns=now, inliers=int(det.inliers), score=float(det.score))
+        tr.history.append((now, T.copy()))
+        if self.config.confirm_detections <= 1:
+            tr.state = CONFIRMED
+        self.next_id += 1
+        self.tracks.append(tr)
+
+    def _align(self, stamp_ns: int, depth_m, intrinsics) -> None:
+        c = self.config
+        stamp_ns = int(stamp_ns)
+        alive = []
+        for tr in self.tracks:
+            T_prev = tr.history[-2][1] if len(tr.history) >= 2 else None
+            seen = tr.last_seen_ns == stamp_ns
+            tr.fitness = 0.0
+            if self._icp is not None and depth_m is not None and intrinsics is not None:
+                res = self._icp.align(tr.T, depth_m, intrinsics)
+                tr.fitness = res.fitness
+                if res.fitness >= c.icp_min_fitness:
+                    tr.T = proper_pose(res.T)
+                    seen = True
+            if seen:
+                tr.last_seen_ns = stamp_ns
+                if tr.state == COASTING:
+                    tr.state = CONFIRMED
+                tr.T_out = blend(tr.T_out, tr.T, 1.0 - c.smoothing)
+                prev_stamp = tr.history[-2][0] if len(tr.history) >= 2 else None
+                if T_prev is not None and prev_stamp is not None and stamp_ns > prev_stamp:
+                    v = relative_twist(T_prev, tr.T) / ((stamp_ns - prev_stamp) * 1e-9)
+                    tr.velocity = 0.5 * tr.velocity + 0.5 * v
+            else:
+                tr.velocity *= 0.5
+                if tr.state == TENTATIVE:
+                    self.ended += 1
+                    continue
+                tr.state = COASTING
+                if (stamp_ns - tr.last_seen_ns) * 1e-9 > c.coast_s:
+                    self.ended += 1
+                    continue
+            if c.max_undetected_s > 0 and (stamp_ns - tr.last_detected_ns) * 1e-9 > c.max_undetected_s:
+                self.ended += 1
+                continue
+            tr.history[-1] = (stamp_ns, tr.T.copy())
+            alive.append(tr)
+        self.tracks = self._without_duplicates(alive)
+
+    def _without_duplicates(self, tracks: list[Track]) -> list[Track]:
+        """Two tracks on one object (e.g. a detection born next to a coasting track that then
+        came back): the older one stays."""
+        d = self.config.duplicate_distance
+        if d <= 0 or len(tracks) < 2:
+            return tracks
+        keep: list[Track] = []
+        for tr in sorted(tracks, key=lambda t: (t.state == TENTATIVE, t.track_id)):
+            if all(np.linalg.norm(tr.T[:3, 3] - k.T[:3, 3]) >= d for k in keep):
+                keep.append(tr)
+            else:
+                self.ended += 1
+        return sorted(keep, key=lambda t: t.track_id)
+
+    # ---- output ----------------------------------------------------------------------
+    def output(self, intrinsics: CameraIntrinsics | None = None) -> list[TrackedInstance]:
+        """The tracks to publish on the latest frame, by track_id: confirmed and coasting ones
+        (coasting only while in the image), and tentative ones if publish_tentative."""
+        out = []
+        for tr in self.tracks:
+            if tr.state == TENTATIVE and not self.config.publish_tentative:
+                continue
+            if tr.state == COASTING and intrinsics is not None and not _in_image(tr.T_out, intrinsics):
+                continue
+            out.append(TrackedInstance(
+                tr.track_id, -1, tr.T_out.copy(), tr.inliers, tr.score, tr.state,
+                DETECTION if tr.detected_since_output else TRACKING,
+                (self.stamp_ns - tr.born_ns) * 1e-9, tr.fitness))
+            tr.detected_since_output = False
+        for rank, k in enumerate(sorted(range(len(out)), key=lambda k: (-out[k].inliers, out[k].track_id))):
+            out[k].id = rank
+        return out
+
+
+def _in_image(T: np.ndarray, intrinsics: CameraIntrinsics) -> bool:
+    x, y, z = T[:3, 3]
+    if z <= 0:
+        return False
+    K = intrinsics.K
+    u, v = K[0, 0] * x / z + K[0, 2], K[1, 1] * y / z + K[1, 2]
+    return 0 <= u < intrinsics.width and 0 <= v < intrinsics.height
+
+
+__all__ = ["TrackerConfig", "InstanceTracker", "TrackedInstance", "Track", "TENTATIVE", "CONFIRMED", "COASTING",
+           "DETECTION", "TRACKING"]

@@ -1,0 +1,145 @@
+"""InstanceTracker with known answers: detections made up frame by frame (no depth, no ICP),
+so every birth, confirmation, coast, death and assignment is decided by the tracker alone."""
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from multi_instance_reg.tracking import InstanceTracker, TrackerConfig
+from multi_instance_reg.tracking.icp import ProjectiveICP
+from multi_instance_reg.messages import CameraIntrinsics
+from multi_instance_reg.transforms import make_transform, rotation_angle_deg
+
+FRAME_NS = 33_333_333
+
+
+@dataclass
+class Det:
+    T: np.ndarray
+    inliers: int = 20
+    score: float = 0.9
+
+
+@dataclass
+class Model:
+    points_xyz: np.ndarray
+
+
+def rot_z(deg):
+    a = np.radians(deg)
+    return np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1.0]])
+
+
+def det_at(x, y=0.0, z=0.8, yaw=0.0):
+    return Det(make_transform(rot_z(yaw), [x, y, z]))
+
+
+def tracker(**kw):
+    model = Model(np.random.default_rng(0).uniform(-0.05, 0.05, (200, 3)))
+    return InstanceTracker(model, TrackerConfig(icp=False, **kw))
+
+
+def run(tr, frames):
+    """frames: list of detection lists (None = detector did not run). Returns outputs."""
+    return [tr.step(k * FRAME_NS, None, None, dets) for k, dets in enumerate(frames)]
+
+
+def test_birth_confirmation_and_ids():
+    tr = tracker(confirm_detections=2)
+    out = run(tr, [[det_at(0.0), det_at(0.2)], [det_at(0.0), det_at(0.2)], [det_at(0.0), det_at(0.2)]])
+    assert out[0] == []                                   # tentative ones are not published
+    assert [i.track_id for i in out[1]] == [0, 1]
+    assert all(i.state == "confirmed" and i.source == "detection" for i in out[2])
+
+
+def test_tentative_published_on_request():
+    out = run(tracker(publish_tentative=True), [[det_at(0.0)]])
+    assert [(i.track_id, i.state) for i in out[0]] == [(0, "tentative")]
+
+
+def test_tentative_track_ends_at_first_miss_and_ids_are_not_reused():
+    tr = tracker(confirm_detections=3)
+    out = run(tr, [[det_at(0.0)], [], [det_at(0.0)], [det_at(0.0)], [det_at(0.0)]])
+    assert out[-1][0].track_id == 1                       # id 0 ended with its miss, never reused
+
+
+def test_coasting_then_recovery_keeps_the_id():
+    tr = tracker(coast_s=0.5)
+    frames = [[det_at(0.1)]] * 3 + [[]] * 5 + [[det_at(0.1)]]
+    out = run(tr, frames)
+    assert [i.state for i in out[4]] == ["coasting"]
+    assert out[-1][0].track_id == 0 and out[-1][0].state == "confirmed"
+
+
+def test_track_ends_after_coast_s():
+    tr = tracker(coast_s=0.1)                             # 3 frames at 30 Hz
+    out = run(tr, [[det_at(0.1)]] * 3 + [[]] * 6)
+    assert out[-1] == [] and tr.tracks == []
+
+
+def test_two_identical_objects_crossing_do_not_swap():
+    # Two objects moving towards each other along x, passing 1 cm apart in y.
+    tr = tracker(gate_distance=0.03)
+    frames = []
+    for k in range(40):
+        x = -0.1 + 0.005 * k
+        frames.append([det_at(x, 0.0), det_at(-x, 0.01)])
+    out = run(tr, frames)
+    ids_left_mover = [next(i.track_id for i in o if abs(i.T[1, 3]) < 0.005) for o in out[1:]]
+    assert set(ids_left_mover) == {0}
+
+
+def test_symmetric_flip_is_rejected():
+    tr = tracker(flip_after=3)
+    frames = [[det_at(0.0, yaw=10)]] * 3 + [[det_at(0.0, yaw=190)], [det_at(0.0, yaw=10)], [det_at(0.0, yaw=190)]]
+    out = run(tr, frames)
+    for o in out[1:]:
+        assert rotation_angle_deg(o[0].T[:3, :3].T @ rot_z(10)) < 1.0
+
+
+def test_consistent_other_orientation_is_adopted():
+    tr = tracker(flip_after=3)
+    out = run(tr, [[det_at(0.0, yaw=10)]] * 3 + [[det_at(0.0, yaw=190)]] * 3)
+    assert rotation_angle_deg(out[-1][0].T[:3, :3].T @ rot_z(190)) < 1.0
+
+
+def test_late_detections_are_moved_by_the_track_motion():
+    tr = tracker()
+    for k in range(3):
+        tr.step(k * FRAME_NS, None, None, [det_at(0.01 * k)])
+    # The detector ran on frame 2 and reports while the tracker is at frame 4.
+    tr.step(3 * FRAME_NS, None, None, None)
+    tr.step(4 * FRAME_NS, None, None, None)
+    tr.add_detections(2 * FRAME_NS, [det_at(0.02, 0.004)])
+    assert len(tr.tracks) == 1
+    assert tr.tracks[0].T[1, 3] == pytest.approx(0.004, abs=1e-9)
+
+
+def test_smoothing_off_publishes_the_measured_pose():
+    out = run(tracker(smoothing=0.0), [[det_at(0.0)], [det_at(0.003)]])
+    assert out[1][0].T[0, 3] == pytest.approx(0.003)
+
+
+def test_icp_recovers_a_displaced_pose():
+    # Depth image of three planes meeting in a corner; the model is that very surface, so the
+    # right answer is the identity.
+    K = np.array([[500.0, 0, 160], [0, 500.0, 120], [0, 0, 1]])
+    intr = CameraIntrinsics(K=K, width=320, height=240)
+    u, v = np.meshgrid(np.arange(320), np.arange(240))
+    rays = np.stack([(u - 160) / 500.0, (v - 120) / 500.0, np.ones(u.shape)], -1)
+    planes = [(np.array([0.3, 0.1, 1.0]), 0.8), (np.array([1.0, 0.2, 0.5]), 0.45), (np.array([0.1, 1.0, 0.6]), 0.5)]
+    depth = np.zeros((240, 320))
+    for n, d in planes:
+        z = d / (rays @ n)
+        ok = (z > 0.3) & ((depth == 0) | (z < depth))
+        depth[ok] = z[ok]
+    pick = np.random.default_rng(1).choice(240 * 320, 4000, replace=False)
+    surface = (rays * depth[..., None]).reshape(-1, 3)[pick]
+    icp = ProjectiveICP(surface, 400)
+    icp.normals[np.einsum("ni,ni->n", icp.normals, icp.points) > 0] *= -1     # face the camera
+    T0 = make_transform(rot_z(1.5), [0.004, -0.003, 0.005])
+    res = icp.align(T0, depth.astype(np.float32), intr)
+    assert res.fitness > 0.8
+    assert np.linalg.norm(res.T[:3, 3]) < 1e-3 and rotation_angle_deg(res.T[:3, :3]) < 0.2
+    # Nothing where the model is: a miss, not a pose.
+    assert icp.align(T0, np.zeros((240, 320), np.float32), intr).fitness == 0.0
