@@ -26,6 +26,8 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(VENV)/bin/mireg bench core
 	$(VENV)/bin/mireg bench table1 --samples-per-band 20
+	$(VENV)/bin/mireg bench table1 --hard --samples-per-band 20 --no-baseline
+	test ! -d ../shared/reference/core || $(VENV)/bin/mireg bench table1 --reference ../shared/reference/core
 	$(VENV)/bin/mireg bench synth
 	$(VENV)/bin/mireg bench frames
 	$(VENV)/bin/mireg bench node

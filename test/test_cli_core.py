@@ -82,3 +82,32 @@ def test_bench_table1_tiny(tmp_path):
     band = json.loads((tmp_path / "t.json").read_text())["bands"]["10-50"]
     assert band["ECC (this package)"]["MHF1"] > 0.9
     assert "Sequential GC-RANSAC" in band and "MHF1" in p.stdout
+
+
+def test_register_batch_equals_one_file_calls(tmp_path):
+    inputs = []
+    for i, band in enumerate(("10-50", "70-90")):
+        s = make_band(band, 1, seed=3)[0]
+        inputs.append(tmp_path / f"s{i}.npz")
+        np.savez(inputs[-1], src=s.src, tgt=s.tgt)
+    p = mireg("register", *inputs, "-o", tmp_path / "batch")
+    assert p.returncode == 0, p.stderr
+    for path in inputs:
+        single = tmp_path / ("single_" + path.name)
+        q = mireg("register", path, "-o", single)
+        assert q.returncode == 0, q.stderr
+        with np.load(tmp_path / "batch" / path.name) as b, np.load(single) as o:
+            assert b.files == o.files
+            for key in b.files:
+                if key != "time_s":  # the one field that is a measurement
+                    assert b[key].dtype == o[key].dtype and np.array_equal(b[key], o[key]), key
+
+
+def test_register_batch_refuses_a_file_as_output_directory(tmp_path):
+    s = make_band("10-50", 1, seed=3)[0]
+    for name in ("a.npz", "b.npz"):
+        np.savez(tmp_path / name, src=s.src, tgt=s.tgt)
+    (tmp_path / "out.npz").write_bytes(b"")
+    p = mireg("register", tmp_path / "a.npz", tmp_path / "b.npz", "-o", tmp_path / "out.npz")
+    assert p.returncode == 2 and "must name a directory" in p.stderr
+    assert len(p.stderr.strip().splitlines()) == 1

@@ -20,13 +20,15 @@ class ECCConfig:
     alpha_floor: int = param(0, "lower bound on alpha (0 = the paper's schedule; 3 stops fits to one or two points)", 0, 100000)
     iou_thresh: float = param(0.8, "merge two transforms whose inlier sets have at least this IoU", 0.0, 1.0)
     max_refine_iters: int = param(10, "refinement rounds at most (it usually converges in about 3)", 1, 1000)
+    refine_scope: str = param("sample", "which correspondences the refinement fits and re-assigns: sample (refine the sampled clusters, then assign all N; our reading of the paper) or all (assign all N to the sampled clusters first, then refine on all N with alpha's N = all; the authors' code)", choices=("sample", "all"))
     # Selection (Sec. 3.5).
     min_cluster_size: int = param(10, "keep clusters with more than this many inliers", 0, 100000)
     gamma_thresh: float = param(0.5, "drop instances from the first k whose inliers / best inliers <= this", 0.0, 1.0)
     # Large inputs (Sec. 3.6).
     max_correspondences: int = param(1024, "cluster at most this many correspondences; the rest are assigned afterwards (0 = all)", 0, 10_000_000)
     sampling: str = param("uniform", "how to choose them: uniform (the paper) or consistency (keep those whose distances to spatial neighbours are preserved)", choices=("uniform", "consistency"))
-    sampling_exponent: float = param(6.0, "consistency sampling: draw with weights (agreeing neighbours + 1)^exponent; 0 = uniform", 0.0, 100.0)
+    sampling_score: str = param("chance", "consistency sampling: score each correspondence by its agreeing neighbours in excess of chance (chance: a z-score against the agreement rate of randomly re-paired correspondences) or by their raw number (count: crowded outlier regions score high)", choices=("chance", "count"))
+    sampling_exponent: float = param(6.0, "consistency sampling: draw with weights (score + 1)^exponent; 0 = uniform", 0.0, 100.0)
     sampling_tolerance: float = param(0.1, "consistency sampling: | |x_i - x_j| - |y_i - y_j| | below this counts as agreement; same units as the points (neighbourhood radius = spatial_sigma)", 0.0, 1e6)
     seed: int = param(0, "random seed for the sampling; results are deterministic for a seed", 0, 2**31 - 1)
 
@@ -38,11 +40,11 @@ class ECCConfig:
     @staticmethod
     def modelnet() -> "ECCConfig":
         """The project's defaults for the synthetic benchmark (ModelNet units)."""
-        return replace(ECCConfig(), spatial_sigma=2.0, alpha_floor=3, sampling="consistency")
+        return replace(ECCConfig(), spatial_sigma=2.0, alpha_floor=3, sampling="consistency", sampling_exponent=3.0)
 
     @staticmethod
     def metric() -> "ECCConfig":
         """RGB-D in metres: tabletop objects of 5-30 cm, D455 depth noise of a few mm."""
         return replace(ECCConfig(), spatial_sigma=0.25, inlier_thresh=0.015, alpha_floor=3,
-                       min_cluster_size=5, gamma_thresh=0.1, sampling="consistency",
+                       min_cluster_size=5, gamma_thresh=0.1, sampling="consistency", sampling_exponent=3.0,
                        sampling_tolerance=0.005)

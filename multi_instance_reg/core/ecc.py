@@ -76,12 +76,18 @@ class ECC:
         t2 = time.perf_counter()
         labels = cluster_compatibility_vectors(G, cfg.min_dist_thresh)
         t3 = time.perf_counter()
-        labels = self.refine(xs, ys, labels)
-        if len(sample) < n:
-            labels = self.upsample(xs, ys, labels, x, y)
+        if len(sample) < n and cfg.refine_scope == "all":
+            # The authors' order: the sampled clusters' members keep their labels, the rest
+            # start as outliers; the first round fits each cluster to its sampled members and
+            # assigns all N, later rounds fit to (and count) inliers among all N.
+            labels_all = -np.ones(n, dtype=np.int64)
+            labels_all[sample] = labels
+            labels = self.refine(x, y, labels_all)
+        elif len(sample) < n:
+            labels = self.upsample(xs, ys, self.refine(xs, ys, labels), x, y)
         else:  # the sample is every row, in another order
             labels_all = np.empty(n, dtype=np.int64)
-            labels_all[sample] = labels
+            labels_all[sample] = self.refine(xs, ys, labels)
             labels = labels_all
         T, labels_valid, counts, scores = self.select(x, y, labels)
         t4 = time.perf_counter()
@@ -101,7 +107,7 @@ class ECC:
         sample = choose_sample(len(x), cfg.max_correspondences, cfg.sampling,
                                np.random.default_rng(cfg.seed), x, y,
                                radius=cfg.spatial_sigma, tolerance=cfg.sampling_tolerance,
-                               exponent=cfg.sampling_exponent)
+                               exponent=cfg.sampling_exponent, score=cfg.sampling_score)
         return sample[np.lexsort((principal_coordinate(x[sample]), principal_coordinate(y[sample])))]
 
     def refine(self, x: np.ndarray, y: np.ndarray, labels: np.ndarray) -> np.ndarray:

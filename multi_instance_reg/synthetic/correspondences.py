@@ -12,6 +12,12 @@ One scene (NOTES.md section 2):
   an inlier to its nearest source point on the true instance, an outlier to a random one;
 - the outlier ratio r is drawn uniformly inside a band; when the target points cannot give
   that ratio, noise/distractor points are subsampled or instance points mismatched.
+
+The hard variant (``HARD``, `mireg bench table1 --hard`) is closer to real feature matching:
+each instance shows only a partial view (the 30-100 % of its points nearest a random viewing
+direction), a quarter of the matches on an instance go to a near-neighbour of the right
+source point (2nd to 5th nearest: the confusion of similar descriptors; counted as
+outliers), and up to 30 instances instead of 20.
 """
 from __future__ import annotations
 
@@ -137,25 +143,57 @@ def _jitter(rng, n):
     return np.clip(rng.normal(0.0, 0.01, (n, 3)), -0.05, 0.05)
 
 
-def make_scene(rng: np.random.Generator, band=(0.1, 0.5), max_instances: int = 20,
-               n_distractors: int = 2) -> CorrespondenceScene:
+@dataclass(frozen=True)
+class Difficulty:
+    max_instances: int = 20
+    visible: tuple[float, float] = (1.0, 1.0)   # fraction of each instance's points seen
+    confusion: float = 0.0                      # share of instance matches sent to a near neighbour
+
+
+PLAIN = Difficulty()
+HARD = Difficulty(max_instances=30, visible=(0.3, 1.0), confusion=0.25)
+
+
+def _partial_view(rng, pts: np.ndarray, fraction: float) -> np.ndarray:
+    """Indices of the ``fraction`` of points that lie furthest along a random direction."""
+    if fraction >= 1.0:
+        return np.arange(len(pts))
+    direction = rng.normal(size=3)
+    order = np.argsort(-(pts @ direction), kind="stable")
+    return np.sort(order[: max(3, int(round(fraction * len(pts))))])
+
+
+def make_scene(rng: np.random.Generator, band=(0.1, 0.5), max_instances: int | None = None,
+               n_distractors: int = 2, difficulty: Difficulty = PLAIN) -> CorrespondenceScene:
     names = list(SHAPES)
     shape = names[rng.integers(len(names))]
     src_clean = sample_shape(shape, POINTS_PER_MODEL, rng)
     src = src_clean + _jitter(rng, POINTS_PER_MODEL)
     tree = cKDTree(src_clean)
+    max_instances = difficulty.max_instances if max_instances is None else max_instances
     k = int(rng.integers(1, max_instances + 1))
     T_gt = np.stack([_random_pose(rng) for _ in range(k)])
 
-    inst_tgt, inst_src_idx, inst_id = [], [], []
+    inst_tgt, inst_src_idx, inst_id, confused = [], [], [], []
     for i, T in enumerate(T_gt):
         pts = sample_shape(shape, POINTS_PER_MODEL, rng)
-        inst_src_idx.append(tree.query(pts)[1])
+        if difficulty.visible != (1.0, 1.0):
+            pts = pts[_partial_view(rng, pts, rng.uniform(*difficulty.visible))]
+        if difficulty.confusion > 0:
+            # The 2nd to 5th nearest source point: a match to a similar-looking neighbour.
+            near = tree.query(pts, k=5)[1]
+            wrong_near = rng.random(len(pts)) < difficulty.confusion
+            idx = np.where(wrong_near, near[np.arange(len(pts)), rng.integers(1, 5, len(pts))], near[:, 0])
+        else:
+            idx, wrong_near = tree.query(pts)[1], np.zeros(len(pts), bool)
+        inst_src_idx.append(idx)
+        confused.append(wrong_near)
         inst_tgt.append((pts + _jitter(rng, len(pts))) @ T[:3, :3].T + T[:3, 3])
         inst_id.append(np.full(len(pts), i))
     inst_tgt = np.concatenate(inst_tgt)
     inst_src_idx = np.concatenate(inst_src_idx)
     inst_id = np.concatenate(inst_id)
+    confused = np.concatenate(confused)
 
     others = [rng.uniform(0, 10, (NOISE_POINTS, 3))]
     for name in rng.choice([s for s in names if s != shape], n_distractors, replace=False):
@@ -170,16 +208,19 @@ def make_scene(rng: np.random.Generator, band=(0.1, 0.5), max_instances: int = 2
         # Enough clutter: every instance point is an inlier, clutter is subsampled.
         n_in = n_inst
         others = others[rng.choice(n_other, n_out_needed, replace=False)]
-        wrong = np.zeros(n_inst, bool)
+        wrong = confused.copy()
     else:
         # Not enough clutter: keep all of it and mismatch some instance points.
         n_in = int(round((1 - ratio) * (n_inst + n_other)))
         wrong = np.ones(n_inst, bool)
-        wrong[rng.choice(n_inst, n_in, replace=False)] = False
+        right = np.flatnonzero(~confused)
+        wrong[rng.choice(right, min(n_in, len(right)), replace=False)] = False
 
     src_idx = inst_src_idx.copy()
-    # A mismatched point gets any other source point (never its true one).
-    src_idx[wrong] = (inst_src_idx[wrong] + rng.integers(1, POINTS_PER_MODEL, wrong.sum())) % POINTS_PER_MODEL
+    # A mismatched point gets any other source point (never its true one); a confused one
+    # keeps its near neighbour.
+    mismatch = wrong & ~confused
+    src_idx[mismatch] = (inst_src_idx[mismatch] + rng.integers(1, POINTS_PER_MODEL, mismatch.sum())) % POINTS_PER_MODEL
     tgt = np.concatenate([inst_tgt, others])
     all_src_idx = np.concatenate([src_idx, rng.integers(0, POINTS_PER_MODEL, len(others))])
     is_inlier = np.concatenate([~wrong, np.zeros(len(others), bool)])
@@ -189,10 +230,12 @@ def make_scene(rng: np.random.Generator, band=(0.1, 0.5), max_instances: int = 2
                                instance[perm].astype(np.int64), 1 - is_inlier.mean(), shape)
 
 
-def make_band(band: str, n_samples: int, seed: int = 0) -> list[CorrespondenceScene]:
-    """n_samples scenes of one outlier band, deterministic for a seed."""
-    rng = np.random.default_rng([seed, list(BANDS).index(band)])
-    return [make_scene(rng, BANDS[band]) for _ in range(n_samples)]
+def make_band(band: str, n_samples: int, seed: int = 0, difficulty: Difficulty = PLAIN) -> list[CorrespondenceScene]:
+    """n_samples scenes of one outlier band, deterministic for a seed (and a difficulty:
+    the hard set draws from its own stream, so the plain set stays as it was)."""
+    stream = [seed, list(BANDS).index(band)] + ([1] if difficulty != PLAIN else [])
+    rng = np.random.default_rng(stream)
+    return [make_scene(rng, BANDS[band], difficulty=difficulty) for _ in range(n_samples)]
 
 
 def make_sized_scene(rng: np.random.Generator, n: int, outlier_ratio: float = 0.6,

@@ -1,4 +1,6 @@
 """mireg register IN.npz -o OUT.npz: multi-instance registration of one correspondence set.
+mireg register A.npz B.npz ... -o OUTDIR/: several in one process (OUTDIR/A.npz, ...), so that
+the kernels are loaded once.
 
 Public contract. IN holds ``src`` (N,3) and ``tgt`` (N,3), row i one correspondence.
 OUT holds ``T`` (M,4,4) float64 source->target sorted by inlier count (descending),
@@ -9,8 +11,10 @@ NaN/inf).
 from __future__ import annotations
 
 import argparse
+import os
 import time
 import zipfile
+from pathlib import Path
 
 import numpy as np
 
@@ -53,8 +57,10 @@ def ecc_config_from_args(args) -> ECCConfig:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("input", metavar="IN.npz", help="npz with src (N,3) and tgt (N,3)")
-    parser.add_argument("-o", "--output", metavar="OUT.npz", required=True)
+    parser.add_argument("input", metavar="IN.npz", nargs="+",
+                        help="npz with src (N,3) and tgt (N,3); several: each is written to OUTDIR/<its name>")
+    parser.add_argument("-o", "--output", metavar="OUT.npz|OUTDIR/", required=True,
+                        help="output file for one input; a directory (existing, or ending in /) for several")
     add_ecc_arguments(parser)
 
 
@@ -79,18 +85,41 @@ def load_correspondences(path) -> tuple[np.ndarray, np.ndarray]:
     return src.astype(np.float64), tgt.astype(np.float64)
 
 
-def run(args) -> int:
-    limit_blas_threads(1)  # see multi_instance_reg.threads: spinning BLAS threads slow the kernels
-    config = ecc_config_from_args(args)
-    src, tgt = load_correspondences(args.input)
-    t0 = time.perf_counter()
-    result = ECC(config).register(src, tgt)
-    elapsed = time.perf_counter() - t0
+def output_paths(inputs: list[str], output: str) -> list[Path]:
+    """Where each input's result goes: the file itself for one input (the original form),
+    OUTDIR/<input's name> when the output is a directory."""
+    out = Path(output)
+    if len(inputs) == 1 and not (output.endswith(("/", os.sep)) or out.is_dir()):
+        return [out]
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{output} is a file; with several inputs -o must name a directory (e.g. -o out/)")
+    names = [Path(p).name for p in inputs]
+    repeated = sorted({n for n in names if names.count(n) > 1})
+    if repeated:
+        raise InputError(f"several inputs are named {repeated[0]}; their results would overwrite each other in {output}")
+    out.mkdir(parents=True, exist_ok=True)
+    return [out / n for n in names]
+
+
+def save_result(path, result, elapsed: float) -> None:
     # Through a file handle so the name is kept exactly (np.savez would append .npz).
-    with open(args.output, "wb") as fh:
+    with open(path, "wb") as fh:
         np.savez(fh, T=result.transforms.astype(np.float64), labels=result.labels.astype(np.int64),
                  inlier_counts=result.inlier_counts.astype(np.int64), time_s=np.float64(elapsed),
                  scores=result.scores.astype(np.float64), n_invalid=np.int64(result.n_invalid))
-    print(f"{len(result)} instance(s) from {len(src)} correspondences "
-          f"({result.n_invalid} invalid rows dropped) in {elapsed * 1e3:.1f} ms -> {args.output}")
+
+
+def run(args) -> int:
+    limit_blas_threads(1)  # see multi_instance_reg.threads: spinning BLAS threads slow the kernels
+    config = ecc_config_from_args(args)
+    outputs = output_paths(args.input, args.output)
+    ecc = ECC(config)
+    for path, out in zip(args.input, outputs):
+        src, tgt = load_correspondences(path)
+        t0 = time.perf_counter()
+        result = ecc.register(src, tgt)
+        elapsed = time.perf_counter() - t0
+        save_result(out, result, elapsed)
+        print(f"{len(result)} instance(s) from {len(src)} correspondences "
+              f"({result.n_invalid} invalid rows dropped) in {elapsed * 1e3:.1f} ms -> {out}")
     return 0
