@@ -21,18 +21,45 @@ from .shape import describe, shape_voxel, voxel_downsample
 MARKER_SPACING_M = 0.003
 
 
+def view_directions(count: int) -> np.ndarray:
+    """(count, 3) unit vectors spread evenly over the sphere (a Fibonacci lattice)."""
+    k = np.arange(count) + 0.5
+    z = 1.0 - 2.0 * k / count
+    phi = np.pi * (3.0 - np.sqrt(5.0)) * k
+    r = np.sqrt(1.0 - z * z)
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
+def view_descriptors(dense: np.ndarray, dense_normals: np.ndarray, voxel: float, centre: np.ndarray, views: int):
+    """Descriptors of the surface as a camera sees it from ``views`` directions: a frame
+    holds only the side facing the camera, and FPFH of a point near a silhouette differs
+    from the same point's FPFH on the whole surface. Per direction: the samples whose normal
+    faces it (self-occlusion is ignored), voxel-downsampled and described. Returns points,
+    normals, surface variation and FPFH of all views stacked (a physical point appears once
+    per view that sees it)."""
+    tree = cKDTree(dense)
+    out = [[], [], [], []]
+    for d in view_directions(views):
+        faces = dense_normals @ d > 0.1
+        if faces.sum() < 10:
+            continue
+        pts = voxel_downsample(dense[faces], voxel)
+        _, j = tree.query(pts, k=1, workers=-1)
+        normals, variation, desc = describe(pts, voxel, along=dense_normals[j])
+        for lst, val in zip(out, (pts, normals, variation, desc)):
+            lst.append(val)
+    return tuple(np.concatenate(v) for v in out)
+
+
 def build_model_from_mesh(mesh: TriangleMesh, name: str = "", symmetry: str | None = None,
-                          voxel: float | None = None, seed: int = 0) -> ObjectModel:
+                          voxel: float | None = None, seed: int = 0, views: int = 20) -> ObjectModel:
     """``symmetry``: None = find from the mesh; else text for ``parse_symmetry_text``."""
     lo, hi = mesh.bounds
     extent = hi - lo
     centre = (lo + hi) / 2.0
     voxel = float(voxel) if voxel else shape_voxel(extent)
     dense, dense_normals = sample_surface(mesh, voxel / 4.0, seed=seed)
-    pts = voxel_downsample(dense, voxel)
-    # Each voxel's normal sign from the nearest surface sample's face normal (outward).
-    _, j = cKDTree(dense).query(pts, k=1, workers=-1)
-    normals, variation, desc = describe(pts, voxel, along=dense_normals[j])
+    pts, normals, variation, desc = view_descriptors(dense, dense_normals, voxel, centre, views)
     diameter = float(np.linalg.norm(extent))
     if symmetry is None:
         spacing = diameter / 100.0

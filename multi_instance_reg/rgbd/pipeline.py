@@ -75,7 +75,7 @@ class FrontEndConfig:
     correspondences: str = param("auto", "where correspondences come from: sift (texture), shape (depth: FPFH on the search region), both (joined before ECC), or auto (what the model has: shape data and keypoints -> both, shape data only -> shape, else sift)", choices=("auto", "sift", "shape", "both"))
     shape_min_variation: float = param(0.02, "shape: match only points whose surface variation (smallest / summed PCA eigenvalue over the descriptor radius) is at least this; flat faces (~0) give only outliers", 0.0, 0.34)
     shape_neighbours: int = param(3, "shape: each scene point is matched to this many nearest model descriptors (one-to-many)", 1, 20)
-    shape_max_points: int = param(8000, "shape: at most this many voxel-downsampled search-region points per frame (a random subset beyond)", 100, 1000000)
+    shape_max_points: int = param(30000, "shape: at most this many voxel-downsampled search-region points per frame (a random subset beyond, which thins the cloud and weakens the descriptors)", 100, 1000000)
     shape_icp_iterations: int = param(15, "shape: point-to-plane ICP rounds per instance", 0, 100)
     shape_depth_tolerance: float = param(0.008, "metres: a model point agrees with the depth image when within this (or 0.8 voxel, whichever is larger)", 0.001, 0.2)
     shape_min_support: float = param(0.6, "shape: keep an instance when at least this share of its visible model surface agrees with the depth image", 0.0, 1.0)
@@ -455,7 +455,8 @@ def box_overlaps(model: ObjectModel, transforms, grid: np.ndarray) -> np.ndarray
     t_rel = np.einsum("aij,abj->abi", Rt, t[None, :, :] - t[:, None, :])     # R_a^T (t_b - t_a)
     # b's grid in a's model frame for every pair at once: one (P, 3) x (3, M*M*3) product.
     pts = (grid @ R_rel.transpose(3, 0, 1, 2).reshape(3, -1)).reshape(len(grid), m, m, 3) + t_rel
-    inside = np.abs(pts - np.asarray(model.box_centre, dtype=np.float64)) <= np.asarray(model.extent, dtype=np.float64) / 2.0
+    centre = np.asarray(getattr(model, "box_centre", np.zeros(3)), dtype=np.float64)
+    inside = np.abs(pts - centre) <= np.asarray(model.extent, dtype=np.float64) / 2.0
     # Per-axis ANDs: a reduction over a length-3 axis is ~4x slower.
     return (inside[..., 0] & inside[..., 1] & inside[..., 2]).sum(axis=0) / len(grid)
 

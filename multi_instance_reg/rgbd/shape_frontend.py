@@ -18,7 +18,7 @@ from ..core import ECCConfig
 from ..errors import InputError
 from ..messages import CameraIntrinsics
 from .model import ObjectModel
-from .shape import ShapeMatcher, depth_support, describe, icp_point_to_plane, scene_cloud
+from .shape import ShapeMatcher, depth_support, describe, icp_point_to_plane, scene_cloud, voxel_downsample
 
 
 @dataclass
@@ -43,7 +43,12 @@ class ShapeFrontEnd:
             keep = np.arange(len(model.shape_points))
         self._model_idx = keep
         self._model_pts = model.shape_points.astype(np.float64)
-        self._model_normals = model.shape_normals.astype(np.float64)
+        # The surface once (the descriptors hold a point once per view that sees it): for ICP
+        # and the depth check.
+        surface = voxel_downsample(self._model_pts, self.voxel)
+        _, j = cKDTree(self._model_pts).query(surface, k=1)
+        self._surface = surface
+        self._surface_normals = model.shape_normals[j].astype(np.float64)
         self._matcher = ShapeMatcher(model.shape_descriptors[keep], k=fe.shape_neighbours)
         self.diameter = float(np.linalg.norm(model.extent))
 
@@ -80,10 +85,18 @@ class ShapeFrontEnd:
         if cloud.tree is None:
             return out
         tol = max(fe.shape_depth_tolerance, 0.8 * self.voxel)
+        first = min(3, fe.shape_icp_iterations)
         for T in transforms:
-            T, _ = icp_point_to_plane(T, self._model_pts, cloud.points, cloud.normals, cloud.tree,
-                                      max_dist=2.0 * self.voxel, iterations=fe.shape_icp_iterations)
-            support, free, n = depth_support(T, self._model_pts, self._model_normals, depth_m, intrinsics, tol)
+            # A few rounds first: a hypothesis the depth hardly supports then is dropped
+            # without paying for the rest (most of ECC's clusters on shape matches are wrong).
+            T, _ = icp_point_to_plane(T, self._surface, cloud.points, cloud.normals, cloud.tree,
+                                      max_dist=2.0 * self.voxel, iterations=first)
+            support, free, n = depth_support(T, self._surface, self._surface_normals, depth_m, intrinsics, tol)
+            if support < 0.5 * fe.shape_min_support:
+                continue
+            T, _ = icp_point_to_plane(T, self._surface, cloud.points, cloud.normals, cloud.tree,
+                                      max_dist=1.5 * self.voxel, iterations=fe.shape_icp_iterations - first)
+            support, free, n = depth_support(T, self._surface, self._surface_normals, depth_m, intrinsics, tol)
             if n >= fe.shape_min_visible and support >= fe.shape_min_support and free <= fe.shape_max_free:
                 out.append((T, support, int(round(support * n))))
         return out

@@ -95,7 +95,8 @@ class ReplayResult:
 
     def latency_summary(self) -> dict:
         out = {}
-        for stage in STAGE_ORDER:
+        extra = ("shape",) if self.timings and "shape" in self.timings[0] else ()
+        for stage in STAGE_ORDER + extra:
             vals = np.array([t[stage] for t in self.timings]) if self.timings else np.zeros(0)
             out[stage] = {"p50": float(np.percentile(vals, 50)) if len(vals) else None,
                           "p95": float(np.percentile(vals, 95)) if len(vals) else None}
@@ -112,8 +113,16 @@ def estimates_in_object_frame(model, transforms: np.ndarray) -> np.ndarray:
     return transforms @ invert_transform(model.T_object_model)
 
 
+def object_frame_symmetries(model):
+    """The model's symmetries in the object (ground-truth) frame, or None."""
+    if model.symmetries is None or model.symmetries.is_trivial:
+        return None
+    T_om = np.eye(4) if model.T_object_model is None else model.T_object_model
+    return model.symmetries.conjugated(T_om)
+
+
 def evaluate_frame(T_gt, T_est, visibility=None, min_visibility: float = 0.0, max_rre_deg: float = 10.0,
-                   max_rte: float = 0.02):
+                   max_rte: float = 0.02, symmetries=None):
     """Score one frame. Instances less visible than ``min_visibility`` are not "present": they
     do not count against recall, and an estimate that hits one is neither credit nor blame."""
     from ..metrics import evaluate_scene
@@ -121,12 +130,12 @@ def evaluate_frame(T_gt, T_est, visibility=None, min_visibility: float = 0.0, ma
     T_gt = np.asarray(T_gt, dtype=np.float64).reshape(-1, 4, 4)
     T_est = np.asarray(T_est, dtype=np.float64).reshape(-1, 4, 4)
     if visibility is None or min_visibility <= 0:
-        return evaluate_scene(T_gt, T_est, max_rre_deg, max_rte)
+        return evaluate_scene(T_gt, T_est, max_rre_deg, max_rte, symmetries)
     seen = np.asarray(visibility) >= min_visibility
-    full = evaluate_scene(T_gt, T_est, max_rre_deg, max_rte)
+    full = evaluate_scene(T_gt, T_est, max_rre_deg, max_rte, symmetries)
     drop = {e for (g, e), hit in zip(full.pairs, full.hit) if hit and not seen[g]}
     keep = [e for e in range(len(T_est)) if e not in drop]
-    return evaluate_scene(T_gt[seen], T_est[keep], max_rre_deg, max_rte)
+    return evaluate_scene(T_gt[seen], T_est[keep], max_rre_deg, max_rte, symmetries)
 
 
 def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_rte: float = 0.02,
@@ -137,6 +146,7 @@ def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_
     from ..rgbd.pipeline import InstanceRegistration
 
     reg = InstanceRegistration(model, config)
+    symmetries = object_frame_symmetries(model)   # hits over the symmetries (BOP); None: plain
     reg.warm_up()   # compile the ECC core's kernels now, not inside the first frame's latency
     kwargs = dict(zip(("colour_topic", "depth_topic", "info_topic"), topics)) if topics else {}
     out = ReplayResult()
@@ -167,7 +177,8 @@ def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_
                 out.found.append(len(result.instances))
                 if frame.gt_poses is not None:
                     est = estimates_in_object_frame(model, [i.T for i in result.instances])
-                    score = evaluate_frame(frame.gt_poses, est, frame.gt_visibility, min_visibility, max_rre_deg, max_rte)
+                    score = evaluate_frame(frame.gt_poses, est, frame.gt_visibility, min_visibility, max_rre_deg, max_rte,
+                                           symmetries)
                     out.scores.append(score)
                     out.present.append(score.n_gt)
                     out.hits.append(score.hits)
