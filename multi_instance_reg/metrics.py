@@ -44,13 +44,28 @@ class SceneScore:
         return _f1(self.precision, self.recall)
 
 
-def evaluate_scene(T_gt, T_est, max_rre_deg: float = 20.0, max_rte: float = 0.5) -> SceneScore:
-    """Score one scene. T_gt (K,4,4), T_est (M,4,4); either may be empty."""
+def evaluate_scene(T_gt, T_est, max_rre_deg: float = 20.0, max_rte: float = 0.5, symmetries=None) -> SceneScore:
+    """Score one scene. T_gt (K,4,4), T_est (M,4,4); either may be empty.
+
+    ``symmetries`` (a multi_instance_reg.symmetry.Symmetries in the frame the poses map
+    from): each pair is scored against the symmetric ground-truth pose nearest to the
+    estimate, as the BOP benchmark does; None (or none found) is the plain comparison."""
     T_gt = np.asarray(T_gt, dtype=np.float64).reshape(-1, 4, 4)
     T_est = np.asarray(T_est, dtype=np.float64).reshape(-1, 4, 4)
     K, M = len(T_gt), len(T_est)
     if K == 0 or M == 0:
         return SceneScore(K, M, 0)
+    if symmetries is not None and not symmetries.is_trivial:
+        from .symmetry import closest_symmetric_pose
+
+        variants = np.array([[closest_symmetric_pose(g, e, symmetries) for e in T_est] for g in T_gt])  # (K, M, 4, 4)
+        cost = np.linalg.norm(variants - T_est[None], axis=(2, 3))
+        gi, ei = linear_sum_assignment(cost)
+        matched = [variants[g, e] for g, e in zip(gi, ei)]
+        rre = np.array([rotation_angle_deg(T_est[e, :3, :3].T @ V[:3, :3]) for V, e in zip(matched, ei)])
+        rte = np.array([np.linalg.norm(V[:3, 3] - T_est[e, :3, 3]) for V, e in zip(matched, ei)])
+        hit = (rre < max_rre_deg) & (rte < max_rte)
+        return SceneScore(K, M, int(hit.sum()), list(zip(gi.tolist(), ei.tolist())), rre, rte, hit)
     cost = np.linalg.norm(T_gt[:, None] - T_est[None], axis=(2, 3))
     gi, ei = linear_sum_assignment(cost)
     rre = np.array([rotation_angle_deg(T_est[e, :3, :3].T @ T_gt[g, :3, :3]) for g, e in zip(gi, ei)])

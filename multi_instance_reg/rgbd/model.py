@@ -10,9 +10,21 @@ File format (npz, read with allow_pickle=False):
   T_capture_model  (4, 4)  float64  model frame in the optical frame of the first capture frame
   T_object_model   (4, 4)  float64  optional: model frame in the object's ground-truth frame
   name             ()      str      optional: the object's name
+Optional, from a mesh (`mireg build-model --mesh`; files without them load as before):
+  shape_voxel      ()      float64  metres: the voxel the shape data (and every frame) is sampled at
+  shape_points     (Q, 3)  float32  the surface, voxel-downsampled, model frame
+  shape_normals    (Q, 3)  float32  outward unit normals there
+  shape_descriptors (Q, 33) float32 FPFH descriptors there (rgbd/shape.py)
+  shape_variation  (Q,)    float32  surface variation there (flat faces ~0; edges, corners higher)
+  box_centre       (3,)    float64  centre of the object's box in the model frame (default 0)
+  symmetry_discrete (S, 4, 4) float64  symmetries, identity first (multi_instance_reg/symmetry.py)
+  symmetry_axis    (3,)    float64  continuous symmetry about this axis ...
+  symmetry_point   (3,)    float64  ... through this point
+A model may then have no SIFT keypoints at all (0 rows): it is found by shape alone.
 
-The model frame: origin at the centre of the object's bounding box; z along the table normal
-(up, towards the camera) when a table plane was found, else the capture camera's axes.
+The model frame of a capture: origin at the centre of the object's bounding box; z along the table normal
+(up, towards the camera) when a table plane was found, else the capture camera's axes. Of a
+mesh: the mesh's own frame (poses come out in the CAD coordinates).
 """
 from __future__ import annotations
 
@@ -41,16 +53,28 @@ class ObjectModel:
     T_capture_model: np.ndarray          # (4, 4) float64
     T_object_model: np.ndarray | None = None
     name: str = ""
+    # Shape data (from a mesh); None when the model has none.
+    shape_points: np.ndarray | None = None       # (Q, 3) float32
+    shape_normals: np.ndarray | None = None      # (Q, 3) float32
+    shape_descriptors: np.ndarray | None = None  # (Q, 33) float32
+    shape_variation: np.ndarray | None = None    # (Q,) float32
+    shape_voxel: float = 0.0
+    box_centre: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    symmetries: "Symmetries | None" = None
 
     @property
     def num_keypoints(self) -> int:
         return len(self.keypoints_xyz)
 
+    @property
+    def has_shape(self) -> bool:
+        return self.shape_descriptors is not None and len(self.shape_descriptors) >= 3
+
     def box_corners(self) -> np.ndarray:
-        """(8, 3) corners of the object's box in the model frame (centred at the origin)."""
+        """(8, 3) corners of the object's box in the model frame."""
         h = np.asarray(self.extent, dtype=np.float64) / 2.0
         signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
-        return signs * h
+        return signs * h + np.asarray(self.box_centre, dtype=np.float64)
 
 
 def save_model(model: ObjectModel, path) -> Path:
@@ -68,6 +92,19 @@ def save_model(model: ObjectModel, path) -> Path:
     }
     if model.T_object_model is not None:
         arrays["T_object_model"] = np.asarray(model.T_object_model, dtype=np.float64)
+    if model.has_shape:
+        arrays.update(shape_voxel=np.array(float(model.shape_voxel)),
+                      shape_points=np.asarray(model.shape_points, np.float32),
+                      shape_normals=np.asarray(model.shape_normals, np.float32),
+                      shape_descriptors=np.asarray(model.shape_descriptors, np.float32),
+                      shape_variation=np.asarray(model.shape_variation, np.float32))
+    if np.any(np.asarray(model.box_centre) != 0):
+        arrays["box_centre"] = np.asarray(model.box_centre, np.float64)
+    if model.symmetries is not None and not model.symmetries.is_trivial:
+        arrays["symmetry_discrete"] = np.asarray(model.symmetries.discrete, np.float64)
+        if model.symmetries.axis is not None:
+            arrays["symmetry_axis"] = np.asarray(model.symmetries.axis, np.float64)
+            arrays["symmetry_point"] = np.asarray(model.symmetries.point, np.float64)
     _check_arrays(arrays, str(path))
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(path, **arrays)
@@ -92,7 +129,19 @@ def load_model(path) -> ObjectModel:
         raise InputError(f"model file {path} is not a readable .npz ({type(exc).__name__}: {exc}); "
                          f"rebuild it with `mireg build-model`") from None
     _check_arrays(arrays, str(path))
-    return ObjectModel(
+    from ..symmetry import Symmetries
+
+    shape = {}
+    if "shape_descriptors" in arrays:
+        shape = dict(shape_voxel=float(arrays["shape_voxel"]),
+                     **{k: arrays[k].astype(np.float32) for k in
+                        ("shape_points", "shape_normals", "shape_descriptors", "shape_variation")})
+    if "symmetry_discrete" in arrays:
+        shape["symmetries"] = Symmetries(arrays["symmetry_discrete"].astype(np.float64),
+                                         arrays.get("symmetry_axis"), arrays.get("symmetry_point"))
+    if "box_centre" in arrays:
+        shape["box_centre"] = arrays["box_centre"].astype(np.float64)
+    return ObjectModel(**shape,
         keypoints_xyz=arrays["keypoints_xyz"].astype(np.float32),
         descriptors=arrays["descriptors"].astype(np.float32),
         points_xyz=arrays["points_xyz"].astype(np.float32),
@@ -130,6 +179,31 @@ def _check_arrays(a: dict, where: str) -> None:
     s = len(a["keypoints_xyz"])
     if len(a["descriptors"]) != s:
         raise InputError(f"model file {where}: {s} keypoints but {len(a['descriptors'])} descriptors")
+    shape_keys = ("shape_voxel", "shape_points", "shape_normals", "shape_descriptors", "shape_variation")
+    if any(k in a for k in shape_keys):
+        if not all(k in a for k in shape_keys):
+            raise InputError(f"model file {where} has only some of {', '.join(shape_keys)}; "
+                             f"rebuild it with `mireg build-model --mesh`")
+        shape_ok("shape_points", (None, 3))
+        q = len(a["shape_points"])
+        shape_ok("shape_normals", (q, 3))
+        shape_ok("shape_descriptors", (q, 33))
+        shape_ok("shape_variation", (q,))
+        shape_ok("shape_voxel", ())
+        if q < 3 or not float(a["shape_voxel"]) > 0:
+            raise InputError(f"model file {where}: shape data with {q} points and voxel {float(a['shape_voxel'])}; "
+                             f"rebuild it with `mireg build-model --mesh`")
+    if "box_centre" in a:
+        shape_ok("box_centre", (3,))
+    if "symmetry_discrete" in a:
+        shape_ok("symmetry_discrete", (None, 4, 4))
+        if ("symmetry_axis" in a) != ("symmetry_point" in a):
+            raise InputError(f"model file {where}: symmetry_axis and symmetry_point go together")
+        if "symmetry_axis" in a:
+            shape_ok("symmetry_axis", (3,))
+            shape_ok("symmetry_point", (3,))
+    if s < 3 and "shape_descriptors" in a:
+        return
     if s < 3:
         raise InputError(f"model file {where} has {s} keypoints (at least 3 needed); rebuild it from views "
                          f"where the object is textured and has valid depth")

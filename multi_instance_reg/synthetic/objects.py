@@ -42,13 +42,16 @@ class ObjectSpec:
     "-z") to the scikit-image picture its texture is cropped from; ``tint`` colours grey
     pictures; ``resting`` lists (object axis that points up, weight) for placing it on a table."""
     name: str
-    shape: str                                  # "box" | "cylinder"
-    dimensions_m: tuple[float, float, float]    # box (dx, dy, dz); cylinder (d, d, h)
+    shape: str                                  # "box" | "cylinder" | "bracket" (see UNTEXTURED_OBJECTS)
+    dimensions_m: tuple[float, float, float]    # box (dx, dy, dz); cylinder (d, d, h); bracket: its box
     faces: tuple[tuple[str, str], ...]
     resting: tuple[tuple[str, float], ...]
     tint: tuple[int, int, int] = (255, 255, 255)
     label: str = ""                             # printed on the larger faces like a brand name
     label_colour: tuple[int, int, int] = (200, 30, 30)
+    # Boxes the object is made of, (centre, dimensions) in the object frame; a "bracket" is
+    # drawn as these (the object frame stays at the centre of the whole object's box).
+    parts: tuple = ()
 
     @property
     def radius(self) -> float:
@@ -120,11 +123,70 @@ PROPS: dict[str, ObjectSpec] = {spec.name: spec for spec in (
 )}
 
 
+# Objects without texture, flat-coloured all over ("flat" faces), for the shape front end.
+# Kept out of OBJECTS so that the textured scenes' distractor pool (and so every textured
+# scene of a seed) stays as it was.
+def _flat(shape: str) -> tuple[tuple[str, str], ...]:
+    faces = ("side", "+z", "-z") if shape == "cylinder" else tuple(f for f, _, _ in BOX_FACES)
+    return tuple((f, "flat") for f in faces)
+
+
+def _bracket_parts(dims, thickness):
+    """An L profile in the xz plane, extruded along y: a base plate on the bottom and an
+    upright plate at the -x end, both ``thickness`` thick."""
+    X, Y, Z = dims
+    t = thickness
+    return (((0.0, 0.0, -Z / 2 + t / 2), (X, Y, t)),
+            ((-X / 2 + t / 2, 0.0, t / 2), (t, Y, Z - t)))
+
+
+BRACKET_THICKNESS_M = 0.012
+UNTEXTURED_OBJECTS: dict[str, ObjectSpec] = {spec.name: spec for spec in (
+    # A plain brown shipping carton (stacked on pallets).
+    ObjectSpec("carton", "box", (0.30, 0.20, 0.15), _flat("box"),
+               resting=(("+z", 0.8), ("-z", 0.2)), tint=(168, 128, 84)),
+    # A turned grey part, standing or lying.
+    ObjectSpec("grey_cylinder", "cylinder", (0.06, 0.06, 0.10), _flat("cylinder"),
+               resting=(("+z", 0.6), ("+x", 0.4)), tint=(150, 152, 158)),
+    # An L-shaped angle bracket (no proper rotational symmetry).
+    ObjectSpec("bracket", "bracket", (0.12, 0.06, 0.08), _flat("box"),
+               resting=(("+z", 0.7), ("+x", 0.3)), tint=(118, 124, 132),
+               parts=_bracket_parts((0.12, 0.06, 0.08), BRACKET_THICKNESS_M)),
+    # Distractors: other plain shapes and sizes.
+    ObjectSpec("crate", "box", (0.40, 0.30, 0.12), _flat("box"), resting=(("+z", 1.0),), tint=(96, 120, 150)),
+    ObjectSpec("grey_block", "box", (0.08, 0.07, 0.05), _flat("box"),
+               resting=(("+z", 0.6), ("+x", 0.4)), tint=(140, 140, 146)),
+    ObjectSpec("wide_cylinder", "cylinder", (0.10, 0.10, 0.06), _flat("cylinder"),
+               resting=(("+z", 1.0),), tint=(160, 160, 150)),
+    ObjectSpec("pallet", "box", (1.20, 0.80, 0.144), _flat("box"), resting=(("+z", 1.0),), tint=(186, 160, 118)),
+)}
+
+
 def get_object(name: str) -> ObjectSpec:
-    try:
-        return OBJECTS[name]
-    except KeyError:
-        raise InputError(f"unknown object '{name}'; choose one of: {', '.join(OBJECTS)}") from None
+    spec = OBJECTS.get(name) or UNTEXTURED_OBJECTS.get(name)
+    if spec is None:
+        raise InputError(f"unknown object '{name}'; choose one of: {', '.join(list(OBJECTS) + list(UNTEXTURED_OBJECTS))}")
+    return spec
+
+
+def object_mesh(spec: ObjectSpec):
+    """The object's surface as a triangle mesh in its object frame (metres)."""
+    from ..meshes import box_mesh, cylinder_mesh, extruded_polygon_mesh
+
+    if spec.shape == "cylinder":
+        return cylinder_mesh(spec.dimensions_m[0], spec.dimensions_m[2])
+    if spec.shape == "box":
+        return box_mesh(*spec.dimensions_m)
+    # bracket: the L outline in (x, z), counter-clockwise, extruded along y.
+    X, Y, Z = spec.dimensions_m
+    t = BRACKET_THICKNESS_M
+    outline = np.array([[-X / 2, -Z / 2], [X / 2, -Z / 2], [X / 2, -Z / 2 + t], [-X / 2 + t, -Z / 2 + t],
+                        [-X / 2 + t, Z / 2], [-X / 2, Z / 2]])
+    mesh = extruded_polygon_mesh(outline, Y, [[0, 1, 2], [0, 2, 3], [0, 3, 4], [0, 4, 5]])
+    # (a, b, c) -> (a, -c, b): a quarter turn about x takes the extrusion axis to y.
+    v = mesh.vertices
+    mesh.vertices = np.column_stack([v[:, 0], -v[:, 2], v[:, 1]])
+    return mesh
 
 
 # --------------------------------------------------------------------------------------------
@@ -207,6 +269,12 @@ def object_textures(name: str) -> dict[str, np.ndarray]:
     textures = {}
     for face, picture in spec.faces:
         width_m, height_m = face_size_m(spec, face)
+        if picture == "flat":       # untextured: the tint all over
+            tex = np.empty((16, 16, 3), np.uint8)
+            tex[:] = spec.tint
+            tex.setflags(write=False)
+            textures[face] = tex
+            continue
         tex = crop_texture(picture, width_m, height_m, key=f"{name}{face}", tint=spec.tint)
         # Brand band on the faces big enough to carry it (and the cylinder's wrap).
         if spec.label and min(width_m, height_m) >= 0.035 and face in ("side", "+x", "-x", "+y", "-y", "+z"):

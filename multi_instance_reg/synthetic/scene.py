@@ -582,6 +582,12 @@ def object_primitives(placement: Placement) -> list:
     spec, pose, label = placement.spec, placement.pose, placement.label
     half = spec.half_extents
     prims = []
+    if spec.parts:                          # made of boxes (a bracket): each drawn as a box
+        for centre, dims in spec.parts:
+            part_pose = pose @ make_transform(np.eye(3), centre)
+            part = ObjectSpec(spec.name, "box", dims, spec.faces, spec.resting, spec.tint)
+            prims += object_primitives(Placement(part, part_pose, label, placement.arrangement))
+        return prims
     if spec.shape == "box":
         for face, normal, up in BOX_FACES:
             n = np.asarray(normal, dtype=np.float64)

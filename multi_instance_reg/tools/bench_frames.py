@@ -39,6 +39,11 @@ def add_arguments(parser) -> None:
     parser.add_argument("--min-visibility", type=float, default=0.25,
                         help="instances less visible than this are not counted as present (default 0.25)")
     parser.add_argument("--json", default=None, help="also write the figures to this JSON file")
+    parser.add_argument("--untextured", default=None, choices=("pallet", "cylinders", "bracket", "all"),
+                        help="benchmark the shape front end on untextured generated scenes instead "
+                             "(model from the object's mesh; also distractor-only scenes and the model build time)")
+    parser.add_argument("--correspondences", default=None, choices=("auto", "sift", "shape", "both"),
+                        help="override frontend.correspondences")
 
 
 # Rotation (object frame) that turns the upright object's "up" axis (+z) into another.
@@ -133,7 +138,8 @@ def format_report(metrics: dict) -> str:
         f"(CPU time per frame, all threads: p50 {metrics['cpu_ms_per_frame']['p50']:.1f} ms; "
         f"load average during the run {metrics.get('load_average', float('nan')):.2f} on {os.cpu_count()} cores)",
         "stages (p50 / p95 ms): " + "  ".join(f"{s} {lat[s]['p50']:.1f} / {lat[s]['p95']:.1f}"
-                                            for s in ("sift", "matching", "lifting", "ecc", "refinement")),
+                                            for s in ("sift", "matching", "lifting", "ecc", "refinement")
+                                            + (("shape",) if "shape" in lat else ())),
     ]
     return "\n".join(lines)
 
@@ -143,6 +149,14 @@ def run(args) -> int:
     from .offline import ReplayResult, load_config, metrics_dict, replay
 
     config = load_config(args.params)
+    if args.untextured:
+        from .bench_untextured import run_untextured
+
+        return run_untextured(args, config)
+    if args.correspondences:
+        from dataclasses import replace
+
+        config = replace(config, frontend=replace(config.frontend, correspondences=args.correspondences))
     with tempfile.TemporaryDirectory(prefix="mireg_bench_frames_") as tmp:
         tmp = Path(tmp)
         bags = list(args.bags)

@@ -2,6 +2,7 @@
 
     mireg build-model CAPTURE_BAG [MORE_BAGS ...] -o MODEL.npz [--frames 0,10,20 | 0:60:10] [--roi x,y,w,h] [--depth-range 0.2 1.5]
     mireg build-model --rgb colour.png --depth depth.png --intrinsics fx,fy,cx,cy -o MODEL.npz
+    mireg build-model --mesh FILE.ply|.stl|.obj [--units m|mm] [--name N] [--symmetry auto|none|z:inf,x:2] [CAPTURE_BAG ...] -o MODEL.npz
 
 The object is isolated by the ROI and depth range, the removal of the dominant (table) plane
 and the blob nearest the image centre. Several frames are merged with their ground-truth
@@ -36,6 +37,12 @@ def add_arguments(parser) -> None:
     parser.add_argument("--name", default=None, help="object name stored in the model (default: from the bag)")
     parser.add_argument("--topics", nargs=3, metavar=("COLOUR", "DEPTH", "INFO"), default=None,
                         help="colour, aligned depth and camera_info topics (default: realsense-ros names)")
+    mesh = parser.add_argument_group("from a CAD mesh (shape; texture too when capture bags with ground truth are given)")
+    mesh.add_argument("--mesh", default=None, help="triangle mesh of the object: .ply, .stl or .obj; the model frame is the mesh's")
+    mesh.add_argument("--units", choices=("m", "mm"), default="m", help="units of the mesh's coordinates (default m)")
+    mesh.add_argument("--symmetry", default="auto",
+                      help="the object's symmetries: auto (found from the mesh), none, or items AXIS:N / AXIS:inf about "
+                           "the mesh's axes through its box centre, e.g. 'x:2,y:2' (a box), 'z:inf,x:2' (a cylinder)")
     png = parser.add_argument_group("from PNG files instead of a bag")
     png.add_argument("--rgb", help="colour PNG (8-bit)")
     png.add_argument("--depth", help="depth PNG (16-bit, millimetres by default)")
@@ -148,6 +155,8 @@ def run(args) -> int:
     out = Path(args.output)
     if out.suffix != ".npz":
         raise InputError(f"output {out} must end in .npz")
+    if args.mesh:
+        return run_mesh(args, out)
     lo, hi = args.depth_range
     if not 0 <= lo < hi:
         raise InputError(f"--depth-range {lo} {hi}: need 0 <= MIN < MAX (metres)")
@@ -177,4 +186,34 @@ def run(args) -> int:
     print(f"model {out}: {model.num_keypoints} keypoints from {len(views)} view(s), {len(model.points_xyz)} cloud points, "
           f"extent {np.round(model.extent, 3).tolist()} m" + (", with T_object_model" if model.T_object_model is not None else ""),
           file=sys.stderr)
+    return 0
+
+
+def run_mesh(args, out: Path) -> int:
+    """The model from a mesh, plus SIFT keypoints from capture bags whose ground truth is in
+    the mesh frame (as the synthetic captures' is)."""
+    import time
+
+    from ..meshes import load_mesh
+    from ..rgbd.mesh_model import add_capture_keypoints, build_model_from_mesh
+    from ..rgbd.model import BuildSettings, save_model
+
+    if args.rgb or args.depth:
+        raise InputError("give either --mesh (with capture bags, optionally) or --rgb/--depth PNG files, not both")
+    t0 = time.perf_counter()
+    mesh = load_mesh(args.mesh, args.units)
+    name = args.name or Path(args.mesh).stem
+    model = build_model_from_mesh(mesh, name, None if args.symmetry == "auto" else args.symmetry)
+    views = []
+    for bag in args.bag:
+        more, _ = views_from_bag(bag, args.frames, args.topics)
+        views += more
+    if views:
+        lo, hi = args.depth_range
+        add_capture_keypoints(model, views, BuildSettings(roi=parse_roi(args.roi), depth_range=(lo, hi)))
+    save_model(model, out)
+    print(f"model {out}: from mesh {args.mesh} ({len(mesh.vertices)} vertices, {len(mesh.triangles)} triangles) in "
+          f"{time.perf_counter() - t0:.2f} s: {len(model.shape_points)} shape points at voxel {model.shape_voxel * 1000:.1f} mm, "
+          f"{model.num_keypoints} SIFT keypoints from {len(views)} view(s), extent {np.round(model.extent, 3).tolist()} m, "
+          f"symmetries: {model.symmetries.describe() if model.symmetries is not None else 'none'}", file=sys.stderr)
     return 0

@@ -116,7 +116,8 @@ class ReplayResult:
 
     def latency_summary(self) -> dict:
         out = {}
-        for stage in STAGE_ORDER:
+        extra = ("shape",) if self.timings and "shape" in self.timings[0] else ()
+        for stage in STAGE_ORDER + extra:
             vals = np.array([t[stage] for t in self.timings]) if self.timings else np.zeros(0)
             out[stage] = {"p50": float(np.percentile(vals, 50)) if len(vals) else None,
                           "p95": float(np.percentile(vals, 95)) if len(vals) else None}
@@ -133,15 +134,23 @@ def estimates_in_object_frame(model, transforms: np.ndarray) -> np.ndarray:
     return transforms @ invert_transform(model.T_object_model)
 
 
+def object_frame_symmetries(model):
+    """The model's symmetries in the object (ground-truth) frame, or None."""
+    if model.symmetries is None or model.symmetries.is_trivial:
+        return None
+    T_om = np.eye(4) if model.T_object_model is None else model.T_object_model
+    return model.symmetries.conjugated(T_om)
+
+
 def evaluate_frame(T_gt, T_est, visibility=None, min_visibility: float = 0.0, max_rre_deg: float = 10.0,
-                   max_rte: float = 0.02):
+                   max_rte: float = 0.02, symmetries=None):
     """Score one frame. Instances less visible than ``min_visibility`` are not "present": they
     do not count against recall, and an estimate that hits one is neither credit nor blame."""
-    return match_frame(T_gt, T_est, visibility, min_visibility, max_rre_deg, max_rte)[0]
+    return match_frame(T_gt, T_est, visibility, min_visibility, max_rre_deg, max_rte, symmetries)[0]
 
 
 def match_frame(T_gt, T_est, visibility=None, min_visibility: float = 0.0, max_rre_deg: float = 10.0,
-                max_rte: float = 0.02):
+                max_rte: float = 0.02, symmetries=None):
     """``evaluate_frame``'s score, and its hits as (ground-truth index, estimate index) pairs
     into the arrays given (the identities the tracking metrics need)."""
     from ..metrics import evaluate_scene
@@ -151,10 +160,10 @@ def match_frame(T_gt, T_est, visibility=None, min_visibility: float = 0.0, max_r
     gt_index, est_index = np.arange(len(T_gt)), np.arange(len(T_est))
     if visibility is not None and min_visibility > 0:
         seen = np.asarray(visibility) >= min_visibility
-        full = evaluate_scene(T_gt, T_est, max_rre_deg, max_rte)
+        full = evaluate_scene(T_gt, T_est, max_rre_deg, max_rte, symmetries)
         drop = {e for (g, e), hit in zip(full.pairs, full.hit) if hit and not seen[g]}
         gt_index, est_index = np.flatnonzero(seen), np.array([e for e in est_index if e not in drop], dtype=np.int64)
-    score = evaluate_scene(T_gt[gt_index], T_est[est_index], max_rre_deg, max_rte)
+    score = evaluate_scene(T_gt[gt_index], T_est[est_index], max_rre_deg, max_rte, symmetries)
     hits = [(int(gt_index[g]), int(est_index[e])) for (g, e), hit in zip(score.pairs, score.hit) if hit]
     return score, hits
 
@@ -173,6 +182,7 @@ def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_
     if detect_every < 1:
         raise InputError(f"--detect-every must be at least 1, got {detect_every}")
     reg = InstanceRegistration(model, config)
+    symmetries = object_frame_symmetries(model)   # hits over the symmetries (BOP); None: plain
     reg.warm_up()   # compile the ECC core's kernels now, not inside the first frame's latency
     tracker = None
     if tracker_config is not None:
@@ -219,7 +229,8 @@ def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_
                 out.found.append(len(published))
                 if frame.gt_poses is not None:
                     est = estimates_in_object_frame(model, [i.T for i in published])
-                    score, hits = match_frame(frame.gt_poses, est, frame.gt_visibility, min_visibility, max_rre_deg, max_rte)
+                    score, hits = match_frame(frame.gt_poses, est, frame.gt_visibility, min_visibility, max_rre_deg,
+                                              max_rte, symmetries)
                     out.scores.append(score)
                     out.present.append(score.n_gt)
                     out.hits.append(score.hits)
@@ -228,7 +239,7 @@ def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_
                         if result is not None:
                             out.detection_scores.append(evaluate_frame(
                                 frame.gt_poses, estimates_in_object_frame(model, [i.T for i in result.instances]),
-                                frame.gt_visibility, min_visibility, max_rre_deg, max_rte))
+                                frame.gt_visibility, min_visibility, max_rre_deg, max_rte, symmetries))
                 else:
                     out.present.append(-1)
                     out.hits.append(-1)

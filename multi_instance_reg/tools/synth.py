@@ -5,18 +5,22 @@
                       [--seed S] [--storage sqlite3|mcap] [--resolution 640x480|1280x720]
                       [--preview DIR]
     mireg synth capture -o OUT --object NAME [--seed S] [--views N] [...]
+    mireg synth untextured -o OUT --preset pallet|cylinders|bracket [--instances K] [--distractors D]
+                      [--frames F] [--seed S] [--mesh FILE.ply|.stl|.obj [--units m|mm]]
+    mireg synth mesh --object NAME -o FILE.ply|.stl|.obj [--units m|mm]
 """
 from __future__ import annotations
 
-HELP = "make synthetic D455 tabletop bags with ground truth (scene, capture)"
+HELP = "make synthetic D455 tabletop bags with ground truth (scene, capture, untextured) and object meshes"
 
 
 def add_arguments(parser) -> None:
-    from ..synthetic.objects import DEFAULT_OBJECT, OBJECTS
+    from ..synthetic.objects import DEFAULT_OBJECT, OBJECTS, UNTEXTURED_OBJECTS
     from ..synthetic.scene import MOTIONS, PAN_SECONDS
     from ..synthetic.sensor import RESOLUTIONS
+    from ..synthetic.untextured import PRESETS
 
-    sub = parser.add_subparsers(dest="synth_command", metavar="{scene,capture}", required=True)
+    sub = parser.add_subparsers(dest="synth_command", metavar="{scene,capture,untextured,mesh}", required=True)
     objects = ", ".join(f"{name} ({spec.shape} {'x'.join(f'{d:g}' for d in spec.dimensions_m)} m)"
                         for name, spec in OBJECTS.items())
 
@@ -58,10 +62,54 @@ def add_arguments(parser) -> None:
     common(capture, object_required=True)
     capture.add_argument("--views", type=int, default=10, metavar="N", help="viewpoints, 3-100 (default 10)")
 
+    untextured = sub.add_parser(
+        "untextured", help="objects without texture: cartons on a pallet from above, cylinders or brackets on a table",
+        description="Flat-coloured objects with ground truth: " + "; ".join(
+            f"{k}: {v}" for k, v in {"pallet": "cartons in one or two layers on a pallet, seen from above at 1.2-2 m "
+                                                "(--instances 0: other boxes only)",
+                                      "cylinders": "grey cylinders and plain distractors on a table, 0.5-1 m",
+                                      "bracket": "L-shaped brackets and plain distractors on a table, 0.5-1 m"}.items()))
+    untextured.add_argument("-o", "--output", required=True, help="bag directory to create (must not exist)")
+    untextured.add_argument("--preset", choices=tuple(PRESETS), required=True, help="which scene")
+    untextured.add_argument("--instances", type=int, default=8, metavar="K", help="instances of the object, 0-20 (default 8)")
+    untextured.add_argument("--distractors", type=int, default=3, metavar="D", help="other objects, 0-20 (default 3)")
+    untextured.add_argument("--frames", type=int, default=30, metavar="F", help="frames at 30 Hz (default 30)")
+    untextured.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    untextured.add_argument("--storage", choices=("sqlite3", "mcap"), default="sqlite3", help="rosbag2 storage (default sqlite3)")
+    untextured.add_argument("--resolution", choices=RESOLUTIONS, default="640x480", help="colour/depth size (default 640x480)")
+    untextured.add_argument("--preview", metavar="DIR", default=None, help="also write PNGs of a few frames")
+    untextured.add_argument("--mesh", metavar="FILE", default=None,
+                            help="also write the object's mesh (.ply, .stl or .obj; object frame of the ground truth)")
+    untextured.add_argument("--units", choices=("m", "mm"), default="m", help="units of the written mesh (default m)")
+
+    mesh = sub.add_parser("mesh", help="write a catalogue object's mesh (PLY, STL or OBJ)",
+                          description="The surface of a catalogue object as a triangle mesh in its object frame "
+                                      "(the frame of the bags' ground truth).")
+    mesh.add_argument("--object", required=True, metavar="NAME",
+                      help="one of: " + ", ".join(list(OBJECTS) + list(UNTEXTURED_OBJECTS)))
+    mesh.add_argument("-o", "--output", required=True, help="mesh file to write (.ply, .stl or .obj)")
+    mesh.add_argument("--units", choices=("m", "mm"), default="m", help="units of the coordinates (default m)")
+
 
 def run(args) -> int:
     from ..synthetic.scene import generate_capture_bag, generate_scene_bag
 
+    if args.synth_command == "mesh":
+        from ..meshes import save_mesh
+        from ..synthetic.objects import get_object, object_mesh
+
+        mesh = object_mesh(get_object(args.object))
+        save_mesh(mesh, args.output, args.units)
+        print(f"mireg synth mesh: wrote {args.object} ({len(mesh.vertices)} vertices, {len(mesh.triangles)} triangles, "
+              f"{args.units}) to {args.output}")
+        return 0
+    if args.synth_command == "untextured":
+        from ..synthetic.untextured import generate_untextured_bag
+
+        summary = generate_untextured_bag(args.output, args.preset, args.instances, args.distractors, args.frames,
+                                          args.seed, args.storage, args.resolution, args.preview, args.mesh, args.units)
+        print(f"mireg synth untextured: {summary.line()}" + (f"; mesh {args.mesh}" if args.mesh else ""))
+        return 0
     if args.synth_command == "scene":
         summary = generate_scene_bag(args.output, object_name=args.object, instances=args.instances,
                                      distractors=args.distractors, frames=args.frames, seed=args.seed,

@@ -1,0 +1,113 @@
+"""Object models from CAD meshes: surface samples, normals, FPFH descriptors, box, symmetries.
+
+The model frame is the mesh's own frame, so poses come out in the CAD coordinates. The
+shape data is sampled at the voxel the frames will be sampled at (``shape.shape_voxel`` of
+the mesh's box), from a surface sampled four times denser, so that model and frame
+descriptors describe the same neighbourhoods. A model built this way has no SIFT
+keypoints; ``add_capture_keypoints`` adds them from capture views whose object poses are
+known in the mesh frame (texture and shape in one model).
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..errors import InputError
+from ..meshes import TriangleMesh, sample_surface
+from ..symmetry import Symmetries, detect_symmetries, parse_symmetry_text
+from .model import ObjectModel
+from .shape import describe, shape_voxel, voxel_downsample
+
+MARKER_SPACING_M = 0.003
+
+
+def view_directions(count: int) -> np.ndarray:
+    """(count, 3) unit vectors spread evenly over the sphere (a Fibonacci lattice)."""
+    k = np.arange(count) + 0.5
+    z = 1.0 - 2.0 * k / count
+    phi = np.pi * (3.0 - np.sqrt(5.0)) * k
+    r = np.sqrt(1.0 - z * z)
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
+def view_descriptors(dense: np.ndarray, dense_normals: np.ndarray, voxel: float, centre: np.ndarray, views: int):
+    """Descriptors of the surface as a camera sees it from ``views`` directions: a frame
+    holds only the side facing the camera, and FPFH of a point near a silhouette differs
+    from the same point's FPFH on the whole surface. Per direction: the samples whose normal
+    faces it (self-occlusion is ignored), voxel-downsampled and described. Returns points,
+    normals, surface variation and FPFH of all views stacked (a physical point appears once
+    per view that sees it)."""
+    tree = cKDTree(dense)
+    out = [[], [], [], []]
+    for d in view_directions(views):
+        faces = dense_normals @ d > 0.1
+        if faces.sum() < 10:
+            continue
+        pts = voxel_downsample(dense[faces], voxel)
+        _, j = tree.query(pts, k=1, workers=-1)
+        normals, variation, desc = describe(pts, voxel, along=dense_normals[j])
+        for lst, val in zip(out, (pts, normals, variation, desc)):
+            lst.append(val)
+    return tuple(np.concatenate(v) for v in out)
+
+
+def build_model_from_mesh(mesh: TriangleMesh, name: str = "", symmetry: str | None = None,
+                          voxel: float | None = None, seed: int = 0, views: int = 20) -> ObjectModel:
+    """``symmetry``: None = find from the mesh; else text for ``parse_symmetry_text``."""
+    lo, hi = mesh.bounds
+    extent = hi - lo
+    centre = (lo + hi) / 2.0
+    voxel = float(voxel) if voxel else shape_voxel(extent)
+    dense, dense_normals = sample_surface(mesh, voxel / 4.0, seed=seed)
+    pts, normals, variation, desc = view_descriptors(dense, dense_normals, voxel, centre, views)
+    diameter = float(np.linalg.norm(extent))
+    if symmetry is None:
+        spacing = diameter / 100.0
+        sym_pts, _ = sample_surface(mesh, spacing, seed=seed + 1)
+        symmetries = detect_symmetries(sym_pts, 1.5 * spacing)
+    else:
+        symmetries = parse_symmetry_text(symmetry, centre)
+    markers, _ = sample_surface(mesh, max(MARKER_SPACING_M, diameter / 150.0), seed=seed + 2)
+    return ObjectModel(
+        keypoints_xyz=np.zeros((0, 3), np.float32),
+        descriptors=np.zeros((0, 128), np.float32),
+        points_xyz=markers.astype(np.float32),
+        extent=extent.astype(np.float64),
+        T_capture_model=np.eye(4),
+        T_object_model=np.eye(4),
+        name=name,
+        shape_points=pts.astype(np.float32),
+        shape_normals=normals.astype(np.float32),
+        shape_descriptors=desc,
+        shape_variation=variation.astype(np.float32),
+        shape_voxel=voxel,
+        box_centre=centre.astype(np.float64),
+        symmetries=symmetries,
+    )
+
+
+def add_capture_keypoints(model: ObjectModel, views, settings, T_mesh_object: np.ndarray | None = None) -> ObjectModel:
+    """SIFT keypoints of capture views brought into the mesh frame. Each view needs its
+    object pose (``T_camera_object``, e.g. a synthetic capture's ground truth); the object
+    frame of the captures is the mesh frame unless ``T_mesh_object`` says otherwise."""
+    from ..transforms import apply_transform, invert_transform
+    from .model import object_mask, view_keypoints
+
+    if not all(v.T_camera_object is not None for v in views):
+        raise InputError("capture views given with --mesh need their object poses (ground truth) to be placed "
+                         "in the mesh frame; these bags have none")
+    T_mo = np.eye(4) if T_mesh_object is None else np.asarray(T_mesh_object, np.float64)
+    xyz_all, desc_all = [], []
+    for view in views:
+        mask, _ = object_mask(view, settings)
+        xyz, desc = view_keypoints(view, mask, settings)
+        T_mesh_cam = T_mo @ invert_transform(view.T_camera_object)
+        xyz_all.append(apply_transform(T_mesh_cam, xyz.astype(np.float64)))
+        desc_all.append(desc)
+    xyz = np.concatenate(xyz_all) if xyz_all else np.zeros((0, 3))
+    model.keypoints_xyz = xyz.astype(np.float32)
+    model.descriptors = (np.concatenate(desc_all) if desc_all else np.zeros((0, 128))).astype(np.float32)
+    return model
+
+
+__all__ = ["build_model_from_mesh", "add_capture_keypoints", "Symmetries"]

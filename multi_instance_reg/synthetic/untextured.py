@@ -1,0 +1,168 @@
+"""Scenes of objects without texture, with ground truth, for the shape front end.
+
+Presets (``make_untextured_scene(preset, ...)``):
+- ``pallet``: plain cartons (:data:`.objects.UNTEXTURED_OBJECTS` ``carton``) in one or two
+  layers on a pallet on the floor, a few centimetres apart, some slots empty, seen from above
+  by a slowly drifting camera 1.2-2 m from the cartons (tilted 5-30 deg off vertical).
+  With ``instances=0`` the pallet carries other plain boxes only (distractor-only frames).
+- ``cylinders`` / ``bracket``: grey cylinders or L-shaped brackets with plain distractors on a
+  table, seen by the hand-held sweep of the tabletop scenes (0.5-1 m).
+
+Every object is flat-coloured all over; the floor and table keep their texture (the
+shape front end never looks at colour). The objects' meshes come from
+:func:`.objects.object_mesh`, in the same object frame as the ground-truth poses.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import InputError
+from ..transforms import make_transform
+from .objects import UNTEXTURED_OBJECTS, get_object
+from .scene import (FRAME_RATE_HZ, MAX_DISTRACTORS, MAX_INSTANCES, Placement, SyntheticScene, _DISTRACTOR_LABEL0,
+                    _rot_z, _spherical, look_at, place_objects, sweep_trajectory)
+from .sensor import d455_intrinsics
+
+PRESETS = {
+    "pallet": "carton",
+    "cylinders": "grey_cylinder",
+    "bracket": "bracket",
+}
+TABLE_DISTRACTORS = ("grey_block", "wide_cylinder", "grey_cylinder", "bracket")
+PALLET_DISTRACTORS = ("crate", "grey_block")
+PALLET_GRID = (3, 3)            # slots along the pallet's x and y per layer
+
+
+def preset_object(preset: str) -> str:
+    if preset not in PRESETS:
+        raise InputError(f"unknown untextured scene preset '{preset}'; choose one of: {', '.join(PRESETS)}")
+    return PRESETS[preset]
+
+
+def make_untextured_scene(preset: str, instances: int = 8, distractors: int = 3, frames: int = 30,
+                          seed: int = 0, resolution: str = "640x480") -> SyntheticScene:
+    target = get_object(preset_object(preset))
+    d455_intrinsics(resolution)
+    if int(seed) < 0:
+        raise InputError(f"seed must be >= 0, got {seed}")
+    if not 0 <= int(instances) <= MAX_INSTANCES:
+        raise InputError(f"instances must be 0 to {MAX_INSTANCES}, got {instances}")
+    if not 0 <= int(distractors) <= MAX_DISTRACTORS:
+        raise InputError(f"distractors must be 0 to {MAX_DISTRACTORS}, got {distractors}")
+    if int(frames) < 1:
+        raise InputError(f"frames must be at least 1, got {frames}")
+    rng_choose, rng_place, rng_path = (np.random.default_rng([int(seed), 20 + k]) for k in range(3))
+    if preset == "pallet":
+        placements = _pallet_placements(target, int(instances), int(distractors), rng_place)
+        poses = overhead_trajectory(placements, int(frames), rng_path)
+    else:
+        pool = [get_object(n) for n in TABLE_DISTRACTORS if n != target.name]
+        specs = [pool[int(i)] for i in rng_choose.integers(len(pool), size=int(distractors))]
+        # Free or touching only: stacking on (or leaning against) a bracket's box would float.
+        placements = place_objects(target, max(int(instances), 0), specs, rng_place,
+                                   arrangement_probs=(0.7, 0.3, 0.0, 0.0))
+        poses = sweep_trajectory(placements, int(frames), rng_path)
+    return SyntheticScene("scene", target, placements, poses, d455_intrinsics(resolution), int(seed))
+
+
+def _pallet_placements(carton, instances: int, distractors: int, rng) -> list[Placement]:
+    """The pallet (a distractor) and, on it, ``instances`` cartons in a 3 x 3 grid per layer
+    (the first layer filled first, the rest on top of first-layer cartons); with no cartons,
+    ``distractors`` other boxes on the pallet instead."""
+    pallet = get_object("pallet")
+    pallet_pose = make_transform(_rot_z(rng.uniform(-0.2, 0.2)), [0.0, 0.0, pallet.dimensions_m[2] / 2])
+    placements = [Placement(pallet, pallet_pose, _DISTRACTOR_LABEL0, "free")]
+    top = pallet.dimensions_m[2]
+    if instances == 0:
+        names = [PALLET_DISTRACTORS[int(i)] for i in rng.integers(len(PALLET_DISTRACTORS), size=max(distractors, 1))]
+        slots = rng.permutation(PALLET_GRID[0] * PALLET_GRID[1])
+        for j, name in enumerate(names[:len(slots)]):
+            spec = get_object(name)
+            centre = _slot_centre(pallet, int(slots[j]), rng)
+            pose = pallet_pose @ make_transform(_rot_z(rng.uniform(-0.3, 0.3) + np.pi / 2 * int(rng.integers(2))),
+                                                [centre[0], centre[1], 0.0])
+            pose[2, 3] = top + spec.dimensions_m[2] / 2
+            placements.append(Placement(spec, pose, _DISTRACTOR_LABEL0 + 1 + j, "free"))
+        return placements
+    n_slots = PALLET_GRID[0] * PALLET_GRID[1]
+    first = min(instances, n_slots)
+    second = min(instances - first, n_slots)
+    if first == n_slots and second == 0 and instances < 2 * n_slots:
+        first, second = n_slots - 1, 1       # a full flat layer shows no sides at all: leave a gap
+    slots = rng.permutation(n_slots)[:first]
+    label = 0
+    h = carton.dimensions_m[2]
+    layer1 = []
+    for slot in slots:
+        c = _slot_centre(pallet, int(slot), rng)
+        pose = pallet_pose @ make_transform(_rot_z(rng.uniform(-0.06, 0.06) + np.pi * int(rng.integers(2))),
+                                            [c[0], c[1], 0.0])
+        pose[2, 3] = top + h / 2
+        placements.append(Placement(carton, pose, label, "free"))
+        layer1.append(pose)
+        label += 1
+    for k in rng.permutation(len(layer1))[:second]:
+        below = layer1[int(k)]
+        shift = rng.uniform(-0.02, 0.02, size=2)
+        pose = below @ make_transform(_rot_z(rng.uniform(-0.05, 0.05) + np.pi * int(rng.integers(2))),
+                                      [shift[0], shift[1], h + 0.001])
+        placements.append(Placement(carton, pose, label, "stacked"))
+        label += 1
+    return placements
+
+
+def _slot_centre(pallet, slot: int, rng) -> np.ndarray:
+    """Centre (x, y) in the pallet frame of grid slot ``slot``, jittered by up to 2 cm."""
+    nx, ny = PALLET_GRID
+    ix, iy = slot % nx, slot // nx
+    px, py = pallet.dimensions_m[0], pallet.dimensions_m[1]
+    x = (ix + 0.5) / nx * px - px / 2
+    y = (iy + 0.5) / ny * py - py / 2
+    return np.array([x, y]) + rng.uniform(-0.02, 0.02, size=2)
+
+
+def overhead_trajectory(placements: list[Placement], frames: int, rng) -> list[np.ndarray]:
+    """Camera -> world poses above the pallet: 1.2-2 m from the top of the load, tilted
+    5-30 deg off vertical, drifting a few centimetres and turning slowly over the frames."""
+    load = [p for p in placements if p.spec.name != "pallet"] or placements
+    tops = np.array([p.pose[2, 3] + p.spec.dimensions_m[2] / 2 for p in load])
+    centre = np.array([np.mean([p.pose[0, 3] for p in placements]), np.mean([p.pose[1, 3] for p in placements]),
+                       float(tops.max())])
+    r0 = rng.uniform(1.3, 1.8)
+    el0 = np.radians(90 - rng.uniform(5, 30))
+    az0 = rng.uniform(0, 2 * np.pi)
+    phase = rng.uniform(0, 2 * np.pi, size=4)
+    poses = []
+    for i in range(frames):
+        w = 2 * np.pi * i / FRAME_RATE_HZ
+        r = r0 + 0.08 * np.sin(w / 6.0 + phase[0])
+        az = az0 + np.radians(10) * np.sin(w / 8.0 + phase[1])
+        el = el0 + np.radians(3) * np.sin(w / 5.0 + phase[2])
+        target = centre + 0.04 * np.array([np.sin(w / 7.0 + phase[3]), np.cos(w / 9.0 + phase[3]), 0.0])
+        poses.append(look_at(_spherical(target, r, az, el), target, np.radians(2.0) * np.sin(w / 3.0)))
+    return poses
+
+
+def generate_untextured_bag(out_path, preset: str, instances: int = 8, distractors: int = 3, frames: int = 30,
+                            seed: int = 0, storage: str = "sqlite3", resolution: str = "640x480",
+                            preview_dir=None, mesh_path=None, mesh_units: str = "m"):
+    """Make an untextured scene and write it as a rosbag2; with ``mesh_path`` also the
+    target object's mesh (.ply, .stl or .obj) in its object frame."""
+    from ..meshes import save_mesh
+    from .objects import object_mesh
+    from .scene import write_scene_bag
+
+    from ..meshes import MESH_SUFFIXES
+    from pathlib import Path
+
+    if mesh_path is not None and Path(mesh_path).suffix.lower() not in MESH_SUFFIXES:
+        raise InputError(f"mesh file {mesh_path}: unknown format; use .ply, .stl or .obj")
+    scene = make_untextured_scene(preset, instances, distractors, frames, seed, resolution)
+    summary = write_scene_bag(scene, out_path, storage, preview_dir)
+    if mesh_path is not None:
+        save_mesh(object_mesh(scene.target), mesh_path, mesh_units)
+    return summary
+
+
+__all__ = ["PRESETS", "make_untextured_scene", "generate_untextured_bag", "overhead_trajectory", "preset_object",
+           "UNTEXTURED_OBJECTS"]

@@ -1,0 +1,132 @@
+"""Meshes, models from meshes, symmetries, and the shape front end on an untextured bag."""
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from multi_instance_reg.errors import InputError
+from multi_instance_reg.meshes import box_mesh, cylinder_mesh, load_mesh, sample_surface, save_mesh
+from multi_instance_reg.metrics import evaluate_scene
+from multi_instance_reg.rgbd.model import load_model, save_model
+from multi_instance_reg.symmetry import closest_symmetric_pose, detect_symmetries, parse_symmetry_text
+
+MIREG = [sys.executable, "-m", "multi_instance_reg.tools.cli"]
+
+
+@pytest.mark.parametrize("suffix", ["ply", "stl", "obj"])
+@pytest.mark.parametrize("units", ["m", "mm"])
+def test_mesh_round_trip(tmp_path, suffix, units):
+    mesh = box_mesh(0.3, 0.2, 0.15)
+    path = save_mesh(mesh, tmp_path / f"box.{suffix}", units)
+    back = load_mesh(path, units)
+    lo, hi = back.bounds
+    assert np.allclose(hi - lo, [0.3, 0.2, 0.15], atol=1e-6)
+    _, areas = back.face_normals_areas()
+    assert areas.sum() == pytest.approx(2 * (0.3 * 0.2 + 0.3 * 0.15 + 0.2 * 0.15), rel=1e-5)
+
+
+def test_ascii_ply_with_quads_and_wrong_units(tmp_path):
+    text = ("ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\n"
+            "element face 1\nproperty list uchar int vertex_indices\nend_header\n"
+            "0 0 0\n100 0 0\n100 50 0\n0 50 0\n4 0 1 2 3\n")
+    (tmp_path / "q.ply").write_text(text)
+    mesh = load_mesh(tmp_path / "q.ply", "mm")
+    assert len(mesh.triangles) == 2 and np.allclose(mesh.bounds[1], [0.1, 0.05, 0])
+    with pytest.raises(InputError, match="--units mm"):
+        load_mesh(tmp_path / "q.ply", "m")     # 100 m across: the units are wrong
+
+
+def test_broken_meshes_refused(tmp_path):
+    (tmp_path / "bad.obj").write_text("v 0 0 0\nv 1 0 0\nf 1 2 7\n")
+    with pytest.raises(InputError, match="broken"):
+        load_mesh(tmp_path / "bad.obj")
+    (tmp_path / "bad.stl").write_bytes(b"\x00" * 90)
+    with pytest.raises(InputError, match="broken"):
+        load_mesh(tmp_path / "bad.stl")
+    (tmp_path / "empty.ply").write_text("ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\n"
+                                        "property float y\nproperty float z\nend_header\n")
+    with pytest.raises(InputError, match="broken"):
+        load_mesh(tmp_path / "empty.ply")
+    # From the outside: one line, exit code 2, no traceback.
+    run = subprocess.run(MIREG + ["build-model", "--mesh", str(tmp_path / "bad.obj"), "-o", str(tmp_path / "m.npz")],
+                         capture_output=True, text=True)
+    assert run.returncode == 2 and "broken" in run.stderr and "Traceback" not in run.stderr
+
+
+def test_symmetries_of_box_and_cylinder():
+    pts, _ = sample_surface(box_mesh(0.3, 0.2, 0.15), 0.004)
+    box = detect_symmetries(pts, 0.006)
+    assert len(box.discrete) == 4 and box.axis is None
+    pts, _ = sample_surface(box_mesh(0.1, 0.1, 0.05), 0.0015)
+    assert len(detect_symmetries(pts, 0.00225).discrete) == 8           # a square face: quarter turns too
+    pts, _ = sample_surface(cylinder_mesh(0.06, 0.1), 0.0012)
+    cyl = detect_symmetries(pts, 0.0018)
+    assert cyl.axis is not None and abs(abs(cyl.axis[2]) - 1) < 0.01 and len(cyl.discrete) == 2
+    # An L-shaped profile has none.
+    from multi_instance_reg.synthetic.objects import get_object, object_mesh
+    pts, _ = sample_surface(object_mesh(get_object("bracket")), 0.0015)
+    assert detect_symmetries(pts, 0.00225).is_trivial
+
+
+def test_metrics_over_symmetries():
+    sym = parse_symmetry_text("z:inf,x:2", np.zeros(3))
+    T_gt = np.eye(4)
+    T_gt[:3, 3] = [0.1, 0.0, 0.8]
+    turned = T_gt.copy()
+    c, s = np.cos(1.0), np.sin(1.0)
+    turned[:3, :3] = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])    # a turn about the axis: same look
+    plain = evaluate_scene([T_gt], [turned], 5.0, 0.01)
+    assert plain.hits == 0
+    sym_score = evaluate_scene([T_gt], [turned], 5.0, 0.01, symmetries=sym)
+    assert sym_score.hits == 1 and sym_score.rre_deg[0] < 1e-6
+    assert np.allclose(closest_symmetric_pose(T_gt, turned, sym), turned, atol=1e-9)
+    assert evaluate_scene([T_gt], [turned], 5.0, 0.01, symmetries=parse_symmetry_text("none", np.zeros(3))).hits == 0
+
+
+def test_mesh_model_file_round_trip_and_old_files(tmp_path):
+    mesh_path = save_mesh(box_mesh(0.3, 0.2, 0.15), tmp_path / "carton.stl", "mm")
+    run = subprocess.run(MIREG + ["build-model", "--mesh", str(mesh_path), "--units", "mm", "-o", str(tmp_path / "c.npz")],
+                         capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    model = load_model(tmp_path / "c.npz")
+    assert model.has_shape and model.num_keypoints == 0 and len(model.symmetries.discrete) == 4
+    assert model.shape_descriptors.shape[1] == 33 and np.allclose(model.extent, [0.3, 0.2, 0.15], atol=1e-6)
+    # Symmetries given on the command line instead.
+    run = subprocess.run(MIREG + ["build-model", "--mesh", str(mesh_path), "--units", "mm", "--symmetry", "none",
+                                  "-o", str(tmp_path / "n.npz")], capture_output=True, text=True)
+    assert run.returncode == 0 and load_model(tmp_path / "n.npz").symmetries is None
+    # A model file of the old schema (no shape arrays) still loads and keeps no shape data.
+    old = dict(np.load(tmp_path / "c.npz"))
+    for k in [k for k in old if k.startswith(("shape_", "symmetry_", "box_centre"))]:
+        del old[k]
+    old["keypoints_xyz"] = np.zeros((5, 3), np.float32)
+    old["descriptors"] = np.zeros((5, 128), np.float32)
+    np.savez(tmp_path / "old.npz", **old)
+    m_old = load_model(tmp_path / "old.npz")
+    assert not m_old.has_shape and m_old.symmetries is None
+    save_model(m_old, tmp_path / "old2.npz")
+    assert set(np.load(tmp_path / "old2.npz").files) == set(old)
+
+
+def test_untextured_offline_replay(tmp_path):
+    """mesh -> model -> bag -> poses on generated grey cylinders, from the outside."""
+    bag = tmp_path / "cyl"
+    run = subprocess.run(MIREG + ["synth", "untextured", "-o", str(bag), "--preset", "cylinders", "--instances", "5",
+                                  "--frames", "2", "--seed", "0", "--mesh", str(tmp_path / "cyl.ply")],
+                         capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    run = subprocess.run(MIREG + ["build-model", "--mesh", str(tmp_path / "cyl.ply"), "-o", str(tmp_path / "cyl.npz")],
+                         capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    run = subprocess.run(MIREG + ["offline", str(bag), "--model", str(tmp_path / "cyl.npz"), "-o", str(tmp_path / "out"),
+                                  "--quiet", "--overlays", "0"], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    poses = json.loads((tmp_path / "out" / "poses.json").read_text())
+    assert len(poses["frames"]) == 2
+    # What the shape front end reaches today on these frames (4 hits of 10, none wrong); the
+    # issue's MHF1 >= 0.90 is NOT reached yet (README: "Untextured objects").
+    assert metrics["MHP"] >= 0.5 and metrics["hits"] >= 2
+    assert metrics["median_rte"] <= 0.01 and metrics["median_rre_deg"] <= 3.0
