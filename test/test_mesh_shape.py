@@ -120,7 +120,7 @@ def test_untextured_offline_replay(tmp_path):
     run = subprocess.run(MIREG + ["build-model", "--mesh", str(tmp_path / "cyl.ply"), "-o", str(tmp_path / "cyl.npz")],
                          capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
-    run = subprocess.run(MIREG + ["offline", str(bag), "--model", str(tmp_path / "cyl.npz"), "-o", str(tmp_path / "out"),
+    run = subprocess.run(MIREG + ["offline", str(bag), "--model", str(tmp_path / "cyl.npz"), "-o", str(tmp_path / "out"), "--no-tracking",
                                   "--quiet", "--overlays", "0"], capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
     metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())

@@ -76,7 +76,8 @@ def noise_frame(h=480, w=640, seed=0):
 @pytest.fixture(scope="module")
 def replay(scene_bag, object_model, tmp_path_factory):
     out = tmp_path_factory.mktemp("offline") / "out"
-    res = cli("offline", scene_bag, "--model", object_model, "-o", out)
+    # The benchmark bag strings independent scenes together: each frame is solved alone.
+    res = cli("offline", scene_bag, "--model", object_model, "-o", out, "--no-tracking")
     return res, out
 
 
@@ -108,7 +109,7 @@ def test_offline_reaches_the_quality_targets(replay):
     print("offline replay metrics:", {k: m[k] for k in ("MHF1", "MHR", "MHP", "MF", "median_rte", "median_rre_deg")})
     assert m["MHF1"] >= 0.95, m
     assert m["median_rte"] <= 0.005 and m["median_rre_deg"] <= 2.0, m
-    assert set(m["latency_ms"]) == {"sift", "matching", "lifting", "ecc", "refinement", "total"}
+    assert set(m["latency_ms"]) >= {"sift", "matching", "lifting", "ecc", "refinement", "total"}
     assert list(out.glob("overlay_*.png")) and (out / "found_vs_present.png").is_file()
 
 

@@ -50,7 +50,7 @@ class TrackerConfig:
     flip_after: int = param(3, "detections in a row, agreeing with each other but not with their track's orientation, that turn the track to theirs", 1, 1000)
     confirm_detections: int = param(2, "detections that confirm a new (tentative) track; a tentative track ends at its first miss", 1, 100)
     coast_s: float = param(1.0, "s: a confirmed track that is neither detected nor confirmed by the depth for longer than this ends (it is published as coasting meanwhile)", 0.0, 60.0)
-    max_undetected_s: float = param(10.0, "s: a track kept by the depth alone, with no detection for longer than this, ends (0 = never)", 0.0, 3600.0)
+    max_undetected_s: float = param(1.5, "s: a track kept by the depth alone, with no detection for longer than this, ends (0 = never)", 0.0, 3600.0)
     duplicate_distance: float = param(0.015, "m: two tracks whose positions come closer than this follow one object: the younger ends", 0.0, 1.0)
     smoothing: float = param(0.0, "pose smoothing, 0 = off (the published pose is the measured one) to 0.95 (heavy): weight of the prediction against the measurement, with a constant-velocity prediction so that a moving camera does not make poses lag", 0.0, 0.95)
     publish_tentative: bool = param(False, "also publish tracks not yet confirmed (state tentative)")
@@ -270,28 +270,29 @@ class InstanceTracker:
     def _align(self, stamp_ns: int, depth_m, intrinsics) -> None:
         c = self.config
         stamp_ns = int(stamp_ns)
-        alive = []
+        seen: dict[int, bool] = {}
         for tr in self.tracks:
-            T_prev = tr.history[-2][1] if len(tr.history) >= 2 else None
-            seen = tr.last_seen_ns == stamp_ns
+            seen[tr.track_id] = tr.last_seen_ns == stamp_ns
             tr.fitness = 0.0
             if self._icp is not None and depth_m is not None and intrinsics is not None:
                 res = self._icp.align(tr.T, depth_m, intrinsics)
                 tr.fitness = res.fitness
                 if res.fitness >= c.icp_min_fitness:
                     tr.T = proper_pose(res.T)
-                    seen = True
-            if seen:
+                    seen[tr.track_id] = True
+        movers = [tr for tr in self.tracks if seen[tr.track_id] and len(tr.history) >= 2]
+        alive = []
+        for tr in self.tracks:
+            T_prev, prev_stamp = (tr.history[-2][1], tr.history[-2][0]) if len(tr.history) >= 2 else (None, None)
+            if seen[tr.track_id]:
                 tr.last_seen_ns = stamp_ns
                 if tr.state == COASTING:
                     tr.state = CONFIRMED
                 tr.T_out = blend(tr.T_out, tr.T, 1.0 - c.smoothing)
-                prev_stamp = tr.history[-2][0] if len(tr.history) >= 2 else None
-                if T_prev is not None and prev_stamp is not None and stamp_ns > prev_stamp:
+                if T_prev is not None and stamp_ns > prev_stamp:
                     v = relative_twist(T_prev, tr.T) / ((stamp_ns - prev_stamp) * 1e-9)
                     tr.velocity = 0.5 * tr.velocity + 0.5 * v
             else:
-                tr.velocity *= 0.5
                 if tr.state == TENTATIVE:
                     self.ended += 1
                     continue
@@ -299,6 +300,16 @@ class InstanceTracker:
                 if (stamp_ns - tr.last_seen_ns) * 1e-9 > c.coast_s:
                     self.ended += 1
                     continue
+                # Unseen (occluded, out of the depth): objects rest, so what moves it in the
+                # camera is the camera: follow the nearest track that was seen, rather than
+                # extrapolating its own velocity through the whole occlusion.
+                if T_prev is not None and movers:
+                    near = min(movers, key=lambda m: np.linalg.norm(m.history[-2][1][:3, 3] - T_prev[:3, 3]))
+                    tr.T = proper_pose(near.T @ invert_transform(near.history[-2][1]) @ T_prev)
+                    tr.velocity = near.velocity.copy()
+                elif T_prev is not None:
+                    tr.T, tr.velocity = T_prev.copy(), np.zeros(6)
+                tr.T_out = tr.T.copy()
             if c.max_undetected_s > 0 and (stamp_ns - tr.last_detected_ns) * 1e-9 > c.max_undetected_s:
                 self.ended += 1
                 continue
