@@ -59,6 +59,8 @@ class TrackerConfig:
     icp_iterations: int = param(10, "ICP iterations per track and frame", 1, 100)
     icp_max_distance: float = param(0.03, "m: depth pairs farther apart than this are ignored in the first ICP iteration (the gate shrinks to icp_inlier_distance by the last)", 0.001, 0.5)
     icp_inlier_distance: float = param(0.006, "m: a model point counts as confirmed by the depth within this distance", 0.0005, 0.1)
+    icp_max_step: float = param(0.01, "m: an ICP result that moves the track's pose further than this from its prediction (or from the detection of this frame) is refused: the model slid along a plane it shares with something else", 0.0005, 1.0)
+    icp_max_step_deg: float = param(5.0, "deg: the same for the rotation", 0.1, 180.0)
     icp_min_fitness: float = param(0.35, "share of the visible model points the depth must confirm for the track to count as seen on a frame (below: a miss, e.g. occluded)", 0.0, 1.0)
 
 
@@ -277,7 +279,11 @@ class InstanceTracker:
             if self._icp is not None and depth_m is not None and intrinsics is not None:
                 res = self._icp.align(tr.T, depth_m, intrinsics)
                 tr.fitness = res.fitness
-                if res.fitness >= c.icp_min_fitness:
+                step_m = float(np.linalg.norm(res.T[:3, 3] - tr.T[:3, 3]))
+                step_deg = rotation_angle_deg(res.T[:3, :3] @ tr.T[:3, :3].T)
+                # A large step is the model sliding along a plane it shares with a neighbour
+                # (touching boxes, a box on the table), not the object moving: keep the start.
+                if res.fitness >= c.icp_min_fitness and step_m <= c.icp_max_step and step_deg <= c.icp_max_step_deg:
                     tr.T = proper_pose(res.T)
                     seen[tr.track_id] = True
         movers = [tr for tr in self.tracks if seen[tr.track_id] and len(tr.history) >= 2]
