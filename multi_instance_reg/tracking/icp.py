@@ -30,19 +30,16 @@ class IcpResult:
     rmse: float             # metres, point-to-plane, over the confirmed points
 
 
-def model_normals(points: np.ndarray, neighbours: int = 12) -> np.ndarray:
-    """Unit normals of a dense object cloud by PCA of each point's neighbourhood, turned to
-    point away from the cloud's centre (right for the convex objects of a tabletop; for the
-    sign only: point-to-plane residuals do not depend on it, the back-face test does)."""
+def model_normals(points: np.ndarray) -> np.ndarray:
+    """Unit normals of a dense object cloud (the shape front end's PCA normals, at the cloud's
+    own point spacing), turned to point away from the cloud's centre: right for the convex
+    objects of a tabletop, and only the sign is at stake (point-to-plane residuals do not
+    depend on it, the back-face test does)."""
+    from ..rgbd.shape import normals_and_variation
+
     pts = np.asarray(points, dtype=np.float64)
-    k = min(neighbours, len(pts))
-    _, idx = cKDTree(pts).query(pts, k=k)
-    nb = pts[idx] - pts[idx].mean(axis=1, keepdims=True)
-    cov = np.einsum("nki,nkj->nij", nb, nb)
-    _, vecs = np.linalg.eigh(cov)
-    normals = vecs[:, :, 0]
-    outward = np.einsum("ni,ni->n", normals, pts - pts.mean(axis=0)) < 0
-    normals[outward] *= -1.0
+    spacing = float(np.median(cKDTree(pts).query(pts, k=2)[0][:, 1]))
+    normals, _, _ = normals_and_variation(pts, spacing, along=pts - pts.mean(axis=0))
     return normals
 
 
