@@ -30,6 +30,7 @@ bench: $(STAMP)
 	test ! -d ../shared/reference/core || $(VENV)/bin/mireg bench table1 --reference ../shared/reference/core
 	$(VENV)/bin/mireg bench synth
 	$(VENV)/bin/mireg bench frames
+	$(VENV)/bin/mireg bench tracking
 	$(VENV)/bin/mireg bench node
 
 clean:
