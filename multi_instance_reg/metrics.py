@@ -129,6 +129,15 @@ class IdentityScore:
             self._last[gt_key] = track
             self._together[(gt_key, track)] = self._together.get((gt_key, track), 0) + 1
 
+    def merge(self, other: "IdentityScore", sequence) -> None:
+        """Add another sequence's counts; its identities are kept apart by ``sequence``."""
+        self.gt += other.gt
+        self.est += other.est
+        self.hits += other.hits
+        self.switches += other.switches
+        for (g, t), n in other._together.items():
+            self._together[((sequence, g), (sequence, t))] = n
+
     def summary(self) -> dict:
         idtp = 0
         if self._together:

@@ -91,9 +91,7 @@ def run(args) -> int:
             r = replay(bag, model, config, min_visibility=0.25, progress=sys.stderr.isatty(),
                        tracker_config=tracker_config, detect_every=args.detect_every)
             ident = r.identity.summary()
-            for attr in ("gt", "est", "hits", "switches"):
-                setattr(total_ident, attr, getattr(total_ident, attr) + getattr(r.identity, attr))
-            total_ident._together.update({((name, g), (name, t)): n for (g, t), n in r.identity._together.items()})
+            total_ident.merge(r.identity, name)
             all_tracked += r.scores
             all_detected += r.detection_scores
             entry = {**{k2: ident[k2] for k2 in ("IDF1", "id_switches", "id_switches_per_1000", "MOTA", "object_frames")},

@@ -198,7 +198,7 @@ class InstanceTracker:
 
     def _fuse(self, stamp_ns: int, detections) -> None:
         c = self.config
-        dets = [d for d in detections]
+        dets = list(detections)
         candidates = [(tr, tr.pose_at(stamp_ns)) for tr in self.tracks]
         candidates = [(tr, T) for tr, T in candidates if T is not None]
         matched_dets: set[int] = set()
