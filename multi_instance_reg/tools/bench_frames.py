@@ -185,10 +185,36 @@ def run_models(args, bags, models, config) -> int:
                                       for s in ("sift", "matching", "lifting", "ecc", "refinement")))
     print(f"reported as the wrong object: {together['confusions']} (alone: "
           f"{', '.join(str(f['confusions']) for f in alone)})")
+    side = side_by_side_latency(bags, models, config)
+    print(f"side by side, frame by frame ({side['frames']} frames, each through {models[0].name} alone, then all "
+          f"{len(models)}): p50 {side['one_p50']:.1f} -> {side['all_p50']:.1f} ms = {side['ratio']:.2f} x; "
+          f"load average {os.getloadavg()[0]:.2f}")
     if args.json:
         Path(args.json).write_text(json.dumps({"alone": dict(zip((m.name for m in models), alone)),
-                                               "together": together}, indent=2))
+                                               "together": together, "side_by_side": side}, indent=2))
     return 0
+
+
+def side_by_side_latency(bags, models, config) -> dict:
+    """p50 latency of the first model alone and of all models, each frame through both in
+    turn, so that a host whose speed drifts slows both alike."""
+    import time
+
+    from ..datasets.rgbd_bag import RGBDBag
+    from ..rgbd.multi_model import MultiModelRegistration
+
+    one, every = MultiModelRegistration(models[:1], config), MultiModelRegistration(models, config)
+    one.warm_up()
+    times = {"one": [], "all": []}
+    for bag in bags:
+        with RGBDBag(bag) as frames:
+            for f in frames:
+                for key, reg in (("one", one), ("all", every)):
+                    t0 = time.perf_counter()
+                    reg.register_frame(f.rgb, f.depth_m, f.intrinsics)
+                    times[key].append((time.perf_counter() - t0) * 1e3)
+    p50 = {k: float(np.median(v)) for k, v in times.items()}
+    return {"frames": len(times["one"]), "one_p50": p50["one"], "all_p50": p50["all"], "ratio": p50["all"] / p50["one"]}
 
 
 def _replay_all(args, bags, models, config):
