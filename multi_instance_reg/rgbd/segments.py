@@ -73,7 +73,8 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
         alive &= ~on
     if stride > 1:
         # Fill the pixels between the sampled ones.
-        out = cv2.dilate(out.astype(np.uint8), np.ones((stride, stride), np.uint8), anchor=(0, 0)).astype(bool) & valid
+        out = cv2.dilate(out.astype(np.uint8), np.ones((stride, stride), np.uint8),
+                         anchor=(stride - 1, stride - 1)).astype(bool) & valid
     return out
 
 

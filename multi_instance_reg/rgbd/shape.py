@@ -266,7 +266,8 @@ def icp_point_to_plane(T: np.ndarray, model_pts: np.ndarray, scene_pts: np.ndarr
         R, t = T[:3, :3], T[:3, 3]
         p = model_pts @ R.T + t
         if model_normals is not None:
-            p = p[np.einsum("ij,ij->i", model_normals @ R.T, p) < 0]
+            # Facing the camera by more than grazing (as in ``depth_support``).
+            p = p[np.einsum("ij,ij->i", model_normals @ R.T, p) < -0.2 * np.linalg.norm(p, axis=1)]
         d, j = scene_tree.query(p, k=1, distance_upper_bound=max_dist, workers=-1)
         ok = np.isfinite(d)
         share = float(ok.mean()) if len(ok) else 0.0

@@ -131,8 +131,11 @@ class ShapeFrontEnd:
             return support - free, support, free, n
 
         for T0 in transforms:
-            # A few rounds first: a hypothesis the depth hardly supports then is dropped
-            # without paying for the rest (most of ECC's clusters are wrong).
+            # The depth check first (a projection, no search), then a few rounds of ICP: a
+            # hypothesis the depth hardly supports is dropped without paying for the rest
+            # (most of ECC's clusters are wrong).
+            if fit(T0)[1] < 0.25 * fe.shape_min_support:
+                continue
             T = icp_point_to_plane(T0, self._surface, cloud.points, cloud.normals, cloud.tree,
                                    max_dist=2.0 * self.voxel, iterations=first, model_normals=self._surface_normals)[0]
             cand = max([fit(T0) + (T0,), fit(T) + (T,)], key=lambda c: c[0])
