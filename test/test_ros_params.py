@@ -9,13 +9,13 @@ from multi_instance_reg.params import flatten, param_specs, read_params_yaml
 from multi_instance_reg.rgbd.pipeline import PipelineConfig
 from multi_instance_reg.ros.parameters import (READ_ONLY, NodeSettings, all_specs, check_parameters,
                                                default_params_yaml, descriptor)
-from multi_instance_reg.tracking import TrackerConfig
+from multi_instance_reg.tracking import LiveConfig, TrackerConfig
 
 PARAMS_FILE = Path(__file__).resolve().parents[1] / "config" / "params.yaml"
 
 
 def test_params_file_holds_every_default_and_nothing_else():
-    expected = {**flatten(NodeSettings()), **flatten(PipelineConfig()), "tracking.enabled": True,
+    expected = {**flatten(NodeSettings()), **flatten(PipelineConfig()), **flatten(LiveConfig(), "tracking."),
                 **flatten(TrackerConfig(), "tracking.")}
     assert read_params_yaml(PARAMS_FILE) == expected
     # Types too: a float written as "1" would be declared as an integer by ROS and then refused.
@@ -43,7 +43,7 @@ def test_descriptors_carry_type_description_and_range():
 
 def test_every_tracker_setting_is_a_ranged_node_parameter():
     specs = {s.name: s for s in all_specs()}
-    for spec in param_specs(TrackerConfig(), "tracking."):
+    for spec in [*param_specs(TrackerConfig(), "tracking."), *param_specs(LiveConfig(), "tracking.")]:
         assert specs[spec.name] == spec and spec.description
         d = descriptor(spec)
         if spec.type is float:
@@ -52,6 +52,7 @@ def test_every_tracker_setting_is_a_ranged_node_parameter():
             assert (d.integer_range[0].from_value, d.integer_range[0].to_value) == (spec.low, spec.high)
     assert specs["tracking.publish_tentative"].default is False        # only confirmed/coasting by default
     assert specs["tracking.enabled"].default is True and "tracking.enabled" in READ_ONLY
+    assert "tracking.catch_up_frames" in READ_ONLY and specs["tracking.catch_up_frames"].high == 90
     assert descriptor(specs["tracking.enabled"], read_only=True).read_only
     assert (specs["detector_niceness"].low, specs["detector_niceness"].high) == (0, 19)
 
