@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 
 from multi_instance_reg.ros.detections import ObjectClass, detection_array, label_info
-from ros_testing import (POSTER_Z, REPO, CameraPublisher, Probe, poster_frame, poster_model, ros_env, start, stop,
-                         wait_until)
-from test_ros_node import live_node, stamp_ns
+from ros_testing import (POSTER_Z, REPO, CameraPublisher, Probe, live_node, poster_frame, poster_model, ros_env,
+                         start, stop, wait_until)
+from test_ros_node import UNTRACKED, stamp_ns
 
 BOX_CENTRE = np.array([0.01, -0.02, 0.005])   # model frame: a box not centred on the model origin
 
@@ -70,29 +70,36 @@ def test_detections_from_the_node_reach_another_process_and_match_the_poses(unna
         assert camera.wait_for_subscribers(60, proc=node), stop(node)
         rgb, depth, K = poster_frame()
         sent = []
-        for _ in range(3):
+        # Frame by frame until the tracker has confirmed the poster and published it 3 times.
+        while len(sent) < 25 and sum(len(m.poses) == 1 for _, m in poses) < 3:
             sent.append(camera.send(rgb, depth, K))
-            assert wait_until(lambda: len(detections) == len(sent) and len(details) == len(sent), 15, proc=node), \
-                stop(node)
-        assert wait_until(lambda: len(poses) == 3, 5)
+            assert wait_until(lambda: len(detections) == len(sent) and len(details) == len(sent)
+                              and len(poses) == len(sent), 15, proc=node), stop(node)
+        found = 0
         for (_, array), (_, pose_array), (_, detail), stamp in zip(detections, poses, details, sent):
             assert stamp_ns(array) == stamp and array.header.frame_id == "camera_color_optical_frame"
+            assert len(array.detections) == len(pose_array.poses)   # the same instances, in the same order
+            if not array.detections:
+                continue
+            found += 1
             (det,) = array.detections
             (result,) = det.results
+            (instance,) = json.loads(detail.data)["instances"]
             # No stored name: the model file's stem.
             assert result.hypothesis.class_id == "snack_bar"
-            assert result.hypothesis.score == pytest.approx(json.loads(detail.data)["instances"][0]["score"], abs=1e-4)
+            assert result.hypothesis.score == pytest.approx(instance["score"], abs=1e-4)
             # The pose is the PoseArray's, exactly.
             (pose,) = pose_array.poses
             assert result.pose.pose == pose
             assert det.header == array.header
-            assert det.id == ""   # no tracking in the node yet: no identity across messages
+            assert det.id == str(instance["track_id"])   # the identity across messages
             # The box: the model's extent, centred on the box centre moved by the pose.
             assert np.allclose(xyz(det.bbox.size), extent)
             assert abs(pose.orientation.w) > 0.999
             assert np.allclose(xyz(det.bbox.center.position), xyz(pose.position) + BOX_CENTRE, atol=2e-3)
             assert det.bbox.center.orientation == pose.orientation
             assert np.allclose(xyz(pose.position), [0, 0, POSTER_Z], atol=0.01)
+        assert found >= 3
 
         # A subscriber joining now still gets the class names (transient local).
         labels = transient_local_subscription(probe, LabelInfo, "/instances/label_info")
@@ -134,8 +141,9 @@ def test_two_nodes_in_two_namespaces_each_follow_their_own_camera(model, tmp_pat
     text = (REPO / "config" / "params.yaml").read_text()
     assert "    sync_slop_s: 0.02\n" in text
     params.write_text(text.replace("    sync_slop_s: 0.02\n", "    sync_slop_s: 0.031\n"))
+    # Untracked: every frame's poses come from the detector, one instance each.
     nodes = {ns: start(["multi_instance_reg.ros.node", "--ros-args", "-r", f"__ns:={ns}",
-                        "--params-file", str(params), "-p", f"model_path:={model}"], domain)
+                        "--params-file", str(params), "-p", f"model_path:={model}", "-p", UNTRACKED], domain)
              for ns in ("/left", "/right")}
     probe = Probe(domain)
     listen = None
@@ -192,7 +200,7 @@ def test_without_vision_msgs_the_node_runs_and_says_once_why_detections_are_off(
     env = ros_env(95)
     env["PYTHONPATH"] = str(tmp_path) + os.pathsep + env["PYTHONPATH"]
     proc = subprocess.Popen([sys.executable, "-m", "multi_instance_reg.ros.node", "--ros-args",
-                             "-p", f"model_path:={model}"], env=env, cwd=REPO, stdout=subprocess.PIPE,
+                             "-p", f"model_path:={model}", "-p", UNTRACKED], env=env, cwd=REPO, stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
     probe = Probe(95)
     try:
