@@ -10,10 +10,14 @@ export PYTHONDONTWRITEBYTECODE := 1
 
 install: $(STAMP)
 
-$(STAMP): requirements.txt setup.py setup.cfg package.xml
+# vision_msgs (Detection3DArray, LabelInfo) has no wheel: the last step builds it into the venv
+# from interfaces/vision_msgs unless the user's ROS already has it (about a minute at most).
+$(STAMP): requirements.txt setup.py setup.cfg package.xml interfaces/install_vision_msgs.py \
+		$(wildcard interfaces/vision_msgs/*.* interfaces/vision_msgs/msg/*.msg)
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --disable-pip-version-check -r requirements.txt
 	$(PY) -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e .
+	$(PY) interfaces/install_vision_msgs.py
 	touch $(STAMP)
 
 demo: $(STAMP)
