@@ -33,6 +33,7 @@ test: install
 # Figures quoted in the README; each line prints its own table (about 15 minutes in all).
 bench: install
 	$(VENV)/bin/mireg bench core
+	$(VENV)/bin/mireg bench register-startup
 	$(VENV)/bin/mireg bench table1 --samples-per-band 20
 	$(VENV)/bin/mireg bench table1 --hard --samples-per-band 20 --no-baseline
 	test ! -d ../shared/reference/core || $(VENV)/bin/mireg bench table1 --reference ../shared/reference/core

@@ -26,11 +26,9 @@ Build: ``python -m multi_instance_reg.core.build_native`` (run by ``make install
 """
 from __future__ import annotations
 
-import hashlib
 import importlib
-import inspect
 import os
-import sys
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -46,22 +44,13 @@ ENTRY_POINTS: list[tuple[str, str, str, dict]] = []
 
 
 def source_hash() -> int:
-    """A 60-bit hash of the kernel modules' sources, this file's and numba's version."""
-    h = hashlib.sha256()
+    """A 62-bit checksum of the kernel modules' sources and this file's (CRC-32 and length:
+    cheap enough to check at every start; a numba upgrade reinstalls, which rebuilds)."""
+    crc, size = 0, 0
     for name in KERNEL_MODULES + ("native",):
-        h.update((_HERE / f"{name}.py").read_bytes())
-    h.update(_numba_version().encode())
-    return int(h.hexdigest()[:15], 16)
-
-
-def _numba_version() -> str:
-    # Without importing numba: the installed distribution's metadata.
-    from importlib.metadata import PackageNotFoundError, version
-
-    try:
-        return version("numba")
-    except PackageNotFoundError:
-        return "none"
+        data = (_HERE / f"{name}.py").read_bytes()
+        crc, size = zlib.crc32(data, crc), size + len(data)
+    return (crc << 30) | (size & (2**30 - 1))
 
 
 def _load_aot():
@@ -162,6 +151,7 @@ def build(output_dir: Path = _HERE) -> Path:
     """Compile every entry point ahead of time into ``_kernels_aot*.so`` (needs a C compiler)."""
     if not _BUILDING:
         raise RuntimeError("build() must run with MIREG_KERNELS=build (python -m multi_instance_reg.core.build_native does)")
+    import inspect
     import warnings
 
     with warnings.catch_warnings():
