@@ -78,9 +78,17 @@ class FrontEndConfig:
     shape_max_points: int = param(30000, "shape: at most this many voxel-downsampled search-region points per frame (a random subset beyond, which thins the cloud and weakens the descriptors)", 100, 1000000)
     shape_icp_iterations: int = param(15, "shape: point-to-plane ICP rounds per instance", 0, 100)
     shape_depth_tolerance: float = param(0.008, "metres: a model point agrees with the depth image when within this (or 0.8 voxel, whichever is larger)", 0.001, 0.2)
-    shape_min_support: float = param(0.6, "shape: keep an instance when at least this share of its visible model surface agrees with the depth image", 0.0, 1.0)
+    shape_min_support: float = param(0.75, "shape: keep an instance when at least this share of its visible model surface agrees with the depth image", 0.0, 1.0)
     shape_max_free: float = param(0.15, "shape: drop an instance when more than this share of its visible model surface lies in front of the measured depth (space seen to be empty)", 0.0, 1.0)
     shape_recover_max: int = param(0, "shape: look for small consistent groups among at most this many matches no ECC transform explains (a random subset; quadratic in it); 0 = off. Measured on a 2-frame grey-cylinder bag: 1500 lifts recall 0 -> 0.30 at precision 1.0 but latency 240 -> 1120 ms", 0, 100000)
+    shape_features: str = param("ppf", "shape: ppf (point pairs voted per connected segment of the depth off large planes; Drost et al. 2010) or fpfh (FPFH on the search region, one-to-many)", choices=("ppf", "fpfh"))
+    shape_ppf_bucket: int = param(50, "shape ppf: at most this many model pairs per quantised feature (a random subset; a box has thousands of coplanar pairs per distance)", 10, 100000)
+    shape_ref_step: int = param(5, "shape ppf: every this-many-th point of a segment is a reference point that votes", 1, 100)
+    shape_max_partners: int = param(60, "shape ppf: each reference point is paired with at most this many points of its segment (evenly spread)", 5, 100000)
+    shape_support_area: float = param(3.0, "shape ppf: a connected piece of a dominant plane is a support surface (floor, pallet, table) and removed when its area exceeds this many times the object's largest box side", 1.0, 1000.0)
+    shape_depth_noise: float = param(0.002, "shape ppf: depth noise sigma per squared metre of distance (stereo: sigma_z = this x z^2; D4xx about 0.002); plane points lie within plane_thresh + 3 sigma_z", 0.0, 0.1)
+    shape_segment_link: float = param(2.0, "shape ppf: points closer than this many voxels are in one segment", 1.0, 10.0)
+    shape_min_segment: int = param(15, "shape ppf: segments with fewer voxel points are ignored", 3, 100000)
     shape_min_visible: int = param(20, "shape: an instance needs at least this many model points visible in the image with valid depth", 3, 100000)
 
 

@@ -61,13 +61,16 @@ def load_config(params_path):
 
 def load_tracker_config(params_path):
     """TrackerConfig with the tracking.* entries of a node parameter file applied; None (no
-    tracking, as --no-tracking) when the file sets the node's tracking.enabled to false."""
-    from ..tracking import TRACKING_ENABLED, TrackerConfig
+    tracking, as --no-tracking) when the file sets the node's tracking.enabled to false. The
+    node's other live-stream settings (tracking.LiveConfig) do not apply offline."""
+    from ..tracking import TRACKING_ENABLED, LiveConfig, TrackerConfig
 
     values = _params(params_path)
-    if not TRACKING_ENABLED.check(values.pop(TRACKING_ENABLED.name, True)):
+    if not TRACKING_ENABLED.check(values.get(TRACKING_ENABLED.name, True)):
         return None
-    return _config_from_params(TrackerConfig(), values, ("tracking",), strip=True)
+    live = {f"tracking.{name}" for name in LiveConfig.__dataclass_fields__}
+    return _config_from_params(TrackerConfig(), {k: v for k, v in values.items() if k not in live},
+                               ("tracking",), strip=True)
 
 
 def _params(params_path) -> dict:
