@@ -87,6 +87,33 @@ class Probe(BackgroundNode):
         return self.node.create_publisher(msg_type, topic, qos)
 
 
+def start_node(domain_id, model, *params):
+    args = ["multi_instance_reg.ros.node", "--ros-args", "-p", f"model_path:={model}",
+            "-p", "stats_log_period_s:=0.3"]
+    for p in params:
+        args += ["-p", p]
+    return start(args, domain_id)
+
+
+class live_node:
+    """``with live_node(domain_id, model, *params) as live``: the node as a process
+    (``live.proc``) and a probe on its domain (``live.probe``); both are closed when the block
+    ends, and ``live.out`` then holds the node's log."""
+
+    def __init__(self, domain_id, model, *params):
+        self.proc = start_node(domain_id, model, *params)
+        self.probe = Probe(domain_id)
+        self.out = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.probe.close()
+        self.out = stop(self.proc)
+        return False
+
+
 def wait_until(predicate, timeout: float, interval: float = 0.05, proc: subprocess.Popen | None = None) -> bool:
     """Poll ``predicate`` until it holds or ``timeout`` passes (or ``proc`` exits)."""
     deadline = time.monotonic() + timeout

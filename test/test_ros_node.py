@@ -2,7 +2,9 @@
 
 A test process publishes camera frames like realsense-ros and reads what the node publishes.
 The scene is the small poster of ros_testing (one instance ~0.6 m ahead); the ground-truth
-quality over a rendered bag replayed with `mireg play` is in test_ros_replay.py.
+quality over a rendered bag replayed with `mireg play` is in test_ros_replay.py, the tracking
+at 30 Hz in test_ros_tracking.py. Tests of what the detector publishes frame by frame run
+with tracking off (``tracking.enabled:=false``, the behaviour before tracking existed).
 """
 import json
 import subprocess
@@ -12,35 +14,8 @@ import time
 import numpy as np
 import pytest
 
-from ros_testing import (POSTER_Z, CameraPublisher, Probe, poster_frame, poster_model, ros_env, set_parameters,
-                         start, stop, wait_until)
-
-
-def start_node(domain_id, model, *params):
-    args = ["multi_instance_reg.ros.node", "--ros-args", "-p", f"model_path:={model}",
-            "-p", "stats_log_period_s:=0.3"]
-    for p in params:
-        args += ["-p", p]
-    return start(args, domain_id)
-
-
-class live_node:
-    """``with live_node(domain_id, model, *params) as live``: the node as a process
-    (``live.proc``) and a probe on its domain (``live.probe``); both are closed when the block
-    ends, and ``live.out`` then holds the node's log."""
-
-    def __init__(self, domain_id, model, *params):
-        self.proc = start_node(domain_id, model, *params)
-        self.probe = Probe(domain_id)
-        self.out = None
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.probe.close()
-        self.out = stop(self.proc)
-        return False
+from ros_testing import (POSTER_Z, CameraPublisher, live_node, poster_frame, poster_model, ros_env, set_parameters,
+                         stop, wait_until)
 
 
 @pytest.fixture(scope="module")
@@ -77,13 +52,16 @@ def test_missing_or_broken_model_stops_the_node_with_one_clear_line(tmp_path):
     assert done.stderr.strip().splitlines()[-1].startswith("instance_registration: error: cannot parse the --ros-args")
 
 
-def test_poses_markers_details_and_debug_image_for_a_live_stream(model):
+UNTRACKED = "tracking.enabled:=false"
+
+
+def test_poses_markers_details_and_debug_image_for_a_live_stream_without_tracking(model):
     from geometry_msgs.msg import PoseArray
     from sensor_msgs.msg import Image
     from std_msgs.msg import String
     from visualization_msgs.msg import Marker, MarkerArray
 
-    with live_node(44, model) as live:
+    with live_node(44, model, UNTRACKED) as live:
         node, probe = live.proc, live.probe
         poses = probe.subscribe(PoseArray, "/instances/poses")
         markers = probe.subscribe(MarkerArray, "/instances/markers")
@@ -111,6 +89,7 @@ def test_poses_markers_details_and_debug_image_for_a_live_stream(model):
         assert info["latency_ms"] > 0 and info["counters"]["processed"] == 6
         (inst,) = info["instances"]
         assert inst["id"] == 0 and inst["inliers"] >= 20 and 0 <= inst["score"] <= 1
+        assert "track_id" not in inst and info["timings_ms"]["total"] > 0   # the old layout
         boxes = [m for m in markers[-1][1].markers if m.type == Marker.CUBE]
         assert len(boxes) == 1 and boxes[0].action == Marker.ADD and boxes[0].scale.x == pytest.approx(0.3166, abs=1e-3)
         # The debug image is drawn because someone subscribed: same size, something drawn.
@@ -134,7 +113,7 @@ def test_poses_markers_details_and_debug_image_for_a_live_stream(model):
 def test_parameter_changes_apply_on_the_next_frame_and_bad_ones_are_refused(model):
     from geometry_msgs.msg import PoseArray
 
-    with live_node(45, model) as live:
+    with live_node(45, model, UNTRACKED) as live:
         node, probe = live.proc, live.probe
         poses = probe.subscribe(PoseArray, "/instances/poses")
         camera = CameraPublisher(probe)
@@ -167,11 +146,12 @@ def test_parameter_changes_apply_on_the_next_frame_and_bad_ones_are_refused(mode
     assert "parameters changed: frontend.depth_max=0.3" in out
 
 
-def test_malformed_images_and_missing_camera_info_are_skipped_and_counted(model):
+@pytest.mark.parametrize("tracking", [True, False])
+def test_malformed_images_and_missing_camera_info_are_skipped_and_counted(model, tracking):
     from geometry_msgs.msg import PoseArray
     from std_msgs.msg import String
 
-    with live_node(46, model) as live:
+    with live_node(46 if tracking else 53, model, f"tracking.enabled:={str(tracking).lower()}") as live:
         node, probe = live.proc, live.probe
         poses = probe.subscribe(PoseArray, "/instances/poses")
         stats = probe.subscribe(String, "/instance_registration/stats")
@@ -195,7 +175,8 @@ def test_malformed_images_and_missing_camera_info_are_skipped_and_counted(model)
         # ... and the next good frame goes through.
         camera.send(rgb, depth, K)
         assert wait_until(lambda: len(poses) == 1, 15, proc=node), stop(node)
-        assert len(poses[0][1].poses) == 1
+        # Tracked: published at once, before any detection made a track; else the detection.
+        assert len(poses[0][1].poses) == (0 if tracking else 1)
         assert node.poll() is None
         assert wait_until(lambda: last_stats(stats)["processed"] == 1, 15)
         assert last_stats(stats)["failed"] == 0 and last_stats(stats)["bad"] == 4
@@ -207,7 +188,7 @@ def test_malformed_images_and_missing_camera_info_are_skipped_and_counted(model)
 def test_two_pipeline_processes_publish_in_order(model):
     from geometry_msgs.msg import PoseArray
 
-    with live_node(47, model, "pipeline_processes:=2") as live:
+    with live_node(47, model, "pipeline_processes:=2", UNTRACKED) as live:
         node, probe = live.proc, live.probe
         poses = probe.subscribe(PoseArray, "/instances/poses")
         camera = CameraPublisher(probe)
@@ -232,7 +213,7 @@ def test_a_dead_pipeline_process_is_restarted_and_the_stream_goes_on(model):
     from geometry_msgs.msg import PoseArray
     from std_msgs.msg import String
 
-    with live_node(49, model) as live:
+    with live_node(49, model, UNTRACKED) as live:
         node, probe = live.proc, live.probe
         poses = probe.subscribe(PoseArray, "/instances/poses")
         stats = probe.subscribe(String, "/instance_registration/stats")

@@ -7,14 +7,16 @@ from rclpy.parameter import Parameter
 
 from multi_instance_reg.params import flatten, param_specs, read_params_yaml
 from multi_instance_reg.rgbd.pipeline import PipelineConfig
-from multi_instance_reg.ros.parameters import (NodeSettings, check_parameters, default_params_yaml, descriptor,
-                                               node_specs)
+from multi_instance_reg.ros.parameters import (READ_ONLY, NodeSettings, all_specs, check_parameters,
+                                               default_params_yaml, descriptor)
+from multi_instance_reg.tracking import LiveConfig, TrackerConfig
 
 PARAMS_FILE = Path(__file__).resolve().parents[1] / "config" / "params.yaml"
 
 
 def test_params_file_holds_every_default_and_nothing_else():
-    expected = {**flatten(NodeSettings()), **flatten(PipelineConfig())}
+    expected = {**flatten(NodeSettings()), **flatten(PipelineConfig()), **flatten(LiveConfig(), "tracking."),
+                **flatten(TrackerConfig(), "tracking.")}
     assert read_params_yaml(PARAMS_FILE) == expected
     # Types too: a float written as "1" would be declared as an integer by ROS and then refused.
     for name, value in read_params_yaml(PARAMS_FILE).items():
@@ -27,7 +29,7 @@ def test_params_file_is_the_generated_one():
 
 
 def test_descriptors_carry_type_description_and_range():
-    specs = {s.name: s for s in [*node_specs(), *param_specs(PipelineConfig())]}
+    specs = {s.name: s for s in all_specs()}
     d = descriptor(specs["ecc.inlier_thresh"])
     assert d.type == ParameterType.PARAMETER_DOUBLE and d.description
     assert d.floating_point_range[0].from_value == specs["ecc.inlier_thresh"].low
@@ -39,6 +41,22 @@ def test_descriptors_carry_type_description_and_range():
     assert descriptor(specs["frontend.refine"]).type == ParameterType.PARAMETER_BOOL
 
 
+def test_every_tracker_setting_is_a_ranged_node_parameter():
+    specs = {s.name: s for s in all_specs()}
+    for spec in [*param_specs(TrackerConfig(), "tracking."), *param_specs(LiveConfig(), "tracking.")]:
+        assert specs[spec.name] == spec and spec.description
+        d = descriptor(spec)
+        if spec.type is float:
+            assert (d.floating_point_range[0].from_value, d.floating_point_range[0].to_value) == (spec.low, spec.high)
+        elif spec.type is int:
+            assert (d.integer_range[0].from_value, d.integer_range[0].to_value) == (spec.low, spec.high)
+    assert specs["tracking.publish_tentative"].default is False        # only confirmed/coasting by default
+    assert specs["tracking.enabled"].default is True and "tracking.enabled" in READ_ONLY
+    assert "tracking.catch_up_frames" in READ_ONLY and specs["tracking.catch_up_frames"].high == 90
+    assert descriptor(specs["tracking.enabled"], read_only=True).read_only
+    assert (specs["detector_niceness"].low, specs["detector_niceness"].high) == (0, 19)
+
+
 @pytest.mark.parametrize("name, value, ok", [
     ("ecc.inlier_thresh", 0.02, True),
     ("ecc.inlier_thresh", -1.0, False),
@@ -46,9 +64,16 @@ def test_descriptors_carry_type_description_and_range():
     ("qos_reliability", "sometimes", False),
     ("sync_slop_s", 0.05, True),
     ("no.such_parameter", 1, False),
+    ("tracking.smoothing", 0.5, True),
+    ("tracking.smoothing", 0.99, False),
+    ("tracking.coast_s", -1.0, False),
+    ("tracking.icp_points", 10, False),
+    ("tracking.publish_tentative", 1, False),
+    ("tracking.enabled", False, True),
+    ("detector_niceness", 20, False),
 ])
 def test_check_parameters_gives_a_reason(name, value, ok):
-    specs = {s.name: s for s in [*node_specs(), *param_specs(PipelineConfig())]}
+    specs = {s.name: s for s in all_specs()}
     reason = check_parameters(specs, [Parameter(name, value=value)])
     assert (reason is None) == ok
     if not ok:

@@ -14,10 +14,12 @@ def test_bench_node_prints_latency_overload_and_memory_figures(scene_bag, object
          "--distinct-frames", "3", "--domain-id", "50", "--json", str(out)],
         env=ros_env(50), cwd=REPO, capture_output=True, text=True, timeout=240)
     assert done.returncode == 0, done.stdout + done.stderr
-    assert "end-to-end latency at 30 Hz" in done.stdout and "resident memory" in done.stdout
+    assert "% of camera frames" in done.stdout and "end-to-end latency" in done.stdout
+    assert "resident memory" in done.stdout
     figures = json.loads(out.read_text())
     r = figures["rate_30hz"]
     assert 1 <= r["frames_with_poses"] <= 15 and r["frames_with_poses"] + r["dropped"] == 15
+    assert r["share_with_poses"] == round(r["frames_with_poses"] / 15, 4) and 0 <= r["share_with_a_pose"] <= r["share_with_poses"]
     assert 0 < r["e2e_ms_p50"] <= r["e2e_ms_p95"] < 10_000
     m = figures["long_replay"]
     assert 50 < m["rss_mb_start"] <= m["rss_mb_max"] and m["rss_mb_end"] <= m["rss_mb_max"]

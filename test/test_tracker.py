@@ -171,3 +171,26 @@ def test_icp_recovers_a_displaced_pose():
     assert np.linalg.norm(res.T[:3, 3]) < 1e-3 and rotation_angle_deg(res.T[:3, :3]) < 0.2
     # Nothing where the model is: a miss, not a pose.
     assert icp.align(T0, np.zeros((240, 320), np.float32), intr).fitness == 0.0
+
+
+
+def test_live_tracker_fuses_detections_only_for_frames_it_stepped():
+    from multi_instance_reg.tracking import LiveConfig, LiveTracker
+
+    model = Model(np.random.default_rng(0).uniform(-0.05, 0.05, (200, 3)))
+    live = LiveTracker(model, TrackerConfig(icp=False), LiveConfig())
+    assert not live.add_detections(0, [det_at(0.0)])              # frame never stepped: refused
+    for k in range(3):
+        assert live.step(k * FRAME_NS, None, None) == []
+    # Found on frame 1, arriving after frame 2 (the detector runs behind): fused.
+    assert live.add_detections(1 * FRAME_NS, [det_at(0.0)])
+    assert live.add_detections(2 * FRAME_NS, [det_at(0.0)])
+    # Two detections confirmed it; on frame 3 neither detected nor seen in a depth: coasting.
+    (out,) = live.step(3 * FRAME_NS, None, None)
+    assert out.track_id == 0 and out.state == "coasting" and out.source == "detection"
+    counts = live.counts()
+    assert counts["detections_fused"] == 2 and counts["detections_refused"] == 1 and counts["tracks_live"] == 1
+    # Time goes back (a camera restarted): frames from before are no longer this stream's past.
+    live.step(1 * FRAME_NS, None, None)
+    assert not live.add_detections(2 * FRAME_NS, [det_at(0.0)])
+    assert live.add_detections(1 * FRAME_NS, [det_at(0.0)])

@@ -43,16 +43,19 @@ def draw_box(img: np.ndarray, T: np.ndarray, box_corners: np.ndarray, intrinsics
 
 
 def draw_overlay(rgb: np.ndarray, result, intrinsics: CameraIntrinsics, box_corners: np.ndarray,
-                 colour_of) -> np.ndarray:
+                 colour_of, instances=None) -> np.ndarray:
     """A copy of ``rgb`` with ``result.keypoints_uv`` as dots coloured by ``result.labels``
     (outliers small and grey) and every instance's box (``box_corners`` (8, 3), model frame)
-    drawn in its colour. ``colour_of(id) -> (r, g, b)``."""
+    drawn in its colour. ``colour_of(id) -> (r, g, b)``. ``instances`` (tracked ones, keyed by
+    their ``track_id``) replace ``result.instances``; ``result`` may then be None (no dots)."""
     out = np.ascontiguousarray(rgb.copy())
-    labels = np.asarray(result.labels)
-    for (u, v), label in zip(np.asarray(result.keypoints_uv), labels):
-        inlier = label >= 0
-        cv2.circle(out, (int(round(u)), int(round(v))), 3 if inlier else 1, colour_of(int(label)),
-                   -1 if inlier else 1, cv2.LINE_AA)
-    for inst in result.instances:
-        draw_box(out, inst.T, box_corners, intrinsics, colour_of(int(inst.id)), label=str(inst.id))
+    if result is not None:
+        labels = np.asarray(result.labels)
+        for (u, v), label in zip(np.asarray(result.keypoints_uv), labels):
+            inlier = label >= 0
+            cv2.circle(out, (int(round(u)), int(round(v))), 3 if inlier else 1, colour_of(int(label)),
+                       -1 if inlier else 1, cv2.LINE_AA)
+    for inst in result.instances if instances is None else instances:
+        key = int(getattr(inst, "track_id", inst.id))
+        draw_box(out, inst.T, box_corners, intrinsics, colour_of(key), label=str(key))
     return out

@@ -1,7 +1,9 @@
 """Instances -> the node's output messages: PoseArray, MarkerArray and the JSON details.
 
 Instances are duck-typed: anything with ``id``, ``T`` (4x4, model frame -> camera optical
-frame, metres), ``inliers`` (a count or a list of indices) and ``score``.
+frame, metres), ``inliers`` (a count or a list of indices) and ``score``. Tracked ones
+(``tracking.TrackedInstance``) also have ``track_id``, ``state``, ``source`` and ``age_s``: their
+markers are keyed and coloured by ``track_id`` and their details carry those fields too.
 """
 from __future__ import annotations
 
@@ -38,6 +40,11 @@ def inlier_count(instance) -> int:
     return int(inliers) if np.isscalar(inliers) else len(inliers)
 
 
+def marker_key(instance) -> int:
+    """The marker id (and colour) of an instance: its track id if tracked, else its rank."""
+    return int(getattr(instance, "track_id", instance.id))
+
+
 def matrix_to_pose_msg(T: np.ndarray) -> Pose:
     xyz, quat = matrix_to_pose(np.asarray(T, dtype=np.float64))
     pose = Pose()
@@ -48,7 +55,8 @@ def matrix_to_pose_msg(T: np.ndarray) -> Pose:
 
 
 def pose_array(instances, header) -> PoseArray:
-    """Pose k = the model frame of instance k in the camera optical frame (REP-103, metres)."""
+    """Pose k = the model frame of instance k in the camera optical frame (REP-103, metres),
+    in the order given (the node gives tracks by track_id, per-frame instances by id)."""
     msg = PoseArray()
     msg.header = header
     msg.poses = [matrix_to_pose_msg(inst.T) for inst in instances]
@@ -56,8 +64,9 @@ def pose_array(instances, header) -> PoseArray:
 
 
 def marker_array(instances, header, box_centre, box_size, previous_ids=()) -> tuple[MarkerArray, set]:
-    """An oriented box (the model's extent) and an id label per instance, plus DELETE
-    markers for ids published last time and gone now. Returns (markers, ids now shown)."""
+    """An oriented box (the model's extent) and an id label per instance (marker id and colour:
+    ``marker_key``), plus DELETE markers for ids published last time and gone now (a track that
+    ended or is no longer published). Returns (markers, ids now shown)."""
     centre = np.asarray(box_centre, dtype=np.float64).reshape(3)
     size = np.asarray(box_size, dtype=np.float64).reshape(3)
     out = MarkerArray()
@@ -66,17 +75,18 @@ def marker_array(instances, header, box_centre, box_size, previous_ids=()) -> tu
         T = np.asarray(inst.T, dtype=np.float64)
         box_T = T.copy()
         box_T[:3, 3] = T[:3, :3] @ centre + T[:3, 3]
-        r, g, b = (c / 255.0 for c in instance_colour(inst.id))
+        key = marker_key(inst)
+        r, g, b = (c / 255.0 for c in instance_colour(key))
         box = Marker()
         box.header = header
-        box.ns, box.id = BOX_NS, int(inst.id)
+        box.ns, box.id = BOX_NS, key
         box.type, box.action = Marker.CUBE, Marker.ADD
         box.pose = matrix_to_pose_msg(box_T)
         box.scale.x, box.scale.y, box.scale.z = (float(max(v, 1e-3)) for v in size)
         box.color.r, box.color.g, box.color.b, box.color.a = r, g, b, 0.5
         label = Marker()
         label.header = header
-        label.ns, label.id = LABEL_NS, int(inst.id)
+        label.ns, label.id = LABEL_NS, key
         label.type, label.action = Marker.TEXT_VIEW_FACING, Marker.ADD
         # Above the box: "up" in the optical frame is -y.
         label.pose.position.x, label.pose.position.y, label.pose.position.z = (
@@ -84,9 +94,10 @@ def marker_array(instances, header, box_centre, box_size, previous_ids=()) -> tu
         label.pose.orientation.w = 1.0
         label.scale.z = 0.03
         label.color.r, label.color.g, label.color.b, label.color.a = 1.0, 1.0, 1.0, 1.0
-        label.text = f"{inst.id} ({inlier_count(inst)})"
+        state = getattr(inst, "state", "confirmed")
+        label.text = f"{key} ({inlier_count(inst)})" + ("" if state == "confirmed" else f" {state}")
         out.markers.extend([box, label])
-        shown.add(int(inst.id))
+        shown.add(key)
     for gone in sorted(set(previous_ids) - shown):
         for ns in (BOX_NS, LABEL_NS):
             delete = Marker()
@@ -96,13 +107,21 @@ def marker_array(instances, header, box_centre, box_size, previous_ids=()) -> tu
     return out, shown
 
 
+def instance_details(instance) -> dict:
+    """{"id", "inliers", "score"}, and for a track also "track_id", "state", "source", "age_s"."""
+    out = {"id": int(instance.id), "inliers": inlier_count(instance), "score": round(float(instance.score), 4)}
+    if hasattr(instance, "track_id"):
+        out.update(track_id=int(instance.track_id), state=instance.state, source=instance.source,
+                   age_s=round(float(instance.age_s), 3))
+    return out
+
+
 def details_message(stamp_ns: int, frame_id: str, latency_ms: float, instances, **extra) -> String:
     """std_msgs/String with JSON (no custom messages in a pure-Python package):
-    {"stamp_ns", "frame_id", "latency_ms", "instances": [{"id", "inliers", "score"}], ...extra}."""
+    {"stamp_ns", "frame_id", "latency_ms", "instances": [instance_details(i), ...], ...extra}."""
     payload = {
         "stamp_ns": int(stamp_ns), "frame_id": frame_id, "latency_ms": round(float(latency_ms), 3),
-        "instances": [{"id": int(i.id), "inliers": inlier_count(i), "score": round(float(i.score), 4)}
-                      for i in instances],
+        "instances": [instance_details(i) for i in instances],
     }
     payload.update(extra)
     return String(data=json.dumps(payload))

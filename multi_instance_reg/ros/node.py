@@ -1,19 +1,29 @@
 """``instance_registration_node``: every instance's pose from a live RGB-D stream.
 
 Subscribes to colour, aligned depth and camera_info (realsense-ros names by default; remap
-to change), pairs colour and depth by header stamp, runs the per-frame pipeline
-(``multi_instance_reg.rgbd.pipeline``) in a worker thread and publishes:
+to change), pairs colour and depth by header stamp and publishes:
 
-- ``/instances/poses`` (geometry_msgs/PoseArray): model frame in the camera optical frame;
-- ``/instances/markers`` (visualization_msgs/MarkerArray): box + id label per instance;
-- ``/instances/details`` (std_msgs/String, JSON): id, inliers, score per instance, latency;
+- ``/instances/poses`` (geometry_msgs/PoseArray): model frame in the camera optical frame,
+  ordered by track_id (tracking off: by id, the rank by inliers);
+- ``/instances/markers`` (visualization_msgs/MarkerArray): box + label per instance, marker id
+  and colour = track id; deleted when the track ends;
+- ``/instances/details`` (std_msgs/String, JSON): id, inliers, score, track_id, state, source,
+  age per instance, latency;
 - ``/instances/debug_image`` (sensor_msgs/Image rgb8): only drawn when subscribed or asked;
 - ``~/stats`` (std_msgs/String, JSON): frame counts and latency, also logged.
 
-Callbacks never wait for the pipeline: a synchronised pair goes into a one-frame mailbox
-and the worker thread always takes the newest one (the pipeline itself runs in a child
-process, ``worker.py``, so it never holds this process's GIL); pairs replaced before the worker got to them
-are counted as dropped, so latency cannot queue up when the camera outruns the pipeline.
+With tracking (``tracking.enabled``, the default) a tracking thread takes every synchronised
+pair, brings the tracks up to date on it (``tracking.LiveTracker``: ICP against the depth, a
+few ms) and publishes at once; then it hands the frame to the detector, the per-frame
+pipeline (``multi_instance_reg.rgbd.pipeline``) in a child process (``worker.py``, niced so
+that tracking wins the CPU), which always takes the newest frame and feeds what it found back
+to the tracker for the frame it was found on. Without tracking the detector's results are
+published as they are, for the frames it processed.
+
+Callbacks never wait for either: a synchronised pair goes into a one-frame mailbox and the
+thread behind it always takes the newest one (the pipeline runs in a child process, so it
+never holds this process's GIL); pairs replaced before they were taken are counted as
+dropped, so latency cannot queue up when the camera outruns the node.
 
 Run: ``instance_registration_node --ros-args --params-file config/params.yaml
 -p model_path:=model.npz`` (or ``python -m multi_instance_reg.ros.node ...``).
@@ -42,7 +52,8 @@ from ..errors import InputError
 from ..messages import array_to_image_fields, camera_info_to_intrinsics, colour_to_rgb, depth_to_metres
 from ..params import param_specs, with_overrides
 from . import conversions
-from .parameters import READ_ONLY, NodeSettings, check_parameters, declare, node_settings, node_specs
+from .parameters import (READ_ONLY, NodeSettings, all_specs, check_parameters, declare, node_settings, node_specs,
+                         tracking_specs)
 from .sync import ApproximateTimeSync, LatestSlot, stamp_to_ns
 from .transport import use_large_data_profile
 
@@ -63,6 +74,7 @@ class FrameCounters:
     bad: int = 0              # malformed images (encoding, step, sizes), skipped
     no_camera_info: int = 0   # pairs skipped because no camera_info had arrived yet
     failed: int = 0           # pipeline raised on a frame, skipped
+    detected: int = 0         # frames the detector (the full pipeline) ran on
 
 
 @dataclass
@@ -74,24 +86,42 @@ class _Pair:
     sequence: int
 
 
+@dataclass
+class _Frame:
+    """A pair converted and tracked, waiting for the detector."""
+    pair: _Pair
+    rgb: np.ndarray
+    depth: np.ndarray
+    intrinsics: object
+
+
 class InstanceRegistrationNode(Node):
     def __init__(self, **node_kwargs):
         super().__init__(NODE_NAME, **node_kwargs)
         from ..rgbd.model import load_model
         from ..rgbd.pipeline import PipelineConfig
+        from ..tracking import LiveConfig, LiveTracker, TrackerConfig
         from .worker import PipelineProcess
 
         node_values = declare(self, node_specs(), READ_ONLY)
         pipeline_values = declare(self, param_specs(PipelineConfig()))
-        self._specs = {s.name: s for s in node_specs()}
-        self._specs.update({s.name: s for s in param_specs(PipelineConfig())})
+        tracking_values = declare(self, tracking_specs(), READ_ONLY)
+        self._specs = {s.name: s for s in all_specs()}
         self.settings = node_settings(node_values)
         self.config = with_overrides(PipelineConfig(), pipeline_values)
+        live = {k: v for k, v in _tracker_fields(tracking_values).items() if k in LiveConfig.__dataclass_fields__}
+        self.live_config = LiveConfig(**live)
+        tracking = self.live_config.enabled
+        self.tracker_config = with_overrides(TrackerConfig(), {
+            k: v for k, v in _tracker_fields(tracking_values).items() if k not in live})
         if not self.settings.model_path:
             raise InputError("no model: pass -p model_path:=MODEL (build one with `mireg build-model`)")
         self.model = load_model(self.settings.model_path)
-        # The pipeline runs in child processes (see worker.py): it never holds our GIL.
-        self._pipelines = PipelineProcess.start_many(self.model, self.config, self.settings.pipeline_processes)
+        # The pipeline runs in child processes (see worker.py): it never holds our GIL. With
+        # tracking it is the detector, behind the tracking of every frame (niced).
+        self._pipelines = PipelineProcess.start_many(self.model, self.config, self.settings.pipeline_processes,
+                                                     niceness=self.settings.detector_niceness if tracking else 0)
+        self._tracker = LiveTracker(self.model, self.tracker_config, self.live_config) if tracking else None
 
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
@@ -105,10 +135,13 @@ class InstanceRegistrationNode(Node):
         self.counters = FrameCounters()
         self._counters_lock = threading.Lock()
         self._sync = ApproximateTimeSync(2, int(self.settings.sync_slop_s * 1e9))
-        self._slot = LatestSlot()
+        self._slot = LatestSlot()        # the detector's input: pairs, or frames already tracked
+        self._track_slot = LatestSlot()  # the tracking thread's input (tracking on)
         self._intrinsics = None
         self._have_intrinsics = threading.Event()
         self._latencies = deque(maxlen=LATENCY_WINDOW)
+        self._detection_latencies = deque(maxlen=LATENCY_WINDOW)  # pair complete -> detections fused
+        self._last_detection: dict | None = None
         self._marker_ids: set = set()
         self._publish_lock = threading.Lock()
         self._sequence = 0          # of synchronised pairs, to publish results in order
@@ -127,12 +160,14 @@ class InstanceRegistrationNode(Node):
 
         self._workers = [threading.Thread(target=self._work, args=(p,), name=f"pipeline{k}", daemon=True)
                          for k, p in enumerate(self._pipelines)]
+        if self._tracker is not None:
+            self._workers.append(threading.Thread(target=self._track_frames, name="tracking", daemon=True))
         for worker in self._workers:
             worker.start()
         self.get_logger().info(
             f"ready: model {self.settings.model_path}, listening on "
             f"{self.resolve_topic_name(COLOUR_TOPIC)} + {self.resolve_topic_name(DEPTH_TOPIC)} "
-            f"({self.settings.qos_reliability})")
+            f"({self.settings.qos_reliability}); tracking {'on' if self._tracker else 'off'}")
 
     # ---- parameters -------------------------------------------------------------------
     def _validate_parameters(self, params) -> SetParametersResult:
@@ -140,18 +175,24 @@ class InstanceRegistrationNode(Node):
         return SetParametersResult(successful=reason is None, reason=reason or "")
 
     def _apply_parameters(self, params) -> None:
-        pipeline_changes, node_changes = {}, {}
+        pipeline_changes, node_changes, tracking_changes = {}, {}, {}
         for p in params:
-            (node_changes if p.name in NodeSettings.__dataclass_fields__ else pipeline_changes)[p.name] = \
-                self._specs[p.name].check(p.value)
+            group = (node_changes if p.name in NodeSettings.__dataclass_fields__ else
+                     tracking_changes if p.name.startswith("tracking.") else pipeline_changes)
+            group[p.name] = self._specs[p.name].check(p.value)
         if node_changes:
             self.settings = node_settings({**asdict(self.settings), **node_changes})
             self._sync.set_slop(int(self.settings.sync_slop_s * 1e9))
         if pipeline_changes:
             # Takes effect on the next frame: it goes to the pipeline process with the frame.
             self.config = with_overrides(self.config, pipeline_changes)
+        if tracking_changes:
+            # From the next frame on; the tracks and their ids stay.
+            self.tracker_config = with_overrides(self.tracker_config, _tracker_fields(tracking_changes))
+            if self._tracker is not None:
+                self._tracker.set_config(self.tracker_config)
         self.get_logger().info("parameters changed: " + ", ".join(
-            f"{k}={v!r}" for k, v in {**node_changes, **pipeline_changes}.items()))
+            f"{k}={v!r}" for k, v in {**node_changes, **pipeline_changes, **tracking_changes}.items()))
 
     # ---- input ------------------------------------------------------------------------
     def _on_camera_info(self, msg: CameraInfo) -> None:
@@ -171,25 +212,39 @@ class InstanceRegistrationNode(Node):
         pair = self._sync.add(stream, stamp_to_ns(msg.header.stamp), msg)
         if pair is None:
             return
+        slot = self._slot if self._tracker is None else self._track_slot
         with self._counters_lock:
             self.counters.synchronised += 1
             self._sequence += 1
-            if self._slot.put(_Pair(pair[0], pair[1], now, time.time_ns(), self._sequence)):
+            if slot.put(_Pair(pair[0], pair[1], now, time.time_ns(), self._sequence)):
                 self.counters.dropped += 1
 
-    # ---- the worker -------------------------------------------------------------------
+    # ---- the worker threads -----------------------------------------------------------
     def _work(self, pipeline) -> None:
+        """A detector thread (one per pipeline process)."""
         while not self._slot.closed:
-            pair = self._slot.take(timeout=0.5, fresher=self.settings.wait_for_fresher)
+            item = self._slot.take(timeout=0.5, fresher=self.settings.wait_for_fresher)
+            if item is None:
+                continue
+            if isinstance(item, _Frame):
+                self._detect(item, pipeline)
+            else:
+                self._process(item, pipeline)
+
+    def _track_frames(self) -> None:
+        while not self._track_slot.closed:
+            pair = self._track_slot.take(timeout=0.5)
             if pair is not None:
-                self._process(pair, pipeline)
+                self._track(pair)
 
     def _count(self, name: str) -> None:
         with self._counters_lock:
             setattr(self.counters, name, getattr(self.counters, name) + 1)
 
-    def _process(self, pair: _Pair, pipeline) -> None:
-        log = self.get_logger()
+    def _convert(self, pair: _Pair):
+        """(rgb, depth in metres, intrinsics) of a pair, or None when it is skipped (counted)."""
+        from ..rgbd.pipeline import check_frame
+
         if self._intrinsics is None:
             # At start-up the first camera_info can trail the first images: a reliable reader
             # holds later samples back until a lost one is repaired (Fast DDS heartbeats: 3 s).
@@ -197,29 +252,86 @@ class InstanceRegistrationNode(Node):
         intrinsics = self._intrinsics
         if intrinsics is None:
             self._count("no_camera_info")
-            log.warn(f"no camera_info received on {self.resolve_topic_name(CAMERA_INFO_TOPIC)} yet; "
-                     "skipping frames until it arrives", throttle_duration_sec=5.0)
-            return
+            self.get_logger().warn(f"no camera_info received on {self.resolve_topic_name(CAMERA_INFO_TOPIC)} yet; "
+                                   "skipping frames until it arrives", throttle_duration_sec=5.0)
+            return None
         try:
             rgb = colour_to_rgb(pair.colour)
             depth = depth_to_metres(pair.depth, self.settings.depth_scale)
-            result = pipeline.register(rgb, depth, intrinsics, self.config)  # checks sizes
+            check_frame(rgb, depth, intrinsics)
         except InputError as exc:
             self._count("bad")
-            log.warn(f"skipping a malformed frame: {exc}", throttle_duration_sec=2.0)
-            return
+            self.get_logger().warn(f"skipping a malformed frame: {exc}", throttle_duration_sec=2.0)
+            return None
+        return rgb, depth, intrinsics
+
+    def _register(self, pipeline, rgb, depth, intrinsics):
+        """The detector's FrameResult, or None when it failed on this frame (counted)."""
+        try:
+            result = pipeline.register(rgb, depth, intrinsics, self.config)
+        except InputError as exc:
+            self._count("bad")
+            self.get_logger().warn(f"skipping a malformed frame: {exc}", throttle_duration_sec=2.0)
+            return None
         except RuntimeError as exc:  # a bug must not take the camera pipeline down with it
             self._count("failed")
-            log.error(f"the pipeline failed on a frame: {exc}", throttle_duration_sec=2.0)
+            self.get_logger().error(f"the pipeline failed on a frame: {exc}", throttle_duration_sec=2.0)
+            return None
+        self._count("detected")
+        return result
+
+    def _process(self, pair: _Pair, pipeline) -> None:
+        """Tracking off: detect on the pair and publish what was found."""
+        frame = self._convert(pair)
+        if frame is None:
             return
+        rgb, depth, intrinsics = frame
+        result = self._register(pipeline, rgb, depth, intrinsics)
+        if result is None:
+            return
+        timings = {k: round(float(v), 2) for k, v in result.timings_ms.items()}
+        if self._publish(pair, result.instances, timings_ms=timings):
+            self._publish_debug_image(rgb, result, intrinsics, pair.colour.header)
+
+    def _track(self, pair: _Pair) -> None:
+        """Tracking on: every live track brought to this frame and published, then the frame is
+        offered to the detector (which takes the newest when it is free)."""
+        frame = self._convert(pair)
+        if frame is None:
+            return
+        rgb, depth, intrinsics = frame
+        t0 = time.perf_counter()
+        tracks = self._tracker.step(stamp_to_ns(pair.colour.header.stamp), depth, intrinsics)
+        tracking_ms = round((time.perf_counter() - t0) * 1e3, 2)
+        self._slot.put(_Frame(pair, rgb, depth, intrinsics))
+        if self._publish(pair, tracks, timings_ms={"tracking": tracking_ms, "total": tracking_ms},
+                         detection=self._last_detection, tracker=self._tracker.counts()):
+            self._publish_debug_image(rgb, None, intrinsics, pair.colour.header, tracks)
+
+    def _detect(self, frame: _Frame, pipeline) -> None:
+        """Tracking on: full detection on a tracked frame, fed back to the tracker for it."""
+        result = self._register(pipeline, frame.rgb, frame.depth, frame.intrinsics)
+        if result is None:
+            return
+        stamp = stamp_to_ns(frame.pair.colour.header.stamp)
+        self._tracker.add_detections(stamp, result.instances)
+        latency_ms = (time.monotonic() - frame.pair.received) * 1e3
+        with self._counters_lock:
+            self._detection_latencies.append(latency_ms)
+        self._last_detection = {"stamp_ns": stamp, "instances": len(result.instances),
+                                "latency_ms": round(latency_ms, 2),
+                                "timings_ms": {k: round(float(v), 2) for k, v in result.timings_ms.items()}}
+
+    def _publish(self, pair: _Pair, instances, **details) -> bool:
+        """Poses, details and markers of one frame; False if a newer frame was published already."""
         header = pair.colour.header
         with self._publish_lock:
             if pair.sequence < self._last_published:
                 # With several pipeline processes a newer frame can finish first: never go back.
                 self._count("dropped")
-                return
+                return False
             self._last_published = pair.sequence
-            self._pub_poses.publish(conversions.pose_array(result.instances, header))
+            self._pub_poses.publish(conversions.pose_array(instances, header))
             # Latency as a user sees it: pair complete -> poses out (waiting for a worker included).
             latency_ms = (time.monotonic() - pair.received) * 1e3
             with self._counters_lock:
@@ -227,19 +339,20 @@ class InstanceRegistrationNode(Node):
                 self._latencies.append(latency_ms)
             counters = self.frame_counts()
             self._pub_details.publish(conversions.details_message(
-                stamp_to_ns(header.stamp), header.frame_id, latency_ms, result.instances,
-                timings_ms={k: round(float(v), 2) for k, v in result.timings_ms.items()},
-                received_ns=pair.received_ns, published_ns=time.time_ns(), counters=counters))
+                stamp_to_ns(header.stamp), header.frame_id, latency_ms, instances,
+                received_ns=pair.received_ns, published_ns=time.time_ns(), counters=counters, **details))
             markers, self._marker_ids = conversions.marker_array(
-                result.instances, header, np.zeros(3), self.model.extent, self._marker_ids)
+                instances, header, np.zeros(3), self.model.extent, self._marker_ids)
             self._pub_markers.publish(markers)
-        if self.settings.publish_debug_image or self._pub_debug.get_subscription_count() > 0:
-            self._publish_debug_image(rgb, result, intrinsics, header)
+        return True
 
-    def _publish_debug_image(self, rgb, result, intrinsics, header) -> None:
+    def _publish_debug_image(self, rgb, result, intrinsics, header, tracks=None) -> None:
         from ..rgbd.overlay import draw_overlay
 
-        overlay = draw_overlay(rgb, result, intrinsics, self.model.box_corners(), conversions.instance_colour)
+        if not (self.settings.publish_debug_image or self._pub_debug.get_subscription_count() > 0):
+            return
+        overlay = draw_overlay(rgb, result, intrinsics, self.model.box_corners(), conversions.instance_colour,
+                               instances=tracks)
         fields = array_to_image_fields(overlay, "rgb8")
         fields["data"] = fields["data"].tobytes()
         msg = Image(**fields)
@@ -261,6 +374,12 @@ class InstanceRegistrationNode(Node):
         stats["latency_ms_p50"] = round(float(np.percentile(lat, 50)), 2) if lat is not None else None
         stats["latency_ms_p95"] = round(float(np.percentile(lat, 95)), 2) if lat is not None else None
         stats["latency_ms_mean"] = round(float(lat.mean()), 2) if lat is not None else None
+        if self._tracker is not None:
+            with self._counters_lock:
+                det = np.array(self._detection_latencies) if self._detection_latencies else None
+            # How far behind the camera the detections are when they reach the tracker.
+            stats["detection_latency_ms_p50"] = round(float(np.percentile(det, 50)), 2) if det is not None else None
+            stats.update(self._tracker.counts())
         return stats
 
     def _maybe_report(self) -> None:
@@ -273,15 +392,23 @@ class InstanceRegistrationNode(Node):
         self.get_logger().info(
             f"frames: {stats['processed']} processed, {stats['dropped']} dropped, {stats['bad']} bad, "
             f"{stats['unmatched']} unmatched, {stats['no_camera_info']} without camera_info; "
-            f"latency p50 {stats['latency_ms_p50']} ms, p95 {stats['latency_ms_p95']} ms")
+            f"latency p50 {stats['latency_ms_p50']} ms, p95 {stats['latency_ms_p95']} ms"
+            + (f"; {stats['detected']} detected (p50 {stats['detection_latency_ms_p50']} ms behind), "
+               f"{stats['tracks_live']} tracks live" if self._tracker is not None else ""))
 
     def destroy_node(self):
+        self._track_slot.close()
         self._slot.close()
         for worker in self._workers:
             worker.join(timeout=5.0)
         for pipeline in self._pipelines:
             pipeline.close()
         return super().destroy_node()
+
+
+def _tracker_fields(values: dict) -> dict:
+    """{"tracking.coast_s": v} -> {"coast_s": v}: TrackerConfig's own names."""
+    return {name.split(".", 1)[1]: value for name, value in values.items()}
 
 
 def main(argv: list[str] | None = None) -> int:

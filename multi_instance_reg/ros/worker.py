@@ -9,15 +9,18 @@ none.
 from __future__ import annotations
 
 import multiprocessing
+import os
 
 from ..errors import InputError
 
 
-def _serve(conn, model, config) -> None:
+def _serve(conn, model, config, niceness: int = 0) -> None:
     """The child: build the pipeline, then answer frames until told to stop (None)."""
     from ..rgbd.pipeline import InstanceRegistration
 
     try:
+        if niceness:
+            os.nice(niceness)  # behind the node's per-frame work (tracking) on a busy CPU
         pipeline = InstanceRegistration(model, config)
         pipeline.warm_up()  # one-off compilation now, not in the first frame's latency
     except Exception as exc:  # reported to the parent, which stops with one clear line
@@ -47,17 +50,18 @@ class PipelineProcess:
     """``register(rgb, depth_m, intrinsics, config) -> FrameResult`` run in a child process. Raises InputError for a frame the pipeline refuses and
     RuntimeError when the pipeline failed (the child is restarted if it died)."""
 
-    def __init__(self, model, config, start_timeout: float = 300.0, wait: bool = True):
+    def __init__(self, model, config, start_timeout: float = 300.0, wait: bool = True, niceness: int = 0):
         self._model = model
+        self._niceness = niceness
         self._start_timeout = start_timeout
         self._launch(config)
         if wait:
             self.wait_ready()
 
     @classmethod
-    def start_many(cls, model, config, count: int) -> list["PipelineProcess"]:
+    def start_many(cls, model, config, count: int, niceness: int = 0) -> list["PipelineProcess"]:
         """``count`` pipeline processes, started together (each spends seconds warming up)."""
-        started = [cls(model, config, wait=False) for _ in range(count)]
+        started = [cls(model, config, wait=False, niceness=niceness) for _ in range(count)]
         try:
             for p in started:
                 p.wait_ready()
@@ -75,7 +79,7 @@ class PipelineProcess:
         # spawn, not fork: the parent runs DDS threads, which a fork would copy half-way.
         ctx = multiprocessing.get_context("spawn")
         self._conn, child_conn = ctx.Pipe()
-        self._proc = ctx.Process(target=_serve, args=(child_conn, self._model, config),
+        self._proc = ctx.Process(target=_serve, args=(child_conn, self._model, config, self._niceness),
                                  name="instance_registration_pipeline", daemon=True)
         self._proc.start()
         child_conn.close()

@@ -60,18 +60,27 @@ def load_config(params_path):
 
 
 def load_tracker_config(params_path):
-    """TrackerConfig with the tracking.* entries of a node parameter file applied."""
-    from ..tracking import TrackerConfig
+    """TrackerConfig with the tracking.* entries of a node parameter file applied; None (no
+    tracking, as --no-tracking) when the file sets the node's tracking.enabled to false."""
+    from ..tracking import TRACKING_ENABLED, TrackerConfig
 
-    return _config_from_params(TrackerConfig(), params_path, ("tracking",), strip=True)
+    values = _params(params_path)
+    if not TRACKING_ENABLED.check(values.pop(TRACKING_ENABLED.name, True)):
+        return None
+    return _config_from_params(TrackerConfig(), values, ("tracking",), strip=True)
 
 
-def _config_from_params(config, params_path, groups, strip: bool = False):
-    from ..params import read_params_yaml, with_overrides
+def _params(params_path) -> dict:
+    from ..params import read_params_yaml
 
-    if params_path is None:
-        return config
-    values = read_params_yaml(params_path)
+    return {} if params_path is None else read_params_yaml(params_path)
+
+
+def _config_from_params(config, params, groups, strip: bool = False):
+    """``params``: a node parameter file's path (None: none) or its entries already read."""
+    from ..params import with_overrides
+
+    values = params if isinstance(params, dict) else _params(params)
     ours = {(k.split(".", 1)[1] if strip else k): v for k, v in values.items() if k.split(".", 1)[0] in groups}
     return with_overrides(config, ours)
 

@@ -146,11 +146,17 @@ def local_step(T: np.ndarray, twist: np.ndarray) -> np.ndarray:
     return out
 
 
+def icp_for(model, config: TrackerConfig) -> ProjectiveICP | None:
+    """The depth alignment the settings ask for (None with icp off)."""
+    c = config
+    return ProjectiveICP(model.points_xyz, c.icp_points, c.icp_iterations, c.icp_max_distance,
+                         c.icp_inlier_distance, c.icp_damping) if c.icp else None
+
+
 class InstanceTracker:
     """Tracks of the instances of one object over a stream of frames (see the module doc)."""
 
     def __init__(self, model, config: TrackerConfig | None = None, symmetries=None):
-        self.config = config or TrackerConfig()
         self.model = model
         self.tracks: list[Track] = []
         self.next_id = 0
@@ -158,9 +164,12 @@ class InstanceTracker:
         self.stamp_ns: int | None = None # latest frame
         # Rotations (model frame) under which the object looks the same; identity first.
         self.symmetries = [np.eye(3)] + [np.asarray(S, dtype=np.float64)[:3, :3] for S in (symmetries or [])]
-        c = self.config
-        self._icp = ProjectiveICP(model.points_xyz, c.icp_points, c.icp_iterations, c.icp_max_distance,
-                                  c.icp_inlier_distance, c.icp_damping) if c.icp else None
+        self.set_config(config or TrackerConfig())
+
+    def set_config(self, config: TrackerConfig) -> None:
+        """Settings from the next frame on (the live node's parameter changes); tracks and ids stay."""
+        self.config = config
+        self._icp = icp_for(self.model, config)
 
     # ---- per frame -------------------------------------------------------------------
     def step(self, stamp_ns: int, depth_m: np.ndarray | None, intrinsics: CameraIntrinsics | None,

@@ -1,0 +1,145 @@
+"""The tracker in a live stream: stepped on every camera frame by one thread while detections,
+computed on older frames by a slower detector, come in from others. No ROS.
+
+    live = LiveTracker(model, TrackerConfig(), LiveConfig())
+    # camera thread, every frame:        published = live.step(stamp_ns, depth_m, intrinsics)
+    # detector thread, when it is done:  live.add_detections(stamp_ns_of_its_frame, instances)
+
+On a loaded CPU the detector runs several hundred ms behind the camera. The tracker moves a
+late detection forward by its track's motion since that frame, but a detection of an object
+no track follows yet has no such motion: it would start a track where the object was, and a
+moving camera has long taken it elsewhere (measured on the demo sweep with detections 15
+frames late: no track survived). So each late detection is first *carried forward*: aligned
+by the same projective ICP to every frame's depth since its own (the frames are kept for
+``catch_up_frames``), one frame's motion at a time, and fused on the newest frame. A
+detection the depth stops confirming on the way (occluded, left the view) is dropped.
+
+A detection can only be fused for a frame the tracker has stepped and still remembers; one
+from a frame it never saw, or too long ago, is refused and counted.
+"""
+from __future__ import annotations
+
+import dataclasses
+import threading
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..params import param, param_specs
+from ..transforms import rotation_angle_deg
+from .tracker import HISTORY, InstanceTracker, TrackedInstance, TrackerConfig, icp_for, proper_pose
+
+
+@dataclass(frozen=True)
+class LiveConfig:
+    """Settings of tracking in a live stream (ROS parameters ``tracking.*`` beside TrackerConfig's)."""
+    enabled: bool = param(True, "track instances over frames (read-only in the node): a pose for every camera frame, ids "
+                                "kept by track; false = every frame solved alone as before tracking existed (poses only "
+                                "for the frames the detector processed, ids are per-frame ranks)")
+    catch_up_frames: int = param(30, "depth images kept to carry a late detection forward to the newest frame by ICP "
+                                     "(a detection older than this is fused by its track's motion alone); 0 = never carry",
+                                 0, HISTORY)
+
+
+class LiveTracker:
+    def __init__(self, model, config: TrackerConfig | None = None, live: LiveConfig | None = None):
+        self._tracker = InstanceTracker(model, config)
+        self._model = model
+        self._icp = icp_for(model, self._tracker.config)
+        self._live = live or LiveConfig()
+        self._lock = threading.Lock()
+        self._stepped: deque[int] = deque(maxlen=HISTORY)   # stamps whose poses the tracks remember
+        self._frames: deque = deque(maxlen=max(self._live.catch_up_frames, 1))  # (stamp_ns, depth_m, intrinsics)
+        self.detections_fused = 0       # detector results fused
+        self.detections_refused = 0     # ... refused: their frame was never stepped or is forgotten
+        self.detections_lost = 0        # single detections the depth stopped confirming while carried forward
+
+    @property
+    def config(self) -> TrackerConfig:
+        return self._tracker.config
+
+    def set_config(self, config: TrackerConfig) -> None:
+        icp = icp_for(self._model, config)
+        with self._lock:
+            self._tracker.set_config(config)
+            self._icp = icp
+
+    def step(self, stamp_ns: int, depth_m, intrinsics) -> list[TrackedInstance]:
+        """Every live track brought to this frame (by track_id); what to publish for it."""
+        stamp_ns = int(stamp_ns)
+        with self._lock:
+            if self._stepped and stamp_ns <= self._stepped[-1]:
+                # Time went back (a bag looping, a camera restarted): the old frames are not
+                # this stream's past, so older detections must not be fused into it.
+                self._stepped.clear()
+                self._frames.clear()
+            published = self._tracker.step(stamp_ns, depth_m, intrinsics, None)
+            self._stepped.append(stamp_ns)
+            if self._live.catch_up_frames:
+                self._frames.append((stamp_ns, depth_m, intrinsics))
+            return published
+
+    def add_detections(self, stamp_ns: int, detections) -> bool:
+        """Fuse the detector's instances found on the frame ``stamp_ns`` (stepped earlier);
+        False if that frame is not known (any more) and the detections were dropped."""
+        stamp_ns = int(stamp_ns)
+        with self._lock:
+            if stamp_ns not in self._stepped:
+                self.detections_refused += 1
+                return False
+            frames, icp = self._frames_after(stamp_ns), self._icp
+        if frames is None or icp is None or not frames:
+            with self._lock:   # too old to carry, nothing to carry with, or already the newest frame
+                self._tracker.add_detections(stamp_ns, detections)
+                self.detections_fused += 1
+            return True
+        # Carry forward outside the lock (the camera thread goes on), then the frames that
+        # arrived meanwhile under it.
+        carried = self._carry(list(detections), frames, icp)
+        with self._lock:
+            newer = self._frames_after(frames[-1][0]) or []
+            carried = self._carry(carried, newer, icp)
+            self._tracker.add_detections((newer or frames)[-1][0], carried)
+            self.detections_fused += 1
+        return True
+
+    def _frames_after(self, stamp_ns: int):
+        """The kept frames after ``stamp_ns``, or None if that frame is no longer kept."""
+        stamps = [s for s, _, _ in self._frames]
+        if stamp_ns not in stamps:
+            return None
+        return list(self._frames)[stamps.index(stamp_ns) + 1:]
+
+    def _carry(self, detections, frames, icp) -> list:
+        """Each detection aligned to each frame's depth in turn (the tracker's own acceptance
+        rule per frame); those the depth stops confirming are dropped."""
+        c = self._tracker.config
+        out = []
+        for det in detections:
+            T = proper_pose(det.T)
+            for _, depth, intrinsics in frames:
+                res = icp.align(T, depth, intrinsics)
+                step_m = float(np.linalg.norm(res.T[:3, 3] - T[:3, 3]))
+                step_deg = rotation_angle_deg(res.T[:3, :3] @ T[:3, :3].T)
+                if res.fitness < c.icp_min_fitness or step_m > c.icp_max_step or step_deg > c.icp_max_step_deg:
+                    T = None
+                    break
+                T = proper_pose(res.T)
+            if T is None:
+                self.detections_lost += 1
+            else:
+                out.append(dataclasses.replace(det, T=T))
+        return out
+
+    def counts(self) -> dict:
+        with self._lock:
+            return {"tracks_live": len(self._tracker.tracks), "tracks_started": self._tracker.next_id,
+                    "tracks_ended": self._tracker.ended, "detections_fused": self.detections_fused,
+                    "detections_refused": self.detections_refused, "detections_lost": self.detections_lost}
+
+
+# The node's parameter, also read by `mireg offline --params`.
+TRACKING_ENABLED = next(s for s in param_specs(LiveConfig(), "tracking.") if s.name == "tracking.enabled")
+
+__all__ = ["LiveTracker", "LiveConfig", "TRACKING_ENABLED"]
