@@ -57,7 +57,7 @@ class TrackerConfig:
     icp: bool = param(True, "bring every track up to date on every frame by projective point-to-plane ICP of the model against the depth image (off: tracks move only with detections)")
     icp_points: int = param(400, "model points used by the ICP of one track", 20, 20000)
     icp_iterations: int = param(10, "ICP iterations per track and frame", 1, 100)
-    icp_damping: float = param(0.01, "Levenberg damping of each ICP step, relative to the mean diagonal of its normal equations: keeps what the depth barely constrains (a box seen from the top slides freely) at the start pose, the detection's", 0.0, 10.0)
+    icp_damping: float = param(0.001, "Levenberg damping of each ICP step, relative to the mean diagonal of its normal equations: keeps what the depth barely constrains (a box seen from the top slides freely) at the start pose, the detection's", 0.0, 10.0)
     icp_max_distance: float = param(0.03, "m: depth pairs farther apart than this are ignored in the first ICP iteration (the gate shrinks to icp_inlier_distance by the last)", 0.001, 0.5)
     icp_inlier_distance: float = param(0.006, "m: a model point counts as confirmed by the depth within this distance", 0.0005, 0.1)
     icp_max_step: float = param(0.01, "m: an ICP result that moves the track's pose further than this from its prediction (or from the detection of this frame) is refused: the model slid along a plane it shares with something else", 0.0005, 1.0)
