@@ -126,7 +126,7 @@ def test_untextured_offline_replay(tmp_path):
     metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
     poses = json.loads((tmp_path / "out" / "poses.json").read_text())
     assert len(poses["frames"]) == 2
-    # What the shape front end reaches today on these frames (4 hits of 10, none wrong); the
-    # issue's MHF1 >= 0.90 is NOT reached yet (README: "Untextured objects").
-    assert metrics["MHP"] >= 0.5 and metrics["hits"] >= 2
+    # PPF per segment reaches MHF1 0.71 on these two frames (before it: 4 hits of 10); the
+    # issue's MHF1 >= 0.90 is not met here (README: "Untextured objects"); a margin below.
+    assert metrics["MHF1"] >= 0.6
     assert metrics["median_rte"] <= 0.01 and metrics["median_rre_deg"] <= 3.0

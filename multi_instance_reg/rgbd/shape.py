@@ -253,37 +253,50 @@ class ShapeMatcher:
 # --------------------------------------------------------------------------- per instance
 
 def icp_point_to_plane(T: np.ndarray, model_pts: np.ndarray, scene_pts: np.ndarray, scene_normals: np.ndarray,
-                       scene_tree: cKDTree, max_dist: float, iterations: int = 10) -> tuple[np.ndarray, float]:
-    """Refine T (model -> camera) by point-to-plane ICP of the model points facing the camera
-    against the scene points; returns (T, share of those model points with a scene point
-    within ``max_dist``)."""
+                       scene_tree: cKDTree, max_dist: float, iterations: int = 10,
+                       model_normals: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+    """Refine T (model -> camera) by point-to-plane ICP of the model points (with
+    ``model_normals``: those facing the camera at the current pose; the far side would pull
+    the model onto the visible surface) against the scene points; returns (T, share of
+    those model points with a scene point within ``max_dist``)."""
     T = np.asarray(T, np.float64).copy()
     share = 0.0
+    floor = 0.5 * max_dist
     for it in range(iterations):
         R, t = T[:3, :3], T[:3, 3]
         p = model_pts @ R.T + t
+        if model_normals is not None:
+            # Facing the camera by more than grazing (as in ``depth_support``).
+            p = p[np.einsum("ij,ij->i", model_normals @ R.T, p) < -0.2 * np.linalg.norm(p, axis=1)]
         d, j = scene_tree.query(p, k=1, distance_upper_bound=max_dist, workers=-1)
         ok = np.isfinite(d)
         share = float(ok.mean()) if len(ok) else 0.0
         if ok.sum() < 6:
             break
         src, dst, n = p[ok], scene_pts[j[ok]], scene_normals[j[ok]]
-        # Linearised: minimise sum ((R_d src + t_d - dst) . n)^2 over a small rotation (w) and t_d.
-        A = np.hstack([np.cross(src, n), n])
+        # Linearised about the points' centroid c: minimise sum ((R_d (src - c) + c + t_d -
+        # dst) . n)^2 over a small rotation (w) and t_d. Damped: directions the surface does
+        # not constrain (sliding along a face seen alone) stay put instead of drifting.
+        c = src.mean(axis=0)
+        A = np.hstack([np.cross(src - c, n), n])
         b = np.einsum("ij,ij->i", dst - src, n)
+        H = A.T @ A
+        H[np.diag_indices(6)] += 1e-3 * np.trace(H) / 6.0 + 1e-12
         try:
-            x = np.linalg.lstsq(A, b, rcond=None)[0]
+            x = np.linalg.solve(H, A.T @ b)
         except np.linalg.LinAlgError:
             break
         w, dt = x[:3], x[3:]
         angle = np.linalg.norm(w)
         Rd = cv2.Rodrigues(w.reshape(3, 1))[0] if angle > 0 else np.eye(3)
         T_d = np.eye(4)
-        T_d[:3, :3], T_d[:3, 3] = Rd, dt
+        T_d[:3, :3], T_d[:3, 3] = Rd, c - Rd @ c + dt
         T = T_d @ T
         if angle < 1e-4 and np.linalg.norm(dt) < 1e-5:
             break
-        max_dist = max(0.6 * max_dist, 1.0 * 1e-3) if it >= 2 else max_dist
+        # Tighter, but not below half the start: the depth noise (several mm at 2 m) must
+        # not leave only a few random pairs, which let the model slide along a face.
+        max_dist = max(0.6 * max_dist, floor) if it >= 2 else max_dist
     return T, share
 
 

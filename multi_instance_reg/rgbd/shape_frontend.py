@@ -18,7 +18,11 @@ from ..core import ECCConfig
 from ..errors import InputError
 from ..messages import CameraIntrinsics
 from .model import ObjectModel
-from .shape import ShapeMatcher, depth_support, describe, icp_point_to_plane, scene_cloud, voxel_downsample
+from .lifting import depth_to_cloud
+from .ppf import PPFModel
+from .segments import connected_segments, support_mask
+from .shape import (ShapeMatcher, depth_support, describe, icp_point_to_plane, normals_and_variation, scene_cloud,
+                    voxel_downsample)
 
 
 @dataclass
@@ -28,6 +32,7 @@ class FrameCloud:
     salient: np.ndarray       # (S,) indices of the points that are matched
     descriptors: np.ndarray   # (S, 33) their FPFH
     tree: cKDTree | None
+    segments: np.ndarray | None = None    # (M,) segment label per point (-1: none), ppf only
 
 
 class ShapeFrontEnd:
@@ -45,12 +50,17 @@ class ShapeFrontEnd:
         self._model_pts = model.shape_points.astype(np.float64)
         # The surface once (the descriptors hold a point once per view that sees it): for ICP
         # and the depth check.
-        surface = voxel_downsample(self._model_pts, self.voxel)
-        _, j = cKDTree(self._model_pts).query(surface, k=1)
-        self._surface = surface
-        self._surface_normals = model.shape_normals[j].astype(np.float64)
-        self._matcher = ShapeMatcher(model.shape_descriptors[keep], k=fe.shape_neighbours)
+        self._surface, self._surface_normals = oriented_downsample(self._model_pts, model.shape_normals, self.voxel)
         self.diameter = float(np.linalg.norm(model.extent))
+        self.features = fe.shape_features
+        if self.features == "ppf":
+            self._ppf = PPFModel(self._surface, self._surface_normals, self.diameter, self.voxel, model.symmetries,
+                                 bucket_cap=fe.shape_ppf_bucket)
+            # The largest flat piece the object can show: its two largest box sides.
+            e = np.sort(np.asarray(model.extent, np.float64))
+            self._max_face_area = float(e[1] * e[2])
+        else:
+            self._matcher = ShapeMatcher(model.shape_descriptors[keep], k=fe.shape_neighbours)
 
     def ecc_config(self, base: ECCConfig) -> ECCConfig:
         """ECC for shape matches: thresholds no finer than the voxel they are sampled at, and
@@ -60,6 +70,10 @@ class ShapeFrontEnd:
                        spatial_sigma=1.2 * self.diameter, sampling="consistency")
 
     def frame_cloud(self, depth_m: np.ndarray, intrinsics: CameraIntrinsics, search: np.ndarray) -> FrameCloud:
+        """The frame's points where objects can be. ``search``: the pipeline's search region
+        (fpfh); ppf builds its own from the depth in range (``segment_cloud``)."""
+        if self.features == "ppf":
+            return self.segment_cloud(depth_m, intrinsics)
         # Every second pixel is plenty: the voxel is several pixel footprints wide.
         pts = scene_cloud(depth_m, intrinsics, search, self.voxel, stride=2)
         if len(pts) > self.fe.shape_max_points:
@@ -70,9 +84,35 @@ class ShapeFrontEnd:
         salient = np.flatnonzero(variation >= self.fe.shape_min_variation)
         return FrameCloud(pts, normals, salient, desc[salient], cKDTree(pts))
 
+    def segment_cloud(self, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> FrameCloud:
+        """Depth in range, minus the large pieces of dominant planes (floor, pallet top,
+        table), voxel-downsampled, with normals, cut into connected segments."""
+        fe = self.fe
+        valid = (depth_m >= fe.depth_min) & (depth_m <= fe.depth_max)
+        support = support_mask(depth_m, intrinsics, valid, fe.shape_support_area * self._max_face_area,
+                               fe.plane_thresh, fe.shape_depth_noise)
+        pts, _ = depth_to_cloud(depth_m, intrinsics, valid & ~support, stride=2)
+        pts = voxel_downsample(np.asarray(pts, np.float64), self.voxel)
+        empty = FrameCloud(pts, np.zeros_like(pts), np.zeros(0, np.int64), np.zeros((0, 33), np.float32), None,
+                           np.full(len(pts), -1, np.int64))
+        if len(pts) < 10:
+            return empty
+        tree = cKDTree(pts)
+        normals, _, _ = normals_and_variation(pts, self.voxel, toward=np.zeros(3), tree=tree)
+        labels = connected_segments(pts, fe.shape_segment_link * self.voxel, fe.shape_min_segment)
+        return FrameCloud(pts, normals, np.zeros(0, np.int64), np.zeros((0, 33), np.float32), tree, labels)
+
     def correspondences(self, cloud: FrameCloud) -> tuple[np.ndarray, np.ndarray]:
-        """(model points (N, 3), scene points (N, 3)): each salient scene point with its
-        ``shape_neighbours`` nearest model descriptors."""
+        """(model points (N, 3), scene points (N, 3)). ppf: each reference point of a
+        segment with the model point its pair votes choose (over the symmetries); fpfh: each
+        salient scene point with its ``shape_neighbours`` nearest model descriptors."""
+        if self.features == "ppf":
+            if cloud.segments is None or not np.any(cloud.segments >= 0):
+                return np.zeros((0, 3)), np.zeros((0, 3))
+            s, m, poses, share = self._ppf.vote(cloud.points, cloud.normals, cloud.segments,
+                                                self.fe.shape_ref_step, self.fe.shape_max_partners)
+            src, s = self._ppf.correspondences(s, poses, cloud.points)
+            return src, cloud.points[s]
         s, m = self._matcher.match(cloud.descriptors)
         return self._model_pts[self._model_idx[m]], cloud.points[cloud.salient[s]]
 
@@ -86,20 +126,47 @@ class ShapeFrontEnd:
             return out
         tol = max(fe.shape_depth_tolerance, 0.8 * self.voxel)
         first = min(3, fe.shape_icp_iterations)
-        for T in transforms:
-            # A few rounds first: a hypothesis the depth hardly supports then is dropped
-            # without paying for the rest (most of ECC's clusters on shape matches are wrong).
-            T, _ = icp_point_to_plane(T, self._surface, cloud.points, cloud.normals, cloud.tree,
-                                      max_dist=2.0 * self.voxel, iterations=first)
+        def fit(T):
             support, free, n = depth_support(T, self._surface, self._surface_normals, depth_m, intrinsics, tol)
-            if support < 0.5 * fe.shape_min_support:
+            return support - free, support, free, n
+
+        for T0 in transforms:
+            # The depth check first (a projection, no search), then a few rounds of ICP: a
+            # hypothesis the depth hardly supports is dropped without paying for the rest
+            # (most of ECC's clusters are wrong).
+            if fit(T0)[1] < 0.25 * fe.shape_min_support:
                 continue
-            T, _ = icp_point_to_plane(T, self._surface, cloud.points, cloud.normals, cloud.tree,
-                                      max_dist=1.5 * self.voxel, iterations=fe.shape_icp_iterations - first)
-            support, free, n = depth_support(T, self._surface, self._surface_normals, depth_m, intrinsics, tol)
+            T = icp_point_to_plane(T0, self._surface, cloud.points, cloud.normals, cloud.tree,
+                                   max_dist=2.0 * self.voxel, iterations=first, model_normals=self._surface_normals)[0]
+            cand = max([fit(T0) + (T0,), fit(T) + (T,)], key=lambda c: c[0])
+            if cand[1] < 0.5 * fe.shape_min_support:
+                continue
+            T = icp_point_to_plane(cand[4], self._surface, cloud.points, cloud.normals, cloud.tree,
+                                   max_dist=1.5 * self.voxel, iterations=fe.shape_icp_iterations - first,
+                                   model_normals=self._surface_normals)[0]
+            # ICP can slide a box seen by one face alone: keep whichever pose the depth
+            # image supports better.
+            _, support, free, n, T = max([cand, fit(T) + (T,)], key=lambda c: c[0])
             if n >= fe.shape_min_visible and support >= fe.shape_min_support and free <= fe.shape_max_free:
                 out.append((T, support, int(round(support * n))))
         return out
+
+
+def oriented_downsample(points: np.ndarray, normals: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
+    """The mean point and normal per voxel and normal direction (the nearest of +-x, +-y,
+    +-z): the two sides of a plate thinner than two voxels stay apart, each with its own
+    outward normal (a visible side is matched, ICP'd and checked against its own side)."""
+    normals = np.asarray(normals, np.float64)
+    side = np.argmax(np.abs(normals), axis=1) * 2 + (normals[np.arange(len(normals)), np.argmax(np.abs(normals), axis=1)] < 0)
+    keys = np.floor(np.asarray(points, np.float64) / voxel).astype(np.int64)
+    keys -= keys.min(axis=0)
+    dims = keys.max(axis=0) + 1
+    flat = ((keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]) * 6 + side
+    _, inverse, counts = np.unique(flat, return_inverse=True, return_counts=True)
+    out_p = np.stack([np.bincount(inverse, weights=points[:, k], minlength=len(counts)) for k in range(3)], 1)
+    out_n = np.stack([np.bincount(inverse, weights=normals[:, k], minlength=len(counts)) for k in range(3)], 1)
+    out_n /= np.maximum(np.linalg.norm(out_n, axis=1, keepdims=True), 1e-12)
+    return out_p / counts[:, None], out_n
 
 
 def resolve_correspondences(choice: str, model: ObjectModel) -> str:
@@ -119,4 +186,4 @@ def resolve_correspondences(choice: str, model: ObjectModel) -> str:
     return choice
 
 
-__all__ = ["ShapeFrontEnd", "FrameCloud", "resolve_correspondences"]
+__all__ = ["ShapeFrontEnd", "FrameCloud", "resolve_correspondences", "oriented_downsample"]

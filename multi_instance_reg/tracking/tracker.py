@@ -77,6 +77,7 @@ class TrackedInstance:
     source: str             # detection: a detection updated it since the last output; tracking: depth/prediction only
     age_s: float            # since the track was born
     fitness: float          # share of the visible model points the depth confirmed on this frame (0 without ICP)
+    object: str = ""        # name of the object (set by ObjectTrackers, objects.py)
 
 
 @dataclass

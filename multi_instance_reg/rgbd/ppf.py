@@ -1,0 +1,299 @@
+"""Point-pair features (Drost et al., CVPR 2010) voted per segment, turned into
+correspondences for ECC. No ROS, no colour.
+
+Why PPF and not FPFH on boxes, bins and cylinders: FPFH describes a point's neighbourhood,
+and on a flat face every neighbourhood is the same; a pair of points (distance, and the angles
+of both normals to the line joining them and to each other) relates two places of the object
+that may be a whole face apart. Voting over all pairs of a reference point finds which model
+point it is and how the object is turned about its normal; on a face seen alone the votes
+peak where the whole segment fits inside the model's face, i.e. the outline decides.
+
+Model (once): every ordered pair of surface points within the object's diameter, hashed by
+its quantised feature, each with its angle alpha_m about the first point's normal. Buckets
+are capped (a random subset), since a box has thousands of coplanar pairs per distance.
+
+Frame: for each reference point of a segment (a subset), pair it with points of the same
+segment (at most ``max_partners``), look each pair up, and vote for (model point, turn
+about the normal). The peak gives the reference point's model point and a full pose. Each
+reference yields the correspondence (model point -> reference point), once per discrete
+symmetry of the object and, for a continuous one, on the turn nearest a canonical one (so
+that the references of one instance agree): ECC then groups consistent correspondences into
+instances.
+"""
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from ..symmetry import Symmetries, _about, _rotation
+
+ANGLE_BINS = 15         # over [0, pi]: 12 deg
+TURN_BINS = 30          # over [0, 2 pi): 12 deg
+
+
+@numba.njit(cache=True, fastmath=True)
+def _align_to_x(n0, n1, n2):
+    """Rotation (3x3) taking unit vector n to +x."""
+    R = np.eye(3)
+    c = n0
+    # axis = n x e_x = (0, n2, -n1)
+    a1, a2 = n2, -n1
+    s = math.sqrt(a1 * a1 + a2 * a2)
+    if s < 1e-9:
+        if c < 0:
+            R[0, 0] = -1.0
+            R[1, 1] = -1.0
+        return R
+    a1 /= s
+    a2 /= s
+    # Rodrigues with axis (0, a1, a2), sin = s, cos = c.
+    C = 1.0 - c
+    R[0, 0] = c
+    R[0, 1] = -a2 * s
+    R[0, 2] = a1 * s
+    R[1, 0] = a2 * s
+    R[1, 1] = c + a1 * a1 * C
+    R[1, 2] = a1 * a2 * C
+    R[2, 0] = -a1 * s
+    R[2, 1] = a1 * a2 * C
+    R[2, 2] = c + a2 * a2 * C
+    return R
+
+
+@numba.njit(cache=True, fastmath=True)
+def _feature(p, n, i, j, R, d_step, a_step, n_dist):
+    """(key, alpha) of the pair (i, j); key -1 when too far or degenerate. R aligns n[i] to x."""
+    dx = p[j, 0] - p[i, 0]
+    dy = p[j, 1] - p[i, 1]
+    dz = p[j, 2] - p[i, 2]
+    d = math.sqrt(dx * dx + dy * dy + dz * dz)
+    if d < 1e-9:
+        return -1, 0.0
+    db = int(d / d_step)
+    if db >= n_dist:
+        return -1, 0.0
+    ux, uy, uz = dx / d, dy / d, dz / d
+    c2 = n[i, 0] * ux + n[i, 1] * uy + n[i, 2] * uz
+    c3 = n[j, 0] * ux + n[j, 1] * uy + n[j, 2] * uz
+    c4 = n[i, 0] * n[j, 0] + n[i, 1] * n[j, 1] + n[i, 2] * n[j, 2]
+    b2 = min(int(math.acos(max(-1.0, min(1.0, c2))) / a_step), ANGLE_BINS - 1)
+    b3 = min(int(math.acos(max(-1.0, min(1.0, c3))) / a_step), ANGLE_BINS - 1)
+    b4 = min(int(math.acos(max(-1.0, min(1.0, c4))) / a_step), ANGLE_BINS - 1)
+    key = ((db * ANGLE_BINS + b2) * ANGLE_BINS + b3) * ANGLE_BINS + b4
+    vy = R[1, 0] * dx + R[1, 1] * dy + R[1, 2] * dz
+    vz = R[2, 0] * dx + R[2, 1] * dy + R[2, 2] * dz
+    return key, math.atan2(vz, vy)
+
+
+@numba.njit(cache=True)
+def _model_pairs(p, n, d_step, a_step, n_dist):
+    m = p.shape[0]
+    keys = np.empty(m * (m - 1), np.int64)
+    first = np.empty(m * (m - 1), np.int32)
+    alpha = np.empty(m * (m - 1), np.float32)
+    k = 0
+    for i in range(m):
+        R = _align_to_x(n[i, 0], n[i, 1], n[i, 2])
+        for j in range(m):
+            if j == i:
+                continue
+            key, a = _feature(p, n, i, j, R, d_step, a_step, n_dist)
+            if key < 0:
+                continue
+            keys[k] = key
+            first[k] = i
+            alpha[k] = a
+            k += 1
+    return keys[:k], first[:k], alpha[:k]
+
+
+@numba.njit(cache=True)
+def _vote(p, n, refs, seg_start, seg_end, max_partners, bucket_start, entry_first, entry_alpha,
+          n_model, d_step, a_step, n_dist):
+    """Per reference: (model point, turn bin, votes, partners) of the accumulator's peak."""
+    nr = refs.shape[0]
+    out_m = np.full(nr, -1, np.int64)
+    out_turn = np.zeros(nr, np.int64)
+    out_votes = np.zeros(nr, np.float32)
+    out_partners = np.zeros(nr, np.int64)
+    acc = np.zeros(n_model * TURN_BINS, np.float32)
+    touched = np.empty(n_model * TURN_BINS, np.int64)
+    two_pi = 2.0 * math.pi
+    for r in range(nr):
+        i = refs[r]
+        lo, hi = seg_start[r], seg_end[r]
+        step = max(1, (hi - lo) // max_partners)
+        R = _align_to_x(n[i, 0], n[i, 1], n[i, 2])
+        nt = 0
+        partners = 0
+        for j in range(lo, hi, step):
+            if j == i:
+                continue
+            key, a_s = _feature(p, n, i, j, R, d_step, a_step, n_dist)
+            if key < 0:
+                continue
+            partners += 1
+            b0, b1 = bucket_start[key], bucket_start[key + 1]
+            for e in range(b0, b1):
+                turn = a_s - entry_alpha[e]
+                if turn < 0:
+                    turn += two_pi
+                tb = int(turn / two_pi * TURN_BINS)
+                if tb >= TURN_BINS:
+                    tb = 0
+                cell = entry_first[e] * TURN_BINS + tb
+                if acc[cell] == 0.0:
+                    touched[nt] = cell
+                    nt += 1
+                acc[cell] += 1.0
+        # The peak, and the accumulator cleared for the next reference (touched cells only).
+        best = 0.0
+        bc = -1
+        for q in range(nt):
+            c = touched[q]
+            if acc[c] > best:
+                best = acc[c]
+                bc = c
+            acc[c] = 0.0
+        if bc >= 0:
+            out_m[r] = bc // TURN_BINS
+            out_turn[r] = bc % TURN_BINS
+        out_votes[r] = best
+        out_partners[r] = partners
+    return out_m, out_turn, out_votes, out_partners
+
+
+def _rot_x(angle: np.ndarray) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    R = np.zeros((len(angle), 3, 3))
+    R[:, 0, 0] = 1.0
+    R[:, 1, 1], R[:, 1, 2], R[:, 2, 1], R[:, 2, 2] = c, -s, s, c
+    return R
+
+
+class PPFModel:
+    """The model's pair table and symmetries; ``correspondences`` votes a frame's segments."""
+
+    def __init__(self, points: np.ndarray, normals: np.ndarray, diameter: float, d_step: float,
+                 symmetries: Symmetries | None = None, bucket_cap: int = 300, seed: int = 0):
+        self.points = np.ascontiguousarray(points, np.float64)
+        self.normals = np.ascontiguousarray(normals, np.float64)
+        self.normals /= np.maximum(np.linalg.norm(self.normals, axis=1, keepdims=True), 1e-12)
+        self.d_step = float(d_step)
+        self.a_step = math.pi / ANGLE_BINS
+        self.n_dist = int(diameter / d_step) + 1
+        self.symmetries = symmetries
+        keys, first, alpha = _model_pairs(self.points, self.normals, self.d_step, self.a_step, self.n_dist)
+        # Random order, then grouped by key: a bucket's first ``bucket_cap`` entries are a
+        # random subset of it.
+        rng = np.random.default_rng(seed)
+        perm = rng.permutation(len(keys))
+        order = perm[np.argsort(keys[perm], kind="stable")]
+        keys, first, alpha = keys[order], first[order], alpha[order]
+        n_keys = self.n_dist * ANGLE_BINS ** 3
+        start = np.searchsorted(keys, np.arange(n_keys + 1))
+        rank = np.arange(len(keys)) - start[keys]
+        keep = rank < bucket_cap
+        keys, self._first, self._alpha = keys[keep], first[keep], alpha[keep]
+        self._start = np.searchsorted(keys, np.arange(n_keys + 1)).astype(np.int64)
+        self._first = np.ascontiguousarray(self._first)
+        self._alpha = np.ascontiguousarray(self._alpha)
+        self.pairs = int(len(keys))
+
+    def vote(self, points: np.ndarray, normals: np.ndarray, labels: np.ndarray, ref_step: int, max_partners: int):
+        """Peaks for reference points of the labelled segments (label >= 0). Returns (scene
+        index (R,), model index (R,), pose (R, 4, 4) model -> camera, votes / partners (R,))."""
+        order = np.flatnonzero(labels >= 0)
+        order = order[np.argsort(labels[order], kind="stable")]
+        if len(order) < 2:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 4, 4)), np.zeros(0)
+        p = np.ascontiguousarray(points[order], np.float64)
+        n = np.ascontiguousarray(normals[order], np.float64)
+        lab = labels[order]
+        bounds = np.flatnonzero(np.diff(lab)) + 1
+        seg_lo = np.concatenate([[0], bounds])
+        seg_hi = np.concatenate([bounds, [len(lab)]])
+        refs = np.arange(0, len(p), max(int(ref_step), 1))
+        seg = np.searchsorted(seg_hi, refs, side="right")
+        m, turn, votes, partners = _vote(p, n, refs, seg_lo[seg], seg_hi[seg], int(max_partners), self._start,
+                                         self._first, self._alpha, len(self.points), self.d_step, self.a_step,
+                                         self.n_dist)
+        ok = m >= 0
+        refs, m, turn, votes, partners = refs[ok], m[ok], turn[ok], votes[ok], partners[ok]
+        poses = self._poses(p[refs], n[refs], m, (turn + 0.5) * (2 * math.pi / TURN_BINS))
+        return order[refs], m, poses, votes / np.maximum(partners, 1)
+
+    def _poses(self, s, ns, m, turn) -> np.ndarray:
+        """T = R_s^T Rx(turn) R_m (rotations), mapping model point m onto scene point s."""
+        Rm = np.stack([_align(v) for v in self.normals[m]]) if len(m) else np.zeros((0, 3, 3))
+        Rs = np.stack([_align(v) for v in ns]) if len(m) else np.zeros((0, 3, 3))
+        R = np.transpose(Rs, (0, 2, 1)) @ _rot_x(turn) @ Rm
+        T = np.tile(np.eye(4), (len(m), 1, 1))
+        T[:, :3, :3] = R
+        T[:, :3, 3] = s - np.einsum("rij,rj->ri", R, self.points[m])
+        return T
+
+    def canonical_poses(self, poses: np.ndarray) -> np.ndarray:
+        """Each pose T replaced by the T @ S (S a symmetry) nearest a fixed orientation
+        relative to the camera, so that the references of one symmetric instance agree (a
+        continuous turn: a fixed model direction across the axis as nearly as it can along
+        the viewing direction; then the discrete S whose rotation is nearest the camera's
+        axes)."""
+        sym = self.symmetries
+        if sym is None or sym.is_trivial or len(poses) == 0:
+            return poses
+        out = np.array(poses, np.float64)
+        if sym.axis is not None:
+            out = np.stack([T @ _canonical_turn(T, sym) for T in out])
+        if len(sym.discrete) > 1:
+            cand = np.einsum("rij,sjk->rsik", out, np.asarray(sym.discrete, np.float64))
+            best = np.argmax(np.trace(cand[:, :, :3, :3], axis1=2, axis2=3), axis=1)
+            out = cand[np.arange(len(out)), best]
+        return out
+
+    def correspondences(self, scene_idx, poses, points: np.ndarray, neighbours: int = 4
+                        ) -> tuple[np.ndarray, np.ndarray]:
+        """(model points (N, 3), scene indices (N,)): for each reference, itself and its
+        ``neighbours`` nearest scene points spread over a few voxels, each with the model
+        point its reference's (canonical) pose puts there. One reference thus gives a small
+        rigid set; the references that agree on an instance's pose give one large consistent
+        set, which ECC finds among the rest."""
+        if len(scene_idx) == 0:
+            return np.zeros((0, 3)), np.zeros(0, np.int64)
+        poses = self.canonical_poses(poses)
+        from scipy.spatial import cKDTree
+
+        k = 3 * neighbours + 1
+        _, nb = cKDTree(points).query(points[scene_idx], k=min(k, len(points)))
+        nb = np.atleast_2d(nb)[:, ::3][:, :neighbours + 1]       # itself first, then every third nearest
+        tgt = points[nb]                                          # (R, K, 3)
+        Tinv = np.linalg.inv(poses)
+        src = np.einsum("rij,rkj->rki", Tinv[:, :3, :3], tgt) + Tinv[:, None, :3, 3]
+        return src.reshape(-1, 3), nb.reshape(-1)
+
+
+def _canonical_turn(T: np.ndarray, sym: Symmetries) -> np.ndarray:
+    """The turn S about the continuous axis that points a fixed model direction across the
+    axis as nearly as it can along the camera's viewing direction (T @ S)."""
+    a = sym.axis / np.linalg.norm(sym.axis)
+    u = np.cross(a, [1.0, 0.0, 0.0])
+    if np.linalg.norm(u) < 0.3:
+        u = np.cross(a, [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    R = T[:3, :3]
+    w = R.T @ np.array([0.0, 0.0, 1.0])
+    w = w - a * (a @ w)
+    if np.linalg.norm(w) < 0.3:
+        w = R.T @ np.array([1.0, 0.0, 0.0])
+        w = w - a * (a @ w)
+    theta = math.atan2(np.cross(u, w) @ a, u @ w)
+    return _about(_rotation(a, theta), np.asarray(sym.point, np.float64))
+
+
+def _align(n: np.ndarray) -> np.ndarray:
+    return _align_to_x(float(n[0]), float(n[1]), float(n[2]))
+
+
+__all__ = ["PPFModel"]

@@ -1,0 +1,99 @@
+"""Where objects can be, from depth alone: support surfaces removed, the rest cut into
+connected segments. No ROS, no colour.
+
+A flat face of an object and the floor it stands on are both planes; what tells them apart is
+size. So each dominant plane (RANSAC, repeatedly: floor, pallet top, table, wall) is cut into
+its connected pieces in the image, and only the pieces larger than any face of the object
+(``max_area``) are removed - carton tops that lie in one plane across a pallet stay, each a
+piece of its own. Points are removed where they are on the plane (within the depth noise),
+not behind it: a lower layer seen past a gap is still searched.
+
+The remaining points, voxel-downsampled, are split into connected segments (neighbours within
+``link`` metres): each object, or a few touching ones, then forms one segment, and shape
+matching pairs points only within a segment (bounded work, no pairs across the scene).
+"""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from ..messages import CameraIntrinsics
+from .lifting import depth_to_cloud, fit_dominant_plane
+
+
+def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.ndarray, max_area: float,
+                 thresh: float, noise_per_m2: float, max_planes: int = 4, min_share: float = 0.03,
+                 stride: int = 2) -> np.ndarray:
+    """(H, W) bool: valid pixels that lie on a large piece of a dominant plane (support
+    surfaces). A plane point is within ``thresh`` + 3 sigma(z) of it, sigma(z) =
+    ``noise_per_m2`` z^2 (stereo depth noise grows with the square of the distance); a piece
+    is large when its area exceeds ``max_area`` (m^2)."""
+    h, w = depth_m.shape
+    pts, pix = depth_to_cloud(depth_m, intrinsics, valid, stride=stride)
+    pts = pts.astype(np.float64)
+    out = np.zeros((h, w), bool)
+    if len(pts) < 50:
+        return out
+    rows, cols = pix[:, 0] // stride, pix[:, 1] // stride
+    hs, ws = (h + stride - 1) // stride, (w + stride - 1) // stride
+    z = pts[:, 2]
+    tol = thresh + 3.0 * noise_per_m2 * z * z
+    K = intrinsics.K
+    rng = np.random.default_rng(0)
+    # Pixel footprint (m^2) facing the camera; divided by the plane's slant below.
+    footprint = (z * stride) ** 2 / (K[0, 0] * K[1, 1])
+    ray = pts / np.linalg.norm(pts, axis=1, keepdims=True)
+    alive = np.ones(len(pts), bool)
+    total = len(pts)
+    for k in range(max_planes):
+        cand = np.flatnonzero(alive)
+        if len(cand) < min_share * total or len(cand) < 50:
+            break
+        sample = cand if len(cand) <= 3000 else rng.choice(cand, 3000, replace=False)
+        plane = fit_dominant_plane(pts[sample], float(np.median(tol[sample])), iterations=150, seed=k, max_sample=3000)
+        if plane is None:
+            break
+        n, d, _ = plane
+        on = alive & (np.abs(pts @ n + d) < tol)
+        if on.sum() < min_share * total:
+            break
+        img = np.zeros((hs, ws), np.uint8)
+        img[rows[on], cols[on]] = 1
+        count, labels = cv2.connectedComponents(img, connectivity=8)
+        lab = labels[rows, cols]
+        area = footprint / np.maximum(np.abs(ray @ n), 0.2)
+        piece_area = np.bincount(lab[on], weights=area[on], minlength=count)
+        big = piece_area > max_area
+        big[0] = False
+        remove = on & big[lab]
+        out[pix[remove, 0], pix[remove, 1]] = True
+        alive &= ~on
+    if stride > 1:
+        # Fill the pixels between the sampled ones.
+        out = cv2.dilate(out.astype(np.uint8), np.ones((stride, stride), np.uint8),
+                         anchor=(stride - 1, stride - 1)).astype(bool) & valid
+    return out
+
+
+def connected_segments(points: np.ndarray, link: float, min_points: int) -> np.ndarray:
+    """(N,) segment label per point (-1: in a segment of fewer than ``min_points``), points
+    joined when closer than ``link``."""
+    n = len(points)
+    if n == 0:
+        return np.zeros(0, np.int64)
+    pairs = cKDTree(points).query_pairs(link, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs), np.int8), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, labels = connected_components(graph, directed=False)
+    sizes = np.bincount(labels)
+    keep = sizes[labels] >= min_points
+    # Renumber the kept segments 0..S-1.
+    _, relabel = np.unique(labels[keep], return_inverse=True)
+    out = np.full(n, -1, np.int64)
+    out[keep] = relabel
+    return out
+
+
+__all__ = ["support_mask", "connected_segments"]

@@ -1,0 +1,105 @@
+"""The pieces of the PPF shape front end: support planes cut by piece size, connected
+segments, oriented model surface, point-pair voting and its correspondences, damped ICP."""
+import numpy as np
+from scipy.spatial import cKDTree
+
+from multi_instance_reg.meshes import box_mesh, sample_surface
+from multi_instance_reg.messages import CameraIntrinsics
+from multi_instance_reg.rgbd.mesh_model import build_model_from_mesh
+from multi_instance_reg.rgbd.ppf import PPFModel
+from multi_instance_reg.rgbd.segments import connected_segments, support_mask
+from multi_instance_reg.rgbd.shape import icp_point_to_plane
+from multi_instance_reg.rgbd.shape_frontend import oriented_downsample
+from multi_instance_reg.symmetry import closest_symmetric_pose
+from multi_instance_reg.transforms import make_transform
+
+
+def _intrinsics():
+    K = np.array([[400.0, 0, 160], [0, 400.0, 120], [0, 0, 1]])
+    return CameraIntrinsics(K=K, width=320, height=240)
+
+
+def test_support_mask_removes_floor_keeps_small_coplanar_tops():
+    depth = np.full((240, 320), 1.5, np.float32)           # a floor facing the camera
+    depth[40:80, 40:100] = 1.3                               # two box tops in one plane, apart
+    depth[150:190, 200:260] = 1.3
+    valid = depth > 0
+    # Tops: 60 x 40 px at 1.3 m = 0.195 x 0.13 m = 0.025 m^2 each; the floor ~ 1 m^2.
+    mask = support_mask(depth, _intrinsics(), valid, max_area=0.1, thresh=0.01, noise_per_m2=0.0)
+    assert mask[200:, :150].all()                            # floor removed
+    assert not mask[45:75, 45:95].any() and not mask[155:185, 205:255].any()   # both tops kept
+
+
+def test_connected_segments_split_and_drop_small():
+    rng = np.random.default_rng(0)
+    a = rng.uniform(0, 0.1, (200, 3))
+    b = rng.uniform(0, 0.1, (200, 3)) + [0.5, 0, 0]
+    c = np.array([[1.0, 1.0, 1.0], [1.001, 1.0, 1.0]])
+    labels = connected_segments(np.vstack([a, b, c]), link=0.03, min_points=5)
+    assert len(set(labels[:200])) == 1 and len(set(labels[200:400])) == 1
+    assert labels[0] != labels[200] and (labels[400:] == -1).all()
+
+
+def test_oriented_downsample_keeps_both_sides_of_a_thin_plate():
+    rng = np.random.default_rng(1)
+    xy = rng.uniform(0, 0.1, (2000, 2))
+    top = np.c_[xy, np.full(2000, 0.004)]
+    bottom = np.c_[xy, np.zeros(2000)]
+    normals = np.vstack([np.tile([0, 0, 1.0], (2000, 1)), np.tile([0, 0, -1.0], (2000, 1))])
+    pts, n = oriented_downsample(np.vstack([top, bottom]), normals, voxel=0.01)
+    up = n[:, 2] > 0.99
+    down = n[:, 2] < -0.99
+    assert up.sum() + down.sum() == len(n) and abs(up.sum() - down.sum()) <= 2
+    assert np.allclose(pts[up, 2], 0.004) and np.allclose(pts[down, 2], 0.0)
+
+
+def _box_model():
+    return build_model_from_mesh(box_mesh(0.3, 0.2, 0.15), "box")
+
+
+def _visible(points, normals, T, noise, seed=0):
+    P = points @ T[:3, :3].T + T[:3, 3]
+    N = normals @ T[:3, :3].T
+    vis = np.einsum("ij,ij->i", N, -P) > 0
+    return P[vis] + np.random.default_rng(seed).normal(0, noise, (vis.sum(), 3)), N[vis]
+
+
+def test_ppf_votes_recover_the_pose_and_give_consistent_correspondences():
+    model = _box_model()
+    surface, normals = oriented_downsample(model.shape_points, model.shape_normals, model.shape_voxel)
+    ppf = PPFModel(surface, normals, float(np.linalg.norm(model.extent)), model.shape_voxel, model.symmetries,
+                   bucket_cap=1000)
+    T = make_transform(np.array([[0.36, -0.48, 0.8], [0.8, 0.6, 0.0], [-0.48, 0.64, 0.6]]), [0.1, -0.05, 1.2])
+    P, N = _visible(surface, normals, T, 0.001)
+    s, m, poses, share = ppf.vote(P, N, np.zeros(len(P), np.int64), ref_step=2, max_partners=200)
+    assert len(s) > 20
+    errs = []
+    for Tp in poses:
+        G = closest_symmetric_pose(T, Tp, model.symmetries)
+        dR = np.degrees(np.arccos(np.clip((np.trace(G[:3, :3].T @ Tp[:3, :3]) - 1) / 2, -1, 1)))
+        errs.append(np.linalg.norm(G[:3, 3] - Tp[:3, 3]) < 0.02 and dR < 15)
+    assert np.mean(errs) > 0.6
+    # Canonical poses: the references that are right agree on one symmetric pose, so most
+    # correspondences fit one rigid transform.
+    src, idx = ppf.correspondences(s, poses, P)
+    canon = ppf.canonical_poses(poses)
+    G = closest_symmetric_pose(T, canon[int(np.argmax(errs))], model.symmetries)
+    resid = np.linalg.norm(src @ G[:3, :3].T + G[:3, 3] - P[idx], axis=1)
+    assert np.mean(resid < 2 * model.shape_voxel) > 0.4
+
+
+def test_icp_does_not_slide_a_box_seen_by_its_top_alone():
+    model = _box_model()
+    surface, normals = oriented_downsample(model.shape_points, model.shape_normals, model.shape_voxel)
+    T = make_transform(np.diag([1.0, -1.0, -1.0]), [0.0, 0.0, 1.5])       # top (+z) facing the camera
+    dense, _ = sample_surface(box_mesh(0.3, 0.2, 0.15), 0.004)
+    top = dense[dense[:, 2] > 0.074]
+    scene = top @ T[:3, :3].T + T[:3, 3] + np.random.default_rng(2).normal(0, 0.004, (len(top), 3))
+    scene_n = np.tile([0, 0, -1.0], (len(scene), 1))
+    start = T.copy()
+    start[:3, 3] += [0.005, -0.004, 0.003]
+    out, share = icp_point_to_plane(start, surface, scene, scene_n, cKDTree(scene), 2 * model.shape_voxel, 15,
+                                    model_normals=normals)
+    assert share > 0.5
+    assert np.linalg.norm(out[:3, 3] - start[:3, 3]) < 0.01           # no drift along the face
+    assert abs(out[2, 3] - T[2, 3]) < 0.003                            # the depth is corrected
