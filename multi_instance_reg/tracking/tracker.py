@@ -52,6 +52,7 @@ class TrackerConfig:
     coast_s: float = param(1.0, "s: a confirmed track that is neither detected nor confirmed by the depth for longer than this ends (it is published as coasting meanwhile)", 0.0, 60.0)
     max_undetected_s: float = param(1.5, "s: a track kept by the depth alone, with no detection for longer than this, ends (0 = never)", 0.0, 3600.0)
     duplicate_distance: float = param(0.015, "m: two tracks whose positions come closer than this follow one object: the younger ends", 0.0, 1.0)
+    velocity_decay: float = param(0.9, "share of a track's velocity kept per frame before this frame's measured motion is blended in: a velocity the depth does not confirm (a box sliding along the table plane it shares with its neighbours) dies out instead of carrying the track away from a resting object; 1 = constant velocity", 0.0, 1.0)
     smoothing: float = param(0.0, "pose smoothing, 0 = off (the published pose is the measured one) to 0.95 (heavy): the published pose is a constant-velocity (alpha-beta) filter of the measured one with gain 1 - smoothing, so a resting object's pose settles and a steadily moving one does not lag; a measurement further than icp_max_step / icp_max_step_deg from the filter restarts it", 0.0, 0.95)
     publish_tentative: bool = param(False, "also publish tracks not yet confirmed (state tentative)")
     icp: bool = param(True, "bring every track up to date on every frame by projective point-to-plane ICP of the model against the depth image (off: tracks move only with detections)")
@@ -314,7 +315,10 @@ class InstanceTracker:
                     tr.state = CONFIRMED
                 if T_prev is not None and stamp_ns > prev_stamp:
                     v = relative_twist(T_prev, tr.T) / ((stamp_ns - prev_stamp) * 1e-9)
-                    tr.velocity = 0.5 * tr.velocity + 0.5 * v
+                    # The ICP leaves what the depth does not constrain at the prediction, so
+                    # the measured motion repeats the predicted one there: without the decay
+                    # such a velocity (noise of one frame) would persist and drift the track.
+                    tr.velocity = c.velocity_decay * (0.5 * tr.velocity + 0.5 * v)
                 self._filter_output(tr, (stamp_ns - prev_stamp) * 1e-9 if T_prev is not None else 0.0)
             else:
                 if tr.state == TENTATIVE:
