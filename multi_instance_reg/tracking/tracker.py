@@ -52,7 +52,7 @@ class TrackerConfig:
     coast_s: float = param(1.0, "s: a confirmed track that is neither detected nor confirmed by the depth for longer than this ends (it is published as coasting meanwhile)", 0.0, 60.0)
     max_undetected_s: float = param(1.5, "s: a track kept by the depth alone, with no detection for longer than this, ends (0 = never)", 0.0, 3600.0)
     duplicate_distance: float = param(0.015, "m: two tracks whose positions come closer than this follow one object: the younger ends", 0.0, 1.0)
-    velocity_decay: float = param(0.9, "share of a track's velocity kept per frame before this frame's measured motion is blended in: a velocity the depth does not confirm (a box sliding along the table plane it shares with its neighbours) dies out instead of carrying the track away from a resting object; 1 = constant velocity", 0.0, 1.0)
+    velocity_decay: float = param(0.5, "share of a track's velocity kept per frame the track is updated by the depth alone (no detection): a velocity the depth does not confirm (a box sliding along the table plane it shares with its neighbours) dies out instead of carrying the track away from a resting object; 1 = constant velocity", 0.0, 1.0)
     smoothing: float = param(0.0, "pose smoothing, 0 = off (the published pose is the measured one) to 0.95 (heavy): the published pose is a constant-velocity (alpha-beta) filter of the measured one with gain 1 - smoothing, so a resting object's pose settles and a steadily moving one does not lag; a measurement further than icp_max_step / icp_max_step_deg from the filter restarts it", 0.0, 0.95)
     publish_tentative: bool = param(False, "also publish tracks not yet confirmed (state tentative)")
     icp: bool = param(True, "bring every track up to date on every frame by projective point-to-plane ICP of the model against the depth image (off: tracks move only with detections)")
@@ -100,6 +100,7 @@ class Track:
     out_velocity: np.ndarray = field(default_factory=lambda: np.zeros(6))  # of T_out: rotvec about its origin, translation; per second
     history: deque = field(default_factory=lambda: deque(maxlen=HISTORY))   # (stamp_ns, T)
     flip_votes: list = field(default_factory=list)                      # recent disagreeing orientations
+    T_before_jump: np.ndarray | None = None   # the track's own pose when a detection moved it further than icp_max_step on this frame
 
     def pose_at(self, stamp_ns: int) -> np.ndarray | None:
         for s, T in reversed(self.history):
@@ -261,7 +262,12 @@ class InstanceTracker:
         # (proper_pose: invert_transform assumes an orthonormal rotation, and the error of one
         # that is not doubles on every frame the depth does not re-fit.)
         motion = tr.T @ invert_transform(T_then)
-        tr.T = proper_pose(motion @ T_det)
+        T_new = proper_pose(motion @ T_det)
+        if tr.state != TENTATIVE and np.linalg.norm(T_new[:3, 3] - tr.T[:3, 3]) > c.icp_max_step:
+            # A detection far from a confirmed track may be a bad one (few inliers on an
+            # object half hidden by an arm): the depth decides between the two (_align).
+            tr.T_before_jump = tr.T.copy()
+        tr.T = T_new
         if tr.stamp_ns == stamp_ns and tr.history:
             tr.history[-1] = (stamp_ns, tr.T.copy())
         tr.detections += 1
@@ -292,11 +298,20 @@ class InstanceTracker:
         c = self.config
         stamp_ns = int(stamp_ns)
         seen: dict[int, bool] = {}
+        jumped: set[int] = set()         # moved by a detection's correction, not by motion
         for tr in self.tracks:
             seen[tr.track_id] = tr.last_seen_ns == stamp_ns
             tr.fitness = 0.0
+            jumped_from, tr.T_before_jump = tr.T_before_jump, None
+            if jumped_from is not None:
+                jumped.add(tr.track_id)
             if self._icp is not None and depth_m is not None and intrinsics is not None:
                 res = self._icp.align(tr.T, depth_m, intrinsics)
+                if jumped_from is not None:
+                    own = self._icp.align(jumped_from, depth_m, intrinsics)
+                    if own.fitness > res.fitness:
+                        # The depth confirms the track better than the detection: keep the track.
+                        tr.T, res = jumped_from, own
                 tr.fitness = res.fitness
                 step_m = float(np.linalg.norm(res.T[:3, 3] - tr.T[:3, 3]))
                 step_deg = rotation_angle_deg(res.T[:3, :3] @ tr.T[:3, :3].T)
@@ -305,7 +320,7 @@ class InstanceTracker:
                 if res.fitness >= c.icp_min_fitness and step_m <= c.icp_max_step and step_deg <= c.icp_max_step_deg:
                     tr.T = proper_pose(res.T)
                     seen[tr.track_id] = True
-        movers = [tr for tr in self.tracks if seen[tr.track_id] and len(tr.history) >= 2]
+        movers = [tr for tr in self.tracks if seen[tr.track_id] and len(tr.history) >= 2 and tr.track_id not in jumped]
         alive = []
         for tr in self.tracks:
             T_prev, prev_stamp = (tr.history[-2][1], tr.history[-2][0]) if len(tr.history) >= 2 else (None, None)
@@ -313,12 +328,14 @@ class InstanceTracker:
                 tr.last_seen_ns = stamp_ns
                 if tr.state == COASTING:
                     tr.state = CONFIRMED
-                if T_prev is not None and stamp_ns > prev_stamp:
+                if T_prev is not None and stamp_ns > prev_stamp and tr.track_id not in jumped:
                     v = relative_twist(T_prev, tr.T) / ((stamp_ns - prev_stamp) * 1e-9)
-                    # The ICP leaves what the depth does not constrain at the prediction, so
-                    # the measured motion repeats the predicted one there: without the decay
-                    # such a velocity (noise of one frame) would persist and drift the track.
-                    tr.velocity = c.velocity_decay * (0.5 * tr.velocity + 0.5 * v)
+                    tr.velocity = 0.5 * tr.velocity + 0.5 * v
+                    if tr.last_detected_ns != stamp_ns:
+                        # Depth only: the ICP leaves what the depth does not constrain at the
+                        # prediction, so the measured motion repeats the predicted one there
+                        # and a velocity (detection noise) would persist and drift the track.
+                        tr.velocity = c.velocity_decay * tr.velocity
                 self._filter_output(tr, (stamp_ns - prev_stamp) * 1e-9 if T_prev is not None else 0.0)
             else:
                 if tr.state == TENTATIVE:
