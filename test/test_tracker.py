@@ -253,15 +253,15 @@ def test_depth_keeps_a_track_against_a_bad_detection_and_follows_a_good_one():
 
 def test_a_velocity_the_depth_does_not_confirm_dies_out():
     # A plate whose top face lies in one plane with its neighbours: the depth cannot tell a
-    # slide along that plane from rest. Detections with 2 mm of noise make a velocity; through
-    # 1 s of depth-only frames the track must not keep sliding on it (at constant velocity it
-    # slides 12 cm).
+    # slide along that plane from rest. Detections with 2 mm of noise make a velocity; with
+    # tracking.velocity_decay below 1 the track must not keep sliding on it through 1 s of
+    # depth-only frames (at constant velocity, the default, it slides 12 cm).
     g = np.linspace(-0.03, 0.03, 25)
     a, b = np.meshgrid(g, g)
     plate = np.concatenate([np.stack([a.ravel(), b.ravel(), np.full(a.size, z)], 1) for z in (-0.005, 0.005)])
     plane = np.full((240, 320), 0.775, np.float32)
     xs = np.random.default_rng(3).normal(0.0, 0.002, 10)
-    tr = InstanceTracker(Model(plate), TrackerConfig())
+    tr = InstanceTracker(Model(plate), TrackerConfig(velocity_decay=0.7))
     for k, x in enumerate(xs):
         tr.step(k * FRAME_NS, plane, BOX_INTR, [box_det(x)])
     for k in range(10, 40):
