@@ -21,6 +21,7 @@ from .model import ObjectModel
 from .lifting import depth_to_cloud
 from .ppf import PPFModel
 from .segments import connected_segments, support_mask
+from .verify import outline_continuation
 from .shape import (ShapeMatcher, depth_support, describe, icp_point_to_plane, normals_and_variation, scene_cloud,
                     voxel_downsample)
 
@@ -147,7 +148,15 @@ class ShapeFrontEnd:
             # ICP can slide a box seen by one face alone: keep whichever pose the depth
             # image supports better.
             _, support, free, n, T = max([cand, fit(T) + (T,)], key=lambda c: c[0])
-            if n >= fe.shape_min_visible and support >= fe.shape_min_support and free <= fe.shape_max_free:
+            if n < fe.shape_min_visible or support < fe.shape_min_support or free > fe.shape_max_free:
+                continue
+            # A piece of a larger surface (a carton fitted onto a crate's top) agrees with the
+            # depth wherever it covers: what tells is the same surface continuing just past
+            # its outline, "same" meaning within the depth noise (3 sigma) at its distance.
+            same = max(3.0 * fe.shape_depth_noise * float(T[2, 3]) ** 2, 0.002)
+            outline, _ = outline_continuation(T, self._surface, self._surface_normals, depth_m, intrinsics,
+                                              self.voxel, same)
+            if support - free - 2.0 * outline >= fe.shape_min_evidence:
                 out.append((T, support, int(round(support * n))))
         return out
 
