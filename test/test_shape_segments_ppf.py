@@ -133,3 +133,29 @@ def test_outline_continuation_tells_a_box_top_from_a_piece_of_a_larger_surface()
     assert n_own > 50 and n_crate > 50
     assert own < 0.05
     assert crate > 0.9 and floor > 0.9
+
+
+def test_pose_clusters_rank_agreeing_references_above_scattered_ones():
+    from multi_instance_reg.rgbd.ppf import cluster_poses
+    from multi_instance_reg.symmetry import _rotation
+
+    rng = np.random.default_rng(0)
+    a = make_transform(_rotation(np.array([0.0, 0, 1]), 0.3), [0.1, 0.0, 1.0])
+    b = make_transform(_rotation(np.array([1.0, 0, 0]), 1.0), [-0.2, 0.1, 1.2])
+
+    def near(T, k):
+        out = []
+        for _ in range(k):
+            D = make_transform(_rotation(rng.normal(size=3) / 1.0, np.radians(3)), rng.normal(0, 0.003, 3))
+            out.append(T @ D)
+        return out
+
+    scattered = [make_transform(_rotation(rng.normal(size=3), rng.uniform(0, np.pi)), rng.uniform(-0.5, 0.5, 3) + [0, 0, 1])
+                 for _ in range(40)]
+    poses = np.stack(near(a, 12) + near(b, 6) + scattered)
+    weights = rng.uniform(0.5, 1.0, len(poses))
+    top = cluster_poses(poses, weights, 12.0, 0.03, max_clusters=2)
+    assert len(top) == 2
+    assert np.linalg.norm(top[0][:3, 3] - a[:3, 3]) < 0.02 and np.linalg.norm(top[1][:3, 3] - b[:3, 3]) < 0.02
+    # Every pose distinct: each is its own seed, in the order of the weights.
+    assert len(cluster_poses(poses[:3], -np.arange(3.0), 1.0, 1e-6, 10, min_members=1)) == 3

@@ -86,6 +86,7 @@ class FrontEndConfig:
     shape_ppf_bucket: int = param(50, "shape ppf: at most this many model pairs per quantised feature (a random subset; a box has thousands of coplanar pairs per distance)", 10, 100000)
     shape_ref_step: int = param(5, "shape ppf: every this-many-th point of a segment is a reference point that votes", 1, 100)
     shape_max_partners: int = param(60, "shape ppf: each reference point is paired with at most this many points of its segment (evenly spread)", 5, 100000)
+    shape_pose_clusters: int = param(30, "shape ppf: besides ECC's transforms, check this many pose hypotheses clustered straight from the reference points' votes (Drost et al.; 24 deg, a tenth of the object's diagonal); 0 = ECC's only", 0, 1000)
     shape_support_area: float = param(3.0, "shape ppf: a connected piece of a dominant plane is a support surface (floor, pallet, table) and removed when its area exceeds this many times the object's largest box side", 1.0, 1000.0)
     shape_depth_noise: float = param(0.002, "shape ppf: depth noise sigma per squared metre of distance (stereo: sigma_z = this x z^2; D4xx about 0.002); plane points lie within plane_thresh + 3 sigma_z", 0.0, 0.1)
     shape_segment_link: float = param(2.0, "shape ppf: points closer than this many voxels are in one segment", 1.0, 10.0)
@@ -337,6 +338,8 @@ class InstanceRegistration:
         t6 = time.perf_counter()
         t["ecc"] = (t6 - t5) * 1e3
         hypotheses = [np.asarray(T, np.float64) for T in reg.transforms]
+        if cloud.poses is not None:
+            hypotheses += list(cloud.poses)
         if fe.recover and fe.shape_recover_max > 0:
             # More hypotheses from the matches no transform explains: the depth check below
             # rejects the wrong ones, while a missed instance is lost for the frame.

@@ -19,7 +19,7 @@ from ..errors import InputError
 from ..messages import CameraIntrinsics
 from .model import ObjectModel
 from .lifting import depth_to_cloud
-from .ppf import PPFModel
+from .ppf import ANGLE_BINS as ANGLE_STEPS, PPFModel, cluster_poses
 from .segments import connected_segments, support_mask
 from .verify import outline_continuation
 from .shape import (ShapeMatcher, depth_support, describe, icp_point_to_plane, normals_and_variation, scene_cloud,
@@ -34,6 +34,7 @@ class FrameCloud:
     descriptors: np.ndarray   # (S, 33) their FPFH
     tree: cKDTree | None
     segments: np.ndarray | None = None    # (M,) segment label per point (-1: none), ppf only
+    poses: np.ndarray | None = None       # (K, 4, 4) pose hypotheses clustered from the votes, ppf only
 
 
 class ShapeFrontEnd:
@@ -112,7 +113,13 @@ class ShapeFrontEnd:
                 return np.zeros((0, 3)), np.zeros((0, 3))
             s, m, poses, share = self._ppf.vote(cloud.points, cloud.normals, cloud.segments,
                                                 self.fe.shape_ref_step, self.fe.shape_max_partners)
-            src, s = self._ppf.correspondences(s, poses, cloud.points)
+            poses = self._ppf.canonical_poses(poses)
+            if self.fe.shape_pose_clusters > 0:
+                # The references' own poses, clustered: an instance whose references ECC
+                # does not group (too few agree among the rest) still gets a hypothesis.
+                cloud.poses = cluster_poses(poses, share, 360.0 / ANGLE_STEPS, 0.1 * self.diameter,
+                                            self.fe.shape_pose_clusters)
+            src, s = self._ppf.correspondences(s, poses, cloud.points, canonical=True)
             return src, cloud.points[s]
         s, m = self._matcher.match(cloud.descriptors)
         return self._model_pts[self._model_idx[m]], cloud.points[cloud.salient[s]]
@@ -131,6 +138,12 @@ class ShapeFrontEnd:
             support, free, n = depth_support(T, self._surface, self._surface_normals, depth_m, intrinsics, tol)
             return support - free, support, free, n
 
+        # Hypotheses that are one pose (ECC's and the vote clusters' for one instance) are
+        # refined once: the first of each group, in the order given.
+        if len(transforms) > 1:
+            transforms = cluster_poses(np.stack([np.asarray(T, np.float64) for T in transforms]),
+                                       -np.arange(len(transforms), dtype=np.float64), 360.0 / ANGLE_STEPS,
+                                       0.1 * self.diameter, len(transforms), min_members=1)
         for T0 in transforms:
             # The depth check first (a projection, no search), then a few rounds of ICP: a
             # hypothesis the depth hardly supports is dropped without paying for the rest
