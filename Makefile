@@ -4,27 +4,40 @@ PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
+# The ECC kernels compiled ahead of time (multi_instance_reg/core/native.py): without them a
+# fresh process spends 1-2 s loading numba's JIT cache before its first registration.
+CORE := multi_instance_reg/core
+KERNELS_AOT := $(CORE)/.kernels_aot.built
 export PYTHONDONTWRITEBYTECODE := 1
 
 .PHONY: install demo test bench clean
 
-install: $(STAMP)
+install: $(STAMP) $(KERNELS_AOT)
 
-$(STAMP): requirements.txt setup.py setup.cfg package.xml
+# vision_msgs (Detection3DArray, LabelInfo) has no wheel: the last step builds it into the venv
+# from interfaces/vision_msgs unless the user's ROS already has it (about a minute at most).
+$(STAMP): requirements.txt setup.py setup.cfg package.xml interfaces/install_vision_msgs.py \
+		$(wildcard interfaces/vision_msgs/*.* interfaces/vision_msgs/msg/*.msg)
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --disable-pip-version-check -r requirements.txt
 	$(PY) -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e .
+	$(PY) interfaces/install_vision_msgs.py
 	touch $(STAMP)
 
-demo: $(STAMP)
+$(KERNELS_AOT): $(STAMP) $(CORE)/native.py $(CORE)/clustering.py $(CORE)/compatibility.py $(CORE)/refinement.py $(CORE)/sampling.py
+	$(PY) -m multi_instance_reg.core.build_native
+	touch $(KERNELS_AOT)
+
+demo: install
 	$(PY) -m multi_instance_reg.tools.demo
 
-test: $(STAMP)
+test: install
 	$(PY) -m pytest -q test
 
 # Figures quoted in the README; each line prints its own table (about 15 minutes in all).
-bench: $(STAMP)
+bench: install
 	$(VENV)/bin/mireg bench core
+	$(VENV)/bin/mireg bench register-startup
 	$(VENV)/bin/mireg bench table1 --samples-per-band 20
 	$(VENV)/bin/mireg bench table1 --hard --samples-per-band 20 --no-baseline
 	test ! -d ../shared/reference/core || $(VENV)/bin/mireg bench table1 --reference ../shared/reference/core
@@ -34,4 +47,4 @@ bench: $(STAMP)
 	$(VENV)/bin/mireg bench node
 
 clean:
-	rm -rf $(VENV) out
+	rm -rf $(VENV) out $(KERNELS_AOT) $(CORE)/_kernels_aot*.so

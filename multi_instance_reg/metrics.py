@@ -74,6 +74,18 @@ def evaluate_scene(T_gt, T_est, max_rre_deg: float = 20.0, max_rte: float = 0.5,
     return SceneScore(K, M, int(hit.sum()), list(zip(gi.tolist(), ei.tolist())), rre, rte, hit)
 
 
+def combine_scores(scores: list[SceneScore]) -> SceneScore:
+    """One scene's score from the scores of disjoint parts of it (e.g. one per object, each
+    matched on its own): counts and per-pair errors added up; the pairs' indices, which
+    refer to each part's own arrays, are not kept (a single part is returned as it is)."""
+    if len(scores) == 1:
+        return scores[0]
+    return SceneScore(sum(s.n_gt for s in scores), sum(s.n_est for s in scores), sum(s.hits for s in scores), [],
+                      np.concatenate([np.zeros(0)] + [s.rre_deg for s in scores]),
+                      np.concatenate([np.zeros(0)] + [s.rte for s in scores]),
+                      np.concatenate([np.zeros(0, bool)] + [s.hit for s in scores]))
+
+
 def summarize(scores: list[SceneScore]) -> dict:
     """Averages over scenes: MHR, MHP, MHF1 (mean of per-scene F1), MF (F1 of the means),
     and the median RRE / RTE of the hits."""

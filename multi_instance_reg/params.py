@@ -104,7 +104,8 @@ def _flatten_mapping(mapping: dict, prefix: str = "") -> dict[str, Any]:
 def read_params_yaml(path, node_name: str = "instance_registration") -> dict[str, Any]:
     """Dotted-name parameters from a ROS 2 parameter file (``node: ros__parameters: ...``).
 
-    Accepts the node's own name, ``/**`` (ROS wildcard) or a bare mapping of parameters.
+    Accepts the node's own name, ``/**/name`` (the node in any namespace), ``/**`` (every
+    node) or a bare mapping of parameters.
     """
     import yaml
 
@@ -119,7 +120,7 @@ def read_params_yaml(path, node_name: str = "instance_registration") -> dict[str
         return {}
     if not isinstance(data, dict):
         raise InputError(f"parameter file {path} must hold a mapping of parameters")
-    for key in (node_name, "/" + node_name, "/**"):
+    for key in (node_name, "/" + node_name, "/**/" + node_name, "/**"):
         if isinstance(data.get(key), dict) and "ros__parameters" in data[key]:
             return _flatten_mapping(data[key]["ros__parameters"] or {})
     if any(isinstance(v, dict) and "ros__parameters" in v for v in data.values()):

@@ -169,15 +169,17 @@ def poster_frame():
 
 
 class CameraPublisher:
-    """Publishes colour + aligned depth + camera_info like realsense-ros, from a Probe."""
+    """Publishes colour + aligned depth + camera_info like realsense-ros, from a Probe
+    (under ``namespace``, e.g. "/left", for a node started with ``-r __ns:=/left``)."""
 
-    def __init__(self, probe: Probe):
+    def __init__(self, probe: Probe, namespace: str = ""):
         from sensor_msgs.msg import CameraInfo, Image
 
         self.probe = probe
-        self.colour = probe.publisher(Image, "/camera/camera/color/image_raw")
-        self.depth = probe.publisher(Image, "/camera/camera/aligned_depth_to_color/image_raw")
-        self.info = probe.publisher(CameraInfo, "/camera/camera/color/camera_info")
+        prefix = namespace.rstrip("/")
+        self.colour = probe.publisher(Image, f"{prefix}/camera/camera/color/image_raw")
+        self.depth = probe.publisher(Image, f"{prefix}/camera/camera/aligned_depth_to_color/image_raw")
+        self.info = probe.publisher(CameraInfo, f"{prefix}/camera/camera/color/camera_info")
 
     def wait_for_subscribers(self, timeout: float = 30.0, proc=None) -> bool:
         pubs = (self.colour, self.depth, self.info)

@@ -274,3 +274,17 @@ def test_rows_with_nan_or_inf_are_dropped_and_counted():
 def test_bad_shapes_raise_input_error(src, tgt):
     with pytest.raises(InputError):
         ECC().register(src, tgt)
+
+
+@pytest.mark.parametrize("rule,expected", [("at_or_below", 1), ("below", 2)])
+def test_gamma_rule_decides_an_instance_at_exactly_the_threshold(rule, expected):
+    # Two instances, 60 and 30 inliers: gamma_2 = 0.5 exactly. The paper drops it
+    # (gamma_k <= 0.5), the authors' code keeps it (gamma_k < 0.5).
+    rng = np.random.default_rng(4)
+    model = rng.uniform(-1, 1, (60, 3))
+    Ts = [random_T(rng), random_T(rng)]
+    src = np.concatenate([model, model[:30]])
+    tgt = np.concatenate([model @ Ts[0][:3, :3].T + Ts[0][:3, 3], model[:30] @ Ts[1][:3, :3].T + Ts[1][:3, 3]])
+    r = ECC(dataclasses.replace(ECCConfig.paper(), gamma_rule=rule)).register(src, tgt)
+    assert list(r.inlier_counts) == [60, 30][:expected]
+    assert evaluate_scene(np.stack(Ts)[:expected], r.transforms).hits == expected

@@ -93,7 +93,8 @@ def test_offline_writes_the_poses_contract(replay):
         assert isinstance(f["stamp_ns"], int) and f["frame_id"] == "camera_color_optical_frame"
         assert f["latency_ms"] > 0
         for inst in f["instances"]:
-            assert set(inst) == {"id", "T", "inliers", "score"}
+            # "object" (the model's name) extends the contract: nothing else is new.
+            assert set(inst) == {"id", "object", "T", "inliers", "score"} and inst["object"] == "snack_box"
             T = np.array(inst["T"])
             assert T.shape == (4, 4) and np.allclose(T[3], [0, 0, 0, 1])
             assert np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-5)

@@ -42,3 +42,15 @@ def test_identity_holds_over_the_pan(pan_run):
     assert ident["id_switches"] <= 1
     assert ident["MOTA"] >= 0.8
     assert metrics["MHF1"] >= metrics["detection_only"]["MHF1"] - 0.03
+
+
+def test_node_parameter_file_drives_offline_tracking(tmp_path):
+    from multi_instance_reg.tools.offline import load_tracker_config
+
+    params = tmp_path / "params.yaml"
+    params.write_text("instance_registration:\n  ros__parameters:\n    tracking:\n      smoothing: 0.3\n"
+                      "      catch_up_frames: 5\n")
+    assert load_tracker_config(params).smoothing == 0.3          # live-only settings are ignored offline
+    params.write_text("instance_registration:\n  ros__parameters:\n    tracking:\n      enabled: false\n")
+    assert load_tracker_config(params) is None                  # as --no-tracking
+    assert load_tracker_config(None).smoothing == 0.0

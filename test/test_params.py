@@ -33,6 +33,8 @@ def test_read_ros_parameter_file(tmp_path):
     assert read_params_yaml(f) == {"ecc.inlier_thresh": 0.01, "model_path": "m.npz"}
     f.write_text("/**:\n  ros__parameters:\n    a: 1\n")
     assert read_params_yaml(f) == {"a": 1}
+    f.write_text("/**/instance_registration:\n  ros__parameters:\n    a: 2\n")   # any namespace
+    assert read_params_yaml(f) == {"a": 2}
     f.write_text("other_node:\n  ros__parameters:\n    a: 1\n")
     with pytest.raises(InputError, match="no section"):
         read_params_yaml(f)

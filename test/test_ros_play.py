@@ -88,11 +88,30 @@ def test_play_topics_filter(tmp_path, probe_41):
     assert texts == []
 
 
+def test_play_into_a_namespace(tmp_path, probe_41):
+    """--namespace left: the bag's /camera/... goes out as /left/camera/... (for a node started
+    with -r __ns:=/left), and nothing in the root namespace."""
+    from sensor_msgs.msg import Image
+
+    write_bag(tmp_path / "bag", frames=3)
+    moved = probe_41.subscribe(Image, "/left" + TOPIC_IMAGE)
+    root = probe_41.subscribe(Image, TOPIC_IMAGE)
+    proc = start(["multi_instance_reg.tools.cli", "play", str(tmp_path / "bag"), "--rate", "5", "--namespace", "left",
+                  "--topics", TOPIC_IMAGE, "--wait-for", TOPIC_IMAGE], 41)
+    try:
+        assert proc.wait(30) == 0
+        assert wait_until(lambda: len(moved) == 3, 5)
+    finally:
+        stop(proc)
+    assert root == []
+
+
 def test_play_bad_input_is_one_clear_line(tmp_path):
     write_bag(tmp_path / "bag", frames=1)
     cases = [([str(tmp_path / "nope")], "does not exist"),
              ([str(tmp_path / "bag"), "--topics", "/other"], "has no topic /other"),
-             ([str(tmp_path / "bag"), "--rate", "0"], "--rate must be positive")]
+             ([str(tmp_path / "bag"), "--rate", "0"], "--rate must be positive"),
+             ([str(tmp_path / "bag"), "--namespace", "2nd camera"], "not a valid ROS namespace")]
     for args, message in cases:
         done = subprocess.run([sys.executable, "-m", "multi_instance_reg.tools.cli", "play", *args],
                               env=ros_env(42), capture_output=True, text=True, timeout=60)

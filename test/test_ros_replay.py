@@ -26,7 +26,9 @@ def test_live_replay_matches_offline_quality(scene_bag, object_model, tmp_path):
     last_stamp = offline.frames[-1]["stamp_ns"]
 
     domain = 48
-    node = start(["multi_instance_reg.ros.node", "--ros-args", "-p", f"model_path:={object_model}"], domain)
+    # The per-detection path (tracking off): its poses are the offline pipeline's, frame for frame.
+    node = start(["multi_instance_reg.ros.node", "--ros-args", "-p", f"model_path:={object_model}",
+                  "-p", "tracking.enabled:=false"], domain)
     probe = listen = play = None
     try:
         probe = Probe(domain)

@@ -26,13 +26,15 @@ def digest(*arrays) -> str:
 
 def test_default_scene_is_what_it_was_before_motion_and_occluder():
     # Digests recorded from the code before motion/occluder existed (commit 8264224): other
-    # benchmarks compare against bags made with the defaults.
+    # benchmarks compare against bags made with the defaults. The pixels are exact; poses and
+    # camera matrices are rounded to 1e-6 because their last bits differ between CPUs (BLAS
+    # kernels), which made the exact digests fail on an AMD EPYC host with unchanged code.
     kw = dict(object_name="snack_bar", instances=4, distractors=2, frames=6, seed=5)
     for scene in (make_tabletop_scene(**kw), make_tabletop_scene(**kw, motion="sweep", occluder=False)):
         f = scene.render_frame(5)
         assert digest(f.rgb, f.depth_mm) == "a1dc8a060d31910d"
-        assert digest(f.poses, f.visibility, f.instance_mask) == "e3486c46ed811ead"
-        assert digest(f.T_world_camera) == "c1d989eeab18d79e"
+        assert digest(np.round(f.poses, 6), np.round(f.visibility, 4), f.instance_mask) == "925332ddf550a7f0"
+        assert digest(np.round(f.T_world_camera, 6)) == "251f2c25fe5dccca"
         assert "motion" not in scene.description() and "occluder" not in scene.description()
 
 

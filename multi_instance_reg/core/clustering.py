@@ -21,8 +21,9 @@ merge, O(N^3) in all. This implementation makes the same merges with far less wo
 """
 from __future__ import annotations
 
-import numba
 import numpy as np
+
+from .native import compiled, prange
 
 # The initial dot products S = G G: a dense GEMM (BLAS) costs N^3 multiply-adds at the FMA
 # peak; the sparse product below costs one multiply-add per (non-zero of G) x (column of its
@@ -33,7 +34,7 @@ _SPARSE_PRODUCT_COST = 10.0
 # products vectorise and beat gathering over the non-zeros.
 _DENSE_ROWS_ABOVE = 0.25
 
-@numba.njit(cache=True, fastmath=True)
+@compiled(fastmath=True)
 def _tanimoto_distance(dot, sq_a, sq_b):
     denom = sq_a + sq_b - dot
     if denom <= 0.0:
@@ -45,12 +46,12 @@ def _tanimoto_distance(dot, sq_a, sq_b):
 # in [0, 1], as a fixed-point number in the high bits (steps of 1e-9), a group or partner
 # index in the low bits, which also breaks ties deterministically. One array and 4 children
 # per level cut the time per pop to a third of a binary heap of (key, value) pairs.
-@numba.njit(cache=True)
+@compiled()
 def _pack(distance, entry):
     return (np.int64(distance * 1073741824.0) << 32) | entry
 
 
-@numba.njit(cache=True)
+@compiled()
 def _heap_push(heap, size, item):
     i = size
     while i > 0:
@@ -63,7 +64,7 @@ def _heap_push(heap, size, item):
     return size + 1
 
 
-@numba.njit(cache=True)
+@compiled()
 def _sift_down(heap, size, i):
     item = heap[i]
     while True:
@@ -83,7 +84,7 @@ def _sift_down(heap, size, i):
     heap[i] = item
 
 
-@numba.njit(cache=True)
+@compiled()
 def _heap_pop(heap, size):
     item = heap[0]
     size -= 1
@@ -93,20 +94,20 @@ def _heap_pop(heap, size):
     return item, size
 
 
-@numba.njit(cache=True)
+@compiled()
 def _grow(arr, cap):
     out = np.empty(cap, dtype=arr.dtype)
     out[: len(arr)] = arr
     return out
 
 
-@numba.njit(cache=True, parallel=True)
+@compiled("UniTuple(i8[::1], 2)(f4[:, ::1])", parallel=True)
 def _row_counts(G):
     """Per row: the number of non-zeros and the end (one past the last non-zero column)."""
     n = G.shape[0]
     counts = np.zeros(n, dtype=np.int64)
     row_end = np.zeros(n, dtype=np.int64)
-    for i in numba.prange(n):
+    for i in prange(n):
         row = G[i]
         c = 0
         end = 0
@@ -119,7 +120,7 @@ def _row_counts(G):
     return counts, row_end
 
 
-@numba.njit(cache=True, parallel=True)
+@compiled("Tuple((i8[::1], i4[::1], f4[::1]))(f4[:, ::1], i8[::1])", parallel=True)
 def _to_rows(G, counts):
     """Row-wise sparse form (CSR) of a dense matrix: indptr, column indices, values."""
     n = G.shape[0]
@@ -127,7 +128,7 @@ def _to_rows(G, counts):
     indptr[1:] = np.cumsum(counts)
     indices = np.empty(indptr[n], dtype=np.int32)
     values = np.empty(indptr[n], dtype=np.float32)
-    for i in numba.prange(n):
+    for i in prange(n):
         row = G[i]
         p = indptr[i]
         for j in range(n):
@@ -138,7 +139,7 @@ def _to_rows(G, counts):
     return indptr, indices, values
 
 
-@numba.njit(cache=True)
+@compiled("i8(i8[::1], i4[::1], i8[::1])")
 def _sparse_product_work(indptr, indices, row_end):
     """Multiply-adds _sparse_gram will do: per non-zero G[i, c], the columns i..row_end[c]."""
     w = 0
@@ -148,18 +149,18 @@ def _sparse_product_work(indptr, indices, row_end):
     return w
 
 
-@numba.njit(cache=True, parallel=True)
+@compiled(parallel=True)
 def _mirror_upper(S):
     """Copy the upper triangle onto the lower one, in 64 x 64 tiles (cache-friendly)."""
     n = S.shape[0]
-    for bi in numba.prange((n + 63) // 64):
+    for bi in prange((n + 63) // 64):
         for bj in range(bi + 1):
             for i in range(bi * 64, min(n, bi * 64 + 64)):
                 for j in range(bj * 64, min(i, bj * 64 + 64)):
                     S[i, j] = S[j, i]
 
 
-@numba.njit(cache=True, fastmath=True)
+@compiled(fastmath=True)
 def _gram_row(G, indptr, indices, values, row_end, S, i):
     """Row i of S = G G from column i on: G[i, c] * G[c, i:row_end[c]] summed over the
     non-zeros c of row i."""
@@ -180,14 +181,14 @@ def _gram_row(G, indptr, indices, values, row_end, S, i):
     S[i, i:] = acc
 
 
-@numba.njit(cache=True, parallel=True)
+@compiled("f4[:, ::1](f4[:, ::1], i8[::1], i4[::1], f4[::1], i8[::1])", parallel=True)
 def _sparse_gram(G, indptr, indices, values, row_end):
     """S = G G for a sparse symmetric G: the upper triangle row by row, then mirrored.
     Correspondences sorted along space keep row_end close to the diagonal."""
     n = G.shape[0]
     S = np.empty((n, n), dtype=np.float32)
     # Row i's work shrinks with i: each task takes a row from both ends to stay balanced.
-    for t in numba.prange((n + 1) // 2):
+    for t in prange((n + 1) // 2):
         _gram_row(G, indptr, indices, values, row_end, S, t)
         if n - 1 - t != t:
             _gram_row(G, indptr, indices, values, row_end, S, n - 1 - t)
@@ -195,7 +196,7 @@ def _sparse_gram(G, indptr, indices, values, row_end):
     return S
 
 
-@numba.njit(cache=True, fastmath=True)
+@compiled(fastmath=True)
 def _dot_with_row(dense, indices, values, start, length, n):
     """<dense, row>, the row given by its entries; a full row (every column, in order, as
     rows of a dense G are) is read as a plain contiguous vector, which vectorises."""
@@ -213,13 +214,13 @@ def _dot_with_row(dense, indices, values, start, length, n):
     return np.float64(s)
 
 
-@numba.njit(cache=True)
+@compiled()
 def _row_heap_push(heap, size, item, queued, row):
     queued[row] = item
     return _heap_push(heap, size, item)
 
 
-@numba.njit(cache=True)
+@compiled("i8[::1](f4[:, ::1], i8[::1], i4[::1], f4[::1], f4[:, ::1], f8, b1, i8[::1])")
 def _agglomerate(G, indptr, indices, values, S, max_dist, dense, stats):
     n = S.shape[0]
     # Row i's current entries are indices/values[indptr[i] : indptr[i] + rowlen[i]].

@@ -6,8 +6,9 @@ max(0, 1 - ((d + d') / 2)^2 / sigma^2), which zeroes pairs too far apart to lie 
 """
 from __future__ import annotations
 
-import numba
 import numpy as np
+
+from .native import compiled, prange
 
 # Pairs closer than this in both clouds are the same correspondence repeated: fully compatible.
 _COINCIDENT = np.float32(1e-9)
@@ -15,14 +16,14 @@ _NEGLIGIBLE = np.float32(1e-6)
 _ZERO, _HALF, _ONE = np.float32(0.0), np.float32(0.5), np.float32(1.0)
 
 
-@numba.njit(cache=True, parallel=True, fastmath=True)
+@compiled("f4[:, ::1](f4[::1], f4[::1], f4[::1], f4[::1], f4[::1], f4[::1], f4)", parallel=True, fastmath=True)
 def _compatibility_kernel(sx, sy, sz, tx, ty, tz, inv_sigma2):
     # Coordinates as separate arrays and no branch in the inner loop: it vectorises (8x
     # faster than reading (N, 3) rows). Full rows rather than a mirrored triangle:
     # contiguous writes cost less than the strided mirror writes would save.
     n = sx.shape[0]
     G = np.empty((n, n), dtype=np.float32)
-    for i in numba.prange(n):
+    for i in prange(n):
         row = G[i]
         ax, ay, az, bx, by, bz = sx[i], sy[i], sz[i], tx[i], ty[i], tz[i]
         for j in range(n):

@@ -143,16 +143,28 @@ class ECC:
 
     def select(self, x, y, labels):
         """Clusters larger than min_cluster_size, by inlier count; stop at the first whose
-        count falls to gamma_thresh of the best (Sec. 3.5). Final fits use all inliers."""
+        count falls to gamma_thresh of the best (Sec. 3.5; gamma_rule: at or below, or only
+        below it). Final fits use all inliers."""
         cfg = self.config
         n = len(x)
         counts = np.bincount(labels[labels >= 0], minlength=1)
+        if cfg.gamma_counts == "fitted":
+            # Count each candidate transform's inliers among all N before the cut: a
+            # cluster's size can differ from its fitted transform's inliers by a few.
+            big = np.flatnonzero(counts > cfg.min_cluster_size)
+            if len(big):
+                remap = -np.ones(len(counts), dtype=np.int64)
+                remap[big] = np.arange(len(big))
+                big_labels = np.where(labels >= 0, remap[np.maximum(labels, 0)], -1)
+                labels = assign(residuals(x, y, fit_transforms(x, y, big_labels, len(big))), cfg.inlier_thresh)
+                counts = np.bincount(labels[labels >= 0], minlength=1)
         cand = np.flatnonzero(counts > cfg.min_cluster_size)
         cand = cand[np.argsort(-counts[cand], kind="stable")]
         if len(cand) == 0:
             return self._no_instances(n)
         ratios = counts[cand] / counts[cand[0]]
-        cut = np.flatnonzero(ratios[1:] <= cfg.gamma_thresh)
+        dropped = ratios[1:] < cfg.gamma_thresh if cfg.gamma_rule == "below" else ratios[1:] <= cfg.gamma_thresh
+        cut = np.flatnonzero(dropped)
         if len(cut):
             cand = cand[: cut[0] + 1]
         remap = -np.ones(len(counts), dtype=np.int64)

@@ -1,11 +1,12 @@
 """Rigid fits per cluster, residuals, duplicate merging and re-assignment (Sec. 3.3-3.5)."""
 from __future__ import annotations
 
-import numba
 import numpy as np
 
+from .native import compiled, prange
 
-@numba.njit(cache=True)
+
+@compiled("Tuple((f8[:, ::1], f8[:, ::1], f8[:, :, ::1]))(f8[:, ::1], f8[:, ::1], i8[::1], i8)")
 def _cluster_moments(src, tgt, labels, n_clusters):
     """Per cluster: centroids of src and tgt, and the cross-covariance
     H = sum (x - mu_x)(y - mu_y)^T (two passes: centred sums stay accurate far from the origin)."""
@@ -59,11 +60,11 @@ def fit_transforms(src: np.ndarray, tgt: np.ndarray, labels: np.ndarray, n_clust
     return T
 
 
-@numba.njit(cache=True, parallel=True, fastmath=True)
+@compiled("f8[:, ::1](f8[:, ::1], f8[:, ::1], f8[:, :, ::1])", parallel=True, fastmath=True)
 def _residual_kernel(src, tgt, transforms):
     n, m = len(src), len(transforms)
     out = np.empty((n, m))
-    for i in numba.prange(n):
+    for i in prange(n):
         x0, x1, x2 = src[i, 0], src[i, 1], src[i, 2]
         for k in range(m):
             T = transforms[k]

@@ -24,14 +24,15 @@ The score (``sampling_score``):
 """
 from __future__ import annotations
 
-import numba
 import numpy as np
+
+from .native import compiled, prange
 
 _CELL_BITS = 20
 _CELL_OFFSET = 1 << (_CELL_BITS - 1)
 
 
-@numba.njit(cache=True)
+@compiled("i8[::1](f8[:, ::1], f8)")
 def _cell_keys(points, cell):
     keys = np.empty(len(points), dtype=np.int64)
     for i in range(len(points)):
@@ -44,7 +45,7 @@ def _cell_keys(points, cell):
     return keys
 
 
-@numba.njit(cache=True, parallel=True)
+@compiled("UniTuple(i8[::1], 2)(f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], i8[::1], f8, f8)", parallel=True)
 def _consistency_counts(src, tgt, ref_src, ref_tgt, ref_keys, radius, tolerance):
     # ref_* are sorted by cell key; each query visits its 27 neighbouring cells.
     # Returns, per query, the neighbours whose distance is preserved and all neighbours.
@@ -52,7 +53,7 @@ def _consistency_counts(src, tgt, ref_src, ref_tgt, ref_keys, radius, tolerance)
     counts = np.zeros(n, dtype=np.int64)
     neighbours = np.zeros(n, dtype=np.int64)
     r2 = radius * radius
-    for i in numba.prange(n):
+    for i in prange(n):
         base = np.empty(3, dtype=np.int64)
         for a in range(3):
             base[a] = int(np.floor(tgt[i, a] / radius)) + _CELL_OFFSET
@@ -98,6 +99,8 @@ def consistency_scores(src, tgt, radius: float, tolerance: float, rng: np.random
     The reference subset is 4096 up to N = 8192 and shrinks beyond, so that the work per
     correspondence stays the same and the total grows linearly with N (measured: 4096 rather
     than 2048 references lifts MHF1 at 90-99 % outliers from 0.65 to 0.73 for N ~ 5000)."""
+    src = np.ascontiguousarray(src, dtype=np.float64)
+    tgt = np.ascontiguousarray(tgt, dtype=np.float64)
     n = len(src)
     if reference_size is None:
         reference_size = 4096 if n <= 8192 else max(1024, 4096 * 8192 // n)

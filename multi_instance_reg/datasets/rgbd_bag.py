@@ -99,6 +99,16 @@ class RGBDBag:
         self.num_colour_messages = int(topics[colour_topic].msgcount)
         self.object_description = _object_description(self._reader, self.path)
 
+    def instance_objects(self, count: int) -> list[str]:
+        """Object name of each of ``count`` ground-truth instances: a mixed scene's
+        ``instance_objects`` on /ground_truth/object, else its one ``name`` for all ("" when
+        the bag does not say)."""
+        d = self.object_description or {}
+        names = d.get("instance_objects")
+        if isinstance(names, list) and len(names) == count:
+            return [str(n) for n in names]
+        return [str(d.get("name", ""))] * count
+
     # -- context manager
     def __enter__(self):
         return self

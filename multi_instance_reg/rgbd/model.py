@@ -9,7 +9,9 @@ File format (npz, read with allow_pickle=False):
   extent           (3,)    float64  size of the object's box along the model axes
   T_capture_model  (4, 4)  float64  model frame in the optical frame of the first capture frame
   T_object_model   (4, 4)  float64  optional: model frame in the object's ground-truth frame
-  name             ()      str      optional: the object's name
+  name             ()      str      optional: the object's name (`mireg build-model --name`); a file
+                                    without one, or with an empty one, is named after its file
+                                    stem when loaded (``model_name``)
 Optional, from a mesh (`mireg build-model --mesh`; files without them load as before):
   shape_voxel      ()      float64  metres: the voxel the shape data (and every frame) is sampled at
   shape_points     (Q, 3)  float32  the surface, voxel-downsampled, model frame
@@ -111,8 +113,33 @@ def save_model(model: ObjectModel, path) -> Path:
     return path
 
 
+NAME_RULE = "letters, digits and underscores, not starting with a digit"
+
+
+def is_valid_name(name: str) -> bool:
+    """Names become part of topic names (instances/<name>/poses) and marker namespaces, so
+    they follow what a ROS name token allows."""
+    import re
+
+    return re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", str(name)) is not None
+
+
+def model_name(stored: str, path) -> str:
+    """The name a model goes by: the one stored in its file, else its file stem (``a/can.npz``
+    -> ``can``; characters a topic name cannot hold become ``_``), so that files written
+    before names were used still get a distinct one."""
+    import re
+
+    name = str(stored).strip()
+    if name:
+        return name
+    stem = re.sub(r"[^A-Za-z0-9_]", "_", Path(path).stem) or "object"
+    return stem if is_valid_name(stem) else "_" + stem
+
+
 def load_model(path) -> ObjectModel:
-    """Read and check a model file; InputError names what is wrong with it."""
+    """Read and check a model file; InputError names what is wrong with it. The model's
+    ``name`` is the stored one, or the file stem when none is stored (``model_name``)."""
     path = Path(path)
     if not path.is_file():
         raise InputError(f"model file {path} does not exist; build one with `mireg build-model`")
@@ -148,7 +175,7 @@ def load_model(path) -> ObjectModel:
         extent=arrays["extent"].astype(np.float64),
         T_capture_model=arrays["T_capture_model"].astype(np.float64),
         T_object_model=arrays["T_object_model"].astype(np.float64) if "T_object_model" in arrays else None,
-        name=str(arrays["name"]) if "name" in arrays else "",
+        name=model_name(arrays["name"] if "name" in arrays else "", path),
     )
 
 
@@ -451,4 +478,4 @@ def build_model(views: list[CaptureView], settings: BuildSettings = BuildSetting
 
 
 __all__ = ["ObjectModel", "save_model", "load_model", "MODEL_SCHEMA_VERSION", "CaptureView", "BuildSettings",
-           "build_model", "object_mask", "view_keypoints"]
+           "build_model", "object_mask", "view_keypoints", "model_name", "is_valid_name", "NAME_RULE"]

@@ -49,7 +49,7 @@ class FrontEndConfig:
     ratio: float = param(0.8, "ratio test: best descriptor distance / second-best (second among model points more than ratio_separation away in 3D) must be below this", 0.1, 1.0)
     ratio_separation: float = param(0.01, "metres: model points closer than this to the best match count as the same physical point in the ratio test", 0.0, 1.0)
     matcher: str = param("flann", "descriptor search: flann (approximate kd-trees, about twice as fast) or brute_force (exact)", choices=("flann", "brute_force"))
-    flann_checks: int = param(32, "flann: leaves the kd-tree search visits per query; fewer is faster (16: matching 15 -> 9 ms a frame, MHF1 0.962 -> 0.952 on the held-out synthetic scenes)", 1, 4096)
+    flann_checks: int = param(32, "flann: leaves the kd-tree search visits per query and model (several models share one index searched with this times their number); fewer is faster (16: matching 15 -> 9 ms a frame, MHF1 0.962 -> 0.952 on the held-out synthetic scenes)", 1, 4096)
     root_sift: bool = param(True, "compare descriptors as RootSIFT (Hellinger kernel) instead of plain L2")
     # Lifting.
     depth_window: int = param(5, "side in pixels of the window whose median valid depth lifts a keypoint (odd)", 1, 31)
@@ -118,6 +118,16 @@ class Instance:
     T: np.ndarray           # (4, 4) float64, model frame -> camera optical frame, metres
     inliers: int            # number of inlier correspondences
     score: float            # in [0, 1]: mean of 1 - residual / ecc.inlier_thresh over the inliers
+    object: str = ""        # name of the model it is an instance of
+
+
+@dataclass
+class SceneKeypoints:
+    """One frame's SIFT keypoints that have a 3D point (``InstanceRegistration.detect``)."""
+    uv: np.ndarray              # (K, 2) float32 pixel coordinates
+    descriptors: np.ndarray     # (K, 128) float32, ready for matching (RootSIFT when configured)
+    xyz: np.ndarray             # (K, 3) float32 camera optical frame, metres
+    detected: int               # SIFT keypoints found before lifting
 
 
 @dataclass
@@ -235,10 +245,26 @@ class InstanceRegistration:
 
     def _register_frame_sift(self, rgb, depth_m, intrinsics) -> FrameResult:
         """SIFT matches -> ECC -> refinement and checks on the matches."""
-        fe = self.config.frontend
         t = {s: 0.0 for s in STAGES}
         t0 = time.perf_counter()
+        keypoints = self.detect(rgb, depth_m, intrinsics, t)
+        t3 = time.perf_counter()
+        # Match, one-to-many: every scene keypoint to its nearest model descriptor.
+        scene_idx, model_idx, _ = self._matcher.match(keypoints.descriptors)
+        t["matching"] = (time.perf_counter() - t3) * 1e3
+        result = self.solve(keypoints, scene_idx, model_idx)
+        t["ecc"], t["refinement"] = result.timings_ms["ecc"], result.timings_ms["refinement"]
+        t["total"] = (time.perf_counter() - t0) * 1e3
+        result.timings_ms = t
+        return result
 
+    def detect(self, rgb: np.ndarray, depth_m: np.ndarray, intrinsics: CameraIntrinsics,
+               t: dict[str, float]) -> "SceneKeypoints":
+        """The frame's SIFT keypoints lifted to 3D, descriptors ready for matching; adds the
+        time spent to ``t["sift"]`` and ``t["lifting"]``. Depends on the frame and the
+        front-end settings only, not on the model (several models share it)."""
+        fe = self.config.frontend
+        t0 = time.perf_counter()
         # Where an instance can be: valid depth, off the table (and walls). SIFT runs only on
         # the box around that region and keeps keypoints inside it: one pyramid on a crop,
         # descriptors only where they can be used.
@@ -249,7 +275,7 @@ class InstanceRegistration:
         uv, desc = extract_sift_in_region(rgb, search, self._sift)
         n_kp = len(uv)
         t2 = time.perf_counter()
-        t["sift"] = (t2 - t1) * 1e3
+        t["sift"] += (t2 - t1) * 1e3
 
         # Lift: window-median depth, undistortion, back-projection; the plane test again on
         # the lifted point (the search mask was dilated).
@@ -260,20 +286,22 @@ class InstanceRegistration:
         if self._planes:
             keep = off_planes(scene_xyz, self._planes, fe.plane_thresh)
             uv, desc, scene_xyz = uv[keep], desc[keep], scene_xyz[keep]
-        t3 = time.perf_counter()
-        t["lifting"] = (t1 - t0 + t3 - t2) * 1e3
+        desc = prepare_descriptors(desc, fe.root_sift)
+        t["lifting"] += (t1 - t0 + time.perf_counter() - t2) * 1e3
+        return SceneKeypoints(uv, desc, scene_xyz, n_kp)
 
-        # Match, one-to-many: every scene keypoint to its nearest model descriptor.
-        scene_idx, model_idx, _ = self._matcher.match(prepare_descriptors(desc, fe.root_sift))
+    def solve(self, keypoints: "SceneKeypoints", scene_idx: np.ndarray, model_idx: np.ndarray) -> FrameResult:
+        """Instances from matches (scene keypoint ``scene_idx[i]`` to model keypoint
+        ``model_idx[i]``): ECC, recovery of small instances, selection. Only the ``ecc`` and
+        ``refinement`` timings are filled in."""
+        fe = self.config.frontend
+        t = {s: 0.0 for s in STAGES}
         t4 = time.perf_counter()
-        t["matching"] = (t4 - t3) * 1e3
-
         src = self.model.keypoints_xyz[model_idx].astype(np.float64)
-        tgt = scene_xyz[scene_idx].astype(np.float64)
-        kp_uv = uv[scene_idx].astype(np.float32)
+        tgt = keypoints.xyz[scene_idx].astype(np.float64)
+        kp_uv = keypoints.uv[scene_idx].astype(np.float32)
         if len(src) < 3:
-            t["total"] = (time.perf_counter() - t0) * 1e3
-            res = FrameResult.empty(t, n_kp)
+            res = FrameResult.empty(t, keypoints.detected)
             res.keypoints_uv, res.model_xyz, res.scene_xyz = kp_uv, src.astype(np.float32), tgt.astype(np.float32)
             res.labels = np.full(len(src), -1, np.int64)
             return res
@@ -295,8 +323,8 @@ class InstanceRegistration:
                                                   self.config.ecc.inlier_thresh)
         instances, labels = self._finalise(src, tgt, transforms)
         t["refinement"] = (time.perf_counter() - t5) * 1e3
-        t["total"] = (time.perf_counter() - t0) * 1e3
-        return FrameResult(instances, t, kp_uv, src.astype(np.float32), tgt.astype(np.float32), labels, n_kp)
+        return FrameResult(instances, t, kp_uv, src.astype(np.float32), tgt.astype(np.float32), labels,
+                           keypoints.detected)
 
     def _register_frame_shape(self, depth_m, intrinsics, search=None) -> FrameResult:
         """Shape correspondences -> ECC -> per instance ICP and a depth check -> no two
@@ -340,7 +368,8 @@ class InstanceRegistration:
         for k in range(len(transforms)):
             if all(overlap[k, j] <= fe.max_overlap and overlap[j, k] <= fe.max_overlap for j in kept):
                 kept.append(k)
-        instances = [Instance(i, transforms[k], checked[k][2], float(checked[k][1])) for i, k in enumerate(kept)]
+        instances = [Instance(i, transforms[k], checked[k][2], float(checked[k][1]), self.model.name)
+                     for i, k in enumerate(kept)]
         labels, _ = assign_nearest(src, tgt, [transforms[k] for k in kept], self._shape_ecc.config.inlier_thresh)
         t["refinement"] = (time.perf_counter() - t6) * 1e3
         t["total"] = (time.perf_counter() - t0) * 1e3
@@ -363,7 +392,7 @@ class InstanceRegistration:
         for k, inst in enumerate(shaped.instances, start=len(kept)):
             if all(overlap[k, j] <= fe.max_overlap and overlap[j, k] <= fe.max_overlap for j in kept):
                 kept.append(k)
-                instances.append(Instance(len(instances), inst.T, inst.inliers, inst.score))
+                instances.append(Instance(len(instances), inst.T, inst.inliers, inst.score, self.model.name))
         t = {s: textured.timings_ms.get(s, 0.0) + shaped.timings_ms.get(s, 0.0) for s in textured.timings_ms}
         t["shape"] = shaped.timings_ms.get("shape", 0.0)
         return FrameResult(instances, t, textured.keypoints_uv, textured.model_xyz, textured.scene_xyz,
@@ -393,7 +422,8 @@ class InstanceRegistration:
             if survivors == kept:
                 break
             kept = survivors
-        instances = [Instance(i, transforms[k], int((labels == i).sum()), float(scores[i])) for i, k in enumerate(kept)]
+        instances = [Instance(i, transforms[k], int((labels == i).sum()), float(scores[i]), self.model.name)
+                     for i, k in enumerate(kept)]
         return instances, labels
 
 
@@ -510,5 +540,5 @@ def refine_transform(T: np.ndarray, src: np.ndarray, tgt: np.ndarray, thresh: fl
     return T
 
 
-__all__ = ["FrontEndConfig", "PipelineConfig", "Instance", "FrameResult", "InstanceRegistration",
+__all__ = ["FrontEndConfig", "PipelineConfig", "Instance", "FrameResult", "SceneKeypoints", "InstanceRegistration",
            "check_frame", "refine_transform", "recover_small_instances", "assign_nearest", "box_overlaps", "box_grid", "STAGES"]

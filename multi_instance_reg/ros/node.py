@@ -3,14 +3,18 @@
 Subscribes to colour, aligned depth and camera_info (realsense-ros names by default; remap
 to change), pairs colour and depth by header stamp and publishes:
 
-- ``/instances/poses`` (geometry_msgs/PoseArray): model frame in the camera optical frame,
+- ``instances/poses`` (geometry_msgs/PoseArray): model frame in the camera optical frame,
   ordered by track_id (tracking off: by id, the rank by inliers);
-- ``/instances/markers`` (visualization_msgs/MarkerArray): box + label per instance, marker id
+- ``instances/detections`` (vision_msgs/Detection3DArray, when vision_msgs is installed) and
+  ``instances/label_info`` (vision_msgs/LabelInfo, transient local): ``detections.py``;
+- ``instances/markers`` (visualization_msgs/MarkerArray): box + label per instance, marker id
   and colour = track id; deleted when the track ends;
-- ``/instances/details`` (std_msgs/String, JSON): id, inliers, score, track_id, state, source,
+- ``instances/details`` (std_msgs/String, JSON): id, inliers, score, track_id, state, source,
   age per instance, latency;
-- ``/instances/debug_image`` (sensor_msgs/Image rgb8): only drawn when subscribed or asked;
+- ``instances/debug_image`` (sensor_msgs/Image rgb8): only drawn when subscribed or asked;
 - ``~/stats`` (std_msgs/String, JSON): frame counts and latency, also logged.
+Names are relative to the node's namespace (root: ``/instances/poses``; with
+``-r __ns:=/left``: ``/left/instances/poses`` and ``/left/camera/camera/...`` in).
 
 With tracking (``tracking.enabled``, the default) a tracking thread takes every synchronised
 pair, brings the tracks up to date on it (``tracking.LiveTracker``: ICP against the depth, a
@@ -52,15 +56,18 @@ from ..errors import InputError
 from ..messages import array_to_image_fields, camera_info_to_intrinsics, colour_to_rgb, depth_to_metres
 from ..params import param_specs, with_overrides
 from . import conversions
+from .detections import DetectionPublisher, ObjectClass
 from .parameters import (READ_ONLY, NodeSettings, all_specs, check_parameters, declare, node_settings, node_specs,
                          tracking_specs)
 from .sync import ApproximateTimeSync, LatestSlot, stamp_to_ns
 from .transport import use_large_data_profile
 
 NODE_NAME = "instance_registration"
-COLOUR_TOPIC = "/camera/camera/color/image_raw"
-DEPTH_TOPIC = "/camera/camera/aligned_depth_to_color/image_raw"
-CAMERA_INFO_TOPIC = "/camera/camera/color/camera_info"
+# Relative names: `--ros-args -r __ns:=/left` moves inputs and outputs together (one node per
+# camera); in the root namespace they resolve to /camera/camera/... and /instances/...
+COLOUR_TOPIC = "camera/camera/color/image_raw"
+DEPTH_TOPIC = "camera/camera/aligned_depth_to_color/image_raw"
+CAMERA_INFO_TOPIC = "camera/camera/color/camera_info"
 LATENCY_WINDOW = 300  # frames kept for the latency percentiles
 
 
@@ -148,10 +155,12 @@ class InstanceRegistrationNode(Node):
         self._last_published = -1
         self._last_stats = time.monotonic()
 
-        self._pub_poses = self.create_publisher(PoseArray, "/instances/poses", pub_qos)
-        self._pub_markers = self.create_publisher(MarkerArray, "/instances/markers", pub_qos)
-        self._pub_details = self.create_publisher(String, "/instances/details", pub_qos)
-        self._pub_debug = self.create_publisher(Image, "/instances/debug_image", pub_qos)
+        self._pub_poses = self.create_publisher(PoseArray, "instances/poses", pub_qos)
+        self._pub_markers = self.create_publisher(MarkerArray, "instances/markers", pub_qos)
+        self._pub_details = self.create_publisher(String, "instances/details", pub_qos)
+        self._pub_debug = self.create_publisher(Image, "instances/debug_image", pub_qos)
+        self._pub_detections = DetectionPublisher.create(
+            self, pub_qos, [ObjectClass.of_model(self.model, self.settings.model_path)])
         self._pub_stats = self.create_publisher(String, "~/stats", pub_qos)
         self.create_subscription(Image, COLOUR_TOPIC, lambda m: self._on_image(0, m), sub_qos)
         self.create_subscription(Image, DEPTH_TOPIC, lambda m: self._on_image(1, m), sub_qos)
@@ -332,6 +341,8 @@ class InstanceRegistrationNode(Node):
                 return False
             self._last_published = pair.sequence
             self._pub_poses.publish(conversions.pose_array(instances, header))
+            if self._pub_detections is not None:
+                self._pub_detections.publish(instances, header)
             # Latency as a user sees it: pair complete -> poses out (waiting for a worker included).
             latency_ms = (time.monotonic() - pair.received) * 1e3
             with self._counters_lock:

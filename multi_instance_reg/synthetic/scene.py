@@ -10,6 +10,9 @@ Python API (what tests, the demo and the tools call):
   some are occluded or leave the view. For tracking, ``motion="static"`` holds the camera
   still, ``motion="pan"`` pans it slowly along objects spread in a strip (instances enter and
   leave the view), and ``occluder=True`` passes an arm in front (``occluder_path``).
+  ``object_name`` may also be a list of names (a mixed scene): K instances of each, labelled
+  object after object (the first object's K, then the next's); ``SyntheticScene.instance_objects``
+  names each instance's object, and /ground_truth/object carries it as ``instance_objects``.
 - ``make_capture_scene(object_name, seed=0, views=10, resolution="640x480")``: the object
   alone on the table seen from ``views`` viewpoints around it (elevation 30-60 deg,
   0.4-0.6 m), the way a user scans it to build the stored model; half way the object is
@@ -181,8 +184,10 @@ def footprint_area(specs) -> float:
 
 
 def place_objects(target: ObjectSpec, instances: int, distractor_specs: list[ObjectSpec], rng,
-                  arrangement_probs=(0.62, 0.2, 0.09, 0.09), region_half=None) -> list[Placement]:
-    """Place ``instances`` copies of ``target`` and the distractors on the table.
+                  arrangement_probs=(0.62, 0.2, 0.09, 0.09), region_half=None,
+                  more_targets: tuple[ObjectSpec, ...] = ()) -> list[Placement]:
+    """Place ``instances`` copies of ``target`` (and of each of ``more_targets``, labelled
+    after them) and the distractors on the table.
 
     Each object is placed free (anywhere in the region), touching a neighbour, stacked on a
     flat top or leaning against a taller object, with probabilities ``arrangement_probs``;
@@ -190,7 +195,7 @@ def place_objects(target: ObjectSpec, instances: int, distractor_specs: list[Obj
     centred on the origin, 4:3 and about 2.4 times the summed footprints, unless
     ``region_half`` gives its (x, y) half sizes (e.g. a strip along a camera pan).
     """
-    items = [(target, k) for k in range(instances)] + \
+    items = [(spec, k) for k, spec in enumerate(s for s in (target,) + tuple(more_targets) for _ in range(instances))] + \
             [(spec, _DISTRACTOR_LABEL0 + j) for j, spec in enumerate(distractor_specs)]
     order = rng.permutation(len(items))
     # Region: about 2.4 times the summed footprints, 4:3.
@@ -697,6 +702,7 @@ class SyntheticScene:
     later_placements: list = field(default_factory=list)
     motion: str = "sweep"                # camera path of a "scene": sweep | static | pan
     occluder: MovingObject | None = None
+    more_targets: tuple = ()             # further target objects of a mixed scene (ObjectSpec)
 
     def __post_init__(self):
         wall_y = max(0.45, max(p.pose[1, 3] for p in self.placements) + 0.3)
@@ -715,6 +721,11 @@ class SyntheticScene:
         return [p for p in self.placements if p.is_instance]
 
     @property
+    def instance_objects(self) -> list[str]:
+        """Object name of each instance, in ground-truth order."""
+        return [p.spec.name for p in self.instances]
+
+    @property
     def num_frames(self) -> int:
         return len(self.camera_poses)
 
@@ -728,6 +739,10 @@ class SyntheticScene:
         # Only when not the defaults, so that default bags stay byte for byte what they were.
         if self.motion != "sweep":
             d["motion"] = self.motion
+        if self.more_targets:
+            # A mixed scene: every target object, and which one each ground-truth index is.
+            d["objects"] = [spec.description() for spec in (self.target,) + tuple(self.more_targets)]
+            d["instance_objects"] = self.instance_objects
         if self.occluder is not None:
             first, last = self.occluder.frames
             d["occluder"] = {"name": self.occluder.spec.name, "shape": self.occluder.spec.shape,
@@ -773,14 +788,19 @@ def _check_common(object_name: str, seed: int, resolution: str) -> ObjectSpec:
     return spec
 
 
-def make_tabletop_scene(object_name: str = DEFAULT_OBJECT, instances: int = 6, distractors: int = 3,
+def make_tabletop_scene(object_name: str | list[str] = DEFAULT_OBJECT, instances: int = 6, distractors: int = 3,
                         frames: int = 60, seed: int = 0, resolution: str = "640x480", motion: str = "sweep",
                         occluder: bool = False) -> SyntheticScene:
-    spec = _check_common(object_name, seed, resolution)
+    names = [object_name] if isinstance(object_name, str) else list(object_name)
+    if not names or len(set(names)) != len(names):
+        raise InputError(f"target objects must be given once each, got {names}")
+    spec = _check_common(names[0], seed, resolution)
+    more = tuple(get_object(n) for n in names[1:])
     if motion not in MOTIONS:
         raise InputError(f"motion must be one of {', '.join(MOTIONS)}, got '{motion}'")
-    if not 1 <= int(instances) <= MAX_INSTANCES:
-        raise InputError(f"instances must be 1 to {MAX_INSTANCES}, got {instances}")
+    if not 1 <= int(instances) * len(names) <= MAX_INSTANCES:
+        raise InputError(f"instances must be 1 to {MAX_INSTANCES} in all ({len(names)} object(s) x {instances})"
+                         if len(names) > 1 else f"instances must be 1 to {MAX_INSTANCES}, got {instances}")
     if not 0 <= int(distractors) <= MAX_DISTRACTORS:
         raise InputError(f"distractors must be 0 to {MAX_DISTRACTORS}, got {distractors}")
     if int(frames) < 1:
@@ -790,23 +810,23 @@ def make_tabletop_scene(object_name: str = DEFAULT_OBJECT, instances: int = 6, d
     rng_choose, rng_place, rng_path, rng_motion, rng_occluder = (
         np.random.default_rng([int(seed), k]) for k in (1, 2, 3, 6, 7))
     intrinsics = d455_intrinsics(resolution)
-    pool = [s for s in OBJECTS.values() if s.name != spec.name]
+    pool = [s for s in OBJECTS.values() if s.name not in names]
     distractor_specs = [pool[int(i)] for i in rng_choose.integers(len(pool), size=int(distractors))]
     if motion == "pan":
         pan = PanPlan.draw(rng_motion)
-        footprint = footprint_area([spec] * int(instances) + distractor_specs)
+        footprint = footprint_area([spec, *more] * int(instances) + distractor_specs)
         placements = place_objects(spec, int(instances), distractor_specs, rng_place,
-                                   region_half=pan.region_half(intrinsics, footprint))
+                                   region_half=pan.region_half(intrinsics, footprint), more_targets=more)
         poses = pan.trajectory(placements, int(frames))
     else:
-        placements = place_objects(spec, int(instances), distractor_specs, rng_place)
+        placements = place_objects(spec, int(instances), distractor_specs, rng_place, more_targets=more)
         if motion == "static":
             poses = static_viewpoint(placements, int(frames), rng_motion)
         else:
             poses = sweep_trajectory(placements, int(frames), rng_path)
     moving = occluder_path(poses, placements, intrinsics, rng_occluder) if occluder else None
     return SyntheticScene("scene", spec, placements, poses, intrinsics, int(seed), motion=motion,
-                          occluder=moving)
+                          occluder=moving, more_targets=more)
 
 
 def make_capture_scene(object_name: str = DEFAULT_OBJECT, seed: int = 0, views: int = 10,
@@ -875,7 +895,7 @@ def write_scene_bag(scene: SyntheticScene, out_path, storage: str = "sqlite3", p
     return BagSummary(Path(out_path), n, time.perf_counter() - t0, len(scene.instances), storage)
 
 
-def generate_scene_bag(out_path, object_name: str = DEFAULT_OBJECT, instances: int = 6,
+def generate_scene_bag(out_path, object_name: str | list[str] = DEFAULT_OBJECT, instances: int = 6,
                        distractors: int = 3, frames: int = 60, seed: int = 0, storage: str = "sqlite3",
                        resolution: str = "640x480", preview_dir=None, motion: str = "sweep",
                        occluder: bool = False) -> BagSummary:

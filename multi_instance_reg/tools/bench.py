@@ -10,6 +10,7 @@ BENCHES = {
     "frames": ("multi_instance_reg.tools.bench_frames", "per-frame RGB-D pipeline on synthetic scene bags: MHF1, RTE/RRE, latency by stage"),
     "table1": ("multi_instance_reg.tools.bench_table1", "the paper's Table 1: MHR/MHP/MHF1 per outlier band, ECC vs sequential RANSAC"),
     "tracking": ("multi_instance_reg.tools.bench_tracking", "the tracker on generated sequences: IDF1, ID switches, MOTA, MHF1 with and without it, jitter"),
+    "register-startup": ("multi_instance_reg.tools.bench_startup", "mireg register in fresh processes: first-call time_s, process wall/CPU time, batch median"),
     "synth": ("multi_instance_reg.tools.bench_synth", "frames/s of the synthetic D455 bag generator at 640x480 and 1280x720"),
 }
 

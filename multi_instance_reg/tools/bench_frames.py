@@ -27,10 +27,18 @@ INSTANCES_PER_SCENE = (4, 12, 6, 10, 8, 5, 11, 7, 9)
 
 def add_arguments(parser) -> None:
     parser.add_argument("bags", nargs="*", help="scene bags with ground truth (default: generate --scenes of them)")
-    parser.add_argument("--model", default=None, help="object model (.npz); default: built from --capture")
+    parser.add_argument("--model", default=None, action="append",
+                        help="object model (.npz); default: built from --capture. Give it again for several models: "
+                             "each alone, then all in one pass, on the same frames (per-object MHF1, confusions, "
+                             "latency side by side)")
     parser.add_argument("--capture", nargs="+", default=None, help="capture bag(s) to build the model from (default: generate)")
     parser.add_argument("--params", default=None, help="the node's parameter YAML (frontend.* and ecc.* are used)")
     parser.add_argument("--object", default=None, help="object of the generated bags (default: the generator's)")
+    parser.add_argument("--objects", default=None, metavar="A,B,...",
+                        help="generate mixed scenes of these objects (--instances-each of each, 3 distractors) and a "
+                             "model of each from generated captures; then as with several --model")
+    parser.add_argument("--instances-each", type=int, default=3,
+                        help="with --objects: instances of each object per scene (default 3)")
     parser.add_argument("--scenes", type=int, default=6, help="generated scenes (default 6; instances 4..12)")
     parser.add_argument("--frames", type=int, default=5, help="frames per generated scene (default 5)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the generated bags (default 0)")
@@ -89,10 +97,13 @@ def generate_capture_bags(workdir: Path, object_name=None, seed: int = 0, views:
     return paths
 
 
-def generate_benchmark_bag(path: Path, object_name=None, scenes: int = 6, frames: int = 5, seed: int = 0) -> Path:
+def generate_benchmark_bag(path: Path, object_name=None, scenes: int = 6, frames: int = 5, seed: int = 0,
+                           instances_each: int = 0) -> Path:
     """One bag holding ``scenes`` tabletop scenes (4 to 12 instances of the object, 3
     distractors each; seeds seed+100, seed+101, ...), ``frames`` consecutive frames of each,
-    with ground truth: the benchmark's (and the tests') scene set."""
+    with ground truth: the benchmark's (and the tests') scene set. With a list of objects
+    (mixed scenes), ``instances_each`` of each in every scene, so that the bag's one
+    /ground_truth/object names every scene's instances."""
     from ..datasets.bag_writer import RealSenseBagWriter
     from ..synthetic.scene import DEFAULT_OBJECT, make_tabletop_scene
 
@@ -100,7 +111,8 @@ def generate_benchmark_bag(path: Path, object_name=None, scenes: int = 6, frames
     stamp = 1_700_000_000_000_000_000
     with RealSenseBagWriter(path) as bag:
         for k in range(scenes):
-            scene = make_tabletop_scene(object_name or DEFAULT_OBJECT, INSTANCES_PER_SCENE[k % len(INSTANCES_PER_SCENE)],
+            count = instances_each or INSTANCES_PER_SCENE[k % len(INSTANCES_PER_SCENE)]
+            scene = make_tabletop_scene(object_name or DEFAULT_OBJECT, count,
                                         distractors=3, frames=frames, seed=seed + 100 + k)
             if k == 0:
                 bag.write_object_description(stamp, scene.description())
@@ -161,6 +173,83 @@ def format_report(metrics: dict) -> str:
     return "\n".join(lines)
 
 
+def run_models(args, bags, models, config) -> int:
+    """Each model alone, then all of them in one pass, on the same frames: per-object MHF1,
+    confusions and latency side by side (issue 11's targets)."""
+    from ..rgbd.multi_model import check_model_names
+    from .offline import metrics_dict
+
+    check_model_names(models)
+    runs = [[m] for m in models] + [models]
+    figures = []
+    for run_models_ in runs:
+        total = _replay_all(args, bags, run_models_, config)
+        figures.append(metrics_dict(total, args.max_rre_deg, args.max_rte, args.min_visibility))
+    alone, together = figures[:-1], figures[-1]
+    print(f"frames {together['frames']}, models {', '.join(m.name for m in models)}; "
+          f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores")
+    print(f"{'object':<14} {'MHF1 alone':>10} {'MHF1 all':>9} {'present':>8} {'found':>6} {'hits':>5}  "
+          f"{'p50 alone':>9}")
+    for m, f in zip(models, alone):
+        o = together["objects"][m.name]
+        print(f"{m.name:<14} {f['MHF1']:>10.3f} {o['MHF1']:>9.3f} {o['gt']:>8} {o['est']:>6} {o['hits']:>5}  "
+              f"{f['latency_ms']['total']['p50']:>7.1f} ms")
+    p50_all = together["latency_ms"]["total"]["p50"]
+    p50_one = [f["latency_ms"]["total"]["p50"] for f in alone]
+    print(f"all {len(models)} models in one pass: p50 {p50_all:.1f} ms, p95 {together['latency_ms']['total']['p95']:.1f} ms"
+          f" = {p50_all / max(p50_one):.2f} x the slowest single model, {p50_all / min(p50_one):.2f} x the fastest; "
+          f"stages p50: " + "  ".join(f"{s} {together['latency_ms'][s]['p50']:.1f}"
+                                      for s in ("sift", "matching", "lifting", "ecc", "refinement")))
+    print(f"reported as the wrong object: {together['confusions']} (alone: "
+          f"{', '.join(str(f['confusions']) for f in alone)})")
+    side = side_by_side_latency(bags, models, config)
+    print(f"side by side, frame by frame ({side['frames']} frames, each through {models[0].name} alone, then all "
+          f"{len(models)}): p50 {side['one_p50']:.1f} -> {side['all_p50']:.1f} ms = {side['ratio']:.2f} x; "
+          f"load average {os.getloadavg()[0]:.2f}")
+    if args.json:
+        Path(args.json).write_text(json.dumps({"alone": dict(zip((m.name for m in models), alone)),
+                                               "together": together, "side_by_side": side}, indent=2))
+    return 0
+
+
+def side_by_side_latency(bags, models, config) -> dict:
+    """p50 latency of the first model alone and of all models, each frame through both in
+    turn, so that a host whose speed drifts slows both alike."""
+    import time
+
+    from ..datasets.rgbd_bag import RGBDBag
+    from ..rgbd.multi_model import MultiModelRegistration
+
+    one, every = MultiModelRegistration(models[:1], config), MultiModelRegistration(models, config)
+    one.warm_up()
+    times = {"one": [], "all": []}
+    for bag in bags:
+        with RGBDBag(bag) as frames:
+            for f in frames:
+                for key, reg in (("one", one), ("all", every)):
+                    t0 = time.perf_counter()
+                    reg.register_frame(f.rgb, f.depth_m, f.intrinsics)
+                    times[key].append((time.perf_counter() - t0) * 1e3)
+    p50 = {k: float(np.median(v)) for k, v in times.items()}
+    return {"frames": len(times["one"]), "one_p50": p50["one"], "all_p50": p50["all"], "ratio": p50["all"] / p50["one"]}
+
+
+def _replay_all(args, bags, models, config):
+    from .offline import ReplayResult, replay
+
+    total = ReplayResult()
+    for bag in bags:
+        r = replay(bag, models, config, None, args.max_rre_deg, args.max_rte, progress=sys.stderr.isatty(),
+                   min_visibility=args.min_visibility)
+        for name in ("frames", "timings", "cpu_ms", "scores", "present", "found", "hits"):
+            getattr(total, name).extend(getattr(r, name))
+        for name, scores in r.object_scores.items():
+            total.object_scores.setdefault(name, []).extend(scores)
+        total.skipped += r.skipped
+        total.confusions += r.confusions
+    return total
+
+
 def run(args) -> int:
     from ..rgbd.model import load_model
     from .offline import ReplayResult, load_config, metrics_dict, replay
@@ -177,11 +266,26 @@ def run(args) -> int:
     with tempfile.TemporaryDirectory(prefix="mireg_bench_frames_") as tmp:
         tmp = Path(tmp)
         bags = list(args.bags)
+        if args.objects:
+            objects = [o.strip() for o in args.objects.split(",") if o.strip()]
+            if not bags:
+                print(f"generating {args.scenes} mixed scenes of {args.frames} frames ...", file=sys.stderr)
+                bags = [generate_benchmark_bag(tmp / "scenes", objects, args.scenes, args.frames, args.seed,
+                                               instances_each=args.instances_each)]
+            models = []
+            for obj in objects:
+                print(f"generating capture bags of {obj} and its model ...", file=sys.stderr)
+                models.append(model_from_captures(generate_capture_bags(tmp / obj, obj, args.seed)))
+            return run_models(args, bags, models, config)
+        if args.model and len(args.model) > 1:
+            if not bags:
+                raise InputError("several --model need scene bags (or use --objects to generate mixed scenes)")
+            return run_models(args, bags, [load_model(p) for p in args.model], config)
         if not bags:
             print(f"generating {args.scenes} scenes of {args.frames} frames ...", file=sys.stderr)
             bags = [generate_benchmark_bag(tmp / "scenes", args.object, args.scenes, args.frames, args.seed)]
         if args.model:
-            model = load_model(args.model)
+            model = load_model(args.model[0])
         else:
             captures = args.capture
             if not captures:

@@ -34,7 +34,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--tilts", default="2",
                         help="simulated view tilts, comma-separated (ASIFT-style: SIFT also on each view warped "
                              "to look more oblique, so that instances seen at grazing angles match); '' = off (default 2)")
-    parser.add_argument("--name", default=None, help="object name stored in the model (default: from the bag)")
+    parser.add_argument("--name", default=None,
+                        help="object name stored in the model, used in every output (poses.json \"object\", topics, "
+                             "markers); two models loaded together need different names (default: the object named "
+                             "in the capture bag's /ground_truth/object, else the mesh's file stem, else the output's)")
     parser.add_argument("--topics", nargs=3, metavar=("COLOUR", "DEPTH", "INFO"), default=None,
                         help="colour, aligned depth and camera_info topics (default: realsense-ros names)")
     mesh = parser.add_argument_group("from a CAD mesh (shape; texture too when capture bags with ground truth are given)")
@@ -149,8 +152,16 @@ def register_view_with_ecc(xyz, desc, model_xyz, model_desc):
     return np.asarray(res.transforms[0])
 
 
+def check_name(name: str) -> None:
+    from ..rgbd.model import NAME_RULE, is_valid_name
+
+    if not is_valid_name(name):
+        raise InputError(f"object name '{name}': use {NAME_RULE} (it becomes part of topic names, "
+                         f"e.g. instances/<name>/poses); give one with --name")
+
+
 def run(args) -> int:
-    from ..rgbd.model import BuildSettings, build_model, save_model
+    from ..rgbd.model import BuildSettings, build_model, model_name, save_model
 
     out = Path(args.output)
     if out.suffix != ".npz":
@@ -180,10 +191,11 @@ def run(args) -> int:
     if any(t <= 1.0 for t in tilts):
         raise InputError(f"--tilts must be greater than 1 (1 is the view itself), got '{args.tilts}'")
     settings = BuildSettings(roi=parse_roi(args.roi), depth_range=(lo, hi), tilts=tilts)
-    name = args.name or (description or {}).get("name", "") or ""
+    name = args.name or (description or {}).get("name", "") or model_name("", out)
+    check_name(name)
     model = build_model(views, settings, name=name, register_view=register_view_with_ecc)
     save_model(model, out)
-    print(f"model {out}: {model.num_keypoints} keypoints from {len(views)} view(s), {len(model.points_xyz)} cloud points, "
+    print(f"model {out} ('{model.name}'): {model.num_keypoints} keypoints from {len(views)} view(s), {len(model.points_xyz)} cloud points, "
           f"extent {np.round(model.extent, 3).tolist()} m" + (", with T_object_model" if model.T_object_model is not None else ""),
           file=sys.stderr)
     return 0
@@ -196,13 +208,14 @@ def run_mesh(args, out: Path) -> int:
 
     from ..meshes import load_mesh
     from ..rgbd.mesh_model import add_capture_keypoints, build_model_from_mesh
-    from ..rgbd.model import BuildSettings, save_model
+    from ..rgbd.model import BuildSettings, model_name, save_model
 
     if args.rgb or args.depth:
         raise InputError("give either --mesh (with capture bags, optionally) or --rgb/--depth PNG files, not both")
     t0 = time.perf_counter()
     mesh = load_mesh(args.mesh, args.units)
-    name = args.name or Path(args.mesh).stem
+    name = args.name or model_name("", args.mesh)
+    check_name(name)
     model = build_model_from_mesh(mesh, name, None if args.symmetry == "auto" else args.symmetry)
     views = []
     for bag in args.bag:
@@ -212,7 +225,7 @@ def run_mesh(args, out: Path) -> int:
         lo, hi = args.depth_range
         add_capture_keypoints(model, views, BuildSettings(roi=parse_roi(args.roi), depth_range=(lo, hi)))
     save_model(model, out)
-    print(f"model {out}: from mesh {args.mesh} ({len(mesh.vertices)} vertices, {len(mesh.triangles)} triangles) in "
+    print(f"model {out} ('{model.name}'): from mesh {args.mesh} ({len(mesh.vertices)} vertices, {len(mesh.triangles)} triangles) in "
           f"{time.perf_counter() - t0:.2f} s: {len(model.shape_points)} shape points at voxel {model.shape_voxel * 1000:.1f} mm, "
           f"{model.num_keypoints} SIFT keypoints from {len(views)} view(s), extent {np.round(model.extent, 3).tolist()} m, "
           f"symmetries: {model.symmetries.describe() if model.symmetries is not None else 'none'}", file=sys.stderr)

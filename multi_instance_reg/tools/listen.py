@@ -1,10 +1,11 @@
 """``mireg listen``: print what the node publishes, frame by frame; score it against a bag.
 
-Subscribes to ``/instances/poses`` and ``/instances/details`` (joined on the header stamp),
-prints one line per frame, and at the end a summary: frames, mean node latency, frames
-dropped by the node and, with ``--ground-truth BAG``, MHR / MHP / MHF1 against the bag's
-``/ground_truth/poses`` (same stamps: ``mireg play`` rewrites nothing). ``--save-overlays
-DIR`` also subscribes to the node's debug image and writes it as PNG.
+Subscribes to ``instances/poses`` and ``instances/details`` in ``--namespace`` (the root by
+default; joined on the header stamp), prints one line per frame, and at the end a summary:
+frames, mean node latency, frames dropped by the node and, with ``--ground-truth BAG``,
+MHR / MHP / MHF1 against the bag's ``/ground_truth/poses`` (same stamps: ``mireg play``
+rewrites nothing). ``--save-overlays DIR`` also subscribes to the node's debug image and
+writes it as PNG.
 """
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..ros.names import add_namespace_argument, checked_namespace
 
 HELP = "print the node's instances per frame; MHF1 against a bag's ground truth"
 GT_TOPIC = "/ground_truth/poses"
@@ -47,6 +49,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--wait-for-node", type=float, default=0.0, metavar="S",
                         help="first wait up to S seconds for the node's poses publisher, then print 'listening'")
     parser.add_argument("--quiet", action="store_true", help="only the summary")
+    add_namespace_argument(parser, "listen to the node in this namespace")
 
 
 def read_ground_truth(path: Path) -> dict[int, tuple[np.ndarray, np.ndarray | None]]:
@@ -203,6 +206,7 @@ def format_summary(summary: dict) -> str:
 
 
 def run(args) -> int:
+    namespace = checked_namespace(args.namespace)
     truth = read_ground_truth(args.ground_truth) if args.ground_truth else None
     model = None
     if args.model:
@@ -224,21 +228,23 @@ def run(args) -> int:
 
     use_large_data_profile()   # images through shared memory (ros/transport.py)
     rclpy.init()
-    node = rclpy.create_node("mireg_listen")
+    node = rclpy.create_node("mireg_listen", namespace=namespace)
     qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50, reliability=ReliabilityPolicy.RELIABLE)
-    node.create_subscription(PoseArray, "/instances/poses", listener.on_poses, qos)
-    node.create_subscription(String, "/instances/details", listener.on_details, qos)
-    node.create_subscription(String, "/instance_registration/stats", listener.on_stats, qos)
+    # Relative names, resolved in --namespace like the node's own.
+    node.create_subscription(PoseArray, "instances/poses", listener.on_poses, qos)
+    node.create_subscription(String, "instances/details", listener.on_details, qos)
+    node.create_subscription(String, "instance_registration/stats", listener.on_stats, qos)
     if args.save_overlays:
-        node.create_subscription(Image, "/instances/debug_image", listener.on_overlay, qos)
+        node.create_subscription(Image, "instances/debug_image", listener.on_overlay, qos)
     if args.wait_for_node:
         deadline = time.monotonic() + args.wait_for_node
-        while node.count_publishers("/instances/poses") == 0:
+        poses_topic = node.resolve_topic_name("instances/poses")
+        while node.count_publishers(poses_topic) == 0:
             if time.monotonic() > deadline:
                 node.destroy_node()
                 rclpy.try_shutdown()
-                raise InputError(f"no node publishes /instances/poses after {args.wait_for_node:g} s; "
-                                 "is it running with the same ROS_DOMAIN_ID?")
+                raise InputError(f"no node publishes {poses_topic} after {args.wait_for_node:g} s; "
+                                 "is it running with the same ROS_DOMAIN_ID and namespace?")
             rclpy.spin_once(node, timeout_sec=0.1)
         # Discovery is mutual: give the node's publishers a moment to match our subscriptions.
         end = time.monotonic() + 0.5

@@ -1,17 +1,21 @@
 """``mireg offline``: replay a recorded bag through the per-frame pipeline, without ROS.
 
-    mireg offline BAG --model MODEL.npz -o OUTDIR [--params FILE.yaml] [--topics COLOUR DEPTH INFO]
+    mireg offline BAG --model MODEL.npz [--model MODEL2.npz ...] -o OUTDIR [--params FILE.yaml] [--topics COLOUR DEPTH INFO]
 
 Writes OUTDIR/poses.json (the public contract below). When the bag carries ground truth it
 also writes OUTDIR/metrics.json, overlay_*.png (each instance's box with its id) and
 found_vs_present.png (instances found against instances present, frame by frame).
 
 poses.json: {"frames": [{"stamp_ns": int, "frame_id": str, "latency_ms": float,
-             "instances": [{"id": int, "T": [[4 x 4]], "inliers": int, "score": float,
+             "instances": [{"id": int, "object": str, "T": [[4 x 4]], "inliers": int, "score": float,
                             "track_id": int, "state": str, "source": str}]}]}
 T maps the model frame into the camera optical frame (metres). The tracker runs over the bag
 (every frame, in order) unless --no-tracking: then track_id, state and source are absent and
-every frame is solved alone. id is the rank of the instance in its frame by inliers.
+every frame is solved alone. id is the rank of the instance in its frame by inliers (among its
+object's instances). object is the name of the model (``mireg build-model --name``); instances
+are listed by object, in the order the models were given, then by id.
+metrics.json: the figures over all objects at the top level (as with one model), "objects"
+with each object's, and "confusions" (instances reported as the wrong object).
 """
 from __future__ import annotations
 
@@ -32,7 +36,9 @@ STAGE_ORDER = ("sift", "matching", "lifting", "ecc", "refinement", "tracking", "
 
 def add_arguments(parser) -> None:
     parser.add_argument("bag", help="rosbag2 directory, .db3 or .mcap")
-    parser.add_argument("--model", required=True, help="object model (.npz) from `mireg build-model`")
+    parser.add_argument("--model", required=True, action="append",
+                        help="object model (.npz) from `mireg build-model`; give it again for each further object "
+                             "(one SIFT pass for all; models need different names)")
     parser.add_argument("-o", "--output", required=True, help="output directory")
     parser.add_argument("--params", default=None, help="the node's parameter YAML (frontend.* and ecc.* are used)")
     parser.add_argument("--topics", nargs=3, metavar=("COLOUR", "DEPTH", "INFO"), default=None,
@@ -61,13 +67,16 @@ def load_config(params_path):
 
 def load_tracker_config(params_path):
     """TrackerConfig with the tracking.* entries of a node parameter file applied; None (no
-    tracking, as --no-tracking) when the file sets the node's tracking.enabled to false."""
-    from ..tracking import TRACKING_ENABLED, TrackerConfig
+    tracking, as --no-tracking) when the file sets the node's tracking.enabled to false. The
+    node's other live-stream settings (tracking.LiveConfig) do not apply offline."""
+    from ..tracking import TRACKING_ENABLED, LiveConfig, TrackerConfig
 
     values = _params(params_path)
-    if not TRACKING_ENABLED.check(values.pop(TRACKING_ENABLED.name, True)):
+    if not TRACKING_ENABLED.check(values.get(TRACKING_ENABLED.name, True)):
         return None
-    return _config_from_params(TrackerConfig(), values, ("tracking",), strip=True)
+    live = {f"tracking.{name}" for name in LiveConfig.__dataclass_fields__}
+    return _config_from_params(TrackerConfig(), {k: v for k, v in values.items() if k not in live},
+                               ("tracking",), strip=True)
 
 
 def _params(params_path) -> dict:
@@ -119,6 +128,9 @@ class ReplayResult:
     present: list[int] = field(default_factory=list)          # per frame: ground-truth instances (-1 without)
     found: list[int] = field(default_factory=list)
     hits: list[int] = field(default_factory=list)
+    object_scores: dict = field(default_factory=dict)         # object name -> its SceneScores, frame by frame
+    object_identity: dict | None = None                       # object name -> IdentityScore when tracking
+    confusions: int = 0                                       # estimates reported as the wrong object
     skipped: int = 0
     skip_reasons: str = ""
     has_ground_truth: bool = False
@@ -177,29 +189,73 @@ def match_frame(T_gt, T_est, visibility=None, min_visibility: float = 0.0, max_r
     return score, hits
 
 
+def ground_truth_owners(models, instance_objects: list[str]) -> np.ndarray:
+    """(K,) index of the model each ground-truth instance is an instance of, -1 for objects no
+    model was given for. With one model and a bag that does not name its objects (or names
+    none of them as the model), every instance is the model's: single-object bags score as
+    they always did."""
+    names = [m.name for m in models]
+    if len(models) == 1 and names[0] not in instance_objects:
+        return np.zeros(len(instance_objects), np.int64)
+    return np.array([names.index(n) if n in names else -1 for n in instance_objects], np.int64)
+
+
+def count_confusions(models, gt_poses, owners, visibility, min_visibility, published, hit_estimates,
+                     margin: float) -> int:
+    """Estimates reported as the wrong object: not a hit on their own object, with their box
+    centre inside (within ``margin``) the box of a present ground-truth instance of another
+    object whose model is loaded."""
+    from ..transforms import invert_transform
+
+    index = {m.name: k for k, m in enumerate(models)}
+    n = 0
+    for e, inst in enumerate(published):
+        if e in hit_estimates:
+            continue
+        k = index[inst.object]
+        centre = inst.T[:3, :3] @ np.asarray(models[k].box_centre, np.float64) + inst.T[:3, 3]
+        for g, owner in enumerate(owners):
+            if owner < 0 or owner == k or (visibility is not None and visibility[g] < min_visibility):
+                continue
+            other = models[owner]
+            T_model = gt_poses[g] @ (np.eye(4) if other.T_object_model is None else other.T_object_model)
+            local = invert_transform(T_model) @ np.append(centre, 1.0)
+            if np.all(np.abs(local[:3] - other.box_centre) <= np.asarray(other.extent) / 2 + margin):
+                n += 1
+                break
+    return n
+
+
 def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_rte: float = 0.02,
            max_frames: int = 0, on_frame=None, progress: bool = True, min_visibility: float = 0.0,
            tracker_config=None, detect_every: int = 1) -> ReplayResult:
-    """Run every frame of a bag through InstanceRegistration and, with a ``tracker_config``,
-    through the InstanceTracker (detector on every ``detect_every``-th frame, the tracker's
-    depth update on every frame). ``on_frame(index, frame, instances)`` is called with what
-    is published for each processed frame (pictures are drawn there)."""
+    """Run every frame of a bag through MultiModelRegistration (``model``: one ObjectModel or
+    a list of them) and, with a ``tracker_config``, through one InstanceTracker per object
+    (detector on every ``detect_every``-th frame, the trackers' depth update on every frame).
+    ``on_frame(index, frame, instances)`` is called with what is published for each
+    processed frame (pictures are drawn there). Ground truth is scored per object (an
+    instance's object from the bag's /ground_truth/object) and over all objects."""
     from ..datasets.rgbd_bag import RGBDBag
-    from ..metrics import IdentityScore
-    from ..rgbd.pipeline import InstanceRegistration, check_frame
+    from ..metrics import IdentityScore, combine_scores
+    from ..rgbd.model import ObjectModel
+    from ..rgbd.multi_model import MultiModelRegistration
+    from ..rgbd.pipeline import check_frame
 
     if detect_every < 1:
         raise InputError(f"--detect-every must be at least 1, got {detect_every}")
-    reg = InstanceRegistration(model, config)
-    symmetries = object_frame_symmetries(model)   # hits over the symmetries (BOP); None: plain
+    models = [model] if isinstance(model, ObjectModel) else list(model)
+    reg = MultiModelRegistration(models, config)
+    symmetries = [object_frame_symmetries(m) for m in models]   # hits over the symmetries (BOP); None: plain
     reg.warm_up()   # compile the ECC core's kernels now, not inside the first frame's latency
-    tracker = None
+    trackers = None
     if tracker_config is not None:
-        from ..tracking import InstanceTracker
+        from ..tracking import ObjectTrackers
 
-        tracker = InstanceTracker(model, tracker_config)
+        trackers = ObjectTrackers(models, tracker_config)
     kwargs = dict(zip(("colour_topic", "depth_topic", "info_topic"), topics)) if topics else {}
-    out = ReplayResult(identity=IdentityScore() if tracker is not None else None)
+    out = ReplayResult(identity=IdentityScore() if trackers is not None else None)
+    out.object_scores = {m.name: [] for m in models}
+    out.object_identity = {m.name: IdentityScore() for m in models} if trackers is not None else None
     skip_reasons: dict[str, int] = {}
     with RGBDBag(bag_path, **kwargs) as bag:
         out.has_ground_truth = bag.has_ground_truth
@@ -210,7 +266,7 @@ def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_
                 if max_frames and index >= max_frames:
                     break
                 cpu0 = time.process_time()
-                detect = tracker is None or index % detect_every == 0
+                detect = trackers is None or index % detect_every == 0
                 try:
                     check_frame(frame.rgb, frame.depth_m, frame.intrinsics)
                     result = reg.register_frame(frame.rgb, frame.depth_m, frame.intrinsics) if detect else None
@@ -221,34 +277,51 @@ def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_
                     continue
                 timings = dict(result.timings_ms) if result is not None else {s: 0.0 for s in STAGE_ORDER}
                 timings["tracking"] = 0.0
-                if tracker is not None:
+                if trackers is not None:
                     t0 = time.perf_counter()
-                    published = tracker.step(frame.stamp_ns, frame.depth_m, frame.intrinsics,
-                                             result.instances if result is not None else None)
+                    published = trackers.step(frame.stamp_ns, frame.depth_m, frame.intrinsics,
+                                              result.instances if result is not None else None)
                     timings["tracking"] = (time.perf_counter() - t0) * 1e3
                     timings["total"] += timings["tracking"]
                 else:
                     published = result.instances
+                order = {m.name: k for k, m in enumerate(models)}
                 out.frames.append({
                     "stamp_ns": int(frame.stamp_ns), "frame_id": frame.frame_id,
                     "latency_ms": round(float(timings["total"]), 3),
-                    "instances": [instance_json(i) for i in sorted(published, key=lambda i: i.id)]})
+                    "instances": [instance_json(i) for i in sorted(published, key=lambda i: (order[i.object], i.id))]})
                 out.timings.append(timings)
                 out.cpu_ms.append((time.process_time() - cpu0) * 1e3)
                 out.found.append(len(published))
                 if frame.gt_poses is not None:
-                    est = estimates_in_object_frame(model, [i.T for i in published])
-                    score, hits = match_frame(frame.gt_poses, est, frame.gt_visibility, min_visibility, max_rre_deg,
-                                              max_rte, symmetries)
+                    owners = ground_truth_owners(models, bag.instance_objects(len(frame.gt_poses)))
+                    scores, detection_scores, hit_estimates = [], [], set()
+                    for k, m in enumerate(models):
+                        gt = np.flatnonzero(owners == k)
+                        est = [e for e, i in enumerate(published) if i.object == m.name]
+                        vis = None if frame.gt_visibility is None else frame.gt_visibility[gt]
+                        score, hits = match_frame(frame.gt_poses[gt], estimates_in_object_frame(m, [published[e].T for e in est]),
+                                                  vis, min_visibility, max_rre_deg, max_rte, symmetries[k])
+                        scores.append(score)
+                        out.object_scores[m.name].append(score)
+                        hit_estimates |= {est[e] for _, e in hits}
+                        if trackers is not None:
+                            matches = [((m.name, int(gt[g])), (m.name, published[est[e]].track_id)) for g, e in hits]
+                            out.identity.add_frame(matches, score.n_gt, score.n_est)
+                            out.object_identity[m.name].add_frame(matches, score.n_gt, score.n_est)
+                            if result is not None:
+                                found = [i.T for i in result.instances if i.object == m.name]
+                                detection_scores.append(evaluate_frame(
+                                    frame.gt_poses[gt], estimates_in_object_frame(m, found), vis, min_visibility,
+                                    max_rre_deg, max_rte, symmetries[k]))
+                    score = combine_scores(scores)
                     out.scores.append(score)
+                    if detection_scores:
+                        out.detection_scores.append(combine_scores(detection_scores))
+                    out.confusions += count_confusions(models, frame.gt_poses, owners, frame.gt_visibility,
+                                                       min_visibility, published, hit_estimates, max_rte)
                     out.present.append(score.n_gt)
                     out.hits.append(score.hits)
-                    if tracker is not None:
-                        out.identity.add_frame([(g, published[e].track_id) for g, e in hits], score.n_gt, score.n_est)
-                        if result is not None:
-                            out.detection_scores.append(evaluate_frame(
-                                frame.gt_poses, estimates_in_object_frame(model, [i.T for i in result.instances]),
-                                frame.gt_visibility, min_visibility, max_rre_deg, max_rte, symmetries))
                 else:
                     out.present.append(-1)
                     out.hits.append(-1)
@@ -269,7 +342,7 @@ def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_
 
 def instance_json(inst) -> dict:
     """One instance of poses.json; tracked ones add track_id, state and source."""
-    d = {"id": int(inst.id), "T": np.round(inst.T, 7).tolist(), "inliers": int(inst.inliers),
+    d = {"id": int(inst.id), "object": inst.object, "T": np.round(inst.T, 7).tolist(), "inliers": int(inst.inliers),
          "score": round(float(inst.score), 5)}
     if hasattr(inst, "track_id"):
         d.update({"track_id": int(inst.track_id), "state": inst.state, "source": inst.source})
@@ -284,6 +357,13 @@ def metrics_dict(result: ReplayResult, max_rre_deg: float, max_rte: float, min_v
     if result.identity is not None:
         extra["identity"] = result.identity.summary()
         extra["detection_only"] = summarize(result.detection_scores)
+    objects = {}
+    for name, scores in result.object_scores.items():
+        objects[name] = summarize(scores)
+        if result.object_identity is not None:
+            objects[name]["identity"] = result.object_identity[name].summary()
+    extra["objects"] = objects
+    extra["confusions"] = result.confusions
     return {**summary, **extra, "max_rre_deg": max_rre_deg, "max_rte": max_rte, "min_visibility": min_visibility,
             "frames": len(result.frames), "frames_with_ground_truth": len(result.scores),
             "skipped_frames": result.skipped, "latency_ms": result.latency_summary(),
@@ -293,17 +373,26 @@ def metrics_dict(result: ReplayResult, max_rre_deg: float, max_rte: float, min_v
 
 # --------------------------------------------------------------------------- pictures
 
-def draw_overlay(rgb: np.ndarray, intrinsics, model, instances, gt_poses=None) -> np.ndarray:
-    """BGR picture: each instance's model box projected (green) with its id; ground truth in grey."""
+def draw_overlay(rgb: np.ndarray, intrinsics, models, instances, gt_poses=None, gt_owners=None) -> np.ndarray:
+    """BGR picture: each instance's model box projected (green) with its id (and its object's
+    name when there are several models); ground truth in grey (``gt_owners``: the model index
+    of each ground-truth instance, default all the first's)."""
+    from ..rgbd.model import ObjectModel
     from ..rgbd.overlay import draw_box
 
+    models = [models] if isinstance(models, ObjectModel) else list(models)
+    by_name = {m.name: m for m in models}
     img = np.ascontiguousarray(rgb[:, :, ::-1]).copy()
-    corners = model.box_corners()
-    if gt_poses is not None and model.T_object_model is not None:
-        for T in gt_poses:
-            draw_box(img, T @ model.T_object_model, corners, intrinsics, (160, 160, 160), thickness=1)
+    if gt_poses is not None:
+        owners = np.zeros(len(gt_poses), np.int64) if gt_owners is None else gt_owners
+        for T, k in zip(gt_poses, owners):
+            if k >= 0 and models[k].T_object_model is not None:
+                draw_box(img, T @ models[k].T_object_model, models[k].box_corners(), intrinsics, (160, 160, 160),
+                         thickness=1)
     for inst in instances:
-        draw_box(img, inst.T, corners, intrinsics, (0, 220, 0), label=str(getattr(inst, "track_id", inst.id)))
+        label = str(getattr(inst, "track_id", inst.id))
+        draw_box(img, inst.T, by_name[inst.object].box_corners(), intrinsics, (0, 220, 0),
+                 label=f"{inst.object} {label}" if len(models) > 1 else label)
     return img
 
 
@@ -345,7 +434,10 @@ def run(args) -> int:
 
     from ..rgbd.model import load_model
 
-    model = load_model(args.model)
+    from ..rgbd.multi_model import check_model_names
+
+    models = [load_model(path) for path in args.model]
+    check_model_names(models, args.model)
     config = load_config(args.params)
     out_dir = Path(args.output)
     if out_dir.exists() and not out_dir.is_dir():
@@ -357,16 +449,18 @@ def run(args) -> int:
     with RGBDBag(args.bag, **kwargs) as bag:
         n_est = bag.num_colour_messages if not args.max_frames else min(args.max_frames, bag.num_colour_messages)
         has_gt = bag.has_ground_truth
+        gt_names = bag.instance_objects     # reads the description only: usable after the bag is closed
     picks = set(np.linspace(0, max(n_est - 1, 0), min(args.overlays, n_est)).round().astype(int).tolist()) \
         if has_gt and args.overlays > 0 else set()
     out_dir.mkdir(parents=True, exist_ok=True)
 
     def on_frame(index, frame, instances):
         if index in picks:
-            img = draw_overlay(frame.rgb, frame.intrinsics, model, instances, frame.gt_poses)
+            owners = None if frame.gt_poses is None else ground_truth_owners(models, gt_names(len(frame.gt_poses)))
+            img = draw_overlay(frame.rgb, frame.intrinsics, models, instances, frame.gt_poses, owners)
             cv2.imwrite(str(out_dir / f"overlay_{index:05d}.png"), img)
 
-    result = replay(args.bag, model, config, args.topics, args.max_rre_deg, args.max_rte, args.max_frames,
+    result = replay(args.bag, models, config, args.topics, args.max_rre_deg, args.max_rte, args.max_frames,
                     on_frame=on_frame, progress=not args.quiet, min_visibility=args.min_visibility,
                     tracker_config=None if args.no_tracking else load_tracker_config(args.params),
                     detect_every=args.detect_every)
@@ -385,6 +479,9 @@ def run(args) -> int:
         line += (f"; MHF1 {metrics['MHF1']:.3f} MHR {metrics['MHR']:.3f} MHP {metrics['MHP']:.3f} MF {metrics['MF']:.3f}"
                  f", median RTE {'-' if rte is None else f'{rte * 1000:.1f} mm'}"
                  f" RRE {'-' if rre is None else f'{rre:.2f} deg'}")
+        if len(models) > 1:
+            line += "; " + ", ".join(f"{name} MHF1 {m['MHF1']:.3f}" for name, m in metrics["objects"].items())
+            line += f"; {metrics['confusions']} reported as the wrong object"
         if "identity" in metrics:
             ident = metrics["identity"]
             line += (f"; IDF1 {ident['IDF1']:.3f} ID switches {ident['id_switches']} MOTA {ident['MOTA']:.3f}"

@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 from ..errors import InputError
+from ..ros.names import add_namespace_argument, checked_namespace, relative
 
 HELP = "publish a rosbag2 (or ROS 1) bag into the ROS graph with its original timing"
 
@@ -29,6 +30,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--wait-timeout", type=float, default=30.0, metavar="S",
                         help="give up waiting for subscribers after this long (default 30)")
     parser.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    add_namespace_argument(parser, "publish the bag's topics under this namespace")
 
 
 def message_class(msgtype: str):
@@ -47,6 +49,7 @@ def message_class(msgtype: str):
 def run(args) -> int:
     if not args.rate > 0:
         raise InputError(f"--rate must be positive, got {args.rate}")
+    args.namespace = checked_namespace(args.namespace)
     from ..datasets.rgbd_bag import _open_reader
 
     reader = _open_reader(args.bag)
@@ -76,10 +79,11 @@ def _play(reader, args) -> int:
 
     use_large_data_profile()   # images through shared memory (ros/transport.py)
     rclpy.init()
-    node = rclpy.create_node("mireg_play")
+    node = rclpy.create_node("mireg_play", namespace=args.namespace)
     try:
         qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
-        publishers = {topic: node.create_publisher(cls, topic, qos) for topic, cls in types.items()}
+        # Relative names: /camera/... goes out as <namespace>/camera/... (the same in the root namespace).
+        publishers = {topic: node.create_publisher(cls, relative(topic), qos) for topic, cls in types.items()}
         _wait_for_subscribers(node, publishers, args)
         time.sleep(args.start_delay)
         if not args.quiet:

@@ -1,6 +1,6 @@
 """``mireg synth``: make synthetic D455 tabletop recordings with ground truth.
 
-    mireg synth scene -o OUT [--object NAME] [--instances K] [--distractors D] [--frames F]
+    mireg synth scene -o OUT [--object NAME [--object NAME2 ...]] [--instances K] [--distractors D] [--frames F]
                       [--motion sweep|static|pan] [--occluder]
                       [--seed S] [--storage sqlite3|mcap] [--resolution 640x480|1280x720]
                       [--preview DIR]
@@ -29,8 +29,9 @@ def add_arguments(parser) -> None:
         if object_required:
             p.add_argument("--object", required=True, metavar="NAME", help=f"object to scan: {objects}")
         else:
-            p.add_argument("--object", default=DEFAULT_OBJECT, metavar="NAME",
-                           help=f"object of which K identical instances are placed (default {DEFAULT_OBJECT}): {objects}")
+            p.add_argument("--object", action="append", default=None, metavar="NAME",
+                           help=f"object of which K identical instances are placed (default {DEFAULT_OBJECT}); give it "
+                                f"again for a mixed scene (K of each, ground truth naming each instance's object): {objects}")
         p.add_argument("--seed", type=int, default=0, help="random seed; the same seed gives the same bag (default 0)")
         p.add_argument("--storage", choices=("sqlite3", "mcap"), default="sqlite3", help="rosbag2 storage (default sqlite3)")
         p.add_argument("--resolution", choices=RESOLUTIONS, default="640x480", help="colour/depth size (default 640x480)")
@@ -43,7 +44,8 @@ def add_arguments(parser) -> None:
                                        "optionally with an arm passing in front); written as a rosbag2 "
                                        "with ground-truth poses.")
     common(scene, object_required=False)
-    scene.add_argument("--instances", type=int, default=6, metavar="K", help="instances of the object, 1-20 (default 6)")
+    scene.add_argument("--instances", type=int, default=6, metavar="K",
+                       help="instances of each object, 1-20 in all (default 6)")
     scene.add_argument("--distractors", type=int, default=3, metavar="D", help="other objects, 0-20 (default 3)")
     scene.add_argument("--frames", type=int, default=60, metavar="F", help="frames at 30 Hz (default 60)")
     scene.add_argument("--motion", choices=MOTIONS, default="sweep",
@@ -92,6 +94,7 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
+    from ..synthetic.objects import DEFAULT_OBJECT
     from ..synthetic.scene import generate_capture_bag, generate_scene_bag
 
     if args.synth_command == "mesh":
@@ -111,7 +114,9 @@ def run(args) -> int:
         print(f"mireg synth untextured: {summary.line()}" + (f"; mesh {args.mesh}" if args.mesh else ""))
         return 0
     if args.synth_command == "scene":
-        summary = generate_scene_bag(args.output, object_name=args.object, instances=args.instances,
+        objects = args.object or [DEFAULT_OBJECT]
+        summary = generate_scene_bag(args.output, object_name=objects[0] if len(objects) == 1 else objects,
+                                     instances=args.instances,
                                      distractors=args.distractors, frames=args.frames, seed=args.seed,
                                      storage=args.storage, resolution=args.resolution, preview_dir=args.preview,
                                      motion=args.motion, occluder=args.occluder)

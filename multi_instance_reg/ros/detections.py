@@ -1,0 +1,122 @@
+"""Instances -> vision_msgs/Detection3DArray and vision_msgs/LabelInfo, the messages ROS 2
+perception stacks read detections in (Isaac ROS, DOPE, the RViz vision_msgs plugin).
+
+vision_msgs is optional: every ROS install with ros-jazzy-vision-msgs has it, and ``make
+install`` builds it into the venv (interfaces/install_vision_msgs.py). Without it the node
+publishes everything else and says once why detections are off (``DetectionPublisher.create``).
+
+Per instance, one Detection3D: ``results[0]`` carries the object's name as ``class_id``, the
+instance's score and its pose (the model frame in the camera optical frame, as in the
+PoseArray); ``bbox`` is the model's box (centre = the box centre moved by the pose, size =
+the model's extent); ``id`` is the track id as a string once a tracker gives one (an instance
+with a ``track_id``), else empty. An instance with an ``object`` attribute (several models)
+is named by it, else by the node's one object.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .conversions import matrix_to_pose_msg
+
+DETECTIONS_TOPIC = "instances/detections"
+# Beside the detections, as camera_info is beside image_raw (vision_msgs: "each vision pipeline
+# should publish its LabelInfo messages to its own topic, in a manner similar to CameraInfo").
+LABEL_INFO_TOPIC = "instances/label_info"
+
+
+def vision_msgs_missing() -> str | None:
+    """None when vision_msgs' Python messages import, else why not (one line)."""
+    try:
+        from vision_msgs.msg import Detection3DArray, LabelInfo  # noqa: F401
+    except ImportError as exc:
+        return f"{exc}"
+    return None
+
+
+@dataclass(frozen=True)
+class ObjectClass:
+    """What a Detection3D says about the kind of object: its name and its box in the model frame."""
+    name: str
+    box_centre: np.ndarray   # (3,) metres, model frame
+    box_size: np.ndarray     # (3,) metres, along the model axes
+
+    @classmethod
+    def of_model(cls, model, model_path) -> "ObjectClass":
+        """The model's stored name, else its file's stem (``snack_bar.npz`` -> ``snack_bar``)."""
+        from pathlib import Path
+
+        name = str(getattr(model, "name", "") or "") or Path(model_path).stem
+        return cls(name, np.asarray(model.box_centre, dtype=np.float64).reshape(3),
+                   np.asarray(model.extent, dtype=np.float64).reshape(3))
+
+
+def detection_array(instances, header, objects: dict[str, ObjectClass], default: str):
+    """One Detection3D per instance, in the order given; header = the colour image's."""
+    from vision_msgs.msg import Detection3D, Detection3DArray, ObjectHypothesisWithPose
+
+    out = Detection3DArray()
+    out.header = header
+    for inst in instances:
+        kind = objects[getattr(inst, "object", None) or default]
+        T = np.asarray(inst.T, dtype=np.float64)
+        hypothesis = ObjectHypothesisWithPose()
+        hypothesis.hypothesis.class_id = kind.name
+        hypothesis.hypothesis.score = float(inst.score)
+        hypothesis.pose.pose = matrix_to_pose_msg(T)   # covariance: unknown (zeros)
+        box_T = T.copy()
+        box_T[:3, 3] = T[:3, :3] @ kind.box_centre + T[:3, 3]
+        detection = Detection3D()
+        detection.header = header
+        detection.results = [hypothesis]
+        detection.bbox.center = matrix_to_pose_msg(box_T)
+        detection.bbox.size.x, detection.bbox.size.y, detection.bbox.size.z = (float(v) for v in kind.box_size)
+        track_id = getattr(inst, "track_id", None)
+        detection.id = "" if track_id is None else str(track_id)
+        out.detections.append(detection)
+    return out
+
+
+def label_info(names, header=None):
+    """vision_msgs/LabelInfo: class k = the k-th name (the order the node loaded the models)."""
+    from vision_msgs.msg import LabelInfo, VisionClass
+
+    msg = LabelInfo()
+    if header is not None:
+        msg.header = header
+    msg.class_map = [VisionClass(class_id=k, class_name=name) for k, name in enumerate(names)]
+    return msg
+
+
+class DetectionPublisher:
+    """The node's Detection3DArray and LabelInfo publishers; ``create`` gives None (and logs
+    once why) when vision_msgs is not installed."""
+
+    def __init__(self, node, qos, objects: list[ObjectClass]):
+        from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+        from vision_msgs.msg import Detection3DArray, LabelInfo
+
+        self.objects = {o.name: o for o in objects}
+        self.default = objects[0].name
+        self._detections = node.create_publisher(Detection3DArray, DETECTIONS_TOPIC, qos)
+        # Transient local: a subscriber that joins later still gets the class names.
+        latched = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self._labels = node.create_publisher(LabelInfo, LABEL_INFO_TOPIC, latched)
+        from std_msgs.msg import Header
+
+        self._labels.publish(label_info(list(self.objects), Header(stamp=node.get_clock().now().to_msg())))
+
+    @classmethod
+    def create(cls, node, qos, objects: list[ObjectClass]) -> "DetectionPublisher | None":
+        missing = vision_msgs_missing()
+        if missing is not None:
+            node.get_logger().warn(
+                f"{DETECTIONS_TOPIC} is off: vision_msgs is not installed ({missing}); install ROS' "
+                "ros-jazzy-vision-msgs, or run `make install` (builds it into the venv)")
+            return None
+        return cls(node, qos, objects)
+
+    def publish(self, instances, header) -> None:
+        self._detections.publish(detection_array(instances, header, self.objects, self.default))
