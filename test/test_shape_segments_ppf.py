@@ -103,3 +103,59 @@ def test_icp_does_not_slide_a_box_seen_by_its_top_alone():
     assert share > 0.5
     assert np.linalg.norm(out[:3, 3] - start[:3, 3]) < 0.01           # no drift along the face
     assert abs(out[2, 3] - T[2, 3]) < 0.003                            # the depth is corrected
+
+
+def test_outline_continuation_tells_a_box_top_from_a_piece_of_a_larger_surface():
+    from multi_instance_reg.rgbd.verify import outline_continuation
+
+    K = _intrinsics()
+    # The model: a 0.2 x 0.13 m face (normals towards the camera), centred at its origin.
+    g = np.stack(np.meshgrid(np.arange(-0.1, 0.1001, 0.01), np.arange(-0.065, 0.0651, 0.01)), -1).reshape(-1, 2)
+    face = np.column_stack([g, np.zeros(len(g))])
+    normals = np.tile([0.0, 0.0, -1.0], (len(face), 1))
+
+    def at(row, col, z):
+        return make_transform(np.eye(3), z * (np.linalg.inv(K.K) @ [col, row, 1.0]))
+
+    depth = np.full((240, 320), 1.5, np.float32)            # floor
+    depth[120:220, 160:300] = 1.3                            # a crate top, 0.46 x 0.325 m
+    # A box top exactly as big as the model, standing 0.2 m above the floor.
+    T_box = at(70, 70, 1.3)
+    uv = (K.K @ (face @ T_box[:3, :3].T + T_box[:3, 3]).T).T
+    uv = uv[:, :2] / uv[:, 2:]
+    c0, r0 = np.floor(uv.min(0)).astype(int)
+    c1, r1 = np.ceil(uv.max(0)).astype(int)
+    depth[r0:r1 + 1, c0:c1 + 1] = 1.3
+    own, n_own = outline_continuation(T_box, face, normals, depth, K, 0.01, 0.01)
+    # The same face laid on the crate top's middle, and on the open floor: the surface goes on.
+    crate, n_crate = outline_continuation(at(170, 230, 1.3), face, normals, depth, K, 0.01, 0.01)
+    floor, _ = outline_continuation(at(200, 60, 1.5), face, normals, depth, K, 0.01, 0.01)
+    assert n_own > 50 and n_crate > 50
+    assert own < 0.05
+    assert crate > 0.9 and floor > 0.9
+
+
+def test_pose_clusters_rank_agreeing_references_above_scattered_ones():
+    from multi_instance_reg.rgbd.ppf import cluster_poses
+    from multi_instance_reg.symmetry import _rotation
+
+    rng = np.random.default_rng(0)
+    a = make_transform(_rotation(np.array([0.0, 0, 1]), 0.3), [0.1, 0.0, 1.0])
+    b = make_transform(_rotation(np.array([1.0, 0, 0]), 1.0), [-0.2, 0.1, 1.2])
+
+    def near(T, k):
+        out = []
+        for _ in range(k):
+            D = make_transform(_rotation(rng.normal(size=3) / 1.0, np.radians(3)), rng.normal(0, 0.003, 3))
+            out.append(T @ D)
+        return out
+
+    scattered = [make_transform(_rotation(rng.normal(size=3), rng.uniform(0, np.pi)), rng.uniform(-0.5, 0.5, 3) + [0, 0, 1])
+                 for _ in range(40)]
+    poses = np.stack(near(a, 12) + near(b, 6) + scattered)
+    weights = rng.uniform(0.5, 1.0, len(poses))
+    top = cluster_poses(poses, weights, 12.0, 0.03, max_clusters=2)
+    assert len(top) == 2
+    assert np.linalg.norm(top[0][:3, 3] - a[:3, 3]) < 0.02 and np.linalg.norm(top[1][:3, 3] - b[:3, 3]) < 0.02
+    # Every pose distinct: each is its own seed, in the order of the weights.
+    assert len(cluster_poses(poses[:3], -np.arange(3.0), 1.0, 1e-6, 10, min_members=1)) == 3

@@ -253,7 +253,7 @@ class PPFModel:
             out = cand[np.arange(len(out)), best]
         return out
 
-    def correspondences(self, scene_idx, poses, points: np.ndarray, neighbours: int = 4
+    def correspondences(self, scene_idx, poses, points: np.ndarray, neighbours: int = 4, canonical: bool = False
                         ) -> tuple[np.ndarray, np.ndarray]:
         """(model points (N, 3), scene indices (N,)): for each reference, itself and its
         ``neighbours`` nearest scene points spread over a few voxels, each with the model
@@ -262,7 +262,8 @@ class PPFModel:
         set, which ECC finds among the rest."""
         if len(scene_idx) == 0:
             return np.zeros((0, 3)), np.zeros(0, np.int64)
-        poses = self.canonical_poses(poses)
+        if not canonical:
+            poses = self.canonical_poses(poses)
         from scipy.spatial import cKDTree
 
         k = 3 * neighbours + 1
@@ -272,6 +273,38 @@ class PPFModel:
         Tinv = np.linalg.inv(poses)
         src = np.einsum("rij,rkj->rki", Tinv[:, :3, :3], tgt) + Tinv[:, None, :3, 3]
         return src.reshape(-1, 3), nb.reshape(-1)
+
+
+def cluster_poses(poses: np.ndarray, weights: np.ndarray, max_angle_deg: float, max_shift: float,
+                  max_clusters: int, min_members: int = 2) -> np.ndarray:
+    """Pose hypotheses straight from the references' votes (Drost et al.'s pose clustering):
+    greedily, strongest reference first, a pose joins the first cluster whose seed it is
+    within ``max_angle_deg`` and ``max_shift`` of; clusters ranked by their summed weight.
+    Returns the seeds of the best ``max_clusters`` clusters of at least ``min_members``
+    (K, 4, 4). ``poses`` should be canonical over the symmetries (``canonical_poses``)."""
+    if len(poses) == 0:
+        return np.zeros((0, 4, 4))
+    order = np.argsort(-np.asarray(weights), kind="stable")
+    R = poses[order, :3, :3]
+    t = poses[order, :3, 3]
+    w = np.asarray(weights, np.float64)[order]
+    cos_max = math.cos(math.radians(max_angle_deg))
+    label = np.full(len(order), -1, np.int64)
+    seeds = []
+    for i in range(len(order)):
+        if label[i] >= 0:
+            continue
+        # Unassigned poses near this seed: trace(Ra^T Rb) = 1 + 2 cos(angle).
+        rest = np.flatnonzero(label < 0)
+        near = (np.linalg.norm(t[rest] - t[i], axis=1) < max_shift)
+        rest = rest[near]
+        tr = np.einsum("ij,kij->k", R[i], R[rest])
+        label[rest[(tr - 1.0) / 2.0 >= cos_max]] = len(seeds)
+        seeds.append(i)
+    counts = np.bincount(label, minlength=len(seeds))
+    score = np.bincount(label, weights=w, minlength=len(seeds))
+    best = [k for k in np.argsort(-score, kind="stable") if counts[k] >= min_members][:max_clusters]
+    return poses[order[[seeds[k] for k in best]]] if best else np.zeros((0, 4, 4))
 
 
 def _canonical_turn(T: np.ndarray, sym: Symmetries) -> np.ndarray:
@@ -296,4 +329,4 @@ def _align(n: np.ndarray) -> np.ndarray:
     return _align_to_x(float(n[0]), float(n[1]), float(n[2]))
 
 
-__all__ = ["PPFModel"]
+__all__ = ["PPFModel", "cluster_poses"]

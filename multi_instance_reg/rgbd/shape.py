@@ -268,7 +268,7 @@ def icp_point_to_plane(T: np.ndarray, model_pts: np.ndarray, scene_pts: np.ndarr
         if model_normals is not None:
             # Facing the camera by more than grazing (as in ``depth_support``).
             p = p[np.einsum("ij,ij->i", model_normals @ R.T, p) < -0.2 * np.linalg.norm(p, axis=1)]
-        d, j = scene_tree.query(p, k=1, distance_upper_bound=max_dist, workers=-1)
+        d, j = scene_tree.query(p, k=1, distance_upper_bound=max_dist)   # one thread: small queries
         ok = np.isfinite(d)
         share = float(ok.mean()) if len(ok) else 0.0
         if ok.sum() < 6:

@@ -19,8 +19,9 @@ from ..errors import InputError
 from ..messages import CameraIntrinsics
 from .model import ObjectModel
 from .lifting import depth_to_cloud
-from .ppf import PPFModel
+from .ppf import ANGLE_BINS as ANGLE_STEPS, PPFModel, cluster_poses
 from .segments import connected_segments, support_mask
+from .verify import outline_continuation
 from .shape import (ShapeMatcher, depth_support, describe, icp_point_to_plane, normals_and_variation, scene_cloud,
                     voxel_downsample)
 
@@ -33,6 +34,7 @@ class FrameCloud:
     descriptors: np.ndarray   # (S, 33) their FPFH
     tree: cKDTree | None
     segments: np.ndarray | None = None    # (M,) segment label per point (-1: none), ppf only
+    poses: np.ndarray | None = None       # (K, 4, 4) pose hypotheses clustered from the votes, ppf only
 
 
 class ShapeFrontEnd:
@@ -111,7 +113,13 @@ class ShapeFrontEnd:
                 return np.zeros((0, 3)), np.zeros((0, 3))
             s, m, poses, share = self._ppf.vote(cloud.points, cloud.normals, cloud.segments,
                                                 self.fe.shape_ref_step, self.fe.shape_max_partners)
-            src, s = self._ppf.correspondences(s, poses, cloud.points)
+            poses = self._ppf.canonical_poses(poses)
+            if self.fe.shape_pose_clusters > 0:
+                # The references' own poses, clustered: an instance whose references ECC
+                # does not group (too few agree among the rest) still gets a hypothesis.
+                cloud.poses = cluster_poses(poses, share, 360.0 / ANGLE_STEPS, 0.1 * self.diameter,
+                                            self.fe.shape_pose_clusters)
+            src, s = self._ppf.correspondences(s, poses, cloud.points, canonical=True)
             return src, cloud.points[s]
         s, m = self._matcher.match(cloud.descriptors)
         return self._model_pts[self._model_idx[m]], cloud.points[cloud.salient[s]]
@@ -130,6 +138,12 @@ class ShapeFrontEnd:
             support, free, n = depth_support(T, self._surface, self._surface_normals, depth_m, intrinsics, tol)
             return support - free, support, free, n
 
+        # Hypotheses that are one pose (ECC's and the vote clusters' for one instance) are
+        # refined once: the first of each group, in the order given.
+        if len(transforms) > 1:
+            transforms = cluster_poses(np.stack([np.asarray(T, np.float64) for T in transforms]),
+                                       -np.arange(len(transforms), dtype=np.float64), 360.0 / ANGLE_STEPS,
+                                       0.1 * self.diameter, len(transforms), min_members=1)
         for T0 in transforms:
             # The depth check first (a projection, no search), then a few rounds of ICP: a
             # hypothesis the depth hardly supports is dropped without paying for the rest
@@ -147,7 +161,15 @@ class ShapeFrontEnd:
             # ICP can slide a box seen by one face alone: keep whichever pose the depth
             # image supports better.
             _, support, free, n, T = max([cand, fit(T) + (T,)], key=lambda c: c[0])
-            if n >= fe.shape_min_visible and support >= fe.shape_min_support and free <= fe.shape_max_free:
+            if n < fe.shape_min_visible or support < fe.shape_min_support or free > fe.shape_max_free:
+                continue
+            # A piece of a larger surface (a carton fitted onto a crate's top) agrees with the
+            # depth wherever it covers: what tells is the same surface continuing just past
+            # its outline, "same" meaning within the depth noise (3 sigma) at its distance.
+            same = max(3.0 * fe.shape_depth_noise * float(T[2, 3]) ** 2, 0.002)
+            outline, _ = outline_continuation(T, self._surface, self._surface_normals, depth_m, intrinsics,
+                                              self.voxel, same)
+            if support - free - 2.0 * outline >= fe.shape_min_evidence:
                 out.append((T, support, int(round(support * n))))
         return out
 

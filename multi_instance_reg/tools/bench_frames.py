@@ -51,7 +51,7 @@ def add_arguments(parser) -> None:
                         help="benchmark the shape front end on untextured generated scenes instead "
                              "(model from the object's mesh; also distractor-only scenes and the model build time)")
     parser.add_argument("--correspondences", default=None, choices=("auto", "sift", "shape", "both"),
-                        help="override frontend.correspondences")
+                        help="override frontend.correspondences (shape/both: the model is built from the object's mesh plus the capture bags)")
 
 
 # Rotation (object frame) that turns the upright object's "up" axis (+z) into another.
@@ -134,6 +134,23 @@ def model_from_captures(captures) -> "object":
         description = description or desc
     return build_model(views, BuildSettings(), name=(description or {}).get("name", ""),
                        register_view=register_view_with_ecc)
+
+
+def model_from_mesh_and_captures(object_name, captures) -> "object":
+    """Shape from the generated object's mesh, texture from the capture bags (their ground
+    truth is in the mesh frame): what ``build-model --mesh`` with capture bags makes."""
+    from ..rgbd.mesh_model import add_capture_keypoints, build_model_from_mesh
+    from ..rgbd.model import BuildSettings
+    from ..synthetic.objects import get_object, object_mesh
+    from ..synthetic.scene import DEFAULT_OBJECT
+    from .build_model import views_from_bag
+
+    spec = get_object(object_name or DEFAULT_OBJECT)
+    model = build_model_from_mesh(object_mesh(spec), spec.name)
+    views = []
+    for bag in captures:
+        views += views_from_bag(bag, None, None)[0]
+    return add_capture_keypoints(model, views, BuildSettings())
 
 
 def format_report(metrics: dict) -> str:
@@ -274,8 +291,13 @@ def run(args) -> int:
             if not captures:
                 print("generating capture bags (4 resting poses) ...", file=sys.stderr)
                 captures = generate_capture_bags(tmp, args.object, args.seed)
-            model = model_from_captures(captures)
-            print(f"model: {model.num_keypoints} keypoints from {len(captures)} capture bag(s)", file=sys.stderr)
+            if args.correspondences in ("shape", "both"):
+                model = model_from_mesh_and_captures(args.object, captures)
+                print(f"model: the object's mesh and {model.num_keypoints} keypoints from {len(captures)} capture "
+                      f"bag(s) placed by their ground truth", file=sys.stderr)
+            else:
+                model = model_from_captures(captures)
+                print(f"model: {model.num_keypoints} keypoints from {len(captures)} capture bag(s)", file=sys.stderr)
         total = ReplayResult()
         load = []
         for bag in bags:

@@ -1,0 +1,103 @@
+"""Is a pose hypothesis an object, or a piece of a larger surface? Checks against the depth
+image beyond ``shape.depth_support`` (which asks whether the model's visible surface is
+there). No ROS, no colour.
+
+A face seen alone is placed by its outline: the object ends where the depth image steps
+away (to the support below, or to an occluder in front). A model fitted onto part of a
+larger surface (a carton onto the top of a crate, a small cylinder's cap onto a wide one's)
+agrees with the depth everywhere it covers, and is told apart only by what lies just outside
+its outline: the same surface, continuing.
+
+    share, n = outline_continuation(T, surface, surface_normals, depth_m, intrinsics, voxel, tol)
+"""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..messages import CameraIntrinsics
+
+
+def _points_and_normals(depth: np.ndarray, K: np.ndarray, rows: np.ndarray, cols: np.ndarray, step: int = 2
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Camera-frame points and normals (towards the camera; central differences ``step``
+    pixels apart) at the given pixels, and which of them have all four neighbours' depth."""
+    h, w = depth.shape
+    s = int(step)
+    inside = (rows >= s) & (rows < h - s) & (cols >= s) & (cols < w - s)
+    rows, cols = rows[inside], cols[inside]
+
+    def xyz(r, c):
+        z = depth[r, c].astype(np.float64)
+        return np.stack([z * (c - K[0, 2]) / K[0, 0], z * (r - K[1, 2]) / K[1, 1], z], axis=1)
+
+    P, right, left, down, up = (xyz(rows + dr, cols + dc) for dr, dc in ((0, 0), (0, s), (0, -s), (s, 0), (-s, 0)))
+    ok = np.zeros(len(inside), bool)
+    good = (P[:, 2] > 0) & (right[:, 2] > 0) & (left[:, 2] > 0) & (down[:, 2] > 0) & (up[:, 2] > 0)
+    ok[np.flatnonzero(inside)[good]] = True
+    n = np.cross(right[good] - left[good], down[good] - up[good])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    n *= np.where(np.einsum("ij,ij->i", n, P[good]) > 0, -1.0, 1.0)[:, None]
+    return P[good], n, ok
+
+
+def outline_continuation(T: np.ndarray, model_pts: np.ndarray, model_normals: np.ndarray, depth_m: np.ndarray,
+                         intrinsics: CameraIntrinsics, voxel: float, tolerance: float,
+                         max_angle_deg: float = 30.0) -> tuple[float, int]:
+    """Of the valid depth pixels in a band just outside the model's outline at pose T (from
+    half a voxel to a voxel and a half beyond its visible surface): the share where the
+    nearest visible model face continues (the measured point within ``tolerance`` of its
+    plane, the measured normal within ``max_angle_deg`` of its normal), and how many
+    pixels the band has. Returns (share, pixels)."""
+    R, t = T[:3, :3], T[:3, 3]
+    p = model_pts @ R.T + t
+    n = model_normals @ R.T
+    facing = (np.einsum("ij,ij->i", n, -p) > 0.2 * np.linalg.norm(p, axis=1)) & (p[:, 2] > 0.05)
+    p, n = p[facing], n[facing]
+    if len(p) < 3:
+        return 0.0, 0
+    K = intrinsics.K
+    h, w = depth_m.shape
+    z = p[:, 2]
+    u = K[0, 0] * p[:, 0] / z + K[0, 2]
+    v = K[1, 1] * p[:, 1] / z + K[1, 2]
+    px_per_m = K[0, 0] / float(np.median(z))
+    vox_px = voxel * px_per_m
+    splat = max(1, int(round(0.75 * vox_px)))
+    r_in, r_out = max(1, int(round(0.5 * vox_px))), max(2, int(round(1.5 * vox_px)))
+    # The model's silhouette, drawn in a crop of the image around it (points splatted over
+    # their voxel's footprint), and the band outside it.
+    pad = splat + r_out + 1
+    u0, v0 = max(int(np.floor(u.min())) - pad, 0), max(int(np.floor(v.min())) - pad, 0)
+    u1, v1 = min(int(np.ceil(u.max())) + pad + 1, w), min(int(np.ceil(v.max())) + pad + 1, h)
+    if u1 - u0 < 2 or v1 - v0 < 2:
+        return 0.0, 0
+    ui, vi = np.round(u).astype(np.int64) - u0, np.round(v).astype(np.int64) - v0
+    keep = (ui >= 0) & (ui < u1 - u0) & (vi >= 0) & (vi < v1 - v0)
+    disc = lambda r: cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    ui, vi, p, n = ui[keep], vi[keep], p[keep], n[keep]
+    if len(p) < 3:
+        return 0.0, 0
+    crop = np.zeros((v1 - v0, u1 - u0), np.uint8)
+    crop[vi, ui] = 1
+    body = cv2.dilate(crop, disc(splat))
+    band = (cv2.dilate(body, disc(r_out)) > 0) & (cv2.dilate(body, disc(r_in)) == 0)
+    rows, cols = np.nonzero(band)
+    rows, cols = rows + v0, cols + u0
+    P, nP, ok = _points_and_normals(depth_m, K, rows, cols)
+    rows, cols = rows[ok], cols[ok]
+    if len(rows) == 0:
+        return 0.0, 0
+    # The three nearest model points, two of which must agree: one stray normal (a sample at
+    # an edge oriented the wrong way) must not stand for the surface beside the object.
+    _, j = cKDTree(p).query(P, k=min(3, len(p)))
+    j = j.reshape(len(P), -1)
+    off = np.abs(np.einsum("ikj,ikj->ik", P[:, None, :] - p[j], n[j]))
+    cos = np.einsum("ij,ikj->ik", nP, n[j])
+    votes = ((off < tolerance) & (cos > np.cos(np.radians(max_angle_deg)))).sum(axis=1)
+    cont = votes >= min(2, j.shape[1])
+    return float(cont.mean()), int(len(rows))
+
+
+__all__ = ["outline_continuation"]
