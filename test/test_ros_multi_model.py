@@ -167,3 +167,25 @@ def test_an_old_single_model_parameter_file_still_works(posters, tmp_path):
         probe.close()
         out = stop(node)
     assert "ready: models poster" in out, out
+
+
+def test_listen_scores_each_object_against_its_own_ground_truth(posters):
+    import numpy as np
+
+    from multi_instance_reg.rgbd.model import load_model
+    from multi_instance_reg.tools.listen import score_frames
+
+    models = [load_model(p) for p in posters]       # poster, cat
+    T = np.repeat(np.eye(4)[None], 3, axis=0)
+    T[:, 0, 3] = [-0.25, 0.0, 0.25]
+    T[:, 2, 3] = 0.6
+    gt_names = ["poster", "cat", "cat"]
+    # The poster found; one cat found, the other reported as a poster: a miss for the cat and
+    # a false positive for the poster.
+    frames = [(T, ["poster", "cat", "poster"], T, None, gt_names)]
+    s = score_frames(frames, models)
+    assert s["objects"]["poster"]["MHR"] == 100.0 and s["objects"]["poster"]["MHP"] == 50.0
+    assert s["objects"]["cat"]["MHR"] == 50.0 and s["objects"]["cat"]["MHP"] == 100.0
+    assert s["MHR"] == pytest.approx(66.7) and s["MHP"] == pytest.approx(66.7)
+    # Without models (the listener's behaviour before names): every pose against every truth.
+    assert score_frames(frames)["MHF1"] == 100.0 and "objects" not in score_frames(frames)
