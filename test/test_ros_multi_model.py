@@ -138,6 +138,7 @@ def test_a_model_swap_under_a_tracked_10hz_stream_loses_at_most_one_frame(poster
         print(f"model swap: {len(during)} frames sent at 10 Hz from the change on, {len(lost)} without poses")
         assert len(lost) <= 1, (len(lost), len(during))
     assert "models now: poster, cat" in live.out
+    print(live.out[live.out.index("models now:"):].splitlines()[0])
 
 
 def test_an_old_single_model_parameter_file_still_works(posters, tmp_path):
