@@ -366,7 +366,8 @@ class InstanceRegistrationNode(Node):
                     result = self._pipelines[index].register(rgb, depth, intrinsics, self.config)
                     break
                 except PipelineClosed:   # the models were swapped meanwhile: the new process takes it
-                    continue
+                    if self._slot.closed:   # ... unless the node is shutting down
+                        return None
         except InputError as exc:
             self._count("bad")
             self.get_logger().warn(f"skipping a malformed frame: {exc}", throttle_duration_sec=2.0)
