@@ -120,6 +120,34 @@ def test_smoothing_off_publishes_the_measured_pose():
     assert out[1][0].T[0, 3] == pytest.approx(0.003)
 
 
+def test_smoothing_settles_a_resting_pose():
+    # A resting object, detections with 2 mm / 1 deg of white noise: the filter's spread must
+    # fall well under the measurements' (an alpha-beta filter with alpha 0.2 passes about 0.4
+    # of the noise's standard deviation).
+    rng = np.random.default_rng(5)
+    dets = [[det_at(*(np.array([0.0, 0.0, 0.8]) + rng.normal(0, 0.002, 3)), yaw=rng.normal(0, 1.0))]
+            for _ in range(200)]
+    raw = np.array([o[0].T[:3, 3] for o in run(tracker(smoothing=0.0), dets)[50:]])
+    out = run(tracker(smoothing=0.8), dets)[50:]
+    pos = np.array([o[0].T[:3, 3] for o in out])
+    yaw = np.degrees([np.arctan2(o[0].T[1, 0], o[0].T[0, 0]) for o in out])
+    assert pos.std(axis=0).max() < 0.5 * raw.std(axis=0).min()
+    assert np.linalg.norm(pos.mean(axis=0) - [0.0, 0.0, 0.8]) < 0.0005
+    assert yaw.std() < 0.5
+
+
+def test_smoothing_follows_a_steady_motion_without_lag():
+    # 6 mm per frame (18 cm/s): once the filter has the velocity, no lag behind the truth.
+    out = run(tracker(smoothing=0.8), [[det_at(0.006 * k)] for k in range(60)])
+    assert out[-1][0].T[0, 3] == pytest.approx(0.006 * 59, abs=2e-4)
+
+
+def test_smoothing_restarts_on_a_jump():
+    # A measurement further than icp_max_step from the filter is published as it is.
+    out = run(tracker(smoothing=0.8, gate_distance=0.1), [[det_at(0.0)]] * 10 + [[det_at(0.05)]])
+    assert out[-1][0].T[0, 3] == pytest.approx(0.05)
+
+
 def test_icp_recovers_a_displaced_pose():
     # Depth image of three planes meeting in a corner; the model is that very surface, so the
     # right answer is the identity.

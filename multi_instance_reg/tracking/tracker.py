@@ -52,11 +52,12 @@ class TrackerConfig:
     coast_s: float = param(1.0, "s: a confirmed track that is neither detected nor confirmed by the depth for longer than this ends (it is published as coasting meanwhile)", 0.0, 60.0)
     max_undetected_s: float = param(1.5, "s: a track kept by the depth alone, with no detection for longer than this, ends (0 = never)", 0.0, 3600.0)
     duplicate_distance: float = param(0.015, "m: two tracks whose positions come closer than this follow one object: the younger ends", 0.0, 1.0)
-    smoothing: float = param(0.0, "pose smoothing, 0 = off (the published pose is the measured one) to 0.95 (heavy): weight of the prediction against the measurement, with a constant-velocity prediction so that a moving camera does not make poses lag", 0.0, 0.95)
+    smoothing: float = param(0.0, "pose smoothing, 0 = off (the published pose is the measured one) to 0.95 (heavy): the published pose is a constant-velocity (alpha-beta) filter of the measured one with gain 1 - smoothing, so a resting object's pose settles and a steadily moving one does not lag; a measurement further than icp_max_step / icp_max_step_deg from the filter restarts it", 0.0, 0.95)
     publish_tentative: bool = param(False, "also publish tracks not yet confirmed (state tentative)")
     icp: bool = param(True, "bring every track up to date on every frame by projective point-to-plane ICP of the model against the depth image (off: tracks move only with detections)")
     icp_points: int = param(400, "model points used by the ICP of one track", 20, 20000)
     icp_iterations: int = param(10, "ICP iterations per track and frame", 1, 100)
+    icp_damping: float = param(0.001, "Levenberg damping of each ICP step, relative to the mean diagonal of its normal equations: keeps what the depth barely constrains (a box seen from the top slides freely) at the start pose, the detection's", 0.0, 10.0)
     icp_max_distance: float = param(0.03, "m: depth pairs farther apart than this are ignored in the first ICP iteration (the gate shrinks to icp_inlier_distance by the last)", 0.001, 0.5)
     icp_inlier_distance: float = param(0.006, "m: a model point counts as confirmed by the depth within this distance", 0.0005, 0.1)
     icp_max_step: float = param(0.01, "m: an ICP result that moves the track's pose further than this from its prediction (or from the detection of this frame) is refused: the model slid along a plane it shares with something else", 0.0005, 1.0)
@@ -83,7 +84,7 @@ class TrackedInstance:
 class Track:
     track_id: int
     T: np.ndarray                       # measured (or predicted) pose on the latest frame
-    T_out: np.ndarray                   # published pose (smoothed)
+    T_out: np.ndarray                   # published pose (filtered when smoothing > 0)
     born_ns: int
     stamp_ns: int                       # frame of T
     last_seen_ns: int
@@ -95,6 +96,7 @@ class Track:
     state: str = TENTATIVE
     detected_since_output: bool = True
     velocity: np.ndarray = field(default_factory=lambda: np.zeros(6))   # twist per second (rotvec, translation)
+    out_velocity: np.ndarray = field(default_factory=lambda: np.zeros(6))  # of T_out: rotvec about its origin, translation; per second
     history: deque = field(default_factory=lambda: deque(maxlen=HISTORY))   # (stamp_ns, T)
     flip_votes: list = field(default_factory=list)                      # recent disagreeing orientations
 
@@ -130,14 +132,18 @@ def apply_twist(T: np.ndarray, twist: np.ndarray, scale: float = 1.0) -> np.ndar
     return out
 
 
-def blend(T_a: np.ndarray, T_b: np.ndarray, weight_b: float) -> np.ndarray:
-    """The pose ``weight_b`` of the way from T_a to T_b (rotation on the geodesic)."""
-    if weight_b >= 1.0:
-        return T_b.copy()
-    R_rel = Rotation.from_matrix(T_b[:3, :3] @ T_a[:3, :3].T).as_rotvec()
+def local_residual(T_from: np.ndarray, T_to: np.ndarray) -> np.ndarray:
+    """(rotvec, translation) taking T_from to T_to, the rotation about T_from's own origin
+    (so that smoothing a rotation does not swing the position about the camera)."""
+    rv = Rotation.from_matrix(T_to[:3, :3] @ T_from[:3, :3].T).as_rotvec()
+    return np.concatenate([rv, T_to[:3, 3] - T_from[:3, 3]])
+
+
+def local_step(T: np.ndarray, twist: np.ndarray) -> np.ndarray:
+    """T moved by a local_residual-style twist."""
     out = np.eye(4)
-    out[:3, :3] = Rotation.from_rotvec(weight_b * R_rel).as_matrix() @ T_a[:3, :3]
-    out[:3, 3] = (1 - weight_b) * T_a[:3, 3] + weight_b * T_b[:3, 3]
+    out[:3, :3] = Rotation.from_rotvec(twist[:3]).as_matrix() @ T[:3, :3]
+    out[:3, 3] = T[:3, 3] + twist[3:]
     return out
 
 
@@ -145,7 +151,7 @@ def icp_for(model, config: TrackerConfig) -> ProjectiveICP | None:
     """The depth alignment the settings ask for (None with icp off)."""
     c = config
     return ProjectiveICP(model.points_xyz, c.icp_points, c.icp_iterations, c.icp_max_distance,
-                         c.icp_inlier_distance) if c.icp else None
+                         c.icp_inlier_distance, c.icp_damping) if c.icp else None
 
 
 class InstanceTracker:
@@ -189,7 +195,7 @@ class InstanceTracker:
             dt = (stamp_ns - tr.stamp_ns) * 1e-9
             if dt > 0:
                 tr.T = apply_twist(tr.T, tr.velocity, dt)
-                tr.T_out = apply_twist(tr.T_out, tr.velocity, dt)
+                tr.T_out = local_step(tr.T_out, tr.out_velocity * dt)
                 tr.stamp_ns = stamp_ns
             tr.history.append((stamp_ns, tr.T.copy()))
         self.stamp_ns = stamp_ns
@@ -251,8 +257,10 @@ class InstanceTracker:
         else:
             tr.flip_votes = []
         # Carry the correction forward by the motion the track made since that frame.
+        # (proper_pose: invert_transform assumes an orthonormal rotation, and the error of one
+        # that is not doubles on every frame the depth does not re-fit.)
         motion = tr.T @ invert_transform(T_then)
-        tr.T = motion @ T_det
+        tr.T = proper_pose(motion @ T_det)
         if tr.stamp_ns == stamp_ns and tr.history:
             tr.history[-1] = (stamp_ns, tr.T.copy())
         tr.detections += 1
@@ -304,10 +312,10 @@ class InstanceTracker:
                 tr.last_seen_ns = stamp_ns
                 if tr.state == COASTING:
                     tr.state = CONFIRMED
-                tr.T_out = blend(tr.T_out, tr.T, 1.0 - c.smoothing)
                 if T_prev is not None and stamp_ns > prev_stamp:
                     v = relative_twist(T_prev, tr.T) / ((stamp_ns - prev_stamp) * 1e-9)
                     tr.velocity = 0.5 * tr.velocity + 0.5 * v
+                self._filter_output(tr, (stamp_ns - prev_stamp) * 1e-9 if T_prev is not None else 0.0)
             else:
                 if tr.state == TENTATIVE:
                     self.ended += 1
@@ -325,13 +333,35 @@ class InstanceTracker:
                     tr.velocity = near.velocity.copy()
                 elif T_prev is not None:
                     tr.T, tr.velocity = T_prev.copy(), np.zeros(6)
-                tr.T_out = tr.T.copy()
+                tr.T_out, tr.out_velocity = tr.T.copy(), np.zeros(6)
             if c.max_undetected_s > 0 and (stamp_ns - tr.last_detected_ns) * 1e-9 > c.max_undetected_s:
                 self.ended += 1
                 continue
             tr.history[-1] = (stamp_ns, tr.T.copy())
             alive.append(tr)
         self.tracks = self._without_duplicates(alive)
+
+    def _filter_output(self, tr: Track, dt: float) -> None:
+        """Alpha-beta filter (the steady state of a constant-velocity Kalman filter) of the
+        published pose towards this frame's measured one, T_out already predicted to this
+        frame. alpha = 1 - smoothing; beta from alpha by Kalata's relation for a
+        constant-velocity target (Kalata 1984), so a resting pose settles and a steady motion
+        is followed without lag."""
+        c = self.config
+        residual = local_residual(tr.T_out, tr.T)
+        alpha = 1.0 - c.smoothing
+        if (alpha >= 1.0 or dt <= 0 or np.linalg.norm(residual[3:]) > c.icp_max_step
+                or np.degrees(np.linalg.norm(residual[:3])) > c.icp_max_step_deg):
+            # Off, or the pose jumped (a reset by a disagreeing detection): publish the
+            # measurement, and start from the track's own velocity (about the camera's origin
+            # there: the object's origin t moves by omega x t + tau).
+            tr.T_out = tr.T.copy()
+            omega, tau = tr.velocity[:3], tr.velocity[3:]
+            tr.out_velocity = np.concatenate([omega, np.cross(omega, tr.T[:3, 3]) + tau])
+            return
+        beta = 2.0 * (2.0 - alpha) - 4.0 * np.sqrt(1.0 - alpha)
+        tr.T_out = proper_pose(local_step(tr.T_out, alpha * residual))
+        tr.out_velocity = tr.out_velocity + (beta / dt) * residual
 
     def _without_duplicates(self, tracks: list[Track]) -> list[Track]:
         """Two tracks on one object (e.g. a detection born next to a coasting track that then
