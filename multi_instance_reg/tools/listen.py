@@ -278,8 +278,9 @@ def run(args) -> int:
                                  "is it running with the same ROS_DOMAIN_ID and namespace?")
             rclpy.spin_once(node, timeout_sec=0.1)
         # Discovery is mutual: give the node's publishers a moment to match our subscriptions.
+        # Frames may already arrive meanwhile: they count towards --frames.
         end = time.monotonic() + 0.5
-        while time.monotonic() < end:
+        while time.monotonic() < end and not (args.frames and len(listener.frames) >= args.frames):
             rclpy.spin_once(node, timeout_sec=0.1)
     print("listening for the node's output", file=sys.stderr, flush=True)
     start = time.monotonic()
@@ -287,6 +288,8 @@ def run(args) -> int:
     signal.signal(signal.SIGTERM, lambda *_: rclpy.try_shutdown())
     try:
         while rclpy.ok():
+            if args.frames and len(listener.frames) >= args.frames:
+                break
             rclpy.spin_once(node, timeout_sec=0.1)
             now = time.monotonic()
             if args.frames and len(listener.frames) >= args.frames:
