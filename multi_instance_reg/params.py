@@ -46,6 +46,12 @@ class ParamSpec:
         elif self.type is str:
             if not isinstance(value, str):
                 raise InputError(f"parameter {self.name} must be a string, got {value!r}")
+        elif self.type is tuple:   # a list of strings (a ROS string array)
+            if value is None:      # an empty array in a ROS parameter file arrives unset
+                value = ()
+            if isinstance(value, str) or not all(isinstance(v, str) for v in value):
+                raise InputError(f"parameter {self.name} must be a list of strings, got {value!r}")
+            return tuple(value)
         if self.low is not None and value < self.low or self.high is not None and value > self.high:
             raise InputError(
                 f"parameter {self.name}={value!r} is out of range [{self.low}, {self.high}]")

@@ -88,8 +88,10 @@ class Probe(BackgroundNode):
 
 
 def start_node(domain_id, model, *params):
-    args = ["multi_instance_reg.ros.node", "--ros-args", "-p", f"model_path:={model}",
-            "-p", "stats_log_period_s:=0.3"]
+    """The node with ``model`` (a file: model_path; a list of files: model_paths)."""
+    models = (["-p", f"model_paths:=[{', '.join(map(str, model))}]"] if isinstance(model, (list, tuple))
+              else ["-p", f"model_path:={model}"])
+    args = ["multi_instance_reg.ros.node", "--ros-args", *models, "-p", "stats_log_period_s:=0.3"]
     for p in params:
         args += ["-p", p]
     return start(args, domain_id)
@@ -136,35 +138,45 @@ D455_K = ((379.05, 0.0, 321.89), (0.0, 378.68, 238.97), (0.0, 0.0, 1.0))
 POSTER_Z = 0.6
 
 
-def poster_model(path) -> Path:
-    import numpy as np
+# Textures of the posters (scikit-image's sample photographs), by model name.
+POSTER_TEXTURES = {"poster": ("astronaut", 100, 150), "cat": ("chelsea", 50, 100)}
+
+
+def poster_texture(name: str = "poster"):
     from skimage import data
+
+    image, top, left = POSTER_TEXTURES[name]
+    return getattr(data, image)()[top:top + 200, left:left + 200].copy()
+
+
+def poster_model(path, name: str = "poster") -> Path:
+    """The model of a poster (``name``: one of POSTER_TEXTURES), named ``name``."""
+    import numpy as np
 
     from multi_instance_reg.rgbd.features import SiftSettings, extract_sift
     from multi_instance_reg.rgbd.model import ObjectModel, save_model
 
     K = np.array(D455_K)
-    tex = data.astronaut()[100:300, 150:350].copy()
-    uv, desc = extract_sift(tex, SiftSettings())
+    uv, desc = extract_sift(poster_texture(name), SiftSettings())
     # Model frame: the poster's centre, axes along the camera's.
     xyz = np.c_[(uv[:, 0] - 99.5) * POSTER_Z / K[0, 0], (uv[:, 1] - 99.5) * POSTER_Z / K[1, 1], np.zeros(len(uv))]
     extent = np.array([200 * POSTER_Z / K[0, 0], 200 * POSTER_Z / K[1, 1], 0.002])
-    model = ObjectModel(xyz.astype(np.float32), desc, xyz.astype(np.float32), extent, np.eye(4), np.eye(4), "poster")
+    model = ObjectModel(xyz.astype(np.float32), desc, xyz.astype(np.float32), extent, np.eye(4), np.eye(4), name)
     return save_model(model, Path(path))
 
 
-def poster_frame():
-    """(rgb (480, 640, 3) uint8, depth (480, 640) uint16 mm, K (3, 3)); the poster's centre
-    is on the optical axis's pixel (cx, cy) rounded, so its pose is ~ (0, 0, POSTER_Z)."""
+def poster_frame(posters: dict | None = None):
+    """(rgb (480, 640, 3) uint8, depth (480, 640) uint16 mm, K (3, 3)). ``posters``: {name:
+    horizontal shift of its centre in pixels}; by default the one "poster", its centre on the
+    optical axis's pixel (cx, cy) rounded, so its pose is ~ (0, 0, POSTER_Z)."""
     import numpy as np
-    from skimage import data
 
-    tex = data.astronaut()[100:300, 150:350]
     rgb = np.full((480, 640, 3), 90, np.uint8)
     depth = np.full((480, 640), 1000, np.uint16)
-    top, left = 239 - 100, 322 - 100
-    rgb[top:top + 200, left:left + 200] = tex
-    depth[top:top + 200, left:left + 200] = int(POSTER_Z * 1000)
+    for name, shift in (posters or {"poster": 0}).items():
+        top, left = 239 - 100, 322 - 100 + shift
+        rgb[top:top + 200, left:left + 200] = poster_texture(name)
+        depth[top:top + 200, left:left + 200] = int(POSTER_Z * 1000)
     return rgb, depth, np.array(D455_K)
 
 

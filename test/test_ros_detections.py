@@ -253,7 +253,7 @@ def test_detection_array_names_boxes_and_track_ids():
     header = Header(frame_id="cam")
     header.stamp.sec = 12
     msg = detection_array([_Instance(0, T, 30, 0.9), _Tracked(1, T, 20, 0.5, track_id=7, object="can")],
-                          header, objects, default="bar")
+                          header, objects)
     assert msg.header == header and len(msg.detections) == 2
     plain, tracked = msg.detections
     assert plain.results[0].hypothesis.class_id == "bar" and plain.id == ""

@@ -17,6 +17,7 @@ PARAMS_FILE = Path(__file__).resolve().parents[1] / "config" / "params.yaml"
 def test_params_file_holds_every_default_and_nothing_else():
     expected = {**flatten(NodeSettings()), **flatten(PipelineConfig()), **flatten(LiveConfig(), "tracking."),
                 **flatten(TrackerConfig(), "tracking.")}
+    expected = {k: list(v) if isinstance(v, tuple) else v for k, v in expected.items()}   # string arrays
     assert read_params_yaml(PARAMS_FILE) == expected
     # Types too: a float written as "1" would be declared as an integer by ROS and then refused.
     for name, value in read_params_yaml(PARAMS_FILE).items():

@@ -34,6 +34,11 @@ def test_demo_runs_end_to_end_and_leaves_overlays_and_a_summary(tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["frames"] >= 1 and summary["frames_scored"] == summary["frames"]
     assert summary["MHF1"] is not None and summary["frames_dropped"] is not None
+    # Two objects by default, each scored against its own ground truth by the listener.
+    assert set(summary["objects"]) == {"snack_box", "can"}
+    assert all(0 <= o["MHF1"] <= 100 and o["frames_scored"] == summary["frames_scored"]
+               for o in summary["objects"].values())
+    assert "snack_box: MHF1" in done.stdout and "can: MHF1" in done.stdout
     assert list((out / "overlays").glob("overlay_*.png"))
     assert "MHF1" in done.stdout and "mean latency" in done.stdout and "frames dropped" in done.stdout
     for log in ("node.log", "listen.log", "play.log"):

@@ -103,11 +103,7 @@ class RGBDBag:
         """Object name of each of ``count`` ground-truth instances: a mixed scene's
         ``instance_objects`` on /ground_truth/object, else its one ``name`` for all ("" when
         the bag does not say)."""
-        d = self.object_description or {}
-        names = d.get("instance_objects")
-        if isinstance(names, list) and len(names) == count:
-            return [str(n) for n in names]
-        return [str(d.get("name", ""))] * count
+        return instance_objects(self.object_description, count)
 
     # -- context manager
     def __enter__(self):
@@ -241,6 +237,16 @@ def _object_description(reader, path) -> dict | None:
         except (ValueError, AttributeError) as exc:
             raise InputError(f"bag {path}: {GT_OBJECT_TOPIC} is not the expected JSON ({exc})") from None
     return None
+
+
+def instance_objects(description: dict | None, count: int) -> list[str]:
+    """See ``RGBDBag.instance_objects``: the object names of ``count`` ground-truth instances
+    from a bag's object description."""
+    d = description or {}
+    names = d.get("instance_objects")
+    if isinstance(names, list) and len(names) == count:
+        return [str(n) for n in names]
+    return [str(d.get("name", ""))] * count
 
 
 def read_object_description(path) -> dict | None:

@@ -50,6 +50,17 @@ def check_model_names(models: list[ObjectModel], sources: list[str] | None = Non
         seen[model.name] = k
 
 
+def load_models(paths) -> list[ObjectModel]:
+    """Every model file in ``paths``, checked (InputError naming the bad file, or the two
+    files whose models share a name)."""
+    from .model import load_model
+
+    paths = [str(p) for p in paths]
+    models = [load_model(p) for p in paths]
+    check_model_names(models, paths)
+    return models
+
+
 class MultiModelRegistration:
     """Finds every instance of several stored objects in RGB-D frames, SIFT once per frame."""
 
@@ -160,4 +171,4 @@ class MultiModelRegistration:
         return float(np.mean(inside.all(axis=1)))
 
 
-__all__ = ["MultiModelRegistration", "check_model_names"]
+__all__ = ["MultiModelRegistration", "check_model_names", "load_models"]

@@ -46,7 +46,7 @@ def draw_overlay(rgb: np.ndarray, result, intrinsics: CameraIntrinsics, box_corn
                  colour_of, instances=None) -> np.ndarray:
     """A copy of ``rgb`` with ``result.keypoints_uv`` as dots coloured by ``result.labels``
     (outliers small and grey) and every instance's box (``box_corners`` (8, 3), model frame)
-    drawn in its colour. ``colour_of(id) -> (r, g, b)``. ``instances`` (tracked ones, keyed by
+    drawn in its colour (a dict: each instance's object's corners, by ``object``). ``colour_of(id) -> (r, g, b)``. ``instances`` (tracked ones, keyed by
     their ``track_id``) replace ``result.instances``; ``result`` may then be None (no dots)."""
     out = np.ascontiguousarray(rgb.copy())
     if result is not None:
@@ -57,5 +57,6 @@ def draw_overlay(rgb: np.ndarray, result, intrinsics: CameraIntrinsics, box_corn
                        -1 if inlier else 1, cv2.LINE_AA)
     for inst in result.instances if instances is None else instances:
         key = int(getattr(inst, "track_id", inst.id))
-        draw_box(out, inst.T, box_corners, intrinsics, colour_of(key), label=str(key))
+        corners = box_corners[inst.object] if isinstance(box_corners, dict) else box_corners
+        draw_box(out, inst.T, corners, intrinsics, colour_of(key), label=str(key))
     return out

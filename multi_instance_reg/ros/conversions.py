@@ -1,13 +1,15 @@
 """Instances -> the node's output messages: PoseArray, MarkerArray and the JSON details.
 
 Instances are duck-typed: anything with ``id``, ``T`` (4x4, model frame -> camera optical
-frame, metres), ``inliers`` (a count or a list of indices) and ``score``. Tracked ones
-(``tracking.TrackedInstance``) also have ``track_id``, ``state``, ``source`` and ``age_s``: their
-markers are keyed and coloured by ``track_id`` and their details carry those fields too.
+frame, metres), ``inliers`` (a count or a list of indices), ``score`` and ``object`` (the
+model's name). Tracked ones (``tracking.TrackedInstance``) also have ``track_id``, ``state``,
+``source`` and ``age_s``: their markers are keyed and coloured by ``track_id`` and their
+details carry those fields too.
 """
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 
 import numpy as np
 from geometry_msgs.msg import Pose, PoseArray
@@ -16,8 +18,28 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from ..transforms import matrix_to_pose
 
-BOX_NS = "instances"
-LABEL_NS = "instance_ids"
+LABEL_NS_SUFFIX = "_labels"   # markers: boxes in the namespace <object name>, labels in <name>_labels
+
+
+@dataclass(frozen=True)
+class ObjectClass:
+    """What the outputs say about one kind of object: its name and its box in the model frame."""
+    name: str
+    box_centre: np.ndarray   # (3,) metres, model frame
+    box_size: np.ndarray     # (3,) metres, along the model axes
+
+    @classmethod
+    def of_model(cls, model, model_path="") -> "ObjectClass":
+        """The model's stored name, else its file's stem (``snack_bar.npz`` -> ``snack_bar``)."""
+        from pathlib import Path
+
+        return cls(str(getattr(model, "name", "") or "") or Path(model_path).stem, np.asarray(model.box_centre, dtype=np.float64).reshape(3),
+                   np.asarray(model.extent, dtype=np.float64).reshape(3))
+
+
+def object_of(instance, objects: dict[str, ObjectClass]) -> ObjectClass:
+    """The instance's object (by its ``object`` name); an unnamed instance is the first one's."""
+    return objects.get(getattr(instance, "object", "") or "") or next(iter(objects.values()))
 
 # Distinct colours (RGB, 0-255) for instance ids; the debug image uses the same ones.
 _PALETTE = np.array([
@@ -63,53 +85,54 @@ def pose_array(instances, header) -> PoseArray:
     return msg
 
 
-def marker_array(instances, header, box_centre, box_size, previous_ids=()) -> tuple[MarkerArray, set]:
-    """An oriented box (the model's extent) and an id label per instance (marker id and colour:
-    ``marker_key``), plus DELETE markers for ids published last time and gone now (a track that
-    ended or is no longer published). Returns (markers, ids now shown)."""
-    centre = np.asarray(box_centre, dtype=np.float64).reshape(3)
-    size = np.asarray(box_size, dtype=np.float64).reshape(3)
+def marker_array(instances, header, objects: dict[str, ObjectClass], previous=()) -> tuple[MarkerArray, set]:
+    """An oriented box (its object's) and a label (object name, id, inliers) per instance; the
+    namespace is the object's name (labels: ``<name>_labels``), the marker id and colour
+    ``marker_key``; plus DELETE markers for those published last time and gone now (a track that
+    ended, an object unloaded). Returns (markers, (namespace, id) pairs now shown)."""
     out = MarkerArray()
     shown = set()
     for inst in instances:
+        kind = object_of(inst, objects)
         T = np.asarray(inst.T, dtype=np.float64)
         box_T = T.copy()
-        box_T[:3, 3] = T[:3, :3] @ centre + T[:3, 3]
+        box_T[:3, 3] = T[:3, :3] @ kind.box_centre + T[:3, 3]
         key = marker_key(inst)
         r, g, b = (c / 255.0 for c in instance_colour(key))
         box = Marker()
         box.header = header
-        box.ns, box.id = BOX_NS, key
+        box.ns, box.id = kind.name, key
         box.type, box.action = Marker.CUBE, Marker.ADD
         box.pose = matrix_to_pose_msg(box_T)
-        box.scale.x, box.scale.y, box.scale.z = (float(max(v, 1e-3)) for v in size)
+        box.scale.x, box.scale.y, box.scale.z = (float(max(v, 1e-3)) for v in kind.box_size)
         box.color.r, box.color.g, box.color.b, box.color.a = r, g, b, 0.5
         label = Marker()
         label.header = header
-        label.ns, label.id = LABEL_NS, key
+        label.ns, label.id = kind.name + LABEL_NS_SUFFIX, key
         label.type, label.action = Marker.TEXT_VIEW_FACING, Marker.ADD
         # Above the box: "up" in the optical frame is -y.
         label.pose.position.x, label.pose.position.y, label.pose.position.z = (
-            float(box_T[0, 3]), float(box_T[1, 3] - 0.6 * size.max() - 0.01), float(box_T[2, 3]))
+            float(box_T[0, 3]), float(box_T[1, 3] - 0.6 * kind.box_size.max() - 0.01), float(box_T[2, 3]))
         label.pose.orientation.w = 1.0
         label.scale.z = 0.03
         label.color.r, label.color.g, label.color.b, label.color.a = 1.0, 1.0, 1.0, 1.0
         state = getattr(inst, "state", "confirmed")
-        label.text = f"{key} ({inlier_count(inst)})" + ("" if state == "confirmed" else f" {state}")
+        label.text = f"{kind.name} {key} ({inlier_count(inst)})" + ("" if state == "confirmed" else f" {state}")
         out.markers.extend([box, label])
-        shown.add(key)
-    for gone in sorted(set(previous_ids) - shown):
-        for ns in (BOX_NS, LABEL_NS):
-            delete = Marker()
-            delete.header = header
-            delete.ns, delete.id, delete.action = ns, gone, Marker.DELETE
-            out.markers.append(delete)
+        shown.update({(box.ns, key), (label.ns, key)})
+    for ns, gone in sorted(set(previous) - shown):
+        delete = Marker()
+        delete.header = header
+        delete.ns, delete.id, delete.action = ns, gone, Marker.DELETE
+        out.markers.append(delete)
     return out, shown
 
 
 def instance_details(instance) -> dict:
-    """{"id", "inliers", "score"}, and for a track also "track_id", "state", "source", "age_s"."""
+    """{"object", "id", "inliers", "score"}, and for a track also "track_id", "state", "source", "age_s"."""
     out = {"id": int(instance.id), "inliers": inlier_count(instance), "score": round(float(instance.score), 4)}
+    if getattr(instance, "object", ""):
+        out = {"object": instance.object, **out}
     if hasattr(instance, "track_id"):
         out.update(track_id=int(instance.track_id), state=instance.state, source=instance.source,
                    age_s=round(float(instance.age_s), 3))

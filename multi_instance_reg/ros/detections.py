@@ -9,16 +9,13 @@ Per instance, one Detection3D: ``results[0]`` carries the object's name as ``cla
 instance's score and its pose (the model frame in the camera optical frame, as in the
 PoseArray); ``bbox`` is the model's box (centre = the box centre moved by the pose, size =
 the model's extent); ``id`` is the track id as a string once a tracker gives one (an instance
-with a ``track_id``), else empty. An instance with an ``object`` attribute (several models)
-is named by it, else by the node's one object.
+with a ``track_id``), else empty. The class is the instance's ``object`` (its model's name).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
-from .conversions import matrix_to_pose_msg
+from .conversions import ObjectClass, matrix_to_pose_msg, object_of
 
 DETECTIONS_TOPIC = "instances/detections"
 # Beside the detections, as camera_info is beside image_raw (vision_msgs: "each vision pipeline
@@ -35,31 +32,14 @@ def vision_msgs_missing() -> str | None:
     return None
 
 
-@dataclass(frozen=True)
-class ObjectClass:
-    """What a Detection3D says about the kind of object: its name and its box in the model frame."""
-    name: str
-    box_centre: np.ndarray   # (3,) metres, model frame
-    box_size: np.ndarray     # (3,) metres, along the model axes
-
-    @classmethod
-    def of_model(cls, model, model_path) -> "ObjectClass":
-        """The model's stored name, else its file's stem (``snack_bar.npz`` -> ``snack_bar``)."""
-        from pathlib import Path
-
-        name = str(getattr(model, "name", "") or "") or Path(model_path).stem
-        return cls(name, np.asarray(model.box_centre, dtype=np.float64).reshape(3),
-                   np.asarray(model.extent, dtype=np.float64).reshape(3))
-
-
-def detection_array(instances, header, objects: dict[str, ObjectClass], default: str):
+def detection_array(instances, header, objects: dict[str, ObjectClass]):
     """One Detection3D per instance, in the order given; header = the colour image's."""
     from vision_msgs.msg import Detection3D, Detection3DArray, ObjectHypothesisWithPose
 
     out = Detection3DArray()
     out.header = header
     for inst in instances:
-        kind = objects[getattr(inst, "object", None) or default]
+        kind = object_of(inst, objects)
         T = np.asarray(inst.T, dtype=np.float64)
         hypothesis = ObjectHypothesisWithPose()
         hypothesis.hypothesis.class_id = kind.name
@@ -97,16 +77,20 @@ class DetectionPublisher:
         from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
         from vision_msgs.msg import Detection3DArray, LabelInfo
 
-        self.objects = {o.name: o for o in objects}
-        self.default = objects[0].name
+        self._node = node
         self._detections = node.create_publisher(Detection3DArray, DETECTIONS_TOPIC, qos)
         # Transient local: a subscriber that joins later still gets the class names.
         latched = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self._labels = node.create_publisher(LabelInfo, LABEL_INFO_TOPIC, latched)
+        self.set_objects(objects)
+
+    def set_objects(self, objects: list[ObjectClass]) -> None:
+        """The objects from now on; LabelInfo is published again (class k = the k-th)."""
         from std_msgs.msg import Header
 
-        self._labels.publish(label_info(list(self.objects), Header(stamp=node.get_clock().now().to_msg())))
+        self.objects = {o.name: o for o in objects}
+        self._labels.publish(label_info(list(self.objects), Header(stamp=self._node.get_clock().now().to_msg())))
 
     @classmethod
     def create(cls, node, qos, objects: list[ObjectClass]) -> "DetectionPublisher | None":
@@ -119,4 +103,4 @@ class DetectionPublisher:
         return cls(node, qos, objects)
 
     def publish(self, instances, header) -> None:
-        self._detections.publish(detection_array(instances, header, self.objects, self.default))
+        self._detections.publish(detection_array(instances, header, self.objects))

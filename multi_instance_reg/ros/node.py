@@ -4,13 +4,15 @@ Subscribes to colour, aligned depth and camera_info (realsense-ros names by defa
 to change), pairs colour and depth by header stamp and publishes:
 
 - ``instances/poses`` (geometry_msgs/PoseArray): model frame in the camera optical frame,
-  ordered by track_id (tracking off: by id, the rank by inliers);
+  every object's instances, by object (the models' order), then by track_id (tracking off: by
+  id, the rank by inliers);
+- ``instances/<name>/poses`` (PoseArray): one object's instances (one topic per loaded model);
 - ``instances/detections`` (vision_msgs/Detection3DArray, when vision_msgs is installed) and
   ``instances/label_info`` (vision_msgs/LabelInfo, transient local): ``detections.py``;
-- ``instances/markers`` (visualization_msgs/MarkerArray): box + label per instance, marker id
-  and colour = track id; deleted when the track ends;
-- ``instances/details`` (std_msgs/String, JSON): id, inliers, score, track_id, state, source,
-  age per instance, latency;
+- ``instances/markers`` (visualization_msgs/MarkerArray): box + label per instance, namespace =
+  object name, marker id and colour = track id; deleted when the track ends;
+- ``instances/details`` (std_msgs/String, JSON): object, id, inliers, score, track_id, state,
+  source, age per instance, latency;
 - ``instances/debug_image`` (sensor_msgs/Image rgb8): only drawn when subscribed or asked;
 - ``~/stats`` (std_msgs/String, JSON): frame counts and latency, also logged.
 Names are relative to the node's namespace (root: ``/instances/poses``; with
@@ -24,13 +26,19 @@ that tracking wins the CPU), which always takes the newest frame and feeds what 
 to the tracker for the frame it was found on. Without tracking the detector's results are
 published as they are, for the frames it processed.
 
+Models: ``model_paths`` (and/or the older ``model_path``), all found in one SIFT pass
+(``rgbd.multi_model``), one tracker per object (``tracking.LiveObjectTrackers``). Setting
+``model_paths`` at run time loads the files first (a bad one, or two models with one name,
+is refused with the reason and nothing changes), then starts a detector process for the new
+set while the old one goes on, and switches when it is ready (``_swap_models``).
+
 Callbacks never wait for either: a synchronised pair goes into a one-frame mailbox and the
 thread behind it always takes the newest one (the pipeline runs in a child process, so it
 never holds this process's GIL); pairs replaced before they were taken are counted as
 dropped, so latency cannot queue up when the camera outruns the node.
 
 Run: ``instance_registration_node --ros-args --params-file config/params.yaml
--p model_path:=model.npz`` (or ``python -m multi_instance_reg.ros.node ...``).
+-p "model_paths:=[snack_bar.npz, can.npz]"`` (or ``python -m multi_instance_reg.ros.node ...``).
 """
 from __future__ import annotations
 
@@ -56,7 +64,8 @@ from ..errors import InputError
 from ..messages import array_to_image_fields, camera_info_to_intrinsics, colour_to_rgb, depth_to_metres
 from ..params import param_specs, with_overrides
 from . import conversions
-from .detections import DetectionPublisher, ObjectClass
+from .conversions import ObjectClass
+from .detections import DetectionPublisher
 from .parameters import (READ_ONLY, NodeSettings, all_specs, check_parameters, declare, node_settings, node_specs,
                          tracking_specs)
 from .sync import ApproximateTimeSync, LatestSlot, stamp_to_ns
@@ -82,6 +91,7 @@ class FrameCounters:
     no_camera_info: int = 0   # pairs skipped because no camera_info had arrived yet
     failed: int = 0           # pipeline raised on a frame, skipped
     detected: int = 0         # frames the detector (the full pipeline) ran on
+    model_swaps: int = 0      # run-time changes of the models, done
 
 
 @dataclass
@@ -105,9 +115,8 @@ class _Frame:
 class InstanceRegistrationNode(Node):
     def __init__(self, **node_kwargs):
         super().__init__(NODE_NAME, **node_kwargs)
-        from ..rgbd.model import load_model
         from ..rgbd.pipeline import PipelineConfig
-        from ..tracking import LiveConfig, LiveTracker, TrackerConfig
+        from ..tracking import LiveConfig, LiveObjectTrackers, TrackerConfig
         from .worker import PipelineProcess
 
         node_values = declare(self, node_specs(), READ_ONLY)
@@ -121,14 +130,17 @@ class InstanceRegistrationNode(Node):
         tracking = self.live_config.enabled
         self.tracker_config = with_overrides(TrackerConfig(), {
             k: v for k, v in _tracker_fields(tracking_values).items() if k not in live})
-        if not self.settings.model_path:
-            raise InputError("no model: pass -p model_path:=MODEL (build one with `mireg build-model`)")
-        self.model = load_model(self.settings.model_path)
+        self._loaded: dict = {}   # model file -> (its mtime, the model): unchanged files keep their tracks
+        self.model_files, self.models = self._load_models(model_files(self.settings.model_path,
+                                                                      self.settings.model_paths))
+        self._pending_models = None  # validated by _validate_parameters, applied by _apply_parameters
+        self._swap_lock = threading.Lock()
         # The pipeline runs in child processes (see worker.py): it never holds our GIL. With
         # tracking it is the detector, behind the tracking of every frame (niced).
-        self._pipelines = PipelineProcess.start_many(self.model, self.config, self.settings.pipeline_processes,
-                                                     niceness=self.settings.detector_niceness if tracking else 0)
-        self._tracker = LiveTracker(self.model, self.tracker_config, self.live_config) if tracking else None
+        self._niceness = self.settings.detector_niceness if tracking else 0
+        self._pipelines = PipelineProcess.start_many(self.models, self.config, self.settings.pipeline_processes,
+                                                     niceness=self._niceness)
+        self._tracker = LiveObjectTrackers(self.models, self.tracker_config, self.live_config) if tracking else None
 
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
@@ -149,7 +161,7 @@ class InstanceRegistrationNode(Node):
         self._latencies = deque(maxlen=LATENCY_WINDOW)
         self._detection_latencies = deque(maxlen=LATENCY_WINDOW)  # pair complete -> detections fused
         self._last_detection: dict | None = None
-        self._marker_ids: set = set()
+        self._marker_ids: set = set()   # (namespace, id) of the markers shown
         self._publish_lock = threading.Lock()
         self._sequence = 0          # of synchronised pairs, to publish results in order
         self._last_published = -1
@@ -159,28 +171,59 @@ class InstanceRegistrationNode(Node):
         self._pub_markers = self.create_publisher(MarkerArray, "instances/markers", pub_qos)
         self._pub_details = self.create_publisher(String, "instances/details", pub_qos)
         self._pub_debug = self.create_publisher(Image, "instances/debug_image", pub_qos)
-        self._pub_detections = DetectionPublisher.create(
-            self, pub_qos, [ObjectClass.of_model(self.model, self.settings.model_path)])
+        self._pub_qos = pub_qos
+        self._objects = {m.name: ObjectClass.of_model(m) for m in self.models}
+        self._pub_object_poses = {name: self.create_publisher(PoseArray, object_poses_topic(name), pub_qos)
+                                  for name in self._objects}
+        self._pub_detections = DetectionPublisher.create(self, pub_qos, list(self._objects.values()))
         self._pub_stats = self.create_publisher(String, "~/stats", pub_qos)
         self.create_subscription(Image, COLOUR_TOPIC, lambda m: self._on_image(0, m), sub_qos)
         self.create_subscription(Image, DEPTH_TOPIC, lambda m: self._on_image(1, m), sub_qos)
         self.create_subscription(CameraInfo, CAMERA_INFO_TOPIC, self._on_camera_info, sub_qos)
         self.create_timer(0.25, self._maybe_report)
 
-        self._workers = [threading.Thread(target=self._work, args=(p,), name=f"pipeline{k}", daemon=True)
-                         for k, p in enumerate(self._pipelines)]
+        self._workers = [threading.Thread(target=self._work, args=(k,), name=f"pipeline{k}", daemon=True)
+                         for k in range(len(self._pipelines))]
         if self._tracker is not None:
             self._workers.append(threading.Thread(target=self._track_frames, name="tracking", daemon=True))
         for worker in self._workers:
             worker.start()
         self.get_logger().info(
-            f"ready: model {self.settings.model_path}, listening on "
+            f"ready: models {', '.join(f'{m.name} ({f})' for m, f in zip(self.models, self.model_files))}, listening on "
             f"{self.resolve_topic_name(COLOUR_TOPIC)} + {self.resolve_topic_name(DEPTH_TOPIC)} "
             f"({self.settings.qos_reliability}); tracking {'on' if self._tracker else 'off'}")
 
     # ---- parameters -------------------------------------------------------------------
+    def _load_models(self, files: list[str]):
+        """(files, models) with every file loaded and checked (InputError naming the problem);
+        a file loaded before and unchanged since gives the same model object."""
+        from pathlib import Path
+
+        from ..rgbd.multi_model import check_model_names
+        from ..rgbd.model import load_model
+
+        if not files:
+            raise InputError("no model: pass -p \"model_paths:=[A.npz, B.npz]\" or -p model_path:=MODEL "
+                             "(build one with `mireg build-model --name NAME`)")
+        models = []
+        for f in files:
+            mtime = Path(f).stat().st_mtime_ns if Path(f).is_file() else None
+            cached = self._loaded.get(f)
+            models.append(cached[1] if cached is not None and cached[0] == mtime else load_model(f))
+        check_model_names(models, files)
+        self._loaded = {f: (Path(f).stat().st_mtime_ns, m) for f, m in zip(files, models)}
+        return files, models
+
     def _validate_parameters(self, params) -> SetParametersResult:
         reason = check_parameters(self._specs, params)
+        self._pending_models = None
+        new_paths = [p.value for p in params if p.name == "model_paths"]
+        if reason is None and new_paths:
+            # Load before accepting: a bad file is refused here and the current models stay.
+            try:
+                self._pending_models = self._load_models(model_files(self.settings.model_path, new_paths[-1]))
+            except InputError as exc:
+                reason = f"model_paths refused, the node keeps {', '.join(m.name for m in self.models)}: {exc}"
         return SetParametersResult(successful=reason is None, reason=reason or "")
 
     def _apply_parameters(self, params) -> None:
@@ -192,6 +235,10 @@ class InstanceRegistrationNode(Node):
         if node_changes:
             self.settings = node_settings({**asdict(self.settings), **node_changes})
             self._sync.set_slop(int(self.settings.sync_slop_s * 1e9))
+        if "model_paths" in node_changes and self._pending_models is not None:
+            # The new detector process takes seconds to start: the old one serves meanwhile.
+            pending, self._pending_models = self._pending_models, None
+            threading.Thread(target=self._swap_models, args=pending, name="swap_models", daemon=True).start()
         if pipeline_changes:
             # Takes effect on the next frame: it goes to the pipeline process with the frame.
             self.config = with_overrides(self.config, pipeline_changes)
@@ -202,6 +249,41 @@ class InstanceRegistrationNode(Node):
                 self._tracker.set_config(self.tracker_config)
         self.get_logger().info("parameters changed: " + ", ".join(
             f"{k}={v!r}" for k, v in {**node_changes, **pipeline_changes, **tracking_changes}.items()))
+
+    def _swap_models(self, files: list[str], models: list) -> None:
+        """A detector process for ``models`` is started beside the running one; once it is ready
+        the detector threads take it for their next frame, the trackers of objects gone end,
+        new objects get theirs and their topics, and the old process is closed after the frame
+        it is working on. Swaps run one after the other (the newest set is the last one)."""
+        from .worker import PipelineProcess
+
+        with self._swap_lock:
+            t0 = time.monotonic()
+            try:
+                pipelines = PipelineProcess.start_many(models, self.config, len(self._pipelines),
+                                                       niceness=self._niceness)
+            except InputError as exc:
+                self.get_logger().error(f"cannot load the new models, keeping the current ones: {exc}")
+                return
+            with self._publish_lock:
+                old, self._pipelines = self._pipelines, pipelines
+                if self._tracker is not None:
+                    self._tracker.set_models(models)
+                self.models, self.model_files = models, files
+                self._objects = {m.name: ObjectClass.of_model(m) for m in models}
+                for name in set(self._pub_object_poses) - set(self._objects):
+                    self.destroy_publisher(self._pub_object_poses.pop(name))
+                for name in self._objects:
+                    if name not in self._pub_object_poses:
+                        self._pub_object_poses[name] = self.create_publisher(
+                            PoseArray, object_poses_topic(name), self._pub_qos)
+                if self._pub_detections is not None:
+                    self._pub_detections.set_objects(list(self._objects.values()))
+            for pipeline in old:
+                pipeline.close()
+            self._count("model_swaps")
+            self.get_logger().info(f"models now: {', '.join(m.name for m in models)} "
+                                   f"(the new detector was ready after {time.monotonic() - t0:.1f} s)")
 
     # ---- input ------------------------------------------------------------------------
     def _on_camera_info(self, msg: CameraInfo) -> None:
@@ -229,16 +311,16 @@ class InstanceRegistrationNode(Node):
                 self.counters.dropped += 1
 
     # ---- the worker threads -----------------------------------------------------------
-    def _work(self, pipeline) -> None:
-        """A detector thread (one per pipeline process)."""
+    def _work(self, index: int) -> None:
+        """A detector thread (one per pipeline process; ``index``: which one)."""
         while not self._slot.closed:
             item = self._slot.take(timeout=0.5, fresher=self.settings.wait_for_fresher)
             if item is None:
                 continue
             if isinstance(item, _Frame):
-                self._detect(item, pipeline)
+                self._detect(item, index)
             else:
-                self._process(item, pipeline)
+                self._process(item, index)
 
     def _track_frames(self) -> None:
         while not self._track_slot.closed:
@@ -274,10 +356,18 @@ class InstanceRegistrationNode(Node):
             return None
         return rgb, depth, intrinsics
 
-    def _register(self, pipeline, rgb, depth, intrinsics):
+    def _register(self, index: int, rgb, depth, intrinsics):
         """The detector's FrameResult, or None when it failed on this frame (counted)."""
+        from .worker import PipelineClosed
+
         try:
-            result = pipeline.register(rgb, depth, intrinsics, self.config)
+            while True:
+                try:
+                    result = self._pipelines[index].register(rgb, depth, intrinsics, self.config)
+                    break
+                except PipelineClosed:   # the models were swapped meanwhile: the new process takes it
+                    if self._slot.closed:   # ... unless the node is shutting down
+                        return None
         except InputError as exc:
             self._count("bad")
             self.get_logger().warn(f"skipping a malformed frame: {exc}", throttle_duration_sec=2.0)
@@ -289,13 +379,13 @@ class InstanceRegistrationNode(Node):
         self._count("detected")
         return result
 
-    def _process(self, pair: _Pair, pipeline) -> None:
+    def _process(self, pair: _Pair, index: int) -> None:
         """Tracking off: detect on the pair and publish what was found."""
         frame = self._convert(pair)
         if frame is None:
             return
         rgb, depth, intrinsics = frame
-        result = self._register(pipeline, rgb, depth, intrinsics)
+        result = self._register(index, rgb, depth, intrinsics)
         if result is None:
             return
         timings = {k: round(float(v), 2) for k, v in result.timings_ms.items()}
@@ -317,9 +407,9 @@ class InstanceRegistrationNode(Node):
                          detection=self._last_detection, tracker=self._tracker.counts()):
             self._publish_debug_image(rgb, None, intrinsics, pair.colour.header, tracks)
 
-    def _detect(self, frame: _Frame, pipeline) -> None:
+    def _detect(self, frame: _Frame, index: int) -> None:
         """Tracking on: full detection on a tracked frame, fed back to the tracker for it."""
-        result = self._register(pipeline, frame.rgb, frame.depth, frame.intrinsics)
+        result = self._register(index, frame.rgb, frame.depth, frame.intrinsics)
         if result is None:
             return
         stamp = stamp_to_ns(frame.pair.colour.header.stamp)
@@ -340,7 +430,11 @@ class InstanceRegistrationNode(Node):
                 self._count("dropped")
                 return False
             self._last_published = pair.sequence
+            # A detector result of models just unloaded (tracking off) names objects gone.
+            instances = [inst for inst in instances if inst.object in self._objects]
             self._pub_poses.publish(conversions.pose_array(instances, header))
+            for name, pub in self._pub_object_poses.items():
+                pub.publish(conversions.pose_array([i for i in instances if i.object == name], header))
             if self._pub_detections is not None:
                 self._pub_detections.publish(instances, header)
             # Latency as a user sees it: pair complete -> poses out (waiting for a worker included).
@@ -352,8 +446,7 @@ class InstanceRegistrationNode(Node):
             self._pub_details.publish(conversions.details_message(
                 stamp_to_ns(header.stamp), header.frame_id, latency_ms, instances,
                 received_ns=pair.received_ns, published_ns=time.time_ns(), counters=counters, **details))
-            markers, self._marker_ids = conversions.marker_array(
-                instances, header, np.zeros(3), self.model.extent, self._marker_ids)
+            markers, self._marker_ids = conversions.marker_array(instances, header, self._objects, self._marker_ids)
             self._pub_markers.publish(markers)
         return True
 
@@ -362,7 +455,8 @@ class InstanceRegistrationNode(Node):
 
         if not (self.settings.publish_debug_image or self._pub_debug.get_subscription_count() > 0):
             return
-        overlay = draw_overlay(rgb, result, intrinsics, self.model.box_corners(), conversions.instance_colour,
+        overlay = draw_overlay(rgb, result, intrinsics, {m.name: m.box_corners() for m in self.models},
+                               conversions.instance_colour,
                                instances=tracks)
         fields = array_to_image_fields(overlay, "rgb8")
         fields["data"] = fields["data"].tobytes()
@@ -380,6 +474,7 @@ class InstanceRegistrationNode(Node):
 
     def stats(self) -> dict:
         stats = self.frame_counts()
+        stats["objects"] = list(self._objects)
         with self._counters_lock:
             lat = np.array(self._latencies) if self._latencies else None
         stats["latency_ms_p50"] = round(float(np.percentile(lat, 50)), 2) if lat is not None else None
@@ -415,6 +510,16 @@ class InstanceRegistrationNode(Node):
         for pipeline in self._pipelines:
             pipeline.close()
         return super().destroy_node()
+
+
+def model_files(model_path: str, model_paths) -> list[str]:
+    """The model files to load: ``model_path`` (the older, single-model parameter) first, then
+    ``model_paths``; a file named twice is loaded once."""
+    return list(dict.fromkeys([*([model_path] if model_path else []), *model_paths]))
+
+
+def object_poses_topic(name: str) -> str:
+    return f"instances/{name}/poses"
 
 
 def _tracker_fields(values: dict) -> dict:

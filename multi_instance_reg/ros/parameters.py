@@ -20,13 +20,18 @@ from ..errors import InputError
 from ..params import ParamSpec, param, param_specs
 
 _ROS_TYPES = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
-              float: ParameterType.PARAMETER_DOUBLE, str: ParameterType.PARAMETER_STRING}
+              float: ParameterType.PARAMETER_DOUBLE, str: ParameterType.PARAMETER_STRING,
+              tuple: ParameterType.PARAMETER_STRING_ARRAY}
 
 
 @dataclass(frozen=True)
 class NodeSettings:
     """Settings of the ROS wrapper itself (the algorithm's live in PipelineConfig)."""
-    model_path: str = param("", "object model file built by `mireg build-model` (read-only: fixed at start-up)")
+    model_path: str = param("", "object model file built by `mireg build-model` (read-only: fixed at start-up; "
+                                "for several objects, or to change them at run time, use model_paths)")
+    model_paths: tuple = param((), "object model files, one per object (`mireg build-model --name`; names must differ), "
+                                   "found together in one SIFT pass; settable at run time (models are loaded and "
+                                   "unloaded without a restart). With model_path too, both are loaded (model_path first)")
     sync_slop_s: float = param(0.02, "largest stamp difference between a colour and a depth image that still pair up (s)", 0.0, 1.0)
     qos_reliability: str = param("reliable", "subscription reliability (read-only); best_effort loses large frames over Fast DDS",
                                  choices=("reliable", "best_effort"))
@@ -68,10 +73,18 @@ def descriptor(spec: ParamSpec, read_only: bool = False) -> ParameterDescriptor:
 def declare(node, specs, read_only=frozenset()) -> dict:
     """Declare one parameter per spec (the value from a params file or ``-p`` wins over the
     default) and return {name: value}, each checked against its spec (InputError if not)."""
+    from rclpy.parameter import Parameter
+
     values = {}
     for spec in specs:
+        # rclpy cannot tell an empty list's type: a string array is declared by its type, and
+        # without a value from a file or -p it is set to [] at once.
+        default = Parameter.Type.STRING_ARRAY if spec.type is tuple else spec.default
         try:
-            p = node.declare_parameter(spec.name, spec.default, descriptor(spec, spec.name in read_only))
+            p = node.declare_parameter(spec.name, default, descriptor(spec, spec.name in read_only))
+            if spec.type is tuple and p.value is None:
+                p = Parameter(spec.name, Parameter.Type.STRING_ARRAY, [])
+                node.set_parameters([p])
         except Exception as exc:  # rclpy refuses a value of the wrong type or out of range
             raise InputError(f"parameter {spec.name}: {exc}") from None
         values[spec.name] = spec.check(p.value)
@@ -124,6 +137,8 @@ def _yaml_scalar(value) -> str:
         return mantissa + e + exponent
     if isinstance(value, str):
         return json.dumps(value)
+    if isinstance(value, tuple):
+        return json.dumps(list(value))
     return str(value)
 
 

@@ -39,7 +39,8 @@ INFO_TOPIC = "/camera/camera/color/camera_info"
 
 def add_arguments(parser) -> None:
     parser.add_argument("--bag", type=Path, help="scene bag whose frames are replayed (default: make the demo's)")
-    parser.add_argument("--model", type=Path, help="model file (default: make the demo's)")
+    parser.add_argument("--model", type=Path, action="append", default=[],
+                        help="model file, once per object (default: make the demo's one-object data)")
     parser.add_argument("--frames", type=int, default=300, metavar="N", help="frames at 30 Hz for the latency figures")
     parser.add_argument("--overload-frames", type=int, default=300, metavar="N", help="frames at --overload-rate")
     parser.add_argument("--overload-rate", type=float, default=60.0, metavar="HZ")
@@ -226,12 +227,12 @@ def _pct(values: np.ndarray, q: float):
 
 
 def run(args) -> int:
-    if args.bag is None or args.model is None:
+    if args.bag is None or not args.model:
         from .demo import prepare_data
 
         data = prepare_data(Path("out/bench_node"), quiet=False)
         args.bag = args.bag or data["scene_bag"]
-        args.model = args.model or data["model"]
+        args.model = args.model or [data["model"]]
     frames = _load_frames(args.bag, args.distinct_frames)
     messages = _messages(frames)
     env = dict(os.environ, ROS_DOMAIN_ID=str(args.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
@@ -241,11 +242,11 @@ def run(args) -> int:
     # The node's log goes to a file: an unread pipe would fill up and stall it on a long run.
     log = tempfile.NamedTemporaryFile("w+", prefix="bench_node_", suffix=".log")
     node = subprocess.Popen([sys.executable, "-m", "multi_instance_reg.ros.node", "--ros-args",
-                             "-p", f"model_path:={args.model}", "-p", "stats_log_period_s:=10.0",
+                             "-p", f"model_paths:=[{', '.join(map(str, args.model))}]", "-p", "stats_log_period_s:=10.0",
                              *[a for p in args.param for a in ("-p", p)]],
                             env=env, stdout=log, stderr=subprocess.STDOUT, text=True)
     bench = _Bench(messages, args.domain_id)
-    figures: dict = {"node_params": args.param, "load_average_start": os.getloadavg()[0],
+    figures: dict = {"node_params": args.param, "models": [str(m) for m in args.model], "load_average_start": os.getloadavg()[0],
                      "frames_distinct": len(messages), "image_size": [frames[0].rgb.shape[1], frames[0].rgb.shape[0]]}
     try:
         bench.wait_for_node(60.0, node)
@@ -340,7 +341,7 @@ def run(args) -> int:
 def _print(f: dict) -> None:
     w, h = f["image_size"]
     r = f["rate_30hz"]
-    print(f"node params: {' '.join(f['node_params']) or '(defaults)'}")
+    print(f"node params: {' '.join(f['node_params']) or '(defaults)'}; models: {', '.join(f['models'])}")
     print(f"node at 30 Hz, {w}x{h}: poses for {100 * r['share_with_poses']:.1f} % of camera frames "
           f"({r['frames_with_poses']}/{r['frames_sent']}; at least one pose in {100 * r['share_with_a_pose']:.1f} %, "
           f"{r['poses_per_frame_mean']} poses a frame on average), "

@@ -1,11 +1,13 @@
 """``make demo``: the whole product in a few minutes, on synthetic data made on the spot.
 
-1. renders a capture bag (the object alone) and a scene bag (several instances, distractors,
-   ground truth), and builds the object model from the capture;
-2. starts the ROS node, a separate listener (``mireg listen``) and plays the scene into the
-   node in real time (``mireg play``), all as real processes on a DDS domain of their own;
-3. prints each frame's instances as they arrive, then MHF1 against the ground truth, the mean
-   latency and the frames the node dropped; leaves overlays and a summary in ``out/demo/``.
+1. renders capture bags of two objects (each alone: a snack box and a can) and a scene bag
+   with instances of both, distractors and ground truth, and builds one model per object;
+2. starts the ROS node with both models, a separate listener (``mireg listen``) and plays
+   the scene into the node in real time (``mireg play``), all as real processes on a DDS
+   domain of their own;
+3. prints each frame's instances as they arrive, then MHF1 against the ground truth (per
+   object and over both), the mean latency and the frames the node dropped; leaves overlays
+   and a summary in ``out/demo/``.
 """
 from __future__ import annotations
 
@@ -19,17 +21,23 @@ from pathlib import Path
 
 from ..errors import InputError
 
-HELP = "the end-to-end demo: synthetic bags, model, node, live replay, MHF1 and latency"
+HELP = "the end-to-end demo: synthetic bags, two models, node, live replay, MHF1 per object and latency"
 REPO = Path(__file__).resolve().parents[2]
 DOMAIN_ID = 87
 COLOUR, DEPTH, INFO = ("/camera/camera/color/image_raw", "/camera/camera/aligned_depth_to_color/image_raw",
                        "/camera/camera/color/camera_info")
+DEMO_OBJECTS = ("snack_box", "can")
+# Resting poses of the captures a model is built from: the can is round, one side is enough.
+CAPTURE_SIDES = {"can": ("+z", "-z", "+y")}
 
 
 def add_arguments(parser) -> None:
     parser.add_argument("--out", type=Path, default=Path("out/demo"), help="where bags, model and results go")
     parser.add_argument("--frames", type=int, default=90, help="frames in the scene bag (30 Hz)")
-    parser.add_argument("--instances", type=int, default=6, help="instances of the object in the scene")
+    parser.add_argument("--instances", type=int, default=3, help="instances of each object in the scene")
+    parser.add_argument("--object", dest="objects", action="append", metavar="NAME",
+                        help=f"an object of the scene (give it again for each; default: {' and '.join(DEMO_OBJECTS)}); "
+                             "see `mireg synth objects`")
     parser.add_argument("--rate", type=float, default=1.0, help="replay speed (1 = real time)")
     parser.add_argument("--domain-id", type=int, default=DOMAIN_ID, help="ROS_DOMAIN_ID for the demo's processes")
     parser.add_argument("--fresh", action="store_true", help="render the bags and build the model again")
@@ -39,35 +47,46 @@ def _say(text: str) -> None:
     print(f"\033[1m== {text}\033[0m" if sys.stdout.isatty() else f"== {text}", flush=True)
 
 
-def prepare_data(out: Path, frames: int = 90, instances: int = 6, fresh: bool = False, quiet: bool = False) -> dict:
-    """Capture bag, scene bag and model under ``out`` (reused if already there)."""
+def prepare_data(out: Path, frames: int = 90, instances: int = 6, fresh: bool = False, quiet: bool = False,
+                 objects=("snack_box",)) -> dict:
+    """Capture bags, scene bag and one model per object under ``out`` (reused if already
+    there). One object: ``instances`` of it; several: ``instances`` of each (a mixed scene)."""
     import shutil
 
     from ..rgbd.model import save_model
     from ..synthetic.scene import generate_scene_bag
     from .bench_frames import CAPTURE_POSES, generate_capture_bags, model_from_captures
 
+    objects = list(objects)
     out.mkdir(parents=True, exist_ok=True)
-    captures, scene, model_path = out / "captures", out / "scene", out / "model.npz"
+    captures, scene = out / "captures", out / "scene"
+    model_paths = [out / f"{name}.npz" for name in objects]
     marker = out / "data.json"
-    wanted = {"frames": frames, "instances": instances}
+    wanted = {"frames": frames, "instances": instances, "objects": objects}
     if fresh or not marker.exists() or json.loads(marker.read_text()) != wanted:
         for path in (captures, scene):
             shutil.rmtree(path, ignore_errors=True)
-        model_path.unlink(missing_ok=True)
+        for path in [*model_paths, out / "model.npz"]:   # (model.npz: the one model of earlier demos)
+            path.unlink(missing_ok=True)
         marker.unlink(missing_ok=True)
-    if not captures.exists():
-        quiet or _say(f"rendering {len(CAPTURE_POSES)} capture bags (the object alone, resting on different "
-                      "sides, several views each)")
-        generate_capture_bags(captures, seed=0, views=8)
+    for name, model_path in zip(objects, model_paths):
+        folder = captures / name
+        sides = CAPTURE_SIDES.get(name, CAPTURE_POSES)
+        if not folder.exists():
+            quiet or _say(f"rendering {len(sides)} capture bags of the {name} (alone, resting on different "
+                          "sides, several views each)")
+            generate_capture_bags(folder, name, seed=0, views=8, poses=sides)
+        if not model_path.exists():
+            quiet or _say(f"building the {name} model from its capture bags")
+            save_model(model_from_captures(sorted(p for p in folder.iterdir() if p.is_dir())), model_path)
     if not scene.exists():
-        quiet or _say(f"rendering the scene bag ({frames} frames, {instances} instances, distractors)")
-        generate_scene_bag(scene, instances=instances, distractors=3, frames=frames, seed=1)
-    if not model_path.exists():
-        quiet or _say("building the object model from the capture bags")
-        save_model(model_from_captures(sorted(p for p in captures.iterdir() if p.is_dir())), model_path)
+        each = " of each" if len(objects) > 1 else ""
+        quiet or _say(f"rendering the scene bag ({frames} frames, {instances} instances{each} of "
+                      f"{' and '.join(objects)}, distractors)")
+        generate_scene_bag(scene, objects if len(objects) > 1 else objects[0], instances=instances, distractors=3,
+                           frames=frames, seed=1)
     marker.write_text(json.dumps(wanted))
-    return {"captures": captures, "scene_bag": scene, "model": model_path}
+    return {"captures": captures, "scene_bag": scene, "models": model_paths, "model": model_paths[0]}
 
 
 class _Process:
@@ -116,14 +135,15 @@ class _Process:
 def run(args) -> int:
     started = time.monotonic()
     out = args.out
-    data = prepare_data(out, args.frames, args.instances, args.fresh)
+    objects = args.objects or list(DEMO_OBJECTS)
+    data = prepare_data(out, args.frames, args.instances, args.fresh, objects=objects)
     env = dict(os.environ, ROS_DOMAIN_ID=str(args.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                PYTHONUNBUFFERED="1")
     params = REPO / "config" / "params.yaml"
     node_args = ["multi_instance_reg.ros.node", "--ros-args"]
     if params.exists():
         node_args += ["--params-file", str(params)]
-    node_args += ["-p", f"model_path:={data['model']}"]
+    node_args += ["-p", f"model_paths:=[{', '.join(str(p) for p in data['models'])}]"]
     overlays = out / "overlays"
     summary_path = out / "summary.json"
     summary_path.unlink(missing_ok=True)
@@ -137,7 +157,8 @@ def run(args) -> int:
         _say("starting the listener (a separate process) and playing the scene into the node")
         listener = _Process("listen", [
             "multi_instance_reg.tools.cli", "listen", "--ground-truth", str(data["scene_bag"]),
-            "--model", str(data["model"]), "--save-overlays", str(overlays), "--overlay-every", "3",
+            *[a for p in data["models"] for a in ("--model", str(p))],
+            "--save-overlays", str(overlays), "--overlay-every", "3",
             "--summary", str(summary_path), "--idle-timeout", "4", "--wait-for-node", "60"],
             env, echo=True, log=out / "listen.log")
         if not listener.wait_for_line("listening", 90):
@@ -162,6 +183,8 @@ def run(args) -> int:
     print(f"  MHF1 {summary.get('MHF1')} % (MHR {summary.get('MHR')} %, MHP {summary.get('MHP')} %) over "
           f"{summary.get('frames_scored')} frames the node processed (of {args.frames} played at "
           f"{30 * args.rate:g} Hz)")
+    for name, s in summary.get("objects", {}).items():
+        print(f"    {name}: MHF1 {s['MHF1']} % (MHR {s['MHR']} %, MHP {s['MHP']} %)")
     print(f"  mean latency {summary['latency_ms_mean']} ms (p50 {summary['latency_ms_p50']} ms), "
           f"frames dropped by the node: {summary['frames_dropped']} (it always works on the newest frame)")
     print(f"  overlays: {overlays}/, summary: {summary_path}, logs: {out}/*.log "

@@ -4,7 +4,10 @@ Subscribes to ``instances/poses`` and ``instances/details`` in ``--namespace`` (
 default; joined on the header stamp), prints one line per frame, and at the end a summary:
 frames, mean node latency, frames dropped by the node and, with ``--ground-truth BAG``,
 MHR / MHP / MHF1 against the bag's ``/ground_truth/poses`` (same stamps: ``mireg play``
-rewrites nothing). ``--save-overlays DIR`` also subscribes to the node's debug image and
+rewrites nothing). With the node's models (``--model``, once per object), each instance is
+scored against the ground-truth instances of its own object (the ``object`` of the details;
+the bag's /ground_truth/object names each ground-truth instance's), per object and over all,
+as ``mireg offline`` does. ``--save-overlays DIR`` also subscribes to the node's debug image and
 writes it as PNG.
 """
 from __future__ import annotations
@@ -36,9 +39,10 @@ def add_arguments(parser) -> None:
                         help="write the node's debug images there (every --overlay-every-th)")
     parser.add_argument("--overlay-every", type=int, default=5, metavar="K")
     parser.add_argument("--summary", type=Path, metavar="JSON", help="also write the summary to this file")
-    parser.add_argument("--model", type=Path, metavar="MODEL",
-                        help="the node's model file: its T_object_model maps the published model frame to the "
-                             "ground truth's object frame (without it the two are taken to be the same)")
+    parser.add_argument("--model", type=Path, metavar="MODEL", action="append", default=[],
+                        help="the node's model file, once per object: its T_object_model maps the published model "
+                             "frame to the ground truth's object frame (without it the two are taken to be the "
+                             "same), and its name says which poses are scored against which ground truth")
     parser.add_argument("--max-rre-deg", type=float, default=10.0, metavar="DEG",
                         help="a hit needs a rotation error below this (default 10, as mireg offline)")
     parser.add_argument("--max-rte", type=float, default=0.02, metavar="M",
@@ -52,10 +56,11 @@ def add_arguments(parser) -> None:
     add_namespace_argument(parser, "listen to the node in this namespace")
 
 
-def read_ground_truth(path: Path) -> dict[int, tuple[np.ndarray, np.ndarray | None]]:
+def read_ground_truth(path: Path) -> dict[int, tuple[np.ndarray, np.ndarray | None, list[str]]]:
     """stamp_ns -> ((K, 4, 4) ground-truth poses, object frame in the camera optical frame;
-    (K,) visible fraction of each instance, or None when the bag has no visibility)."""
-    from ..datasets.rgbd_bag import GT_VISIBILITY_TOPIC, _open_reader
+    (K,) visible fraction of each instance, or None when the bag has no visibility; the K
+    instances' object names, "" when the bag does not say)."""
+    from ..datasets.rgbd_bag import GT_VISIBILITY_TOPIC, _object_description, _open_reader, instance_objects
     from ..transforms import pose_to_matrix
 
     reader = _open_reader(path)
@@ -76,7 +81,9 @@ def read_ground_truth(path: Path) -> dict[int, tuple[np.ndarray, np.ndarray | No
                 pose_to_matrix((p.position.x, p.position.y, p.position.z),
                                (p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w))
                 for p in msg.poses]).reshape(-1, 4, 4)
-        return {stamp: (poses[stamp], visibility.get(bag_time)) for bag_time, stamp in stamp_at.items()}
+        description = _object_description(reader, path)
+        return {stamp: (poses[stamp], visibility.get(bag_time), instance_objects(description, len(poses[stamp])))
+                for bag_time, stamp in stamp_at.items()}
     finally:
         reader.close()
 
@@ -92,9 +99,9 @@ def pose_array_to_matrices(msg) -> np.ndarray:
 class Listener:
     """Joins poses and details by stamp; keeps what the summary needs."""
 
-    def __init__(self, truth=None, quiet=False, overlay_dir=None, overlay_every=5, model=None):
+    def __init__(self, truth=None, quiet=False, overlay_dir=None, overlay_every=5, models=()):
         self.truth = truth
-        self.model = model
+        self.models = list(models)
         self.quiet = quiet
         self.overlay_dir = overlay_dir
         self.overlay_every = max(1, overlay_every)
@@ -134,11 +141,6 @@ class Listener:
         cv2.imwrite(str(path), colour_to_rgb(msg)[:, :, ::-1])
         self.overlays_written.append(str(path))
 
-    def object_poses(self, model_poses: np.ndarray) -> np.ndarray:
-        """Published poses are model frame -> camera; ground truth is object frame -> camera."""
-        from .offline import estimates_in_object_frame
-
-        return model_poses if self.model is None else estimates_in_object_frame(self.model, model_poses)
 
     def _join(self, stamp: int) -> None:
         if stamp not in self.poses or stamp not in self.details:
@@ -149,7 +151,7 @@ class Listener:
         self.frames.append(frame)
         if not self.quiet:
             insts = ", ".join(
-                f"#{i['id']} ({i['inliers']} inl, {i['score']:.2f}) at "
+                (f"{i['object']} " if len(self.models) > 1 and "object" in i else "") + f"#{i['id']} ({i['inliers']} inl, {i['score']:.2f}) at "
                 f"[{T[0, 3]:+.3f} {T[1, 3]:+.3f} {T[2, 3]:+.3f}]"
                 for i, T in zip(details["instances"], poses))
             gt = ""
@@ -174,20 +176,47 @@ class Listener:
             "overlays": self.overlays_written,
         }
         if self.truth is not None:
-            scored = [(self.object_poses(f["poses"]), *self.truth[f["stamp_ns"]])
+            scored = [(f["poses"], [i.get("object", "") for i in f["details"]["instances"]], *self.truth[f["stamp_ns"]])
                       for f in self.frames if f["stamp_ns"] in self.truth]
-            out.update(score_frames(scored, max_rre_deg, max_rte, min_visibility))
+            out.update(score_frames(scored, self.models, max_rre_deg, max_rte, min_visibility))
         return out
 
 
-def score_frames(frames, max_rre_deg: float = 10.0, max_rte: float = 0.02, min_visibility: float = 0.25) -> dict:
-    """MHR / MHP / MHF1 in % (means over frames) of (estimated, ground truth, visibility)
-    triples, scored exactly as ``mireg offline`` does."""
-    from ..metrics import summarize
-    from .offline import evaluate_frame
+def score_frames(frames, models=(), max_rre_deg: float = 10.0, max_rte: float = 0.02,
+                 min_visibility: float = 0.25) -> dict:
+    """MHR / MHP / MHF1 in % (means over frames) of frames given as (published poses (model
+    frame), their object names, ground truth (object frame), its visibility, its object names),
+    scored as ``mireg offline`` does: with models, each object's poses against its own ground
+    truth (per object under "objects", and all together); without, all against all."""
+    from ..metrics import combine_scores, summarize
+    from .offline import estimates_in_object_frame, evaluate_frame, ground_truth_owners
 
-    s = summarize([evaluate_frame(gt, est, vis, min_visibility, max_rre_deg, max_rte) for est, gt, vis in frames])
-    return {"frames_scored": len(frames), "MHR": round(100 * s["MHR"], 1), "MHP": round(100 * s["MHP"], 1),
+    per_object: dict[str, list] = {m.name: [] for m in models}
+    overall = []
+    for poses, names, gt, vis, gt_names in frames:
+        if not models:
+            overall.append(evaluate_frame(gt, poses, vis, min_visibility, max_rre_deg, max_rte))
+            continue
+        owners = ground_truth_owners(models, gt_names)
+        scores = []
+        for k, m in enumerate(models):
+            # A node with one model publishes unnamed instances only if it predates names: all are its.
+            mine = [e for e, n in enumerate(names) if n == m.name or (len(models) == 1 and not n)]
+            g = np.flatnonzero(owners == k)
+            score = evaluate_frame(gt[g], estimates_in_object_frame(m, poses[mine]), None if vis is None else vis[g],
+                                   min_visibility, max_rre_deg, max_rte)
+            per_object[m.name].append(score)
+            scores.append(score)
+        overall.append(combine_scores(scores))
+    out = _percentages(summarize(overall), len(frames), max_rre_deg, max_rte, min_visibility)
+    if len(models) > 1:
+        out["objects"] = {name: _percentages(summarize(s), len(frames), max_rre_deg, max_rte, min_visibility)
+                          for name, s in per_object.items()}
+    return out
+
+
+def _percentages(s: dict, frames: int, max_rre_deg: float, max_rte: float, min_visibility: float) -> dict:
+    return {"frames_scored": frames, "MHR": round(100 * s["MHR"], 1), "MHP": round(100 * s["MHP"], 1),
             "MHF1": round(100 * s["MHF1"], 1), "MF": round(100 * s["MF"], 1),
             "max_rre_deg": max_rre_deg, "max_rte": max_rte, "min_visibility": min_visibility,
             "median_rre_deg": s["median_rre_deg"], "median_rte_m": s["median_rte"]}
@@ -202,17 +231,19 @@ def format_summary(summary: dict) -> str:
                         f"{summary['frames_scored']} frames with ground truth (hit: rotation < "
                         f"{summary['max_rre_deg']:g} deg, translation < {summary['max_rte']:g} m; instances at least "
                         f"{summary['min_visibility']:g} visible)")
+        for k, (name, s) in enumerate(summary.get("objects", {}).items()):
+            lines.insert(1 + k, f"  {name}: MHF1 {s['MHF1']} % (MHR {s['MHR']} %, MHP {s['MHP']} %)")
     return "\n".join(lines)
 
 
 def run(args) -> int:
     namespace = checked_namespace(args.namespace)
     truth = read_ground_truth(args.ground_truth) if args.ground_truth else None
-    model = None
+    models = []
     if args.model:
-        from ..rgbd.model import load_model
+        from ..rgbd.multi_model import load_models
 
-        model = load_model(args.model)
+        models = load_models(args.model)
     if args.save_overlays:
         args.save_overlays.mkdir(parents=True, exist_ok=True)
 
@@ -223,7 +254,7 @@ def run(args) -> int:
     from sensor_msgs.msg import Image
     from std_msgs.msg import String
 
-    listener = Listener(truth, args.quiet, args.save_overlays, args.overlay_every, model)
+    listener = Listener(truth, args.quiet, args.save_overlays, args.overlay_every, models)
     from ..ros.transport import use_large_data_profile
 
     use_large_data_profile()   # images through shared memory (ros/transport.py)
@@ -247,8 +278,9 @@ def run(args) -> int:
                                  "is it running with the same ROS_DOMAIN_ID and namespace?")
             rclpy.spin_once(node, timeout_sec=0.1)
         # Discovery is mutual: give the node's publishers a moment to match our subscriptions.
+        # Frames may already arrive meanwhile: they count towards --frames.
         end = time.monotonic() + 0.5
-        while time.monotonic() < end:
+        while time.monotonic() < end and not (args.frames and len(listener.frames) >= args.frames):
             rclpy.spin_once(node, timeout_sec=0.1)
     print("listening for the node's output", file=sys.stderr, flush=True)
     start = time.monotonic()
@@ -256,6 +288,8 @@ def run(args) -> int:
     signal.signal(signal.SIGTERM, lambda *_: rclpy.try_shutdown())
     try:
         while rclpy.ok():
+            if args.frames and len(listener.frames) >= args.frames:
+                break
             rclpy.spin_once(node, timeout_sec=0.1)
             now = time.monotonic()
             if args.frames and len(listener.frames) >= args.frames:

@@ -432,12 +432,9 @@ def draw_found_vs_present(present, found, hits, width: int = 900, height: int = 
 def run(args) -> int:
     import cv2
 
-    from ..rgbd.model import load_model
+    from ..rgbd.multi_model import load_models
 
-    from ..rgbd.multi_model import check_model_names
-
-    models = [load_model(path) for path in args.model]
-    check_model_names(models, args.model)
+    models = load_models(args.model)
     config = load_config(args.params)
     out_dir = Path(args.output)
     if out_dir.exists() and not out_dir.is_dir():

@@ -4,8 +4,8 @@ object when there are several (``objects.py``), and fed by a detector running be
 camera in a live stream (``live.py``)."""
 from .icp import IcpResult, ProjectiveICP
 from .live import TRACKING_ENABLED, LiveConfig, LiveTracker
-from .objects import ObjectTrackers
+from .objects import LiveObjectTrackers, ObjectTrackers
 from .tracker import InstanceTracker, TrackedInstance, TrackerConfig
 
-__all__ = ["InstanceTracker", "ObjectTrackers", "LiveTracker", "LiveConfig", "TRACKING_ENABLED", "TrackedInstance",
+__all__ = ["InstanceTracker", "ObjectTrackers", "LiveObjectTrackers", "LiveTracker", "LiveConfig", "TRACKING_ENABLED", "TrackedInstance",
            "TrackerConfig", "ProjectiveICP", "IcpResult"]
