@@ -65,6 +65,7 @@ class Probe(BackgroundNode):
         os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
         super().__init__(name, domain_id)
         self.received: dict[str, list] = {}
+        self._subscriptions: list = []
         self._lock = threading.Lock()
         self.start()
 
@@ -77,8 +78,17 @@ class Probe(BackgroundNode):
         def keep(msg):
             with self._lock:
                 box.append((time.monotonic(), msg))
-        self.node.create_subscription(msg_type, topic, keep, qos)
+        self._subscriptions.append(self.node.create_subscription(msg_type, topic, keep, qos))
         return box
+
+    def wait_for_publishers(self, topics, timeout: float = 30.0, proc=None) -> bool:
+        """Until this probe's subscriptions to ``topics`` are matched with a publisher: what a
+        node publishes before that is lost to them (seen in full-suite runs: a third of a
+        30 Hz stream missing at its start)."""
+        subs = [s for s in self._subscriptions if s.topic_name in set(topics)]
+        ok = wait_until(lambda: all(s.get_publisher_count() > 0 for s in subs), timeout, proc=proc)
+        time.sleep(0.3)
+        return ok
 
     def publisher(self, msg_type, topic: str, depth: int = 10):
         from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy

@@ -68,6 +68,8 @@ def test_detections_from_the_node_reach_another_process_and_match_the_poses(unna
         details = probe.subscribe(String, "/instances/details")
         camera = CameraPublisher(probe)
         assert camera.wait_for_subscribers(60, proc=node), stop(node)
+        assert probe.wait_for_publishers(["/instances/poses", "/instances/detections", "/instances/details"],
+                                         proc=node), stop(node)
         rgb, depth, K = poster_frame()
         sent = []
         # Frame by frame until the tracker has confirmed the poster and published it 3 times.

@@ -41,6 +41,8 @@ def test_tracked_poster_at_30hz_has_a_pose_per_frame_one_track_id_and_its_marker
         markers = probe.subscribe(MarkerArray, "/instances/markers", depth=200)
         camera = CameraPublisher(probe)
         assert camera.wait_for_subscribers(proc=node), stop(node)
+        assert probe.wait_for_publishers(["/instances/poses", "/instances/details", "/instances/markers"],
+                                         proc=node), stop(node)
         rgb, depth, K = poster_frame()
         sent = send_at_30hz(camera, rgb, depth, K, 75)
         assert wait_until(lambda: poses and stamp_ns(poses[-1][1]) == sent[-1], 20, proc=node), stop(node)
@@ -103,6 +105,7 @@ def test_ids_hold_over_a_rendered_pan_played_at_30hz(object_model, tmp_path):
         node, probe = live.proc, live.probe
         poses = probe.subscribe(PoseArray, "/instances/poses", depth=200)
         details = probe.subscribe(String, "/instances/details", depth=200)
+        assert probe.wait_for_publishers(["/instances/poses", "/instances/details"], proc=node), stop(node)
         play = start(["multi_instance_reg.tools.cli", "play", str(bag), "--quiet", "--wait-for",
                       "/camera/camera/color/image_raw", "/camera/camera/aligned_depth_to_color/image_raw",
                       "/camera/camera/color/camera_info", "--wait-timeout", "120"], 55)
