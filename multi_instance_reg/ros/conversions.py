@@ -36,6 +36,12 @@ class ObjectClass:
         return cls(str(getattr(model, "name", "") or "") or Path(model_path).stem, np.asarray(model.box_centre, dtype=np.float64).reshape(3),
                    np.asarray(model.extent, dtype=np.float64).reshape(3))
 
+    def box_pose(self, T: np.ndarray) -> np.ndarray:
+        """The box's pose for an instance at model pose ``T``: its centre moved by T, T's axes."""
+        box_T = np.array(T, dtype=np.float64)
+        box_T[:3, 3] = box_T[:3, :3] @ self.box_centre + box_T[:3, 3]
+        return box_T
+
 
 def object_of(instance, objects: dict[str, ObjectClass]) -> ObjectClass:
     """The instance's object (by its ``object`` name); an unnamed instance is the first one's."""
@@ -94,9 +100,7 @@ def marker_array(instances, header, objects: dict[str, ObjectClass], previous=()
     shown = set()
     for inst in instances:
         kind = object_of(inst, objects)
-        T = np.asarray(inst.T, dtype=np.float64)
-        box_T = T.copy()
-        box_T[:3, 3] = T[:3, :3] @ kind.box_centre + T[:3, 3]
+        box_T = kind.box_pose(inst.T)
         key = marker_key(inst)
         r, g, b = (c / 255.0 for c in instance_colour(key))
         box = Marker()

@@ -45,12 +45,10 @@ def detection_array(instances, header, objects: dict[str, ObjectClass]):
         hypothesis.hypothesis.class_id = kind.name
         hypothesis.hypothesis.score = float(inst.score)
         hypothesis.pose.pose = matrix_to_pose_msg(T)   # covariance: unknown (zeros)
-        box_T = T.copy()
-        box_T[:3, 3] = T[:3, :3] @ kind.box_centre + T[:3, 3]
         detection = Detection3D()
         detection.header = header
         detection.results = [hypothesis]
-        detection.bbox.center = matrix_to_pose_msg(box_T)
+        detection.bbox.center = matrix_to_pose_msg(kind.box_pose(T))
         detection.bbox.size.x, detection.bbox.size.y, detection.bbox.size.z = (float(v) for v in kind.box_size)
         track_id = getattr(inst, "track_id", None)
         detection.id = "" if track_id is None else str(track_id)
