@@ -14,7 +14,7 @@ from scipy.spatial import cKDTree
 
 from ..threads import map_in_chunks
 
-MATCHERS = ("flann", "flann_kmeans", "brute_force")
+MATCHERS = ("flann", "brute_force")
 
 
 def prepare_descriptors(desc: np.ndarray, root_sift: bool = True) -> np.ndarray:
@@ -28,11 +28,8 @@ def prepare_descriptors(desc: np.ndarray, root_sift: bool = True) -> np.ndarray:
 
 class DescriptorMatcher:
     """Matcher against a fixed set of model keypoints: "brute_force" (exact, one matrix
-    product), "flann" (randomised kd-trees built once: about half the time on a few
-    thousand model keypoints, and the same matches for all but a fraction of a percent) or
-    "flann_kmeans" (FLANN's hierarchical k-means tree, branching 16: on the synthetic mixed
-    scenes, at 24 checks it kept as many of the exact matches as the kd-trees at 32, and
-    fewer wrong ones, in about 0.7 of the time)."""
+    product) or "flann" (randomised kd-trees built once: about half the time on a few
+    thousand model keypoints, and the same matches for all but a fraction of a percent)."""
 
     def __init__(self, model_desc: np.ndarray, model_xyz: np.ndarray, ratio: float = 0.8, separation: float = 0.01,
                  method: str = "brute_force", neighbours: int = 8, flann_trees: int = 4, flann_checks: int = 32,
@@ -45,13 +42,11 @@ class DescriptorMatcher:
         self.desc = np.ascontiguousarray(model_desc, dtype=np.float32)
         self.xyz = np.asarray(model_xyz, dtype=np.float32).reshape(-1, 3)
         self._flann = None
-        if method != "brute_force" and len(self.desc) > self.neighbours:
+        if method == "flann" and len(self.desc) > self.neighbours:
             # FLANN draws its random trees from OpenCV's global generator: seed it so that a
             # model gives the same index, and the same matches, in every run.
             cv2.setRNGSeed(int(seed))
-            index = ({"algorithm": 1, "trees": int(flann_trees)} if method == "flann" else
-                     {"algorithm": 2, "branching": 16, "iterations": 11})
-            self._flann = cv2.flann_Index(self.desc, index)
+            self._flann = cv2.flann_Index(self.desc, {"algorithm": 1, "trees": int(flann_trees)})
         self.sq = np.einsum("ij,ij->i", self.desc, self.desc)
         self.ratio = float(ratio)
         self.separation = float(separation)

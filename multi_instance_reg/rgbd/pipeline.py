@@ -49,8 +49,8 @@ class FrontEndConfig:
     # Matching.
     ratio: float = param(0.8, "ratio test: best descriptor distance / second-best (second among model points more than ratio_separation away in 3D) must be below this", 0.1, 1.0)
     ratio_separation: float = param(0.01, "metres: model points closer than this to the best match count as the same physical point in the ratio test", 0.0, 1.0)
-    matcher: str = param("flann", "descriptor search: flann (approximate kd-trees, about twice as fast as exact), flann_kmeans (approximate hierarchical k-means tree) or brute_force (exact)", choices=("flann", "flann_kmeans", "brute_force"))
-    flann_checks: int = param(32, "flann, flann_kmeans: model descriptors the search compares each query with (each model has its own index); fewer is faster (16: matching 15 -> 9 ms a frame, MHF1 0.962 -> 0.952 on the held-out synthetic scenes)", 1, 4096)
+    matcher: str = param("flann", "descriptor search: flann (approximate kd-trees, about twice as fast) or brute_force (exact)", choices=("flann", "brute_force"))
+    flann_checks: int = param(32, "flann: leaves the kd-tree search visits per query (each model has its own index); fewer is faster (16: matching 15 -> 9 ms a frame, MHF1 0.962 -> 0.952 on the held-out synthetic scenes)", 1, 4096)
     root_sift: bool = param(True, "compare descriptors as RootSIFT (Hellinger kernel) instead of plain L2")
     # Lifting.
     depth_window: int = param(5, "side in pixels of the window whose median valid depth lifts a keypoint (odd)", 1, 31)
