@@ -120,9 +120,18 @@ class MultiModelRegistration:
         pool = [(k, inst) for k, res in enumerate(results) for inst in res.instances]
         kept: list[tuple[int, Instance]] = []
         if len(results) > 1:
+            # Boxes whose bounding spheres are apart share nothing: most pairs, skipped cheaply.
+            centre = {id(inst): inst.T[:3, :3] @ np.asarray(self.models[k].box_centre, np.float64) + inst.T[:3, 3]
+                      for k, inst in pool}
+            radius = [float(np.linalg.norm(m.extent)) / 2.0 for m in self.models]
+
+            def apart(k1, inst1, k2, inst2) -> bool:
+                return float(np.linalg.norm(centre[id(inst1)] - centre[id(inst2)])) > radius[k1] + radius[k2]
+
             for k, inst in sorted(pool, key=lambda c: -c[1].inliers):
-                if all(k2 == k or (self._inside(k2, inst2, k, inst) <= max_overlap and
-                                   self._inside(k, inst, k2, inst2) <= max_overlap) for k2, inst2 in kept):
+                if all(k2 == k or apart(k, inst, k2, inst2) or
+                       (self._inside(k2, inst2, k, inst) <= max_overlap and
+                        self._inside(k, inst, k2, inst2) <= max_overlap) for k2, inst2 in kept):
                     kept.append((k, inst))
         else:
             kept = pool
