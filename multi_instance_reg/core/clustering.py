@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .native import compiled, prange
+from .native import compiled, prange, row_parts, split_rows
 
 # The initial dot products S = G G: a dense GEMM (BLAS) costs N^3 multiply-adds at the FMA
 # peak; the sparse product below costs one multiply-add per (non-zero of G) x (column of its
@@ -149,15 +149,17 @@ def _sparse_product_work(indptr, indices, row_end):
     return w
 
 
-@compiled(parallel=True)
-def _mirror_upper(S):
-    """Copy the upper triangle onto the lower one, in 64 x 64 tiles (cache-friendly)."""
+@compiled("i8(f4[:, ::1], i8, i8)", parallel=True)
+def _mirror_upper(S, lo, hi):
+    """Copy the upper triangle onto the lower one, in 64 x 64 tiles (cache-friendly): the
+    tile rows lo..hi-1."""
     n = S.shape[0]
-    for bi in prange((n + 63) // 64):
+    for bi in prange(lo, hi):
         for bj in range(bi + 1):
             for i in range(bi * 64, min(n, bi * 64 + 64)):
                 for j in range(bj * 64, min(i, bj * 64 + 64)):
                     S[i, j] = S[j, i]
+    return hi - lo
 
 
 @compiled(fastmath=True)
@@ -181,18 +183,25 @@ def _gram_row(G, indptr, indices, values, row_end, S, i):
     S[i, i:] = acc
 
 
-@compiled("f4[:, ::1](f4[:, ::1], i8[::1], i4[::1], f4[::1], i8[::1])", parallel=True)
+@compiled("i8(f4[:, ::1], i8[::1], i4[::1], f4[::1], i8[::1], f4[:, ::1], i8, i8)", parallel=True)
+def _sparse_gram_rows(G, indptr, indices, values, row_end, S, lo, hi):
+    """Rows t and n - 1 - t of S's upper triangle for t in lo..hi-1: row i's work shrinks
+    with i, so each task takes a row from both ends to stay balanced."""
+    n = G.shape[0]
+    for t in prange(lo, hi):
+        _gram_row(G, indptr, indices, values, row_end, S, t)
+        if n - 1 - t != t:
+            _gram_row(G, indptr, indices, values, row_end, S, n - 1 - t)
+    return hi - lo
+
+
 def _sparse_gram(G, indptr, indices, values, row_end):
     """S = G G for a sparse symmetric G: the upper triangle row by row, then mirrored.
     Correspondences sorted along space keep row_end close to the diagonal."""
     n = G.shape[0]
     S = np.empty((n, n), dtype=np.float32)
-    # Row i's work shrinks with i: each task takes a row from both ends to stay balanced.
-    for t in prange((n + 1) // 2):
-        _gram_row(G, indptr, indices, values, row_end, S, t)
-        if n - 1 - t != t:
-            _gram_row(G, indptr, indices, values, row_end, S, n - 1 - t)
-    _mirror_upper(S)
+    split_rows(_sparse_gram_rows, row_parts((n + 1) // 2, 64), G, indptr, indices, values, row_end, S)
+    split_rows(_mirror_upper, row_parts((n + 63) // 64, 2, "growing"), S)
     return S
 
 

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .native import compiled, prange
+from .native import compiled, prange, row_parts, split_rows
 
 # Neighbour search: the references are binned on a grid of cells 1.5 x radius wide (measured
 # fastest: smaller cells mean more, shorter ranges per query, larger ones more points outside
@@ -37,17 +37,15 @@ _CELL_PER_RADIUS = 1.5
 _MAX_CELLS = 1 << 18
 
 
-@compiled("UniTuple(i8[::1], 2)(f8[:, ::1], f8[:, ::1], f8[:, ::1], i8[::1], f8[::1], i8[::1], f8, f8)", parallel=True)
-def _consistency_counts(src, tgt, ref, start, grid, dims, radius, tolerance):
-    """Per query: the reference neighbours within ``radius`` whose distance is preserved to
-    within ``tolerance``, and all reference neighbours within ``radius``.
+@compiled("i8(f8[:, ::1], f8[:, ::1], f8[:, ::1], i8[::1], f8[::1], i8[::1], f8, f8, i8[::1], i8[::1], i8, i8)", parallel=True)
+def _consistency_counts(src, tgt, ref, start, grid, dims, radius, tolerance, counts, neighbours, lo, hi):
+    """Per query lo..hi-1, into counts and neighbours: the reference neighbours within
+    ``radius`` whose distance is preserved to within ``tolerance``, and all reference
+    neighbours within ``radius``.
 
     ref is (6, R): target x, y, z and source x, y, z as rows, ordered by cell; the run of
     cell c (index (ix * ny + iy) * nz + iz) is start[c]:start[c + 1]. grid = origin x, y, z
     and the cell's width; dims = nx, ny, nz."""
-    n = len(src)
-    counts = np.zeros(n, dtype=np.int64)
-    neighbours = np.zeros(n, dtype=np.int64)
     r2 = radius * radius
     nx, ny, nz = dims[0], dims[1], dims[2]
     cell = grid[3]
@@ -56,7 +54,7 @@ def _consistency_counts(src, tgt, ref, start, grid, dims, radius, tolerance):
     rc = radius / cell * (1.0 + 1e-9) + 1e-9
     tx_all, ty_all, tz_all = ref[0], ref[1], ref[2]
     sx_all, sy_all, sz_all = ref[3], ref[4], ref[5]
-    for i in prange(n):
+    for i in prange(lo, hi):
         qx, qy, qz = tgt[i, 0], tgt[i, 1], tgt[i, 2]
         px, py, pz = src[i, 0], src[i, 1], src[i, 2]
         ux, uy, uz = (qx - grid[0]) / cell, (qy - grid[1]) / cell, (qz - grid[2]) / cell
@@ -79,11 +77,11 @@ def _consistency_counts(src, tgt, ref, start, grid, dims, radius, tolerance):
                 if z0 > z1:
                     continue
                 column = (ix * ny + iy) * nz
-                lo, hi = start[column + z0], start[column + z1 + 1]
+                first, end = start[column + z0], start[column + z1 + 1]
                 # 0-based slices and no branch: the loop vectorises (2-3x faster).
-                tx, ty, tz = tx_all[lo:hi], ty_all[lo:hi], tz_all[lo:hi]
-                sx, sy, sz = sx_all[lo:hi], sy_all[lo:hi], sz_all[lo:hi]
-                for j in range(hi - lo):
+                tx, ty, tz = tx_all[first:end], ty_all[first:end], tz_all[first:end]
+                sx, sy, sz = sx_all[first:end], sy_all[first:end], sz_all[first:end]
+                for j in range(end - first):
                     ex, ey, ez = qx - tx[j], qy - ty[j], qz - tz[j]
                     e2 = ex * ex + ey * ey + ez * ez
                     fx, fy, fz = px - sx[j], py - sy[j], pz - sz[j]
@@ -93,6 +91,15 @@ def _consistency_counts(src, tgt, ref, start, grid, dims, radius, tolerance):
                     c += near & (abs(np.sqrt(f2) - np.sqrt(e2)) < tolerance)
         counts[i] = c
         neighbours[i] = m
+    return hi - lo
+
+
+def _counts(src, tgt, table, start, grid, dims, radius, tolerance):
+    """_consistency_counts over all queries, on the process's threads."""
+    n = len(src)
+    counts, neighbours = np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int64)
+    split_rows(_consistency_counts, row_parts(n, 512), src, tgt, table, start, grid, dims,
+               float(radius), float(tolerance), counts, neighbours)
     return counts, neighbours
 
 
@@ -134,14 +141,14 @@ def consistency_scores(src, tgt, radius: float, tolerance: float, rng: np.random
         reference_size = 4096 if n <= 8192 else max(1024, 4096 * 8192 // n)
     ref = np.arange(n) if n <= reference_size else rng.choice(n, reference_size, replace=False)
     table, start, grid, dims = _binned_references(src, tgt, ref, radius)
-    counts, neighbours = _consistency_counts(src, tgt, table, start, grid, dims, float(radius), float(tolerance))
+    counts, neighbours = _counts(src, tgt, table, start, grid, dims, radius, tolerance)
     if score == "count":
         return counts.astype(np.float64)
     # Chance agreement: queries whose source point comes from another, random correspondence.
     q = rng.choice(n, min(n, _CHANCE_QUERIES), replace=False)
-    null_counts, null_neighbours = _consistency_counts(
+    null_counts, null_neighbours = _counts(
         np.ascontiguousarray(src[rng.permutation(q)]), np.ascontiguousarray(tgt[q]),
-        table, start, grid, dims, float(radius), float(tolerance))
+        table, start, grid, dims, radius, tolerance)
     p0 = null_counts.sum() / max(null_neighbours.sum(), 1)
     return np.maximum(counts - p0 * neighbours, 0.0)
 

@@ -7,8 +7,8 @@ wall time and of their CPU time (user + system, all threads: less sensitive than
 to other jobs on a shared machine); then one batch process over all of them
 (`mireg register A.npz B.npz ... -o DIR/`): median `time_s` per sample, and median CPU time
 per sample (the command prints it; steadier than wall time on a loaded machine). The same
-with the kernels through numba's JIT cache (MIREG_KERNELS=jit), for comparison. The floor: a Python
-process that only imports numpy.
+with the kernels on one thread (--threads 1) and through numba's JIT cache
+(MIREG_KERNELS=jit), for comparison. The floor: a Python process that only imports numpy.
 """
 from __future__ import annotations
 
@@ -54,8 +54,8 @@ def _time_s(path: Path) -> float:
         return float(r["time_s"])
 
 
-def _measure(inputs: list[Path], out_dir: Path, env: dict) -> dict:
-    register = [sys.executable, "-m", "multi_instance_reg.tools.cli", "register"]
+def _measure(inputs: list[Path], out_dir: Path, env: dict, options: list[str]) -> dict:
+    register = [sys.executable, "-m", "multi_instance_reg.tools.cli", "register"] + options
     walls, cpus, firsts = [], [], []
     for i, path in enumerate(inputs):
         out = out_dir / f"single_{i}.npz"
@@ -75,9 +75,12 @@ def _measure(inputs: list[Path], out_dir: Path, env: dict) -> dict:
 
 def run(args) -> int:
     rng = np.random.default_rng(args.seed)
-    modes = [("ahead-of-time" if native.KERNELS == "ahead-of-time" else f"JIT ({native.KERNELS})", {})]
+    # (label, environment, options): the default (every core), then one thread, then the JIT.
+    modes = [("ahead-of-time" if native.KERNELS == "ahead-of-time" else f"JIT ({native.KERNELS})", {}, [])]
+    if native.KERNELS == "ahead-of-time":
+        modes.append(("AOT 1 thread", {}, ["--threads", "1"]))
     if not args.no_jit and native.KERNELS == "ahead-of-time":
-        modes.append(("JIT cache", {"MIREG_KERNELS": "jit"}))
+        modes.append(("JIT cache", {"MIREG_KERNELS": "jit"}, []))
     rows = []
     with tempfile.TemporaryDirectory(prefix="mireg-startup-") as tmp:
         tmp = Path(tmp)
@@ -92,10 +95,10 @@ def run(args) -> int:
                 s = make_sized_scene(rng, n, args.outlier_ratio, 10)
                 inputs.append(tmp / f"n{n}_{i}.npz")
                 np.savez(inputs[-1], src=s.src, tgt=s.tgt)
-            for label, extra in modes:
+            for label, extra, options in modes:
                 out_dir = tmp / f"out_{n}_{len(rows)}"
                 out_dir.mkdir()
-                r = _measure(inputs, out_dir, dict(os.environ, **extra))
+                r = _measure(inputs, out_dir, dict(os.environ, **extra), options)
                 rows.append({"N": n, "kernels": label, **r})
                 print(f"{n:>6} {label:>14} {r['first_time_s'] * 1e3:>10.1f} ms {r['process_wall_s'] * 1e3:>10.0f} ms "
                       f"{r['process_cpu_s'] * 1e3:>9.0f} ms {r['batch_time_s'] * 1e3:>10.1f} ms {r['batch_cpu_s'] * 1e3:>7.1f} ms")

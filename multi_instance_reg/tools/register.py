@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core import ECC, ECCConfig
+from ..core import ECC, ECCConfig, native
 from ..errors import InputError
 from ..threads import limit_blas_threads
 from ..params import param_specs, read_params_yaml, with_overrides
@@ -61,6 +61,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="npz with src (N,3) and tgt (N,3); several: each is written to OUTDIR/<its name>")
     parser.add_argument("-o", "--output", metavar="OUT.npz|OUTDIR/", required=True,
                         help="output file for one input; a directory (existing, or ending in /) for several")
+    parser.add_argument("--threads", type=int, default=0, metavar="N",
+                        help="threads for each registration's row-parallel kernels (default 0 = every core "
+                             "this process may use; 1 = serial; results are the same)")
     add_ecc_arguments(parser)
 
 
@@ -111,6 +114,9 @@ def save_result(path, result, elapsed: float) -> None:
 
 def run(args) -> int:
     limit_blas_threads(1)  # see multi_instance_reg.threads: spinning BLAS threads slow the kernels
+    if args.threads < 0:
+        raise InputError(f"--threads must be 0 (every core) or more, got {args.threads}")
+    native.set_threads(args.threads)
     config = ecc_config_from_args(args)
     outputs = output_paths(args.input, args.output)
     ecc = ECC(config)
