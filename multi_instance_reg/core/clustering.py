@@ -167,7 +167,8 @@ def _gram_row(G, indptr, indices, values, row_end, S, i):
     """Row i of S = G G from column i on: G[i, c] * G[c, i:row_end[c]] summed over the
     non-zeros c of row i."""
     n = G.shape[0]
-    acc = np.zeros(n - i, dtype=np.float32)
+    acc = S[i, i:]   # summed in place: no scratch row to allocate and copy
+    acc[:] = 0.0
     for p in range(indptr[i], indptr[i + 1]):
         c = indices[p]
         length = row_end[c] - i
@@ -180,7 +181,6 @@ def _gram_row(G, indptr, indices, values, row_end, S, i):
         src = G[c, i:i + length]
         for k in range(length):
             dst[k] += g * src[k]
-    S[i, i:] = acc
 
 
 @compiled("i8(f4[:, ::1], i8[::1], i4[::1], f4[::1], i8[::1], f4[:, ::1], i8, i8)", parallel=True)
@@ -220,6 +220,16 @@ def _dot_with_row(dense, indices, values, start, length, n):
         vals = values[start:start + length]
         for q in range(length):
             s += dense[cols[q]] * vals[q]
+    return np.float64(s)
+
+
+@compiled(fastmath=True)
+def _dot_with_g_row(G, k, cols, vals, length):
+    """<G[k], row>, the row given by its first ``length`` entries (cols, vals): as
+    _dot_with_row on G[k], without making a view of G per call (numba refcounts views)."""
+    s = np.float32(0.0)
+    for q in range(length):
+        s += G[k, cols[q]] * vals[q]
     return np.float64(s)
 
 
@@ -375,7 +385,7 @@ def _agglomerate(G, indptr, indices, values, S, max_dist, dense, stats):
             if not dense and changed_at[k] < 0 and rowlen[a] < rowlen[k]:
                 # The merged vector's support (an intersection) is often the shorter:
                 # walk it and read the partner, never merged, from its row of G.
-                s = _dot_with_row(G[k], ca, va, 0, rowlen[a], n)
+                s = _dot_with_g_row(G, k, ca, va, rowlen[a])
             else:
                 s = _dot_with_row(merged, indices, values, indptr[k], rowlen[k], n)
             stats[2] += 1
