@@ -35,6 +35,7 @@ class FrameCloud:
     tree: cKDTree | None
     segments: np.ndarray | None = None    # (M,) segment label per point (-1: none), ppf only
     poses: np.ndarray | None = None       # (K, 4, 4) pose hypotheses clustered from the votes, ppf only
+    up: np.ndarray | None = None          # (3,) the largest support plane's normal, towards the camera, ppf only
 
 
 class ShapeFrontEnd:
@@ -91,8 +92,9 @@ class ShapeFrontEnd:
         table), voxel-downsampled, with normals, cut into connected segments."""
         fe = self.fe
         valid = (depth_m >= fe.depth_min) & (depth_m <= fe.depth_max)
+        ground = []
         support = support_mask(depth_m, intrinsics, valid, fe.shape_support_area * self._max_face_area,
-                               fe.plane_thresh, fe.shape_depth_noise)
+                               fe.shape_plane_thresh, fe.shape_depth_noise, ground=ground)
         pts, _ = depth_to_cloud(depth_m, intrinsics, valid & ~support, stride=2)
         pts = voxel_downsample(np.asarray(pts, np.float64), self.voxel)
         empty = FrameCloud(pts, np.zeros_like(pts), np.zeros(0, np.int64), np.zeros((0, 33), np.float32), None,
@@ -102,7 +104,8 @@ class ShapeFrontEnd:
         tree = cKDTree(pts)
         normals, _, _ = normals_and_variation(pts, self.voxel, toward=np.zeros(3), tree=tree)
         labels = connected_segments(pts, fe.shape_segment_link * self.voxel, fe.shape_min_segment)
-        return FrameCloud(pts, normals, np.zeros(0, np.int64), np.zeros((0, 33), np.float32), tree, labels)
+        return FrameCloud(pts, normals, np.zeros(0, np.int64), np.zeros((0, 33), np.float32), tree, labels,
+                          up=ground[0] if ground else None)
 
     def correspondences(self, cloud: FrameCloud) -> tuple[np.ndarray, np.ndarray]:
         """(model points (N, 3), scene points (N, 3)). ppf: each reference point of a
@@ -168,7 +171,7 @@ class ShapeFrontEnd:
             # its outline, "same" meaning within the depth noise (3 sigma) at its distance.
             same = max(3.0 * fe.shape_depth_noise * float(T[2, 3]) ** 2, 0.002)
             outline, _ = outline_continuation(T, self._surface, self._surface_normals, depth_m, intrinsics,
-                                              self.voxel, same)
+                                              self.voxel, same, up=cloud.up)
             if support - free - 2.0 * outline >= fe.shape_min_evidence:
                 out.append((T, support, int(round(support * n))))
         return out

@@ -44,14 +44,21 @@ def _points_and_normals(depth: np.ndarray, K: np.ndarray, rows: np.ndarray, cols
 
 def outline_continuation(T: np.ndarray, model_pts: np.ndarray, model_normals: np.ndarray, depth_m: np.ndarray,
                          intrinsics: CameraIntrinsics, voxel: float, tolerance: float,
-                         max_angle_deg: float = 30.0) -> tuple[float, int]:
+                         max_angle_deg: float = 30.0, up: np.ndarray | None = None) -> tuple[float, int]:
     """Of the valid depth pixels in a band just outside the model's outline at pose T (from
     half a voxel to a voxel and a half beyond its visible surface): the share where the
     nearest visible model face continues (the measured point within ``tolerance`` of its
-    plane, the measured normal within ``max_angle_deg`` of its normal), and how many
-    pixels the band has. Returns (share, pixels)."""
+    plane, the measured normal within ``max_angle_deg`` of its normal) and that is joined
+    to the band's inner edge through such pixels, and how many pixels the band has.
+    Returns (share, pixels).
+
+    ``up`` (unit, camera frame; the support plane's normal): band pixels no higher than the
+    object's lowest point (within ``tolerance``) are left out. What an object stands on may
+    be flush with it (a carton on a carton of its size, a lying bracket's plate on the
+    table): the same surface goes on below it, and that is no sign of a larger object."""
     R, t = T[:3, :3], T[:3, 3]
     p = model_pts @ R.T + t
+    floor = None if up is None else float(np.min(p @ up)) + tolerance
     n = model_normals @ R.T
     facing = (np.einsum("ij,ij->i", n, -p) > 0.2 * np.linalg.norm(p, axis=1)) & (p[:, 2] > 0.05)
     p, n = p[facing], n[facing]
@@ -87,6 +94,9 @@ def outline_continuation(T: np.ndarray, model_pts: np.ndarray, model_normals: np
     rows, cols = rows + v0, cols + u0
     P, nP, ok = _points_and_normals(depth_m, K, rows, cols)
     rows, cols = rows[ok], cols[ok]
+    if floor is not None:
+        above = P @ up > floor
+        P, nP, rows, cols = P[above], nP[above], rows[above], cols[above]
     if len(rows) == 0:
         return 0.0, 0
     # The three nearest model points, two of which must agree: one stray normal (a sample at
@@ -97,7 +107,18 @@ def outline_continuation(T: np.ndarray, model_pts: np.ndarray, model_normals: np
     cos = np.einsum("ij,ikj->ik", nP, n[j])
     votes = ((off < tolerance) & (cos > np.cos(np.radians(max_angle_deg)))).sum(axis=1)
     cont = votes >= min(2, j.shape[1])
-    return float(cont.mean()), int(len(rows))
+    # Only surface that goes on from the outline itself counts: reached from the band's
+    # inner edge through continuing pixels. A neighbour with its faces in line (cartons
+    # on a pallet's grid) lies past a gap, a depth step that breaks the chain.
+    grid = np.zeros(band.shape, np.uint8)
+    grid[rows[cont] - v0, cols[cont] - u0] = 1
+    count, labels = cv2.connectedComponents(grid, connectivity=8)
+    inner = (cv2.dilate(body, disc(r_in + 1)) > 0) & (grid > 0)
+    touching = np.zeros(count, bool)
+    touching[labels[inner]] = True
+    touching[0] = False
+    linked = touching[labels[rows - v0, cols - u0]] & cont
+    return float(linked.mean()), int(len(rows))
 
 
 __all__ = ["outline_continuation"]
