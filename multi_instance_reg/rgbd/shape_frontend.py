@@ -65,6 +65,18 @@ class ShapeFrontEnd:
         else:
             self._matcher = ShapeMatcher(model.shape_descriptors[keep], k=fe.shape_neighbours)
 
+    @property
+    def depth_tolerance(self) -> float:
+        """Metres: a model point agrees with the depth image within this."""
+        return max(self.fe.shape_depth_tolerance, 0.8 * self.voxel)
+
+    def surface_normals_at(self, points: np.ndarray) -> np.ndarray:
+        """(N, 3) the outward normal of the model surface nearest each model-frame point."""
+        if len(points) == 0:
+            return np.zeros((0, 3))
+        _, j = cKDTree(self._surface).query(np.asarray(points, np.float64), k=1)
+        return self._surface_normals[j]
+
     def ecc_config(self, base: ECCConfig) -> ECCConfig:
         """ECC for shape matches: thresholds no finer than the voxel they are sampled at, and
         compatibility only between points that one object can hold (spatial weight)."""
@@ -135,7 +147,7 @@ class ShapeFrontEnd:
         out = []
         if cloud.tree is None:
             return out
-        tol = max(fe.shape_depth_tolerance, 0.8 * self.voxel)
+        tol = self.depth_tolerance
         first = min(3, fe.shape_icp_iterations)
         def fit(T):
             support, free, n = depth_support(T, self._surface, self._surface_normals, depth_m, intrinsics, tol)

@@ -99,9 +99,11 @@ def outline_continuation(T: np.ndarray, model_pts: np.ndarray, model_normals: np
         P, nP, rows, cols = P[above], nP[above], rows[above], cols[above]
     if len(rows) == 0:
         return 0.0, 0
-    # The three nearest model points, two of which must agree: one stray normal (a sample at
-    # an edge oriented the wrong way) must not stand for the surface beside the object.
-    _, j = cKDTree(p).query(P, k=min(3, len(p)))
+    # Among the eight nearest model points, two whose face it continues: one stray normal (a
+    # sample at an edge oriented the wrong way) must not stand for the surface beside the
+    # object, and at a box's edge the nearest points are as often on the side face seen
+    # beside the top (a carton fitted across a wider carton's top, turned onto its side).
+    _, j = cKDTree(p).query(P, k=min(8, len(p)))
     j = j.reshape(len(P), -1)
     off = np.abs(np.einsum("ikj,ikj->ik", P[:, None, :] - p[j], n[j]))
     cos = np.einsum("ij,ikj->ik", nP, n[j])
@@ -121,4 +123,36 @@ def outline_continuation(T: np.ndarray, model_pts: np.ndarray, model_normals: np
     return float(linked.mean()), int(len(rows))
 
 
-__all__ = ["outline_continuation"]
+def texture_agreement(T: np.ndarray, keypoints: np.ndarray, keypoint_normals: np.ndarray, symmetries,
+                      model_xyz: np.ndarray, scene_xyz: np.ndarray, depth_m: np.ndarray,
+                      intrinsics: CameraIntrinsics, inlier_thresh: float, tolerance: float
+                      ) -> tuple[np.ndarray, int, int]:
+    """Does the frame's texture agree with a pose found from shape? For a model with SIFT
+    keypoints: (T @ S for the symmetry S that the most matches agree with, how many of the
+    frame's matches (model_xyz -> scene_xyz) agree with it within ``inlier_thresh``, how
+    many of the model's keypoints it shows: facing the camera, inside the image, not hidden
+    (the depth there within ``tolerance``)). A pose on a textured face that no match agrees
+    with is on something else; one showing only plain faces has nothing to agree with."""
+    T = np.asarray(T, np.float64)
+    discrete = [np.eye(4)] if symmetries is None or symmetries.is_trivial else list(symmetries.discrete)
+    best, agree = T, 0
+    for S in discrete:
+        TS = T @ S
+        pred = model_xyz @ TS[:3, :3].T + TS[:3, 3]
+        n = int((np.linalg.norm(pred - scene_xyz, axis=1) < inlier_thresh).sum())
+        if n > agree:
+            best, agree = TS, n
+    p = keypoints @ best[:3, :3].T + best[:3, 3]
+    nrm = keypoint_normals @ best[:3, :3].T
+    facing = (np.einsum("ij,ij->i", nrm, -p) > 0.2 * np.linalg.norm(p, axis=1)) & (p[:, 2] > 0.05)
+    p = p[facing]
+    K = intrinsics.K
+    u = np.round(K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2]).astype(np.int64)
+    v = np.round(K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]).astype(np.int64)
+    h, w = depth_m.shape
+    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    shown = np.abs(depth_m[v[inside], u[inside]] - p[inside, 2]) < tolerance
+    return best, agree, int(shown.sum())
+
+
+__all__ = ["outline_continuation", "texture_agreement"]
