@@ -240,3 +240,34 @@ def test_ppf_partners_stay_within_the_objects_reach_in_a_joined_segment():
         dR = np.degrees(np.arccos(np.clip((np.trace(G[:3, :3].T @ Tp[:3, :3]) - 1) / 2, -1, 1)))
         right.append(np.linalg.norm(G[:3, 3] - Tp[:3, 3]) < 0.02 and dR < 15)
     assert own.sum() == len(P) and np.mean(right) > 0.5
+
+
+def test_texture_agreement_picks_the_symmetric_pose_the_matches_agree_with():
+    """both: a shape pose showing textured faces is judged by the SIFT matches there."""
+    from multi_instance_reg.rgbd.verify import texture_agreement
+
+    model = _box_model()                                      # 0.3 x 0.2 x 0.15, 4 symmetric poses
+    rng = np.random.default_rng(3)
+    # Texture on the top (+z) face only: 40 keypoints; the bottom is plain.
+    kp = np.column_stack([rng.uniform(-0.14, 0.14, 40), rng.uniform(-0.09, 0.09, 40), np.full(40, 0.075)])
+    kp_normals = np.tile([0.0, 0.0, 1.0], (40, 1))
+    K = _intrinsics()
+    T = make_transform(np.diag([1.0, -1.0, -1.0]), [0.0, 0.0, 1.0])      # top towards the camera
+    depth = np.full((240, 320), 1.0 - 0.075, np.float32)                 # the top face's depth
+    S = next(D for D in model.symmetries.discrete if D[2, 2] > 0.99 and D[0, 0] < -0.99)    # 180 deg about z
+    shape_pose = T @ S                                        # what shape gives: the other symmetric pose
+    scene = kp[:12] @ T[:3, :3].T + T[:3, 3]                  # 12 matches on the true pose, 8 outliers
+    model_xyz = np.vstack([kp[:12], kp[12:20]])
+    scene_xyz = np.vstack([scene, rng.uniform(-0.2, 0.2, (8, 3)) + [0, 0, 1.0]])
+    best, agree, shown = texture_agreement(shape_pose, kp, kp_normals, model.symmetries, model_xyz, scene_xyz,
+                                           depth, K, 0.01, 0.01)
+    assert agree == 12 and shown == 40
+    assert np.allclose(best, T, atol=1e-9)                    # the texture chose the pose
+    # The same pose with matches that agree with none of its symmetric poses (a distractor).
+    _, agree, shown = texture_agreement(shape_pose, kp, kp_normals, model.symmetries, model_xyz,
+                                        scene_xyz + [0.3, 0.0, 0.0], depth, K, 0.01, 0.01)
+    assert agree == 0 and shown == 40
+    # Turned over, the textured top faces away: nothing to agree with.
+    flipped = make_transform(np.eye(3), [0.0, 0.0, 1.0 + 0.075])
+    _, _, shown = texture_agreement(flipped, kp, kp_normals, None, model_xyz, scene_xyz, depth, K, 0.01, 0.01)
+    assert shown == 0
