@@ -53,7 +53,7 @@ def outline_continuation(T: np.ndarray, model_pts: np.ndarray, model_normals: np
     Returns (share, pixels).
 
     ``up`` (unit, camera frame; the support plane's normal): band pixels no higher than the
-    object's lowest point (within ``tolerance``) are left out. What an object stands on may
+    object's lowest point (within ``tolerance``) do not continue it. What an object stands on may
     be flush with it (a carton on a carton of its size, a lying bracket's plate on the
     table): the same surface goes on below it, and that is no sign of a larger object."""
     R, t = T[:3, :3], T[:3, 3]
@@ -94,9 +94,6 @@ def outline_continuation(T: np.ndarray, model_pts: np.ndarray, model_normals: np
     rows, cols = rows + v0, cols + u0
     P, nP, ok = _points_and_normals(depth_m, K, rows, cols)
     rows, cols = rows[ok], cols[ok]
-    if floor is not None:
-        above = P @ up > floor
-        P, nP, rows, cols = P[above], nP[above], rows[above], cols[above]
     if len(rows) == 0:
         return 0.0, 0
     # Among the eight nearest model points, two whose face it continues: one stray normal (a
@@ -109,6 +106,8 @@ def outline_continuation(T: np.ndarray, model_pts: np.ndarray, model_normals: np
     cos = np.einsum("ij,ikj->ik", nP, n[j])
     votes = ((off < tolerance) & (cos > np.cos(np.radians(max_angle_deg)))).sum(axis=1)
     cont = votes >= min(2, j.shape[1])
+    if floor is not None:
+        cont &= P @ up > floor          # the support, not more of the object's own surface
     # Only surface that goes on from the outline itself counts: reached from the band's
     # inner edge through continuing pixels. A neighbour with its faces in line (cartons
     # on a pallet's grid) lies past a gap, a depth step that breaks the chain.
