@@ -53,7 +53,7 @@ def outline_continuation(T: np.ndarray, model_pts: np.ndarray, model_normals: np
     Returns (share, pixels).
 
     ``up`` (unit, camera frame; the support plane's normal): band pixels no higher than the
-    object's lowest point (within ``tolerance``) do not continue it. What an object stands on may
+    object's lowest point (within ``tolerance``) do not continue it and leave the share. What an object stands on may
     be flush with it (a carton on a carton of its size, a lying bracket's plate on the
     table): the same surface goes on below it, and that is no sign of a larger object."""
     R, t = T[:3, :3], T[:3, 3]
@@ -106,8 +106,14 @@ def outline_continuation(T: np.ndarray, model_pts: np.ndarray, model_normals: np
     cos = np.einsum("ij,ikj->ik", nP, n[j])
     votes = ((off < tolerance) & (cos > np.cos(np.radians(max_angle_deg)))).sum(axis=1)
     cont = votes >= min(2, j.shape[1])
+    counted = len(P)
     if floor is not None:
-        cont &= P @ up > floor          # the support, not more of the object's own surface
+        # The support, not more of the object's own surface: out of the share, yet at least
+        # half the band stays in it (a cylinder standing on the table kept 44 pixels of 258,
+        # and 8 of them decided).
+        above = P @ up > floor
+        cont &= above
+        counted = max(int(above.sum()), len(P) // 2, 1)
     # Only surface that goes on from the outline itself counts: reached from the band's
     # inner edge through continuing pixels. A neighbour with its faces in line (cartons
     # on a pallet's grid) lies past a gap, a depth step that breaks the chain.
@@ -119,7 +125,7 @@ def outline_continuation(T: np.ndarray, model_pts: np.ndarray, model_normals: np
     touching[labels[inner]] = True
     touching[0] = False
     linked = touching[labels[rows - v0, cols - u0]] & cont
-    return float(linked.mean()), int(len(rows))
+    return float(linked.sum() / counted), int(len(rows))
 
 
 def texture_agreement(T: np.ndarray, keypoints: np.ndarray, keypoint_normals: np.ndarray, symmetries,
