@@ -30,6 +30,20 @@ def test_support_mask_removes_floor_keeps_small_coplanar_tops():
     assert not mask[45:75, 45:95].any() and not mask[155:185, 205:255].any()   # both tops kept
 
 
+def test_support_mask_keeps_a_thin_plate_on_the_table_and_says_which_way_is_up():
+    """A 12 mm plate lying on a table at 0.7 m: within plane_thresh (1 cm) + 3 sigma of the
+    table, it would be removed with it; at the shape path's 4 mm it stays."""
+    depth = np.full((240, 320), 0.7, np.float32)             # a table facing the camera
+    depth[100:140, 100:180] = 0.688                           # the plate's top, 12 mm above it
+    valid = depth > 0
+    ground = []
+    loose = support_mask(depth, _intrinsics(), valid, max_area=0.05, thresh=0.01, noise_per_m2=0.002)
+    tight = support_mask(depth, _intrinsics(), valid, max_area=0.05, thresh=0.004, noise_per_m2=0.002, ground=ground)
+    assert loose[105:135, 105:175].all()                     # taken for the table
+    assert not tight[105:135, 105:175].any() and tight[200:, :].all()
+    assert len(ground) == 1 and ground[0] @ [0.0, 0.0, -1.0] > 0.99   # the table's normal, towards the camera
+
+
 def test_connected_segments_split_and_drop_small():
     rng = np.random.default_rng(0)
     a = rng.uniform(0, 0.1, (200, 3))
@@ -159,3 +173,101 @@ def test_pose_clusters_rank_agreeing_references_above_scattered_ones():
     assert np.linalg.norm(top[0][:3, 3] - a[:3, 3]) < 0.02 and np.linalg.norm(top[1][:3, 3] - b[:3, 3]) < 0.02
     # Every pose distinct: each is its own seed, in the order of the weights.
     assert len(cluster_poses(poses[:3], -np.arange(3.0), 1.0, 1e-6, 10, min_members=1)) == 3
+
+
+def _face_and_depth():
+    """A 0.2 x 0.13 m model face (normals towards the camera) and a camera looking down at it."""
+    K = _intrinsics()
+    g = np.stack(np.meshgrid(np.arange(-0.1, 0.1001, 0.01), np.arange(-0.065, 0.0651, 0.01)), -1).reshape(-1, 2)
+    face = np.column_stack([g, np.zeros(len(g))])
+    return K, face, np.tile([0.0, 0.0, -1.0], (len(face), 1))
+
+
+def _face_pixels(K, face, T):
+    uv = (K.K @ (face @ T[:3, :3].T + T[:3, 3]).T).T
+    uv = uv[:, :2] / uv[:, 2:]
+    c0, r0 = np.floor(uv.min(0)).astype(int)
+    c1, r1 = np.ceil(uv.max(0)).astype(int)
+    return slice(r0, r1 + 1), slice(c0, c1 + 1)
+
+
+def test_outline_continuation_ignores_a_neighbour_past_a_gap_and_what_lies_below():
+    from multi_instance_reg.rgbd.verify import outline_continuation
+
+    K, face, normals = _face_and_depth()
+    T = make_transform(np.eye(3), [0.0, 0.0, 1.3])
+    rows, cols = _face_pixels(K, face, T)
+    # Pallet grid: the box top, and a neighbour's top in the same plane 1 cm (3 px) away,
+    # past a gap down to the pallet; the band (0.5 to 1.5 voxels of 1 cm) reaches it.
+    depth = np.full((240, 320), 1.5, np.float32)
+    depth[rows, cols] = 1.3
+    depth[rows, cols.stop + 3:cols.stop + 60] = 1.3
+    share, n = outline_continuation(T, face, normals, depth, K, 0.01, 0.01)
+    assert n > 50 and share < 0.05
+    # Without the gap the same plane goes on from the outline: a piece of a larger surface.
+    depth[rows, cols.stop:cols.stop + 60] = 1.3
+    share, _ = outline_continuation(T, face, normals, depth, K, 0.01, 0.01)
+    assert share > 0.15
+    # A wall face seen head-on, standing on a floor flush with its lower edge (a carton on
+    # a carton of its size): the surface below the object's lowest point is its support.
+    depth = np.full((240, 320), 2.5, np.float32)
+    depth[rows, cols] = 1.3
+    depth[rows.stop:, cols] = 1.3                             # the same plane goes on below (+y: down)
+    below, _ = outline_continuation(T, face, normals, depth, K, 0.01, 0.01)
+    up = np.array([0.0, -1.0, 0.0])                           # camera y points down
+    with_up, _ = outline_continuation(T, face, normals, depth, K, 0.01, 0.01, up=up)
+    assert below > 0.1 and with_up < 0.02
+
+
+def test_ppf_partners_stay_within_the_objects_reach_in_a_joined_segment():
+    """A segment that joins the object with a wide surface far away (touching objects, a
+    pallet's layer): the references still vote with partners on their own object."""
+    model = _box_model()
+    surface, normals = oriented_downsample(model.shape_points, model.shape_normals, model.shape_voxel)
+    ppf = PPFModel(surface, normals, float(np.linalg.norm(model.extent)), model.shape_voxel, model.symmetries,
+                   bucket_cap=1000)
+    T = make_transform(np.array([[0.36, -0.48, 0.8], [0.8, 0.6, 0.0], [-0.48, 0.64, 0.6]]), [0.1, -0.05, 1.2])
+    P, N = _visible(surface, normals, T, 0.001)
+    g = np.stack(np.meshgrid(np.arange(0.6, 2.6, 0.012), np.arange(-1.0, 1.0, 0.012)), -1).reshape(-1, 2)
+    far = np.column_stack([g, np.full(len(g), 1.4)])          # 28,000 points, all beyond the object's reach
+    pts = np.vstack([P, far])
+    nrm = np.vstack([N, np.tile([0.0, 0.0, -1.0], (len(far), 1))])
+    s, m, poses, share = ppf.vote(pts, nrm, np.zeros(len(pts), np.int64), ref_step=1, max_partners=60)
+    own = s < len(P)
+    right = []
+    for Tp in poses[own]:
+        G = closest_symmetric_pose(T, Tp, model.symmetries)
+        dR = np.degrees(np.arccos(np.clip((np.trace(G[:3, :3].T @ Tp[:3, :3]) - 1) / 2, -1, 1)))
+        right.append(np.linalg.norm(G[:3, 3] - Tp[:3, 3]) < 0.02 and dR < 15)
+    assert own.sum() == len(P) and np.mean(right) > 0.5
+
+
+def test_texture_agreement_picks_the_symmetric_pose_the_matches_agree_with():
+    """both: a shape pose showing textured faces is judged by the SIFT matches there."""
+    from multi_instance_reg.rgbd.verify import texture_agreement
+
+    model = _box_model()                                      # 0.3 x 0.2 x 0.15, 4 symmetric poses
+    rng = np.random.default_rng(3)
+    # Texture on the top (+z) face only: 40 keypoints; the bottom is plain.
+    kp = np.column_stack([rng.uniform(-0.14, 0.14, 40), rng.uniform(-0.09, 0.09, 40), np.full(40, 0.075)])
+    kp_normals = np.tile([0.0, 0.0, 1.0], (40, 1))
+    K = _intrinsics()
+    T = make_transform(np.diag([1.0, -1.0, -1.0]), [0.0, 0.0, 1.0])      # top towards the camera
+    depth = np.full((240, 320), 1.0 - 0.075, np.float32)                 # the top face's depth
+    S = next(D for D in model.symmetries.discrete if D[2, 2] > 0.99 and D[0, 0] < -0.99)    # 180 deg about z
+    shape_pose = T @ S                                        # what shape gives: the other symmetric pose
+    scene = kp[:12] @ T[:3, :3].T + T[:3, 3]                  # 12 matches on the true pose, 8 outliers
+    model_xyz = np.vstack([kp[:12], kp[12:20]])
+    scene_xyz = np.vstack([scene, rng.uniform(-0.2, 0.2, (8, 3)) + [0, 0, 1.0]])
+    best, agree, shown = texture_agreement(shape_pose, kp, kp_normals, model.symmetries, model_xyz, scene_xyz,
+                                           depth, K, 0.01, 0.01)
+    assert agree == 12 and shown == 40
+    assert np.allclose(best, T, atol=1e-9)                    # the texture chose the pose
+    # The same pose with matches that agree with none of its symmetric poses (a distractor).
+    _, agree, shown = texture_agreement(shape_pose, kp, kp_normals, model.symmetries, model_xyz,
+                                        scene_xyz + [0.3, 0.0, 0.0], depth, K, 0.01, 0.01)
+    assert agree == 0 and shown == 40
+    # Turned over, the textured top faces away: nothing to agree with.
+    flipped = make_transform(np.eye(3), [0.0, 0.0, 1.0 + 0.075])
+    _, _, shown = texture_agreement(flipped, kp, kp_normals, None, model_xyz, scene_xyz, depth, K, 0.01, 0.01)
+    assert shown == 0

@@ -32,6 +32,7 @@ from .lifting import backproject, lookup_depth, off_planes, support_planes, undi
 from .matching import DescriptorMatcher, prepare_descriptors
 from .model import ObjectModel
 from .shape_frontend import ShapeFrontEnd, resolve_correspondences
+from .verify import texture_agreement
 from ..threads import limit_blas_threads
 
 STAGES = ("sift", "matching", "lifting", "ecc", "refinement", "total")
@@ -86,10 +87,13 @@ class FrontEndConfig:
     shape_features: str = param("ppf", "shape: ppf (point pairs voted per connected segment of the depth off large planes; Drost et al. 2010) or fpfh (FPFH on the search region, one-to-many)", choices=("ppf", "fpfh"))
     shape_ppf_bucket: int = param(50, "shape ppf: at most this many model pairs per quantised feature (a random subset; a box has thousands of coplanar pairs per distance)", 10, 100000)
     shape_ref_step: int = param(5, "shape ppf: every this-many-th point of a segment is a reference point that votes", 1, 100)
-    shape_max_partners: int = param(60, "shape ppf: each reference point is paired with at most this many points of its segment (evenly spread)", 5, 100000)
+    shape_max_partners: int = param(60, "shape ppf: each reference point is paired with at most this many points of its segment within the object's diameter (evenly spread)", 5, 100000)
     shape_pose_clusters: int = param(30, "shape ppf: besides ECC's transforms, check this many pose hypotheses clustered straight from the reference points' votes (Drost et al.; 24 deg, a tenth of the object's diagonal); 0 = ECC's only", 0, 1000)
     shape_support_area: float = param(3.0, "shape ppf: a connected piece of a dominant plane is a support surface (floor, pallet, table) and removed when its area exceeds this many times the object's largest box side", 1.0, 1000.0)
     shape_depth_noise: float = param(0.002, "shape ppf: depth noise sigma per squared metre of distance (stereo: sigma_z = this x z^2; D4xx about 0.002); plane points lie within plane_thresh + 3 sigma_z", 0.0, 0.1)
+    both_min_shown_keypoints: int = param(10, "both: a shape instance whose pose shows at least this many of the model's SIFT keypoints (facing the camera, not hidden) is a textured view, and kept only with both_min_agreeing matches; fewer: plain faces, kept on the depth evidence alone", 0, 100000)
+    both_min_agreeing: int = param(3, "both: SIFT matches that must agree with a shape instance showing textured faces", 0, 100000)
+    shape_plane_thresh: float = param(0.004, "shape ppf: metres: a point is on a support plane within this + 3 sigma_z of it (plane_thresh, 1 cm, would take the top of a 12 mm plate lying on the table for the table: bracket seed 0, right reference poses for 50 -> 87 of 96 instances)", 0.0, 0.1)
     shape_segment_link: float = param(2.0, "shape ppf: points closer than this many voxels are in one segment", 1.0, 10.0)
     shape_min_segment: int = param(15, "shape ppf: segments with fewer voxel points are ignored", 3, 100000)
     shape_min_visible: int = param(20, "shape: an instance needs at least this many model points visible in the image with valid depth", 3, 100000)
@@ -192,6 +196,8 @@ class InstanceRegistration:
         if self.correspondences != "sift":
             self._shape = ShapeFrontEnd(model, fe)
             self._shape_ecc = ECC(self._shape.ecc_config(self.config.ecc))
+            if self.correspondences == "both":
+                self._keypoint_normals = self._shape.surface_normals_at(model.keypoints_xyz)
         self._box_grid = box_grid(model.extent) + np.asarray(model.box_centre, dtype=np.float64)
         self._planes: list = []
         self._rays, self._rays_key = None, None
@@ -396,8 +402,18 @@ class InstanceRegistration:
         instances = list(textured.instances)
         for k, inst in enumerate(shaped.instances, start=len(kept)):
             if all(overlap[k, j] <= fe.max_overlap and overlap[j, k] <= fe.max_overlap for j in kept):
+                # The texture has its say: a shape pose that shows the model's textured
+                # faces is kept only when some of the frame's matches agree with it (they
+                # also pick which of its symmetric poses it is).
+                T, agree, shown = texture_agreement(inst.T, self.model.keypoints_xyz.astype(np.float64),
+                                                    self._keypoint_normals, self.model.symmetries,
+                                                    textured.model_xyz.astype(np.float64),
+                                                    textured.scene_xyz.astype(np.float64), depth_m, intrinsics,
+                                                    self.config.ecc.inlier_thresh, self._shape.depth_tolerance)
+                if shown >= fe.both_min_shown_keypoints and agree < fe.both_min_agreeing:
+                    continue
                 kept.append(k)
-                instances.append(Instance(len(instances), inst.T, inst.inliers, inst.score, self.model.name))
+                instances.append(Instance(len(instances), T, inst.inliers, inst.score, self.model.name))
         t = {s: textured.timings_ms.get(s, 0.0) + shaped.timings_ms.get(s, 0.0) for s in textured.timings_ms}
         t["shape"] = shaped.timings_ms.get("shape", 0.0)
         return FrameResult(instances, t, textured.keypoints_uv, textured.model_xyz, textured.scene_xyz,

@@ -13,7 +13,7 @@ its quantised feature, each with its angle alpha_m about the first point's norma
 are capped (a random subset), since a box has thousands of coplanar pairs per distance.
 
 Frame: for each reference point of a segment (a subset), pair it with points of the same
-segment (at most ``max_partners``), look each pair up, and vote for (model point, turn
+segment within the object's diameter (at most ``max_partners``, evenly spread), look each pair up, and vote for (model point, turn
 about the normal). The peak gives the reference point's model point and a full pose. Each
 reference yields the correspondence (model point -> reference point), once per discrete
 symmetry of the object and, for a continuous one, on the turn nearest a canonical one (so
@@ -124,12 +124,32 @@ def _vote(p, n, refs, seg_start, seg_end, max_partners, bucket_start, entry_firs
     for r in range(nr):
         i = refs[r]
         lo, hi = seg_start[r], seg_end[r]
-        step = max(1, (hi - lo) // max_partners)
+        # Partners spread evenly over the segment's points within the object's reach (a
+        # segment may join several touching objects: spread over all of it, most partners
+        # would lie on the others).
+        reach2 = (n_dist * d_step) ** 2
+        in_reach = 0
+        for j in range(lo, hi):
+            dx = p[j, 0] - p[i, 0]
+            dy = p[j, 1] - p[i, 1]
+            dz = p[j, 2] - p[i, 2]
+            if dx * dx + dy * dy + dz * dz < reach2:
+                in_reach += 1
+        step = max(1, in_reach // max_partners)
         R = _align_to_x(n[i, 0], n[i, 1], n[i, 2])
         nt = 0
         partners = 0
-        for j in range(lo, hi, step):
+        seen = -1
+        for j in range(lo, hi):
             if j == i:
+                continue
+            dx = p[j, 0] - p[i, 0]
+            dy = p[j, 1] - p[i, 1]
+            dz = p[j, 2] - p[i, 2]
+            if dx * dx + dy * dy + dz * dz >= reach2:
+                continue
+            seen += 1
+            if seen % step != 0:
                 continue
             key, a_s = _feature(p, n, i, j, R, d_step, a_step, n_dist)
             if key < 0:

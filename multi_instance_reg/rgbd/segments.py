@@ -26,11 +26,13 @@ from .lifting import depth_to_cloud, fit_dominant_plane
 
 def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.ndarray, max_area: float,
                  thresh: float, noise_per_m2: float, max_planes: int = 4, min_share: float = 0.03,
-                 stride: int = 2) -> np.ndarray:
+                 stride: int = 2, ground: list | None = None) -> np.ndarray:
     """(H, W) bool: valid pixels that lie on a large piece of a dominant plane (support
     surfaces). A plane point is within ``thresh`` + 3 sigma(z) of it, sigma(z) =
     ``noise_per_m2`` z^2 (stereo depth noise grows with the square of the distance); a piece
-    is large when its area exceeds ``max_area`` (m^2)."""
+    is large when its area exceeds ``max_area`` (m^2). ``ground``, a list, receives the
+    unit normal (towards the camera) of the plane with the largest removed area: "up", if
+    the floor, pallet or table is in view."""
     h, w = depth_m.shape
     pts, pix = depth_to_cloud(depth_m, intrinsics, valid, stride=stride)
     pts = pts.astype(np.float64)
@@ -48,6 +50,7 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
     ray = pts / np.linalg.norm(pts, axis=1, keepdims=True)
     alive = np.ones(len(pts), bool)
     total = len(pts)
+    best_area = 0.0
     for k in range(max_planes):
         cand = np.flatnonzero(alive)
         if len(cand) < min_share * total or len(cand) < 50:
@@ -70,6 +73,10 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
         big[0] = False
         remove = on & big[lab]
         out[pix[remove, 0], pix[remove, 1]] = True
+        removed_area = float(area[remove].sum())
+        if ground is not None and removed_area > best_area:
+            best_area = removed_area
+            ground[:] = [np.asarray(n, np.float64) * (1.0 if d > 0 else -1.0)]   # the camera's side
         alive &= ~on
     if stride > 1:
         # Fill the pixels between the sampled ones.
