@@ -58,7 +58,8 @@ class TrackerConfig:
     icp: bool = param(True, "bring every track up to date on every frame by projective point-to-plane ICP of the model against the depth image (off: tracks move only with detections)")
     icp_points: int = param(400, "model points used by the ICP of one track", 20, 20000)
     icp_iterations: int = param(10, "ICP iterations per track and frame", 1, 100)
-    icp_damping: float = param(0.001, "Levenberg damping of each ICP step, relative to the mean diagonal of its normal equations: keeps what the depth barely constrains (a box seen from the top slides freely) at the start pose, the detection's", 0.0, 10.0)
+    icp_damping: float = param(0.001, "Levenberg damping of each ICP step, relative to the mean eigenvalue of its normal equations (rotation scaled by the object's radius): holds back what the depth barely constrains", 0.0, 10.0)
+    icp_min_information: float = param(0.03, "an ICP step moves the pose only in the directions the depth constrains: those whose information (eigenvalue of the normal equations, rotation scaled by the object's radius) is at least this share of the best-constrained one; the others (a box seen from its top: where it lies in that plane) stay at the prediction or the detection. 0 = every direction", 0.0, 1.0)
     icp_max_distance: float = param(0.03, "m: depth pairs farther apart than this are ignored in the first ICP iteration (the gate shrinks to icp_inlier_distance by the last)", 0.001, 0.5)
     icp_inlier_distance: float = param(0.006, "m: a model point counts as confirmed by the depth within this distance", 0.0005, 0.1)
     icp_max_step: float = param(0.01, "m: an ICP result that moves the track's pose further than this from its prediction (or from the detection of this frame) is refused: the model slid along a plane it shares with something else", 0.0005, 1.0)
@@ -153,7 +154,7 @@ def icp_for(model, config: TrackerConfig) -> ProjectiveICP | None:
     """The depth alignment the settings ask for (None with icp off)."""
     c = config
     return ProjectiveICP(model.points_xyz, c.icp_points, c.icp_iterations, c.icp_max_distance,
-                         c.icp_inlier_distance, c.icp_damping) if c.icp else None
+                         c.icp_inlier_distance, c.icp_damping, c.icp_min_information) if c.icp else None
 
 
 class InstanceTracker:
