@@ -67,7 +67,7 @@ class TrackerConfig:
     icp_inlier_distance: float = param(0.006, "m: a model point counts as confirmed by the depth within this distance", 0.0005, 0.1)
     icp_max_step: float = param(0.01, "m: an ICP result that moves the track's pose further than this from its prediction (or from the detection of this frame) is refused: the model slid along a plane it shares with something else", 0.0005, 1.0)
     icp_max_step_deg: float = param(5.0, "deg: the same for the rotation", 0.1, 180.0)
-    icp_min_fitness: float = param(0.35, "share of the visible model points the depth must confirm for the track to count as seen on a frame (below: a miss, e.g. occluded)", 0.0, 1.0)
+    icp_min_fitness: float = param(0.35, "share of the visible model points (those with a depth measurement; at least a tenth of icp_points, else none count) the depth must confirm for the track to count as seen on a frame (below: a miss, e.g. occluded or out of view)", 0.0, 1.0)
 
 
 @dataclass
@@ -318,16 +318,17 @@ class InstanceTracker:
                     if own.fitness > res.fitness:
                         # The depth confirms the track better than the detection: keep the track.
                         tr.T, res = jumped_from, own
-                tr.fitness = res.fitness
+                # Too few points with depth (an instance all but out of view) are no evidence:
+                # a handful on its border would confirm it while it lags behind.
+                tr.fitness = res.fitness if res.visible >= 0.1 * c.icp_points else 0.0
                 step_m = float(np.linalg.norm(res.T[:3, 3] - tr.T[:3, 3]))
                 step_deg = rotation_angle_deg(res.T[:3, :3] @ tr.T[:3, :3].T)
                 # A large step is the model sliding along a plane it shares with a neighbour
                 # (touching boxes, a box on the table), not the object moving: keep the start.
-                if res.fitness >= c.icp_min_fitness and step_m <= c.icp_max_step and step_deg <= c.icp_max_step_deg:
+                if tr.fitness >= c.icp_min_fitness and step_m <= c.icp_max_step and step_deg <= c.icp_max_step_deg:
                     tr.T = proper_pose(res.T)
                     seen[tr.track_id] = True
-                    if (tr.state == TENTATIVE and c.confirm_fitness > 0 and res.fitness >= c.confirm_fitness
-                            and res.visible >= 0.1 * c.icp_points):
+                    if tr.state == TENTATIVE and c.confirm_fitness > 0 and tr.fitness >= c.confirm_fitness:
                         tr.state = CONFIRMED
         movers = [tr for tr in self.tracks if seen[tr.track_id] and len(tr.history) >= 2 and tr.track_id not in jumped
                   and stamp_ns > tr.history[-2][0]]
