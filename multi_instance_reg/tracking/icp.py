@@ -28,6 +28,7 @@ class IcpResult:
     fitness: float          # share of the visible model points that the depth confirms (0..1)
     visible: int            # model points that face the camera, project into the image and have a depth measurement there
     rmse: float             # metres, point-to-plane, over the confirmed points
+    in_view: float = 1.0    # share of the model points facing the camera that project into the image
 
 
 def model_normals(points: np.ndarray) -> np.ndarray:
@@ -65,6 +66,8 @@ def _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, max_dist, centre, A, b):
     H, W = depth.shape
     used = 0
     visible = 0
+    facing = 0
+    inside = 0
     sq = 0.0
     for i in range(6):
         b[i] = 0.0
@@ -82,12 +85,14 @@ def _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, max_dist, centre, A, b):
         nz = T[2, 0] * nrm[k, 0] + T[2, 1] * nrm[k, 1] + T[2, 2] * nrm[k, 2]
         if nx * qx + ny * qy + nz * qz >= 0.0:      # facing away from the camera
             continue
+        facing += 1
         u = fx * qx / qz + cx
         v = fy * qy / qz + cy
         iu = int(u + 0.5)
         iv = int(v + 0.5)
         if iu < 0 or iv < 0 or iu >= W or iv >= H:
             continue
+        inside += 1
         z = depth[iv, iu]
         if not (z > 0.0):
             continue
@@ -112,7 +117,7 @@ def _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, max_dist, centre, A, b):
     for i in range(6):
         for j in range(i):
             A[i, j] = A[j, i]
-    return used, visible, sq
+    return used, visible, sq, facing, inside
 
 
 @numba.njit(cache=True)
@@ -177,7 +182,7 @@ def _icp(T0, pts, nrm, depth, fx, fy, cx, cy, iterations, max_dist, inlier_dist,
         frac = it / max(iterations - 1, 1)
         gate = max_dist + (inlier_dist - max_dist) * frac
         centre = T[:3, :3] @ centroid + T[:3, 3]
-        used, _, _ = _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, gate, centre, A, b)
+        used, _, _, _, _ = _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, gate, centre, A, b)
         if used < 6:
             break
         x = _constrained_step(A, b, radius, damping, min_information)
@@ -185,8 +190,8 @@ def _icp(T0, pts, nrm, depth, fx, fy, cx, cy, iterations, max_dist, inlier_dist,
         if np.abs(x[:3]).max() < 1e-6 and np.abs(x[3:]).max() < 1e-6:
             break
     centre = T[:3, :3] @ centroid + T[:3, 3]
-    used, visible, sq = _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, inlier_dist, centre, A, b)
-    return T, used, visible, sq
+    used, visible, sq, facing, inside = _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, inlier_dist, centre, A, b)
+    return T, used, visible, sq, facing, inside
 
 
 class ProjectiveICP:
@@ -207,12 +212,12 @@ class ProjectiveICP:
     def align(self, T_init: np.ndarray, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> IcpResult:
         K = intrinsics.K
         depth = np.ascontiguousarray(depth_m, dtype=np.float32)
-        T, used, visible, sq = _icp(np.ascontiguousarray(T_init, dtype=np.float64), self.points, self.normals, depth,
+        T, used, visible, sq, facing, inside = _icp(np.ascontiguousarray(T_init, dtype=np.float64), self.points, self.normals, depth,
                                     float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]),
                                     self.iterations, self.max_distance, self.inlier_distance, self.damping,
                                     self.min_information, self.centroid, self.radius)
         return IcpResult(T, used / visible if visible else 0.0, int(visible),
-                         float(np.sqrt(sq / used)) if used else float("nan"))
+                         float(np.sqrt(sq / used)) if used else float("nan"), inside / facing if facing else 0.0)
 
 
 __all__ = ["IcpResult", "ProjectiveICP", "model_normals", "sample_model"]

@@ -50,7 +50,7 @@ class TrackerConfig:
     gate_rotation_deg: float = param(30.0, "a detection within the position gate whose orientation differs by more than this is the object in a symmetric pose: the track keeps its own orientation", 1.0, 180.0)
     flip_after: int = param(3, "detections in a row, agreeing with each other but not with their track's orientation, that turn the track to theirs", 1, 1000)
     confirm_detections: int = param(2, "detections that confirm a new (tentative) track; a tentative track ends at its first miss", 1, 100)
-    confirm_fitness: float = param(0.9, "a new track is confirmed at once, on its first detection, when the ICP from that detection's pose confirms at least this share of the visible model points (and at least a tenth of icp_points are visible): the depth then vouches for the detection as a second detection would; 0 = off (only detections confirm)", 0.0, 1.0)
+    confirm_fitness: float = param(0.9, "a new track is confirmed at once, on its first detection, when the ICP from that detection's pose confirms at least this share of the visible model points (and icp_min_in_view holds): the depth then vouches for the detection as a second detection would; 0 = off (only detections confirm)", 0.0, 1.0)
     coast_s: float = param(1.0, "s: a confirmed track that is neither detected nor confirmed by the depth for longer than this ends (it is published as coasting meanwhile)", 0.0, 60.0)
     max_undetected_s: float = param(1.5, "s: a track kept by the depth alone, with no detection for longer than this, ends (0 = never)", 0.0, 3600.0)
     duplicate_distance: float = param(0.015, "m: two tracks whose positions come closer than this follow one object: the younger ends", 0.0, 1.0)
@@ -63,11 +63,12 @@ class TrackerConfig:
     icp_iterations: int = param(10, "ICP iterations per track and frame", 1, 100)
     icp_damping: float = param(0.001, "Levenberg damping of each ICP step, relative to the mean eigenvalue of its normal equations (rotation scaled by the object's radius): holds back what the depth barely constrains", 0.0, 10.0)
     icp_min_information: float = param(0.03, "an ICP step moves the pose only in the directions the depth constrains: those whose information (eigenvalue of the normal equations, rotation scaled by the object's radius) is at least this share of the best-constrained one; the others (a box seen from its top: where it lies in that plane) stay at the prediction or the detection. 0 = every direction", 0.0, 1.0)
+    icp_min_in_view: float = param(0.25, "share of the model points facing the camera that must project into the image for the depth to count at all (below: a miss; an instance leaving the view is not kept, nor confirmed, by the few points on the image border)", 0.0, 1.0)
     icp_max_distance: float = param(0.03, "m: depth pairs farther apart than this are ignored in the first ICP iteration (the gate shrinks to icp_inlier_distance by the last)", 0.001, 0.5)
     icp_inlier_distance: float = param(0.006, "m: a model point counts as confirmed by the depth within this distance", 0.0005, 0.1)
     icp_max_step: float = param(0.01, "m: an ICP result that moves the track's pose further than this from its prediction (or from the detection of this frame) is refused: the model slid along a plane it shares with something else", 0.0005, 1.0)
     icp_max_step_deg: float = param(5.0, "deg: the same for the rotation", 0.1, 180.0)
-    icp_min_fitness: float = param(0.35, "share of the visible model points (those with a depth measurement; at least a tenth of icp_points, else none count) the depth must confirm for the track to count as seen on a frame (below: a miss, e.g. occluded or out of view)", 0.0, 1.0)
+    icp_min_fitness: float = param(0.35, "share of the visible model points (facing the camera, with a depth measurement) the depth must confirm for the track to count as seen on a frame (below: a miss, e.g. occluded)", 0.0, 1.0)
 
 
 @dataclass
@@ -318,9 +319,9 @@ class InstanceTracker:
                     if own.fitness > res.fitness:
                         # The depth confirms the track better than the detection: keep the track.
                         tr.T, res = jumped_from, own
-                # Too few points with depth (an instance all but out of view) are no evidence:
-                # a handful on its border would confirm it while it lags behind.
-                tr.fitness = res.fitness if res.visible >= 0.1 * c.icp_points else 0.0
+                # An instance all but out of view is no evidence: a handful of points on the
+                # image border would confirm it while it lags behind.
+                tr.fitness = res.fitness if res.in_view >= c.icp_min_in_view else 0.0
                 step_m = float(np.linalg.norm(res.T[:3, 3] - tr.T[:3, 3]))
                 step_deg = rotation_angle_deg(res.T[:3, :3] @ tr.T[:3, :3].T)
                 # A large step is the model sliding along a plane it shares with a neighbour
