@@ -5,10 +5,12 @@ import pytest
 from rcl_interfaces.msg import ParameterType
 from rclpy.parameter import Parameter
 
+from multi_instance_reg.errors import InputError
 from multi_instance_reg.params import flatten, param_specs, read_params_yaml
 from multi_instance_reg.rgbd.pipeline import PipelineConfig
 from multi_instance_reg.ros.parameters import (READ_ONLY, NodeSettings, all_specs, check_parameters,
-                                               default_params_yaml, descriptor)
+                                               default_params_yaml, descriptor,
+                                               launch_model_parameters)
 from multi_instance_reg.tracking import LiveConfig, TrackerConfig
 
 PARAMS_FILE = Path(__file__).resolve().parents[1] / "config" / "params.yaml"
@@ -79,3 +81,21 @@ def test_check_parameters_gives_a_reason(name, value, ok):
     assert (reason is None) == ok
     if not ok:
         assert name.split(".")[-1] in reason
+
+
+@pytest.mark.parametrize("text, expected", [
+    ("", None),
+    ("[a.npz, /abs/b.npz]", ["a.npz", "/abs/b.npz"]),
+    ("a.npz, b.npz", ["a.npz", "b.npz"]),
+    ("only.npz", ["only.npz"]),
+])
+def test_the_launch_file_takes_model_paths_as_a_list_or_comma_separated(text, expected):
+    params = launch_model_parameters("one.npz", text)
+    assert params["model_path"] == "one.npz"
+    assert params.get("model_paths") == expected
+
+
+@pytest.mark.parametrize("text", ["[a.npz, [b.npz]]", "[a.npz", "[1, 2]"])
+def test_the_launch_file_refuses_model_paths_that_are_no_list_of_files(text):
+    with pytest.raises(InputError, match="model_paths"):
+        launch_model_parameters("", text)

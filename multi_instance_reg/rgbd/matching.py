@@ -33,18 +33,11 @@ class DescriptorMatcher:
 
     def __init__(self, model_desc: np.ndarray, model_xyz: np.ndarray, ratio: float = 0.8, separation: float = 0.01,
                  method: str = "brute_force", neighbours: int = 8, flann_trees: int = 4, flann_checks: int = 32,
-                 seed: int = 0, owner: np.ndarray | None = None):
+                 seed: int = 0):
         if method not in MATCHERS:
             raise ValueError(f"matcher must be one of {MATCHERS}, got {method!r}")
         self.method = method
-        # Several models in one index (rgbd/multi_model.py): the model of each descriptor. Each
-        # scene keypoint is then matched to each model among its neighbours, with the ratio
-        # test within that model: what that model's own matcher would accept, in one search.
-        self.owner = None if owner is None else np.asarray(owner, np.int64)
-        if self.owner is not None and method != "flann":
-            raise ValueError("several models in one index need the flann matcher")
-        self.models = 1 if self.owner is None else int(self.owner.max()) + 1
-        self.neighbours = int(neighbours) * self.models
+        self.neighbours = int(neighbours)
         self.flann_checks = int(flann_checks)
         self.desc = np.ascontiguousarray(model_desc, dtype=np.float32)
         self.xyz = np.asarray(model_xyz, dtype=np.float32).reshape(-1, 3)
@@ -108,8 +101,6 @@ class DescriptorMatcher:
         idx = np.concatenate([p[0] for p in parts]).astype(np.int64)
         d2 = np.concatenate([p[1] for p in parts])
         dist = np.sqrt(np.maximum(d2, 0.0))          # FLANN's L2 gives squared distances
-        if self.owner is not None:
-            return self._per_model(idx, dist)
         best = idx[:, 0]
         gap = np.linalg.norm(self.xyz[idx[:, 1:]] - self.xyz[best][:, None, :], axis=2)
         distinct = gap > self.separation
@@ -118,25 +109,3 @@ class DescriptorMatcher:
         ratio = np.where(has_second, dist[:, 0] / np.maximum(second, 1e-12), 0.0).astype(np.float32)
         accept = np.flatnonzero(ratio < self.ratio)
         return accept.astype(np.int64), best[accept], ratio[accept]
-
-    def _per_model(self, idx: np.ndarray, dist: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``_match_knn``'s test once per model on that model's share of the neighbours; a
-        scene keypoint may match several models (each model's ECC sorts out its own)."""
-        rows = np.arange(len(idx))
-        own = self.owner[idx]
-        out_q, out_m, out_r = [], [], []
-        for m in range(self.models):
-            mine = own == m
-            first = mine.argmax(axis=1)
-            present = mine[rows, first]
-            best = idx[rows, first]
-            gap = np.linalg.norm(self.xyz[idx] - self.xyz[best][:, None, :], axis=2)
-            distinct = mine & (gap > self.separation)
-            has_second = distinct.any(axis=1)
-            second = dist[rows, distinct.argmax(axis=1)]
-            ratio = np.where(has_second, dist[rows, first] / np.maximum(second, 1e-12), 0.0).astype(np.float32)
-            accept = np.flatnonzero(present & (ratio < self.ratio))
-            out_q.append(accept)
-            out_m.append(best[accept])
-            out_r.append(ratio[accept])
-        return np.concatenate(out_q).astype(np.int64), np.concatenate(out_m), np.concatenate(out_r)

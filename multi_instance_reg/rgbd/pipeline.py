@@ -19,6 +19,7 @@ from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
+from scipy.spatial.distance import cdist
 
 from ..core import ECC, ECCConfig
 from ..core.refinement import instance_scores, residuals
@@ -49,7 +50,7 @@ class FrontEndConfig:
     ratio: float = param(0.8, "ratio test: best descriptor distance / second-best (second among model points more than ratio_separation away in 3D) must be below this", 0.1, 1.0)
     ratio_separation: float = param(0.01, "metres: model points closer than this to the best match count as the same physical point in the ratio test", 0.0, 1.0)
     matcher: str = param("flann", "descriptor search: flann (approximate kd-trees, about twice as fast) or brute_force (exact)", choices=("flann", "brute_force"))
-    flann_checks: int = param(32, "flann: leaves the kd-tree search visits per query and model (several models share one index searched with this times their number); fewer is faster (16: matching 15 -> 9 ms a frame, MHF1 0.962 -> 0.952 on the held-out synthetic scenes)", 1, 4096)
+    flann_checks: int = param(32, "flann: leaves the kd-tree search visits per query (each model has its own index); fewer is faster (16: matching 15 -> 9 ms a frame, MHF1 0.962 -> 0.952 on the held-out synthetic scenes)", 1, 4096)
     root_sift: bool = param(True, "compare descriptors as RootSIFT (Hellinger kernel) instead of plain L2")
     # Lifting.
     depth_window: int = param(5, "side in pixels of the window whose median valid depth lifts a keypoint (odd)", 1, 31)
@@ -249,8 +250,7 @@ class InstanceRegistration:
         t0 = time.perf_counter()
         keypoints = self.detect(rgb, depth_m, intrinsics, t)
         t3 = time.perf_counter()
-        # Match, one-to-many: every scene keypoint to its nearest model descriptor.
-        scene_idx, model_idx, _ = self._matcher.match(keypoints.descriptors)
+        scene_idx, model_idx = self.match(keypoints)
         t["matching"] = (time.perf_counter() - t3) * 1e3
         result = self.solve(keypoints, scene_idx, model_idx)
         t["ecc"], t["refinement"] = result.timings_ms["ecc"], result.timings_ms["refinement"]
@@ -289,6 +289,11 @@ class InstanceRegistration:
         desc = prepare_descriptors(desc, fe.root_sift)
         t["lifting"] += (t1 - t0 + time.perf_counter() - t2) * 1e3
         return SceneKeypoints(uv, desc, scene_xyz, n_kp)
+
+    def match(self, keypoints: "SceneKeypoints") -> tuple[np.ndarray, np.ndarray]:
+        """(scene indices, model indices) of the accepted matches, one-to-many: every scene
+        keypoint to its nearest model descriptor."""
+        return self._matcher.match(keypoints.descriptors)[:2]
 
     def solve(self, keypoints: "SceneKeypoints", scene_idx: np.ndarray, model_idx: np.ndarray) -> FrameResult:
         """Instances from matches (scene keypoint ``scene_idx[i]`` to model keypoint
@@ -450,13 +455,15 @@ def recover_small_instances(src: np.ndarray, tgt: np.ndarray, candidates: np.nda
     if len(idx) < min_inliers:
         return []
     x, y = src[idx], tgt[idx]
-    dx = np.linalg.norm(x[:, None] - x[None], axis=2)
-    dy = np.linalg.norm(y[:, None] - y[None], axis=2)
+    dx, dy = cdist(x, x), cdist(y, y)
     C = (np.abs(dx - dy) < tolerance) & (dy < diameter) & (dx > 0.005) & (dy > 0.005)
     alive = np.ones(len(idx), bool)
+    # Consistent partners still alive, kept up to date as correspondences leave (recounting
+    # the whole n x n matrix each round cost 5-20 ms a frame per model with many outliers).
+    partners = C.sum(axis=1)
     found = []
     for _ in range(max_instances * 3):
-        deg = (C & alive[None, :] & alive[:, None]).sum(axis=1)
+        deg = np.where(alive, partners, 0)
         seed = int(np.argmax(deg))
         if deg[seed] < min_inliers - 1:
             break
@@ -469,6 +476,7 @@ def recover_small_instances(src: np.ndarray, tgt: np.ndarray, candidates: np.nda
             sub = np.delete(np.delete(sub, worst, axis=0), worst, axis=1)
         if len(group) < min_inliers:
             alive[seed] = False
+            partners -= C[:, seed]
             continue
         T = rigid_fit(x[group], y[group])
         for _ in range(3):
@@ -480,10 +488,12 @@ def recover_small_instances(src: np.ndarray, tgt: np.ndarray, candidates: np.nda
         if inl.sum() >= min_inliers:
             found.append(T)
             alive &= ~inl
+            partners -= C[:, np.flatnonzero(inl)].sum(axis=1)
             if len(found) >= max_instances:
                 break
         else:
             alive[seed] = False
+            partners -= C[:, seed]
     return found
 
 

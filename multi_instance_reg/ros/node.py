@@ -490,7 +490,7 @@ class InstanceRegistrationNode(Node):
 
     def _maybe_report(self) -> None:
         now = time.monotonic()
-        if now - self._last_stats < self.settings.stats_log_period_s:
+        if not rclpy.ok() or now - self._last_stats < self.settings.stats_log_period_s:
             return
         self._last_stats = now
         stats = self.stats()
@@ -545,6 +545,11 @@ def main(argv: list[str] | None = None) -> int:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except Exception:
+        # A timer's publish racing a Ctrl-C finds its context invalid: that is the shutdown
+        # itself, not an error. Anything raised while the context is still up is.
+        if rclpy.ok():
+            raise
     finally:
         node.destroy_node()
         rclpy.try_shutdown()

@@ -108,6 +108,25 @@ def node_settings(values: dict) -> NodeSettings:
     return NodeSettings(**{k: v for k, v in values.items() if k in NodeSettings.__dataclass_fields__})
 
 
+def launch_model_parameters(model_path: str, model_paths: str) -> dict:
+    """The node's model parameters from the launch file's text arguments: ``model_path`` as
+    it is, ``model_paths`` as a YAML list ("[a.npz, b.npz]") or comma-separated ("a.npz,b.npz").
+    An empty ``model_paths`` is left out, so that the parameter file's value stands (and ROS
+    could not tell the type of an empty list)."""
+    import yaml
+
+    text = model_paths.strip()
+    try:
+        value = yaml.safe_load(text) if text.startswith("[") else [p.strip() for p in text.split(",") if p.strip()]
+    except yaml.YAMLError as exc:
+        raise InputError(f"model_paths:={model_paths!r} is not a list: {str(exc).splitlines()[0]}; "
+                         f"give model_paths:='[a.npz, b.npz]' or model_paths:=a.npz,b.npz") from None
+    if not isinstance(value, list) or not all(isinstance(p, str) and p for p in value):
+        raise InputError(f"model_paths:={model_paths!r} is not a list of file names; "
+                         f"give model_paths:='[a.npz, b.npz]' or model_paths:=a.npz,b.npz")
+    return {"model_path": model_path, **({"model_paths": value} if value else {})}
+
+
 def node_specs() -> list[ParamSpec]:
     return list(param_specs(NodeSettings()))
 
