@@ -26,8 +26,9 @@ from ..messages import CameraIntrinsics
 class IcpResult:
     T: np.ndarray           # (4, 4) refined model -> camera transform
     fitness: float          # share of the visible model points that the depth confirms (0..1)
-    visible: int            # model points that face the camera and project into the image
+    visible: int            # model points that face the camera, project into the image and have a depth measurement there
     rmse: float             # metres, point-to-plane, over the confirmed points
+    in_view: float = 1.0    # share of the model points facing the camera that project into the image
 
 
 def model_normals(points: np.ndarray) -> np.ndarray:
@@ -55,12 +56,18 @@ def sample_model(points: np.ndarray, count: int, seed: int = 0) -> tuple[np.ndar
 
 
 @numba.njit(cache=True, fastmath=True)
-def _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, max_dist, A, b):
+def _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, max_dist, centre, A, b):
     """One projective association pass; fills the normal equations A x = b of the twist
-    x = (omega, tau) (left-multiplied) and returns (pairs used, visible, squared error)."""
+    x = (omega, tau), q -> q + omega x (q - centre) + tau (the rotation about the object's
+    centre, so that rotation and translation are nearly decoupled), and returns (pairs used,
+    visible, squared error). Visible: facing the camera, inside the image and with a depth
+    measurement there (a pixel without one, e.g. a side face seen at a grazing angle, is no
+    evidence for or against the pose)."""
     H, W = depth.shape
     used = 0
     visible = 0
+    facing = 0
+    inside = 0
     sq = 0.0
     for i in range(6):
         b[i] = 0.0
@@ -78,22 +85,28 @@ def _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, max_dist, A, b):
         nz = T[2, 0] * nrm[k, 0] + T[2, 1] * nrm[k, 1] + T[2, 2] * nrm[k, 2]
         if nx * qx + ny * qy + nz * qz >= 0.0:      # facing away from the camera
             continue
+        facing += 1
         u = fx * qx / qz + cx
         v = fy * qy / qz + cy
         iu = int(u + 0.5)
         iv = int(v + 0.5)
         if iu < 0 or iv < 0 or iu >= W or iv >= H:
             continue
-        visible += 1
+        inside += 1
         z = depth[iv, iu]
-        if not (z > 0.0) or abs(z - qz) > max_dist:
+        if not (z > 0.0):
+            continue
+        visible += 1
+        if abs(z - qz) > max_dist:
             continue
         s = z / qz                                   # the depth pixel lifted along q's ray
         r = nx * (qx * s - qx) + ny * (qy * s - qy) + nz * (qz * s - qz)
-        # d r / d (omega, tau) for q -> q + omega x q + tau: -(q x n, n); signs folded into b.
-        j0 = qy * nz - qz * ny
-        j1 = qz * nx - qx * nz
-        j2 = qx * ny - qy * nx
+        # d r / d (omega, tau) for q -> q + omega x (q - centre) + tau: -((q - centre) x n, n);
+        # signs folded into b.
+        rx, ry, rz = qx - centre[0], qy - centre[1], qz - centre[2]
+        j0 = ry * nz - rz * ny
+        j1 = rz * nx - rx * nz
+        j2 = rx * ny - ry * nx
         J = (j0, j1, j2, nx, ny, nz)
         for i in range(6):
             b[i] += J[i] * r
@@ -104,12 +117,12 @@ def _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, max_dist, A, b):
     for i in range(6):
         for j in range(i):
             A[i, j] = A[j, i]
-    return used, visible, sq
+    return used, visible, sq, facing, inside
 
 
 @numba.njit(cache=True)
-def _apply_twist(T, x):
-    """exp of the twist x = (omega, tau), applied on the left of T (Rodrigues)."""
+def _apply_twist(T, x, centre):
+    """exp of the twist x = (omega, tau) about ``centre``, applied on the left of T (Rodrigues)."""
     w0, w1, w2 = x[0], x[1], x[2]
     theta = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
     K = np.array([[0.0, -w2, w1], [w2, 0.0, -w0], [-w1, w0, 0.0]])
@@ -119,12 +132,48 @@ def _apply_twist(T, x):
         R = np.eye(3) + np.sin(theta) / theta * K + (1.0 - np.cos(theta)) / (theta * theta) * (K @ K)
     out = np.eye(4)
     out[:3, :3] = R @ T[:3, :3]
-    out[:3, 3] = R @ T[:3, 3] + x[3:]
+    out[:3, 3] = R @ (T[:3, 3] - centre) + centre + x[3:]
     return out
 
 
 @numba.njit(cache=True)
-def _icp(T0, pts, nrm, depth, fx, fy, cx, cy, iterations, max_dist, inlier_dist, damping):
+def _constrained_step(A, b, radius, damping, min_information):
+    """The twist solving A x = b in the directions the depth constrains, 0 in the others.
+
+    The unknowns are scaled to metres at the object's extent (omega * radius, tau) so that
+    rotation and translation compare; directions whose information (eigenvalue of the scaled
+    normal equations) is below ``min_information`` times the largest are left out: a box seen
+    only from its top constrains its height and tilt, not where it lies in that plane, and
+    there the residuals are depth noise times the small tilt of noisy normals, which a plain
+    solve turns into millimetres of slide on every frame (Gelfand et al. 2003; Zhang et al.
+    2016, degeneracy-aware ICP). Levenberg damping, relative to the mean eigenvalue, on top."""
+    S = np.array([1.0 / radius, 1.0 / radius, 1.0 / radius, 1.0, 1.0, 1.0])
+    As = np.empty((6, 6))
+    bs = np.empty(6)
+    for i in range(6):
+        bs[i] = S[i] * b[i]
+        for j in range(6):
+            As[i, j] = S[i] * A[i, j] * S[j]
+    w, V = np.linalg.eigh(As)
+    top = w[5]
+    mean = (w[0] + w[1] + w[2] + w[3] + w[4] + w[5]) / 6.0
+    y = np.zeros(6)
+    for k in range(6):
+        if w[k] > min_information * top and w[k] > 0.0:
+            c = 0.0
+            for i in range(6):
+                c += V[i, k] * bs[i]
+            c /= w[k] + damping * mean
+            for i in range(6):
+                y[i] += c * V[i, k]
+    for i in range(6):
+        y[i] *= S[i]
+    return y
+
+
+@numba.njit(cache=True)
+def _icp(T0, pts, nrm, depth, fx, fy, cx, cy, iterations, max_dist, inlier_dist, damping, min_information,
+         centroid, radius):
     T = T0.copy()
     A = np.zeros((6, 6))
     b = np.zeros(6)
@@ -132,28 +181,29 @@ def _icp(T0, pts, nrm, depth, fx, fy, cx, cy, iterations, max_dist, inlier_dist,
     for it in range(iterations):
         frac = it / max(iterations - 1, 1)
         gate = max_dist + (inlier_dist - max_dist) * frac
-        used, _, _ = _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, gate, A, b)
+        centre = T[:3, :3] @ centroid + T[:3, 3]
+        used, _, _, _, _ = _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, gate, centre, A, b)
         if used < 6:
             break
-        # Levenberg damping keeps directions the depth does not constrain (a box seen only
-        # from the top slides freely) where the prediction put them.
-        scale = (A[0, 0] + A[1, 1] + A[2, 2] + A[3, 3] + A[4, 4] + A[5, 5]) / 6.0
-        for i in range(6):
-            A[i, i] += damping * scale + 1e-12
-        x = np.linalg.solve(A, b)  # noqa: the twist
-        T = _apply_twist(T, x)
+        x = _constrained_step(A, b, radius, damping, min_information)
+        T = _apply_twist(T, x, centre)
         if np.abs(x[:3]).max() < 1e-6 and np.abs(x[3:]).max() < 1e-6:
             break
-    used, visible, sq = _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, inlier_dist, A, b)
-    return T, used, visible, sq
+    centre = T[:3, :3] @ centroid + T[:3, 3]
+    used, visible, sq, facing, inside = _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, inlier_dist, centre, A, b)
+    return T, used, visible, sq, facing, inside
 
 
 class ProjectiveICP:
     """Aligns one object model to depth images: ``align(T_init, depth_m, intrinsics)``."""
 
     def __init__(self, points_xyz: np.ndarray, num_points: int = 400, iterations: int = 8,
-                 max_distance: float = 0.02, inlier_distance: float = 0.006, damping: float = 1e-3):
+                 max_distance: float = 0.02, inlier_distance: float = 0.006, damping: float = 1e-3,
+                 min_information: float = 0.0):
         self.points, self.normals = sample_model(points_xyz, num_points)
+        self.centroid = np.ascontiguousarray(self.points.mean(axis=0))
+        self.radius = float(np.sqrt(np.mean(np.sum((self.points - self.centroid) ** 2, axis=1)))) or 1.0
+        self.min_information = float(min_information)
         self.iterations = int(iterations)
         self.max_distance = float(max_distance)
         self.inlier_distance = float(inlier_distance)
@@ -162,11 +212,12 @@ class ProjectiveICP:
     def align(self, T_init: np.ndarray, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> IcpResult:
         K = intrinsics.K
         depth = np.ascontiguousarray(depth_m, dtype=np.float32)
-        T, used, visible, sq = _icp(np.ascontiguousarray(T_init, dtype=np.float64), self.points, self.normals, depth,
+        T, used, visible, sq, facing, inside = _icp(np.ascontiguousarray(T_init, dtype=np.float64), self.points, self.normals, depth,
                                     float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]),
-                                    self.iterations, self.max_distance, self.inlier_distance, self.damping)
+                                    self.iterations, self.max_distance, self.inlier_distance, self.damping,
+                                    self.min_information, self.centroid, self.radius)
         return IcpResult(T, used / visible if visible else 0.0, int(visible),
-                         float(np.sqrt(sq / used)) if used else float("nan"))
+                         float(np.sqrt(sq / used)) if used else float("nan"), inside / facing if facing else 0.0)
 
 
 __all__ = ["IcpResult", "ProjectiveICP", "model_normals", "sample_model"]

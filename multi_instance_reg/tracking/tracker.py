@@ -14,7 +14,8 @@ found on an older frame (the live node's detector runs behind the camera) is fus
 frame and moved forward by the motion the track has made since.
 
 Life of a track: born *tentative* from a detection no track claims; *confirmed* after
-``confirm_detections`` detections; a confirmed track neither detected nor confirmed by the
+``confirm_detections`` detections, or at once when the depth confirms the detection's pose
+(ICP fitness at least ``confirm_fitness``); a confirmed track neither detected nor confirmed by the
 depth on a frame is *coasting*, and ends when that lasts ``coast_s``. A tentative track ends
 at its first miss. Ids count up from 0 and are never reused.
 
@@ -49,21 +50,25 @@ class TrackerConfig:
     gate_rotation_deg: float = param(30.0, "a detection within the position gate whose orientation differs by more than this is the object in a symmetric pose: the track keeps its own orientation", 1.0, 180.0)
     flip_after: int = param(3, "detections in a row, agreeing with each other but not with their track's orientation, that turn the track to theirs", 1, 1000)
     confirm_detections: int = param(2, "detections that confirm a new (tentative) track; a tentative track ends at its first miss", 1, 100)
+    confirm_fitness: float = param(0.9, "a new track is confirmed at once, on its first detection, when the ICP from that detection's pose confirms at least this share of the visible model points (and icp_min_in_view holds): the depth then vouches for the detection as a second detection would; 0 = off (only detections confirm)", 0.0, 1.0)
     coast_s: float = param(1.0, "s: a confirmed track that is neither detected nor confirmed by the depth for longer than this ends (it is published as coasting meanwhile)", 0.0, 60.0)
     max_undetected_s: float = param(1.5, "s: a track kept by the depth alone, with no detection for longer than this, ends (0 = never)", 0.0, 3600.0)
     duplicate_distance: float = param(0.015, "m: two tracks whose positions come closer than this follow one object: the younger ends", 0.0, 1.0)
-    velocity_decay: float = param(1.0, "share of a track's velocity kept per frame the track is updated by the depth alone (no detection): a velocity the depth does not confirm (a box sliding along the table plane it shares with its neighbours) dies out instead of carrying the track away from a resting object; 1 = constant velocity", 0.0, 1.0)
+    camera_motion: bool = param(True, "predict every track by one motion shared by all (the camera's: objects rest and the camera moves), estimated robustly on each frame from the tracks the depth or a detection saw (median rotation, then median translation), plus the track's own residual velocity; an occluded (coasting) track follows the shared motion. Off: each track's own constant velocity, an occluded one follows the nearest seen track")
+    velocity_decay: float = param(0.5, "share of a track's own velocity (with camera_motion: what the shared motion does not explain) kept per frame the track is updated by the depth alone (no detection): a velocity the depth does not confirm (a box sliding along the table plane it shares with its neighbours) dies out instead of carrying the track away from a resting object; 1 = constant velocity", 0.0, 1.0)
     smoothing: float = param(0.0, "pose smoothing, 0 = off (the published pose is the measured one) to 0.95 (heavy): the published pose is a constant-velocity (alpha-beta) filter of the measured one with gain 1 - smoothing, so a resting object's pose settles and a steadily moving one does not lag; a measurement further than icp_max_step / icp_max_step_deg from the filter restarts it", 0.0, 0.95)
     publish_tentative: bool = param(False, "also publish tracks not yet confirmed (state tentative)")
     icp: bool = param(True, "bring every track up to date on every frame by projective point-to-plane ICP of the model against the depth image (off: tracks move only with detections)")
-    icp_points: int = param(400, "model points used by the ICP of one track", 20, 20000)
+    icp_points: int = param(1000, "model points used by the ICP of one track", 20, 20000)
     icp_iterations: int = param(10, "ICP iterations per track and frame", 1, 100)
-    icp_damping: float = param(0.001, "Levenberg damping of each ICP step, relative to the mean diagonal of its normal equations: keeps what the depth barely constrains (a box seen from the top slides freely) at the start pose, the detection's", 0.0, 10.0)
+    icp_damping: float = param(0.001, "Levenberg damping of each ICP step, relative to the mean eigenvalue of its normal equations (rotation scaled by the object's radius): holds back what the depth barely constrains", 0.0, 10.0)
+    icp_min_information: float = param(0.03, "an ICP step moves the pose only in the directions the depth constrains: those whose information (eigenvalue of the normal equations, rotation scaled by the object's radius) is at least this share of the best-constrained one; the others (a box seen from its top: where it lies in that plane) stay at the prediction or the detection. 0 = every direction", 0.0, 1.0)
+    icp_min_in_view: float = param(0.25, "share of the model points facing the camera that must project into the image for the depth to count at all (below: a miss; an instance leaving the view is not kept, nor confirmed, by the few points on the image border)", 0.0, 1.0)
     icp_max_distance: float = param(0.03, "m: depth pairs farther apart than this are ignored in the first ICP iteration (the gate shrinks to icp_inlier_distance by the last)", 0.001, 0.5)
     icp_inlier_distance: float = param(0.006, "m: a model point counts as confirmed by the depth within this distance", 0.0005, 0.1)
     icp_max_step: float = param(0.01, "m: an ICP result that moves the track's pose further than this from its prediction (or from the detection of this frame) is refused: the model slid along a plane it shares with something else", 0.0005, 1.0)
     icp_max_step_deg: float = param(5.0, "deg: the same for the rotation", 0.1, 180.0)
-    icp_min_fitness: float = param(0.35, "share of the visible model points the depth must confirm for the track to count as seen on a frame (below: a miss, e.g. occluded)", 0.0, 1.0)
+    icp_min_fitness: float = param(0.35, "share of the visible model points (facing the camera, with a depth measurement) the depth must confirm for the track to count as seen on a frame (below: a miss, e.g. occluded)", 0.0, 1.0)
 
 
 @dataclass
@@ -153,7 +158,7 @@ def icp_for(model, config: TrackerConfig) -> ProjectiveICP | None:
     """The depth alignment the settings ask for (None with icp off)."""
     c = config
     return ProjectiveICP(model.points_xyz, c.icp_points, c.icp_iterations, c.icp_max_distance,
-                         c.icp_inlier_distance, c.icp_damping) if c.icp else None
+                         c.icp_inlier_distance, c.icp_damping, c.icp_min_information) if c.icp else None
 
 
 class InstanceTracker:
@@ -165,6 +170,7 @@ class InstanceTracker:
         self.next_id = 0
         self.ended = 0                   # tracks ended so far
         self.stamp_ns: int | None = None # latest frame
+        self.camera_velocity = np.zeros(6)   # shared motion per second (relative_twist form), camera_motion on
         # Rotations (model frame) under which the object looks the same; identity first.
         self.symmetries = [np.eye(3)] + [np.asarray(S, dtype=np.float64)[:3, :3] for S in (symmetries or [])]
         self.set_config(config or TrackerConfig())
@@ -193,11 +199,12 @@ class InstanceTracker:
     # ---- stages ----------------------------------------------------------------------
     def _predict(self, stamp_ns: int) -> None:
         stamp_ns = int(stamp_ns)
+        shared = self.camera_velocity if self.config.camera_motion else np.zeros(6)
         for tr in self.tracks:
             dt = (stamp_ns - tr.stamp_ns) * 1e-9
             if dt > 0:
-                tr.T = apply_twist(tr.T, tr.velocity, dt)
-                tr.T_out = local_step(tr.T_out, tr.out_velocity * dt)
+                tr.T = apply_twist(apply_twist(tr.T, shared, dt), tr.velocity, dt)
+                tr.T_out = local_step(tr.T_out, tr.out_velocity * dt)   # the filter's own velocity
                 tr.stamp_ns = stamp_ns
             tr.history.append((stamp_ns, tr.T.copy()))
         self.stamp_ns = stamp_ns
@@ -312,15 +319,21 @@ class InstanceTracker:
                     if own.fitness > res.fitness:
                         # The depth confirms the track better than the detection: keep the track.
                         tr.T, res = jumped_from, own
-                tr.fitness = res.fitness
+                # An instance all but out of view is no evidence: a handful of points on the
+                # image border would confirm it while it lags behind.
+                tr.fitness = res.fitness if res.in_view >= c.icp_min_in_view else 0.0
                 step_m = float(np.linalg.norm(res.T[:3, 3] - tr.T[:3, 3]))
                 step_deg = rotation_angle_deg(res.T[:3, :3] @ tr.T[:3, :3].T)
                 # A large step is the model sliding along a plane it shares with a neighbour
                 # (touching boxes, a box on the table), not the object moving: keep the start.
-                if res.fitness >= c.icp_min_fitness and step_m <= c.icp_max_step and step_deg <= c.icp_max_step_deg:
+                if tr.fitness >= c.icp_min_fitness and step_m <= c.icp_max_step and step_deg <= c.icp_max_step_deg:
                     tr.T = proper_pose(res.T)
                     seen[tr.track_id] = True
-        movers = [tr for tr in self.tracks if seen[tr.track_id] and len(tr.history) >= 2 and tr.track_id not in jumped]
+                    if tr.state == TENTATIVE and c.confirm_fitness > 0 and tr.fitness >= c.confirm_fitness:
+                        tr.state = CONFIRMED
+        movers = [tr for tr in self.tracks if seen[tr.track_id] and len(tr.history) >= 2 and tr.track_id not in jumped
+                  and stamp_ns > tr.history[-2][0]]
+        shared = self._shared_motion(movers, stamp_ns) if c.camera_motion else None
         alive = []
         for tr in self.tracks:
             T_prev, prev_stamp = (tr.history[-2][1], tr.history[-2][0]) if len(tr.history) >= 2 else (None, None)
@@ -329,7 +342,10 @@ class InstanceTracker:
                 if tr.state == COASTING:
                     tr.state = CONFIRMED
                 if T_prev is not None and stamp_ns > prev_stamp and tr.track_id not in jumped:
-                    v = relative_twist(T_prev, tr.T) / ((stamp_ns - prev_stamp) * 1e-9)
+                    dt = (stamp_ns - prev_stamp) * 1e-9
+                    # The track's own motion: what the shared (camera) motion does not explain.
+                    start = apply_twist(T_prev, shared, dt) if shared is not None else T_prev
+                    v = relative_twist(start, tr.T) / dt
                     tr.velocity = 0.5 * tr.velocity + 0.5 * v
                     if tr.last_detected_ns != stamp_ns:
                         # Depth only: the ICP leaves what the depth does not constrain at the
@@ -348,7 +364,10 @@ class InstanceTracker:
                 # Unseen (occluded, out of the depth): objects rest, so what moves it in the
                 # camera is the camera: follow the nearest track that was seen, rather than
                 # extrapolating its own velocity through the whole occlusion.
-                if T_prev is not None and movers:
+                if T_prev is not None and shared is not None:
+                    tr.T = proper_pose(apply_twist(T_prev, shared, (stamp_ns - prev_stamp) * 1e-9))
+                    tr.velocity = np.zeros(6)
+                elif T_prev is not None and movers:
                     near = min(movers, key=lambda m: np.linalg.norm(m.history[-2][1][:3, 3] - T_prev[:3, 3]))
                     tr.T = proper_pose(near.T @ invert_transform(near.history[-2][1]) @ T_prev)
                     tr.velocity = near.velocity.copy()
@@ -361,6 +380,24 @@ class InstanceTracker:
             tr.history[-1] = (stamp_ns, tr.T.copy())
             alive.append(tr)
         self.tracks = self._without_duplicates(alive)
+
+    def _shared_motion(self, movers: list[Track], stamp_ns: int) -> np.ndarray:
+        """The motion (per second) shared by the tracks seen on this frame and the one before:
+        the camera's, as the objects rest. Robust to a few that moved or were measured badly:
+        the median rotation, then the median of the translations that rotation leaves (each
+        track's position is better known than its orientation, which a lever arm of half a
+        metre would turn into millimetres). Updates camera_velocity for the next prediction;
+        with no such track the last one stays."""
+        if not movers:
+            return self.camera_velocity.copy()
+        dts = np.array([(stamp_ns - tr.history[-2][0]) * 1e-9 for tr in movers])
+        twists = np.array([relative_twist(tr.history[-2][1], tr.T) for tr in movers]) / dts[:, None]
+        omega = np.median(twists[:, :3], axis=0)
+        taus = [(tr.T[:3, 3] - apply_twist(tr.history[-2][1], np.concatenate([omega, np.zeros(3)]), dt)[:3, 3]) / dt
+                for tr, dt in zip(movers, dts)]
+        measured = np.concatenate([omega, np.median(np.array(taus), axis=0)])
+        self.camera_velocity = 0.5 * self.camera_velocity + 0.5 * measured
+        return measured
 
     def _filter_output(self, tr: Track, dt: float) -> None:
         """Alpha-beta filter (the steady state of a constant-velocity Kalman filter) of the
@@ -377,7 +414,8 @@ class InstanceTracker:
             # measurement, and start from the track's own velocity (about the camera's origin
             # there: the object's origin t moves by omega x t + tau).
             tr.T_out = tr.T.copy()
-            omega, tau = tr.velocity[:3], tr.velocity[3:]
+            v = tr.velocity + (self.camera_velocity if c.camera_motion else 0.0)   # own + shared (first order)
+            omega, tau = v[:3], v[3:]
             tr.out_velocity = np.concatenate([omega, np.cross(omega, tr.T[:3, 3]) + tau])
             return
         beta = 2.0 * (2.0 - alpha) - 4.0 * np.sqrt(1.0 - alpha)
