@@ -1,14 +1,13 @@
 """The pieces of the PPF shape front end: support planes cut by piece size, connected
 segments, oriented model surface, point-pair voting and its correspondences, damped ICP."""
 import numpy as np
-from scipy.spatial import cKDTree
 
 from multi_instance_reg.meshes import box_mesh, sample_surface
 from multi_instance_reg.messages import CameraIntrinsics
 from multi_instance_reg.rgbd.mesh_model import build_model_from_mesh
 from multi_instance_reg.rgbd.ppf import PPFModel
 from multi_instance_reg.rgbd.segments import connected_segments, support_mask
-from multi_instance_reg.rgbd.shape import icp_point_to_plane
+from multi_instance_reg.rgbd.shape import PointGrid, icp_point_to_plane
 from multi_instance_reg.rgbd.shape_frontend import oriented_downsample
 from multi_instance_reg.symmetry import closest_symmetric_pose
 from multi_instance_reg.transforms import make_transform
@@ -98,8 +97,8 @@ def test_icp_does_not_slide_a_box_seen_by_its_top_alone():
     scene_n = np.tile([0, 0, -1.0], (len(scene), 1))
     start = T.copy()
     start[:3, 3] += [0.005, -0.004, 0.003]
-    out, share = icp_point_to_plane(start, surface, scene, scene_n, cKDTree(scene), 2 * model.shape_voxel, 15,
-                                    model_normals=normals)
+    out, share = icp_point_to_plane(start, surface, PointGrid(scene, scene_n, 2 * model.shape_voxel),
+                                    2 * model.shape_voxel, 15, model_normals=normals)
     assert share > 0.5
     assert np.linalg.norm(out[:3, 3] - start[:3, 3]) < 0.01           # no drift along the face
     assert abs(out[2, 3] - T[2, 3]) < 0.003                            # the depth is corrected

@@ -22,8 +22,12 @@ from .lifting import depth_to_cloud
 from .ppf import ANGLE_BINS as ANGLE_STEPS, PPFModel, cluster_poses
 from .segments import connected_segments, support_mask
 from .verify import outline_continuation
-from .shape import (ShapeMatcher, depth_support, describe, icp_point_to_plane, normals_and_variation, scene_cloud,
-                    voxel_downsample)
+from .shape import (PointGrid, ShapeMatcher, depth_support, describe, icp_point_to_plane, normals_and_variation,
+                    scene_cloud, voxel_downsample)
+
+
+# ICP pairs a model point with a scene point at most this many voxels away.
+ICP_REACH = 2.0
 
 
 @dataclass
@@ -35,6 +39,7 @@ class FrameCloud:
     tree: cKDTree | None
     segments: np.ndarray | None = None    # (M,) segment label per point (-1: none), ppf only
     poses: np.ndarray | None = None       # (K, 4, 4) pose hypotheses clustered from the votes, ppf only
+    grid: PointGrid | None = None         # the points and normals for ICP's nearest-point search
 
 
 class ShapeFrontEnd:
@@ -84,7 +89,8 @@ class ShapeFrontEnd:
             return FrameCloud(pts, np.zeros_like(pts), np.zeros(0, np.int64), np.zeros((0, 33), np.float32), None)
         normals, variation, desc = describe(pts, self.voxel, toward=np.zeros(3))
         salient = np.flatnonzero(variation >= self.fe.shape_min_variation)
-        return FrameCloud(pts, normals, salient, desc[salient], cKDTree(pts))
+        return FrameCloud(pts, normals, salient, desc[salient], cKDTree(pts),
+                          grid=PointGrid(pts, normals, ICP_REACH * self.voxel))
 
     def segment_cloud(self, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> FrameCloud:
         """Depth in range, minus the large pieces of dominant planes (floor, pallet top,
@@ -102,7 +108,8 @@ class ShapeFrontEnd:
         tree = cKDTree(pts)
         normals, _, _ = normals_and_variation(pts, self.voxel, toward=np.zeros(3), tree=tree)
         labels = connected_segments(pts, fe.shape_segment_link * self.voxel, fe.shape_min_segment)
-        return FrameCloud(pts, normals, np.zeros(0, np.int64), np.zeros((0, 33), np.float32), tree, labels)
+        return FrameCloud(pts, normals, np.zeros(0, np.int64), np.zeros((0, 33), np.float32), tree, labels,
+                          grid=PointGrid(pts, normals, ICP_REACH * self.voxel))
 
     def correspondences(self, cloud: FrameCloud) -> tuple[np.ndarray, np.ndarray]:
         """(model points (N, 3), scene points (N, 3)). ppf: each reference point of a
@@ -130,7 +137,7 @@ class ShapeFrontEnd:
         image agrees with the model's visible surface: (T, support share, agreeing points)."""
         fe = self.fe
         out = []
-        if cloud.tree is None:
+        if cloud.grid is None:
             return out
         tol = max(fe.shape_depth_tolerance, 0.8 * self.voxel)
         first = min(3, fe.shape_icp_iterations)
@@ -150,14 +157,13 @@ class ShapeFrontEnd:
             # (most of ECC's clusters are wrong).
             if fit(T0)[1] < 0.25 * fe.shape_min_support:
                 continue
-            T = icp_point_to_plane(T0, self._surface, cloud.points, cloud.normals, cloud.tree,
-                                   max_dist=2.0 * self.voxel, iterations=first, model_normals=self._surface_normals)[0]
+            T = icp_point_to_plane(T0, self._surface, cloud.grid, max_dist=ICP_REACH * self.voxel,
+                                   iterations=first, model_normals=self._surface_normals)[0]
             cand = max([fit(T0) + (T0,), fit(T) + (T,)], key=lambda c: c[0])
             if cand[1] < 0.5 * fe.shape_min_support:
                 continue
-            T = icp_point_to_plane(cand[4], self._surface, cloud.points, cloud.normals, cloud.tree,
-                                   max_dist=1.5 * self.voxel, iterations=fe.shape_icp_iterations - first,
-                                   model_normals=self._surface_normals)[0]
+            T = icp_point_to_plane(cand[4], self._surface, cloud.grid, max_dist=1.5 * self.voxel,
+                                   iterations=fe.shape_icp_iterations - first, model_normals=self._surface_normals)[0]
             # ICP can slide a box seen by one face alone: keep whichever pose the depth
             # image supports better.
             _, support, free, n, T = max([cand, fit(T) + (T,)], key=lambda c: c[0])

@@ -20,6 +20,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..messages import CameraIntrinsics
+from ..rgbd.shape import apply_twist, normals_and_variation
 
 
 @dataclass
@@ -35,8 +36,6 @@ def model_normals(points: np.ndarray) -> np.ndarray:
     own point spacing), turned to point away from the cloud's centre: right for the convex
     objects of a tabletop, and only the sign is at stake (point-to-plane residuals do not
     depend on it, the back-face test does)."""
-    from ..rgbd.shape import normals_and_variation
-
     pts = np.asarray(points, dtype=np.float64)
     spacing = float(np.median(cKDTree(pts).query(pts, k=2)[0][:, 1]))
     normals, _, _ = normals_and_variation(pts, spacing, along=pts - pts.mean(axis=0))
@@ -108,22 +107,6 @@ def _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, max_dist, A, b):
 
 
 @numba.njit(cache=True)
-def _apply_twist(T, x):
-    """exp of the twist x = (omega, tau), applied on the left of T (Rodrigues)."""
-    w0, w1, w2 = x[0], x[1], x[2]
-    theta = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
-    K = np.array([[0.0, -w2, w1], [w2, 0.0, -w0], [-w1, w0, 0.0]])
-    if theta < 1e-12:
-        R = np.eye(3) + K
-    else:
-        R = np.eye(3) + np.sin(theta) / theta * K + (1.0 - np.cos(theta)) / (theta * theta) * (K @ K)
-    out = np.eye(4)
-    out[:3, :3] = R @ T[:3, :3]
-    out[:3, 3] = R @ T[:3, 3] + x[3:]
-    return out
-
-
-@numba.njit(cache=True)
 def _icp(T0, pts, nrm, depth, fx, fy, cx, cy, iterations, max_dist, inlier_dist, damping):
     T = T0.copy()
     A = np.zeros((6, 6))
@@ -141,7 +124,7 @@ def _icp(T0, pts, nrm, depth, fx, fy, cx, cy, iterations, max_dist, inlier_dist,
         for i in range(6):
             A[i, i] += damping * scale + 1e-12
         x = np.linalg.solve(A, b)  # noqa: the twist
-        T = _apply_twist(T, x)
+        T = apply_twist(T, x)
         if np.abs(x[:3]).max() < 1e-6 and np.abs(x[3:]).max() < 1e-6:
             break
     used, visible, sq = _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, inlier_dist, A, b)
