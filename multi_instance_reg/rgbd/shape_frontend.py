@@ -22,8 +22,8 @@ from .lifting import depth_to_cloud
 from .ppf import ANGLE_BINS as ANGLE_STEPS, PPFModel, cluster_poses
 from .segments import connected_segments, support_mask
 from .verify import outline_continuation
-from .shape import (PointGrid, ShapeMatcher, depth_support, describe, icp_point_to_plane, normals_and_variation,
-                    scene_cloud, voxel_downsample)
+from .shape import (PointGrid, ShapeMatcher, depth_support, describe, icp_point_to_plane, scene_cloud,
+                    surface_normals, voxel_downsample)
 
 
 # ICP pairs a model point with a scene point at most this many voxels away.
@@ -106,7 +106,7 @@ class ShapeFrontEnd:
         if len(pts) < 10:
             return empty
         tree = cKDTree(pts)
-        normals, _, _ = normals_and_variation(pts, self.voxel, toward=np.zeros(3), tree=tree)
+        normals = surface_normals(pts, self.voxel, toward=np.zeros(3), tree=tree)
         labels = connected_segments(pts, fe.shape_segment_link * self.voxel, fe.shape_min_segment)
         return FrameCloud(pts, normals, np.zeros(0, np.int64), np.zeros((0, 33), np.float32), tree, labels,
                           grid=PointGrid(pts, normals, ICP_REACH * self.voxel))
