@@ -269,65 +269,50 @@ class ShapeMatcher:
 # --------------------------------------------------------------------------- per instance
 
 class PointGrid:
-    """Points sorted into cubic cells of side ``cell``, for the nearest point within ``cell``
-    of a query in compiled code (27 cells visited). Built once per frame; ICP asks it a few
-    hundred queries per round, for which a k-d tree's per-call overhead dominated."""
+    """Points sorted into cubic cells of side ``cell`` (a dense table of where each cell's
+    points start), for the nearest point within ``cell`` of a query in compiled code (27
+    cells visited). Built once per frame; ICP asks it a few hundred queries per round, for
+    which a k-d tree's per-call overhead dominated."""
+
+    MAX_CELLS = 1 << 22     # cells are widened beyond this (a wide, deep scene; 32 MB table)
 
     def __init__(self, points: np.ndarray, normals: np.ndarray, cell: float):
-        pts = np.ascontiguousarray(points, np.float64)
-        self.cell = float(cell)
-        keys = _grid_keys(pts, self.cell)
+        pts = np.ascontiguousarray(points, np.float64).reshape(-1, 3)
+        self.lo = pts.min(axis=0) if len(pts) else np.zeros(3)
+        span = (pts.max(axis=0) - self.lo) if len(pts) else np.zeros(3)
+        cell = float(cell)
+        if np.prod(np.floor(span / cell) + 1) > self.MAX_CELLS:
+            cell *= (np.prod(span / cell + 1) / self.MAX_CELLS) ** (1 / 3) * 1.01
+        self.cell = cell
+        self.dims = (np.floor(span / cell) + 1).astype(np.int64)
+        idx = np.minimum(np.floor((pts - self.lo) / cell).astype(np.int64), self.dims - 1)
+        keys = (idx[:, 0] * self.dims[1] + idx[:, 1]) * self.dims[2] + idx[:, 2]
         order = np.argsort(keys, kind="stable")
-        self.keys = np.ascontiguousarray(keys[order])
+        self.start = np.searchsorted(keys[order], np.arange(int(np.prod(self.dims)) + 1))
         self.points = np.ascontiguousarray(pts[order])
-        self.normals = np.ascontiguousarray(np.asarray(normals, np.float64)[order])
-
-
-_GRID_BITS = 20
-_GRID_OFFSET = 1 << (_GRID_BITS - 1)
+        self.normals = np.ascontiguousarray(np.asarray(normals, np.float64).reshape(-1, 3)[order])
 
 
 @numba.njit(cache=True)
-def _grid_key(x, y, z, cell):
-    k = 0
-    for c in (x, y, z):
-        i = min(max(int(math.floor(c / cell)) + _GRID_OFFSET, 0), (1 << _GRID_BITS) - 1)
-        k = (k << _GRID_BITS) | i
-    return k
-
-
-@numba.njit(cache=True)
-def _grid_keys(points, cell):
-    keys = np.empty(len(points), np.int64)
-    for i in range(len(points)):
-        keys[i] = _grid_key(points[i, 0], points[i, 1], points[i, 2], cell)
-    return keys
-
-
-@numba.njit(cache=True)
-def _grid_nearest(x, y, z, pts, keys, cell, max_dist):
-    """Index (into the sorted points) of the nearest point closer than ``max_dist`` (<=
+def _grid_nearest(x, y, z, pts, start, lo, dims, cell, max_dist):
+    """Index (into the grid's points) of the nearest point closer than ``max_dist`` (<=
     cell), -1 if none."""
-    bx = int(math.floor(x / cell)) + _GRID_OFFSET
-    by = int(math.floor(y / cell)) + _GRID_OFFSET
-    bz = int(math.floor(z / cell)) + _GRID_OFFSET
+    bx = int(math.floor((x - lo[0]) / cell))
+    by = int(math.floor((y - lo[1]) / cell))
+    bz = int(math.floor((z - lo[2]) / cell))
+    z0, z1 = max(bz - 1, 0), min(bz + 1, dims[2] - 1)
     best, best_d2 = -1, max_dist * max_dist
-    top = (1 << _GRID_BITS) - 1
-    for dx in range(-1, 2):
-        for dy in range(-1, 2):
-            kx, ky = bx + dx, by + dy
-            if kx < 0 or ky < 0 or kx > top or ky > top:
-                continue
-            # The three cells along z of one (x, y) are consecutive keys.
-            key = (((kx << _GRID_BITS) | ky) << _GRID_BITS) | bz
-            j = np.searchsorted(keys, key - 1)
-            end = np.searchsorted(keys, key + 2)
-            while j < end:
+    if z0 > z1:
+        return best
+    for kx in range(max(bx - 1, 0), min(bx + 1, dims[0] - 1) + 1):
+        for ky in range(max(by - 1, 0), min(by + 1, dims[1] - 1) + 1):
+            # The cells along z of one (x, y) hold consecutive points.
+            base = (kx * dims[1] + ky) * dims[2]
+            for j in range(start[base + z0], start[base + z1 + 1]):
                 ex, ey, ez = pts[j, 0] - x, pts[j, 1] - y, pts[j, 2] - z
                 d2 = ex * ex + ey * ey + ez * ez
                 if d2 < best_d2:
                     best, best_d2 = j, d2
-                j += 1
     return best
 
 
@@ -349,7 +334,7 @@ def apply_twist(T, x):
 
 
 @numba.njit(cache=True)
-def _icp_grid(T0, mp, mn, use_normals, sp, sn, keys, cell, max_dist, iterations):
+def _icp_grid(T0, mp, mn, use_normals, sp, sn, start, lo, dims, cell, max_dist, iterations):
     T = T0.copy()
     share = 0.0
     floor = 0.5 * max_dist
@@ -375,7 +360,7 @@ def _icp_grid(T0, mp, mn, use_normals, sp, sn, keys, cell, max_dist, iterations)
                 if not (nx * px + ny * py + nz * pz < -0.2 * math.sqrt(px * px + py * py + pz * pz)):
                     continue
             seen += 1
-            j = _grid_nearest(px, py, pz, sp, keys, cell, max_dist)
+            j = _grid_nearest(px, py, pz, sp, start, lo, dims, cell, max_dist)
             if j < 0:
                 continue
             src[m, 0], src[m, 1], src[m, 2] = px, py, pz
@@ -447,7 +432,8 @@ def icp_point_to_plane(T: np.ndarray, model_pts: np.ndarray, scene_grid: PointGr
     use_normals = model_normals is not None
     mn = np.ascontiguousarray(model_normals if use_normals else model_pts, np.float64)
     T, share = _icp_grid(np.ascontiguousarray(T, np.float64), mp, mn, use_normals, scene_grid.points, scene_grid.normals,
-                         scene_grid.keys, scene_grid.cell, float(max_dist), int(iterations))
+                         scene_grid.start, scene_grid.lo, scene_grid.dims, scene_grid.cell, float(max_dist),
+                         int(iterations))
     return T, float(share)
 
 
