@@ -87,6 +87,44 @@ def _consistency_counts(src, tgt, ref_src, ref_tgt, ref_keys, radius, tolerance)
     return counts, neighbours
 
 
+@compiled("UniTuple(i8[::1], 2)(f8[:, ::1], f8[:, ::1], i8[::1], f8, f8)")
+def _consistency_counts_within(src, tgt, keys, radius, tolerance):
+    # The same counts as _consistency_counts when the queries are the references themselves
+    # (sorted by cell key): the test is symmetric, so each pair is tested once, for both.
+    n = len(src)
+    counts = np.zeros(n, dtype=np.int64)
+    neighbours = np.zeros(n, dtype=np.int64)
+    r2 = radius * radius
+    base = np.empty(3, dtype=np.int64)
+    for i in range(n):
+        for a in range(3):
+            base[a] = int(np.floor(tgt[i, a] / radius)) + _CELL_OFFSET
+        for dx in range(-1, 2):
+            for dy in range(-1, 2):
+                kx, ky = base[0] + dx, base[1] + dy
+                if min(kx, ky) < 0 or max(kx, ky) >= (1 << _CELL_BITS):
+                    continue
+                key = (((kx << _CELL_BITS) | ky) << _CELL_BITS) | base[2]
+                lo = max(np.searchsorted(keys, key - 1), i + 1)
+                hi = np.searchsorted(keys, key + 2)
+                for j in range(lo, hi):
+                    ex = tgt[i, 0] - tgt[j, 0]
+                    ey = tgt[i, 1] - tgt[j, 1]
+                    ez = tgt[i, 2] - tgt[j, 2]
+                    e2 = ex * ex + ey * ey + ez * ez
+                    if e2 >= r2 or e2 == 0.0:
+                        continue
+                    neighbours[i] += 1
+                    neighbours[j] += 1
+                    sx = src[i, 0] - src[j, 0]
+                    sy = src[i, 1] - src[j, 1]
+                    sz = src[i, 2] - src[j, 2]
+                    if abs(np.sqrt(sx * sx + sy * sy + sz * sz) - np.sqrt(e2)) < tolerance:
+                        counts[i] += 1
+                        counts[j] += 1
+    return counts, neighbours
+
+
 # Queries for the chance rate p0: enough for a rate within about +-0.005 on typical data.
 _CHANCE_QUERIES = 2048
 
@@ -109,7 +147,13 @@ def consistency_scores(src, tgt, radius: float, tolerance: float, rng: np.random
     order = np.argsort(keys, kind="stable")
     ref = ref[order]
     ref_src, ref_tgt, ref_keys = np.ascontiguousarray(src[ref]), np.ascontiguousarray(tgt[ref]), keys[order]
-    counts, neighbours = _consistency_counts(src, tgt, ref_src, ref_tgt, ref_keys, float(radius), float(tolerance))
+    if len(ref) == n:
+        # Every correspondence is a reference: each pair once (half the work).
+        counts, neighbours = np.empty(n, np.int64), np.empty(n, np.int64)
+        counts[ref], neighbours[ref] = _consistency_counts_within(ref_src, ref_tgt, ref_keys, float(radius),
+                                                                  float(tolerance))
+    else:
+        counts, neighbours = _consistency_counts(src, tgt, ref_src, ref_tgt, ref_keys, float(radius), float(tolerance))
     if score == "count":
         return counts.astype(np.float64)
     # Chance agreement: queries whose source point comes from another, random correspondence.
