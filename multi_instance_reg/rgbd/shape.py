@@ -296,23 +296,39 @@ class PointGrid:
 @numba.njit(cache=True)
 def _grid_nearest(x, y, z, pts, start, lo, dims, cell, max_dist):
     """Index (into the grid's points) of the nearest point closer than ``max_dist`` (<=
-    cell), -1 if none."""
-    bx = int(math.floor((x - lo[0]) / cell))
-    by = int(math.floor((y - lo[1]) / cell))
-    bz = int(math.floor((z - lo[2]) / cell))
-    z0, z1 = max(bz - 1, 0), min(bz + 1, dims[2] - 1)
+    cell), -1 if none. The query's own column of cells first; a neighbouring cell is
+    skipped when its box is no nearer than the best point so far (the answer is the same)."""
+    fx, fy, fz = (x - lo[0]) / cell, (y - lo[1]) / cell, (z - lo[2]) / cell
+    bx, by, bz = int(math.floor(fx)), int(math.floor(fy)), int(math.floor(fz))
     best, best_d2 = -1, max_dist * max_dist
-    if z0 > z1:
-        return best
-    for kx in range(max(bx - 1, 0), min(bx + 1, dims[0] - 1) + 1):
-        for ky in range(max(by - 1, 0), min(by + 1, dims[1] - 1) + 1):
-            # The cells along z of one (x, y) hold consecutive points.
-            base = (kx * dims[1] + ky) * dims[2]
-            for j in range(start[base + z0], start[base + z1 + 1]):
-                ex, ey, ez = pts[j, 0] - x, pts[j, 1] - y, pts[j, 2] - z
-                d2 = ex * ex + ey * ey + ez * ez
-                if d2 < best_d2:
-                    best, best_d2 = j, d2
+    # Distance from the query to the lower / upper neighbour cell along each axis.
+    gx = ((fx - bx) * cell, (bx + 1 - fx) * cell)
+    gy = ((fy - by) * cell, (by + 1 - fy) * cell)
+    gz = ((fz - bz) * cell, (bz + 1 - fz) * cell)
+    for c in range(9):
+        # Columns in the order (0, 0), then the other eight.
+        dx = (0, -1, 1, 0, 0, -1, -1, 1, 1)[c]
+        dy = (0, 0, 0, -1, 1, -1, 1, -1, 1)[c]
+        kx, ky = bx + dx, by + dy
+        if kx < 0 or ky < 0 or kx >= dims[0] or ky >= dims[1]:
+            continue
+        ex = 0.0 if dx == 0 else (gx[0] if dx < 0 else gx[1])
+        ey = 0.0 if dy == 0 else (gy[0] if dy < 0 else gy[1])
+        col2 = ex * ex + ey * ey
+        if col2 >= best_d2:
+            continue
+        z0 = bz - 1 if col2 + gz[0] * gz[0] < best_d2 else bz
+        z1 = bz + 1 if col2 + gz[1] * gz[1] < best_d2 else bz
+        z0, z1 = max(z0, 0), min(z1, dims[2] - 1)
+        if z0 > z1:
+            continue
+        # The cells along z of one (x, y) hold consecutive points.
+        base = (kx * dims[1] + ky) * dims[2]
+        for j in range(start[base + z0], start[base + z1 + 1]):
+            ex2, ey2, ez2 = pts[j, 0] - x, pts[j, 1] - y, pts[j, 2] - z
+            d2 = ex2 * ex2 + ey2 * ey2 + ez2 * ez2
+            if d2 < best_d2:
+                best, best_d2 = j, d2
     return best
 
 
