@@ -147,13 +147,18 @@ def consistency_scores(src, tgt, radius: float, tolerance: float, rng: np.random
     order = np.argsort(keys, kind="stable")
     ref = ref[order]
     ref_src, ref_tgt, ref_keys = np.ascontiguousarray(src[ref]), np.ascontiguousarray(tgt[ref]), keys[order]
-    if len(ref) == n:
-        # Every correspondence is a reference: each pair once (half the work).
-        counts, neighbours = np.empty(n, np.int64), np.empty(n, np.int64)
-        counts[ref], neighbours[ref] = _consistency_counts_within(ref_src, ref_tgt, ref_keys, float(radius),
-                                                                  float(tolerance))
-    else:
-        counts, neighbours = _consistency_counts(src, tgt, ref_src, ref_tgt, ref_keys, float(radius), float(tolerance))
+    # The references against each other: each pair once (the test is symmetric); the other
+    # correspondences (N > reference_size) against the references.
+    counts, neighbours = np.empty(n, np.int64), np.empty(n, np.int64)
+    counts[ref], neighbours[ref] = _consistency_counts_within(ref_src, ref_tgt, ref_keys, float(radius),
+                                                              float(tolerance))
+    if len(ref) < n:
+        rest = np.ones(n, bool)
+        rest[ref] = False
+        rest = np.flatnonzero(rest)
+        counts[rest], neighbours[rest] = _consistency_counts(np.ascontiguousarray(src[rest]),
+                                                             np.ascontiguousarray(tgt[rest]), ref_src, ref_tgt,
+                                                             ref_keys, float(radius), float(tolerance))
     if score == "count":
         return counts.astype(np.float64)
     # Chance agreement: queries whose source point comes from another, random correspondence.
