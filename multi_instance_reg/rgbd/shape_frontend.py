@@ -157,13 +157,11 @@ class ShapeFrontEnd:
             # (most of ECC's clusters are wrong).
             if fit(T0)[1] < 0.25 * fe.shape_min_support:
                 continue
-            T = icp_point_to_plane(T0, self._surface, cloud.grid, max_dist=ICP_REACH * self.voxel,
-                                   iterations=first, model_normals=self._surface_normals)[0]
+            T = self._icp(T0, cloud, depth_m, intrinsics, ICP_REACH * self.voxel, first)
             cand = max([fit(T0) + (T0,), fit(T) + (T,)], key=lambda c: c[0])
             if cand[1] < 0.5 * fe.shape_min_support:
                 continue
-            T = icp_point_to_plane(cand[4], self._surface, cloud.grid, max_dist=1.5 * self.voxel,
-                                   iterations=fe.shape_icp_iterations - first, model_normals=self._surface_normals)[0]
+            T = self._icp(cand[4], cloud, depth_m, intrinsics, 1.5 * self.voxel, fe.shape_icp_iterations - first)
             # ICP can slide a box seen by one face alone: keep whichever pose the depth
             # image supports better.
             _, support, free, n, T = max([cand, fit(T) + (T,)], key=lambda c: c[0])
@@ -178,6 +176,18 @@ class ShapeFrontEnd:
             if support - free - 2.0 * outline >= fe.shape_min_evidence:
                 out.append((T, support, int(round(support * n))))
         return out
+
+    def _icp(self, T, cloud: FrameCloud, depth_m, intrinsics, max_dist: float, iterations: int) -> np.ndarray:
+        """Point-to-plane ICP of the model's surface facing the camera, paired as
+        ``shape_icp_association`` says: with the frame cloud's nearest points, or with the
+        depth pixels the model points project to (the tracker's ICP)."""
+        if self.fe.shape_icp_association == "projective":
+            from ..tracking.icp import align_projective
+
+            return align_projective(T, self._surface, self._surface_normals, depth_m, intrinsics, iterations,
+                                    max_dist, 0.5 * max_dist).T
+        return icp_point_to_plane(T, self._surface, cloud.grid, max_dist=max_dist, iterations=iterations,
+                                  model_normals=self._surface_normals)[0]
 
 
 def oriented_downsample(points: np.ndarray, normals: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:

@@ -131,6 +131,22 @@ def _icp(T0, pts, nrm, depth, fx, fy, cx, cy, iterations, max_dist, inlier_dist,
     return T, used, visible, sq
 
 
+def align_projective(T_init: np.ndarray, points: np.ndarray, normals: np.ndarray, depth_m: np.ndarray,
+                     intrinsics: CameraIntrinsics, iterations: int, max_distance: float, inlier_distance: float,
+                     damping: float = 1e-3) -> IcpResult:
+    """Projective point-to-plane ICP of model ``points`` / ``normals`` (model frame) against a
+    depth image, from ``T_init``: the tracker's update, and the shape front end's refinement
+    (``frontend.shape_icp_association: projective``)."""
+    K = intrinsics.K
+    depth = np.ascontiguousarray(depth_m, dtype=np.float32)
+    T, used, visible, sq = _icp(np.ascontiguousarray(T_init, dtype=np.float64), np.ascontiguousarray(points, np.float64),
+                                np.ascontiguousarray(normals, np.float64), depth,
+                                float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]),
+                                int(iterations), float(max_distance), float(inlier_distance), float(damping))
+    return IcpResult(T, used / visible if visible else 0.0, int(visible),
+                     float(np.sqrt(sq / used)) if used else float("nan"))
+
+
 class ProjectiveICP:
     """Aligns one object model to depth images: ``align(T_init, depth_m, intrinsics)``."""
 
@@ -143,13 +159,8 @@ class ProjectiveICP:
         self.damping = float(damping)
 
     def align(self, T_init: np.ndarray, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> IcpResult:
-        K = intrinsics.K
-        depth = np.ascontiguousarray(depth_m, dtype=np.float32)
-        T, used, visible, sq = _icp(np.ascontiguousarray(T_init, dtype=np.float64), self.points, self.normals, depth,
-                                    float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]),
-                                    self.iterations, self.max_distance, self.inlier_distance, self.damping)
-        return IcpResult(T, used / visible if visible else 0.0, int(visible),
-                         float(np.sqrt(sq / used)) if used else float("nan"))
+        return align_projective(T_init, self.points, self.normals, depth_m, intrinsics, self.iterations,
+                                self.max_distance, self.inlier_distance, self.damping)
 
 
-__all__ = ["IcpResult", "ProjectiveICP", "model_normals", "sample_model"]
+__all__ = ["IcpResult", "ProjectiveICP", "align_projective", "model_normals", "sample_model"]
