@@ -94,7 +94,7 @@ def test_register_batch_equals_one_file_calls(tmp_path):
     assert p.returncode == 0, p.stderr
     for path in inputs:
         single = tmp_path / ("single_" + path.name)
-        q = mireg("register", path, "-o", single)
+        q = mireg("register", path, "-o", single, "--threads", "1")  # the batch used every core
         assert q.returncode == 0, q.stderr
         with np.load(tmp_path / "batch" / path.name) as b, np.load(single) as o:
             assert b.files == o.files
@@ -111,3 +111,10 @@ def test_register_batch_refuses_a_file_as_output_directory(tmp_path):
     p = mireg("register", tmp_path / "a.npz", tmp_path / "b.npz", "-o", tmp_path / "out.npz")
     assert p.returncode == 2 and "must name a directory" in p.stderr
     assert len(p.stderr.strip().splitlines()) == 1
+
+
+def test_register_threads_must_not_be_negative(tmp_path):
+    s = make_band("10-50", 1, seed=3)[0]
+    np.savez(tmp_path / "in.npz", src=s.src, tgt=s.tgt)
+    p = mireg("register", tmp_path / "in.npz", "-o", tmp_path / "out.npz", "--threads", "-1")
+    assert p.returncode == 2 and p.stderr.strip().count("\n") == 0 and "--threads" in p.stderr

@@ -56,3 +56,33 @@ def test_a_wrong_dtype_or_layout_is_a_type_error():
 def test_signatures_split_at_top_level_commas():
     assert native._split_args("Tuple((i8[::1], f8[:, ::1]))(f4[:, ::1], i8, b1)") == ["f4[:, ::1]", "i8", "b1"]
     assert native._split_args("i8()") == []
+
+
+@pytest.mark.skipif(native.KERNELS != "ahead-of-time", reason=f"kernels not built ahead of time: {native.KERNELS}")
+def test_kernels_on_two_threads_give_the_same_results():
+    from multi_instance_reg.core import ECC, ECCConfig
+    rng = np.random.default_rng(4)
+    scenes = [make_sized_scene(rng, n, 0.8, 10) for n in (900, 9000)]
+    results = {}
+    try:
+        for threads in (1, 2):
+            assert native.set_threads(threads) == threads
+            results[threads] = [ECC(ECCConfig.modelnet()).register(s.src, s.tgt) for s in scenes]
+    finally:
+        native.set_threads(1)
+    for one, two in zip(results[1], results[2]):
+        assert np.array_equal(one.transforms, two.transforms)
+        assert np.array_equal(one.labels, two.labels)
+        assert np.array_equal(one.scores, two.scores)
+
+
+def test_row_parts_cover_the_rows_with_about_equal_work(monkeypatch):
+    monkeypatch.setattr(native, "THREADS", 3)
+    assert native.row_parts(3000, 100) == [0, 1000, 2000, 3000]
+    assert native.row_parts(250, 100) == [0, 125, 250]      # two parts of at least 100 rows
+    assert native.row_parts(150, 100) == [0, 150]
+    growing = native.row_parts(3000, 10, "growing")         # row i costs ~i: equal areas
+    areas = np.diff(np.square(growing))
+    assert growing[0] == 0 and growing[-1] == 3000 and np.ptp(areas) < 0.01 * areas.sum()
+    monkeypatch.setattr(native, "THREADS", 1)
+    assert native.row_parts(3000, 100) == [0, 3000]

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .native import compiled, prange
+from .native import compiled, prange, row_parts, split_rows
 
 # The initial dot products S = G G: a dense GEMM (BLAS) costs N^3 multiply-adds at the FMA
 # peak; the sparse product below costs one multiply-add per (non-zero of G) x (column of its
@@ -149,15 +149,17 @@ def _sparse_product_work(indptr, indices, row_end):
     return w
 
 
-@compiled(parallel=True)
-def _mirror_upper(S):
-    """Copy the upper triangle onto the lower one, in 64 x 64 tiles (cache-friendly)."""
+@compiled("i8(f4[:, ::1], i8, i8)", parallel=True)
+def _mirror_upper(S, lo, hi):
+    """Copy the upper triangle onto the lower one, in 64 x 64 tiles (cache-friendly): the
+    tile rows lo..hi-1."""
     n = S.shape[0]
-    for bi in prange((n + 63) // 64):
+    for bi in prange(lo, hi):
         for bj in range(bi + 1):
             for i in range(bi * 64, min(n, bi * 64 + 64)):
                 for j in range(bj * 64, min(i, bj * 64 + 64)):
                     S[i, j] = S[j, i]
+    return hi - lo
 
 
 @compiled(fastmath=True)
@@ -165,7 +167,8 @@ def _gram_row(G, indptr, indices, values, row_end, S, i):
     """Row i of S = G G from column i on: G[i, c] * G[c, i:row_end[c]] summed over the
     non-zeros c of row i."""
     n = G.shape[0]
-    acc = np.zeros(n - i, dtype=np.float32)
+    acc = S[i, i:]   # summed in place: no scratch row to allocate and copy
+    acc[:] = 0.0
     for p in range(indptr[i], indptr[i + 1]):
         c = indices[p]
         length = row_end[c] - i
@@ -178,21 +181,27 @@ def _gram_row(G, indptr, indices, values, row_end, S, i):
         src = G[c, i:i + length]
         for k in range(length):
             dst[k] += g * src[k]
-    S[i, i:] = acc
 
 
-@compiled("f4[:, ::1](f4[:, ::1], i8[::1], i4[::1], f4[::1], i8[::1])", parallel=True)
+@compiled("i8(f4[:, ::1], i8[::1], i4[::1], f4[::1], i8[::1], f4[:, ::1], i8, i8)", parallel=True)
+def _sparse_gram_rows(G, indptr, indices, values, row_end, S, lo, hi):
+    """Rows t and n - 1 - t of S's upper triangle for t in lo..hi-1: row i's work shrinks
+    with i, so each task takes a row from both ends to stay balanced."""
+    n = G.shape[0]
+    for t in prange(lo, hi):
+        _gram_row(G, indptr, indices, values, row_end, S, t)
+        if n - 1 - t != t:
+            _gram_row(G, indptr, indices, values, row_end, S, n - 1 - t)
+    return hi - lo
+
+
 def _sparse_gram(G, indptr, indices, values, row_end):
     """S = G G for a sparse symmetric G: the upper triangle row by row, then mirrored.
     Correspondences sorted along space keep row_end close to the diagonal."""
     n = G.shape[0]
     S = np.empty((n, n), dtype=np.float32)
-    # Row i's work shrinks with i: each task takes a row from both ends to stay balanced.
-    for t in prange((n + 1) // 2):
-        _gram_row(G, indptr, indices, values, row_end, S, t)
-        if n - 1 - t != t:
-            _gram_row(G, indptr, indices, values, row_end, S, n - 1 - t)
-    _mirror_upper(S)
+    split_rows(_sparse_gram_rows, row_parts((n + 1) // 2, 64), G, indptr, indices, values, row_end, S)
+    split_rows(_mirror_upper, row_parts((n + 63) // 64, 2, "growing"), S)
     return S
 
 
@@ -211,6 +220,16 @@ def _dot_with_row(dense, indices, values, start, length, n):
         vals = values[start:start + length]
         for q in range(length):
             s += dense[cols[q]] * vals[q]
+    return np.float64(s)
+
+
+@compiled(fastmath=True)
+def _dot_with_g_row(G, k, cols, vals, length):
+    """<G[k], row>, the row given by its first ``length`` entries (cols, vals): as
+    _dot_with_row on G[k], without making a view of G per call (numba refcounts views)."""
+    s = np.float32(0.0)
+    for q in range(length):
+        s += G[k, cols[q]] * vals[q]
     return np.float64(s)
 
 
@@ -366,7 +385,7 @@ def _agglomerate(G, indptr, indices, values, S, max_dist, dense, stats):
             if not dense and changed_at[k] < 0 and rowlen[a] < rowlen[k]:
                 # The merged vector's support (an intersection) is often the shorter:
                 # walk it and read the partner, never merged, from its row of G.
-                s = _dot_with_row(G[k], ca, va, 0, rowlen[a], n)
+                s = _dot_with_g_row(G, k, ca, va, rowlen[a])
             else:
                 s = _dot_with_row(merged, indices, values, indptr[k], rowlen[k], n)
             stats[2] += 1

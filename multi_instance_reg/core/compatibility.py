@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .native import compiled, prange
+from .native import compiled, prange, row_parts, split_rows
 
 # Pairs closer than this in both clouds are the same correspondence repeated: fully compatible.
 _COINCIDENT = np.float32(1e-9)
@@ -16,14 +16,14 @@ _NEGLIGIBLE = np.float32(1e-6)
 _ZERO, _HALF, _ONE = np.float32(0.0), np.float32(0.5), np.float32(1.0)
 
 
-@compiled("f4[:, ::1](f4[::1], f4[::1], f4[::1], f4[::1], f4[::1], f4[::1], f4)", parallel=True, fastmath=True)
-def _compatibility_kernel(sx, sy, sz, tx, ty, tz, inv_sigma2):
+@compiled("i8(f4[::1], f4[::1], f4[::1], f4[::1], f4[::1], f4[::1], f4, f4[:, ::1], i8, i8)", parallel=True, fastmath=True)
+def _compatibility_kernel(sx, sy, sz, tx, ty, tz, inv_sigma2, G, lo, hi):
+    # Rows lo..hi-1 of G.
     # Coordinates as separate arrays and no branch in the inner loop: it vectorises (8x
     # faster than reading (N, 3) rows). Full rows rather than a mirrored triangle:
     # contiguous writes cost less than the strided mirror writes would save.
     n = sx.shape[0]
-    G = np.empty((n, n), dtype=np.float32)
-    for i in prange(n):
+    for i in prange(lo, hi):
         row = G[i]
         ax, ay, az, bx, by, bz = sx[i], sy[i], sz[i], tx[i], ty[i], tz[i]
         for j in range(n):
@@ -40,7 +40,7 @@ def _compatibility_kernel(sx, sy, sz, tx, ty, tz, inv_sigma2):
             # products would be denormal floats, which are ~100x slower to multiply.
             row[j] = g if g > _NEGLIGIBLE else _ZERO
         row[i] = _ONE
-    return G
+    return hi - lo
 
 
 def compatibility_matrix(src: np.ndarray, tgt: np.ndarray, spatial_sigma: float = 0.0) -> np.ndarray:
@@ -48,4 +48,7 @@ def compatibility_matrix(src: np.ndarray, tgt: np.ndarray, spatial_sigma: float 
     s = np.ascontiguousarray(np.asarray(src, dtype=np.float32).T)
     t = np.ascontiguousarray(np.asarray(tgt, dtype=np.float32).T)
     inv_sigma2 = 1.0 / (spatial_sigma * spatial_sigma) if spatial_sigma > 0 else 0.0
-    return _compatibility_kernel(s[0], s[1], s[2], t[0], t[1], t[2], np.float32(inv_sigma2))
+    n = len(s[0])
+    G = np.empty((n, n), dtype=np.float32)
+    split_rows(_compatibility_kernel, row_parts(n, 128), s[0], s[1], s[2], t[0], t[1], t[2], np.float32(inv_sigma2), G)
+    return G

@@ -16,7 +16,7 @@ from .clustering import cluster_compatibility_vectors
 from .compatibility import compatibility_matrix
 from .config import ECCConfig
 from .sampling import choose_sample
-from .refinement import assign, fit_transforms, instance_scores, merge_duplicates, relabel, residuals
+from .refinement import assign, assign_nearest, fit_transforms, instance_scores, merge_duplicates, relabel, residuals
 
 
 @dataclass
@@ -139,7 +139,7 @@ class ECC:
         if n_clusters == 0:
             return -np.ones(len(x), dtype=np.int64)
         T = fit_transforms(xs, ys, sample_labels, n_clusters)
-        return assign(residuals(x, y, T), self.config.inlier_thresh)
+        return assign_nearest(x, y, T, self.config.inlier_thresh)[0]
 
     def select(self, x, y, labels):
         """Clusters larger than min_cluster_size, by inlier count; stop at the first whose
@@ -156,7 +156,7 @@ class ECC:
                 remap = -np.ones(len(counts), dtype=np.int64)
                 remap[big] = np.arange(len(big))
                 big_labels = np.where(labels >= 0, remap[np.maximum(labels, 0)], -1)
-                labels = assign(residuals(x, y, fit_transforms(x, y, big_labels, len(big))), cfg.inlier_thresh)
+                labels = assign_nearest(x, y, fit_transforms(x, y, big_labels, len(big)), cfg.inlier_thresh)[0]
                 counts = np.bincount(labels[labels >= 0], minlength=1)
         cand = np.flatnonzero(counts > cfg.min_cluster_size)
         cand = cand[np.argsort(-counts[cand], kind="stable")]
@@ -171,10 +171,9 @@ class ECC:
         remap[cand] = np.arange(len(cand))
         sel_labels = np.where(labels >= 0, remap[np.maximum(labels, 0)], -1)
         T = fit_transforms(x, y, sel_labels, len(cand))
-        errors = residuals(x, y, T)
-        final = assign(errors, cfg.inlier_thresh)
+        final, best_errors = assign_nearest(x, y, T, cfg.inlier_thresh)
         counts = np.bincount(final[final >= 0], minlength=len(cand))
-        scores = instance_scores(final, errors[np.arange(n), np.maximum(final, 0)], cfg.inlier_thresh, len(cand))
+        scores = instance_scores(final, best_errors, cfg.inlier_thresh, len(cand))
         # Sort by inlier count and renumber the labels to match; empty transforms go.
         order = np.argsort(-counts, kind="stable")
         order = order[counts[order] > 0]

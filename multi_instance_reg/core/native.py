@@ -17,10 +17,14 @@ or after a kernel's source changed) the same functions run through numba's JIT w
 later processes load the cache from ``__pycache__`` next to the sources (or
 ``NUMBA_CACHE_DIR``).
 
-Ahead-of-time code is serial (numba compiles ``prange`` loops ahead of time as plain loops);
-on this shared 2-core machine the serial kernels were as fast as the parallel ones (measured
-side by side: 497-573 against 520-783 ms for five reference samples). ``MIREG_KERNELS=jit``
-forces the JIT (tests compare both).
+Ahead-of-time code is serial (numba compiles ``prange`` loops ahead of time as plain loops),
+but it releases the GIL: the row-parallel kernels take a range [lo, hi) of their rows and
+``split_rows`` runs the parts on this process's cores from Python threads (the main thread
+takes the first part). Threads that wait in ``Future.result`` sleep, unlike OpenMP's
+spinning workers, which on this shared 2-core machine made the JIT's parallel kernels 2-30x
+slower when other jobs held the cores. Through the JIT, the kernels' own ``prange`` does it
+and ``split_rows`` makes one call. Threads are off (1) unless a tool calls ``set_threads``
+(``mireg register --threads``); ``MIREG_KERNELS=jit`` forces the JIT (tests compare both).
 
 Build: ``python -m multi_instance_reg.core.build_native`` (run by ``make install``).
 """
@@ -28,6 +32,7 @@ from __future__ import annotations
 
 import importlib
 import os
+import threading
 import zlib
 from pathlib import Path
 
@@ -72,6 +77,72 @@ if _AOT is None:
     from numba import prange  # noqa: F401  (the stage modules' parallel loops)
 else:
     prange = range  # the Python bodies never run: the compiled module has them
+
+
+def available_cores() -> int:
+    """The cores this process may run on."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:
+        return max(1, os.cpu_count() or 1)
+
+
+# Threads for split_rows: 1 unless a tool asks for more (set_threads). The RGB-D pipeline
+# keeps 1: its ECC shares the cores with SIFT's threads and the node's other work.
+THREADS = 1
+_pool = None
+_pool_lock = threading.Lock()
+
+
+def set_threads(count: int) -> int:
+    """Run the ahead-of-time kernels' row ranges on ``count`` threads (0 = every available
+    core); returns the count in effect (always 1 through the JIT, whose prange threads)."""
+    global THREADS, _pool
+    count = available_cores() if count <= 0 else int(count)
+    with _pool_lock:
+        if _AOT is None:
+            count = 1
+        if count != THREADS and _pool is not None:
+            _pool.shutdown(wait=True)
+            _pool = None
+        THREADS = count
+    return THREADS
+
+
+def _executor():
+    global _pool
+    with _pool_lock:
+        if _pool is None:
+            from concurrent.futures import ThreadPoolExecutor
+            _pool = ThreadPoolExecutor(THREADS - 1, thread_name_prefix="mireg-core")
+        return _pool
+
+
+def split_rows(kernel, bounds, *args) -> None:
+    """kernel(*args, lo, hi) for every part [bounds[k], bounds[k + 1]), the parts on
+    THREADS threads at once (ahead-of-time kernels, which release the GIL); the kernel
+    writes its rows into arrays among args. One call over everything with the JIT."""
+    bounds = [int(b) for b in bounds]
+    if THREADS == 1 or len(bounds) <= 2:
+        kernel(*args, bounds[0], bounds[-1])
+        return
+    futures = [_executor().submit(kernel, *args, lo, hi) for lo, hi in zip(bounds[1:-1], bounds[2:]) if hi > lo]
+    try:
+        kernel(*args, bounds[0], bounds[1])
+    finally:
+        for f in futures:
+            f.result()
+
+
+def row_parts(n: int, min_rows: int, work: str = "even") -> list[int]:
+    """Bounds of THREADS parts of rows 0..n with about equal work: ``even`` (the same per
+    row) or ``growing`` (row i costs ~i, as a lower triangle); one part below 2 x min_rows."""
+    parts = min(THREADS, n // max(min_rows, 1))
+    if parts <= 1:
+        return [0, n]
+    if work == "growing":
+        return [int(round(n * np.sqrt(k / parts))) for k in range(parts + 1)]
+    return [n * k // parts for k in range(parts + 1)]
 
 
 def _split_args(signature: str) -> list[str]:
@@ -120,7 +191,7 @@ def _arg_checker(name: str, spec: str):
 def _njit(function, options):
     import numba
 
-    if _BUILDING:  # ahead of time: serial, and nothing written to the JIT's cache
+    if _BUILDING:  # ahead of time: serial (split_rows threads it), nothing written to the JIT's cache
         return numba.njit(**{k: v for k, v in options.items() if k != "parallel"})(function)
     return numba.njit(cache=True, **options)(function)
 
@@ -157,6 +228,16 @@ def build(output_dir: Path = _HERE) -> Path:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")   # numba.pycc is marked for deprecation; the pinned numba has it
         from numba.pycc import CC
+        import numba.pycc.compiler as pycc_compiler
+
+    class _ReleasingGil(pycc_compiler.Flags):
+        """pycc's wrappers hold the GIL by default; these release it around each call, so
+        that split_rows's threads run at once (the kernels touch no Python object)."""
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            self.release_gil = True
+
+    pycc_compiler.Flags = _ReleasingGil
 
     for name in KERNEL_MODULES:
         importlib.import_module(f"{__package__}.{name}")

@@ -26,103 +26,100 @@ from __future__ import annotations
 
 import numpy as np
 
-from .native import compiled, prange
+from .native import compiled, prange, row_parts, split_rows
 
-_CELL_BITS = 20
-_CELL_OFFSET = 1 << (_CELL_BITS - 1)
-
-
-@compiled("i8[::1](f8[:, ::1], f8)")
-def _cell_keys(points, cell):
-    keys = np.empty(len(points), dtype=np.int64)
-    for i in range(len(points)):
-        k = 0
-        for a in range(3):
-            c = int(np.floor(points[i, a] / cell)) + _CELL_OFFSET
-            c = min(max(c, 0), (1 << _CELL_BITS) - 1)
-            k = (k << _CELL_BITS) | c
-        keys[i] = k
-    return keys
+# Neighbour search: the references are binned on a grid of cells 1.5 x radius wide (measured
+# fastest: smaller cells mean more, shorter ranges per query, larger ones more points outside
+# the sphere), each query visits the columns of cells its sphere reaches, and in each column
+# only the cells within the sphere's extent there: one contiguous run of references.
+_CELL_PER_RADIUS = 1.5
+# At most this many cells (the bin starts cost 8 bytes each); a wider cloud gets larger cells.
+_MAX_CELLS = 1 << 18
 
 
-@compiled("UniTuple(i8[::1], 2)(f8[:, ::1], f8[:, ::1], f8[:, ::1], f8[:, ::1], i8[::1], f8, f8)", parallel=True)
-def _consistency_counts(src, tgt, ref_src, ref_tgt, ref_keys, radius, tolerance):
-    # ref_* are sorted by cell key; each query visits its 27 neighbouring cells.
-    # Returns, per query, the neighbours whose distance is preserved and all neighbours.
-    n = len(src)
-    counts = np.zeros(n, dtype=np.int64)
-    neighbours = np.zeros(n, dtype=np.int64)
+@compiled("i8(f8[:, ::1], f8[:, ::1], f8[:, ::1], i8[::1], f8[::1], i8[::1], f8, f8, i8[::1], i8[::1], i8, i8)", parallel=True)
+def _consistency_counts(src, tgt, ref, start, grid, dims, radius, tolerance, counts, neighbours, lo, hi):
+    """Per query lo..hi-1, into counts and neighbours: the reference neighbours within
+    ``radius`` whose distance is preserved to within ``tolerance``, and all reference
+    neighbours within ``radius``.
+
+    ref is (6, R): target x, y, z and source x, y, z as rows, ordered by cell; the run of
+    cell c (index (ix * ny + iy) * nz + iz) is start[c]:start[c + 1]. grid = origin x, y, z
+    and the cell's width; dims = nx, ny, nz."""
     r2 = radius * radius
-    for i in prange(n):
-        base = np.empty(3, dtype=np.int64)
-        for a in range(3):
-            base[a] = int(np.floor(tgt[i, a] / radius)) + _CELL_OFFSET
+    nx, ny, nz = dims[0], dims[1], dims[2]
+    cell = grid[3]
+    # The sphere in cell units, a hair larger so that rounding never drops a cell a
+    # neighbour is in (visiting extra points is harmless: the distance test decides).
+    rc = radius / cell * (1.0 + 1e-9) + 1e-9
+    tx_all, ty_all, tz_all = ref[0], ref[1], ref[2]
+    sx_all, sy_all, sz_all = ref[3], ref[4], ref[5]
+    for i in prange(lo, hi):
+        qx, qy, qz = tgt[i, 0], tgt[i, 1], tgt[i, 2]
+        px, py, pz = src[i, 0], src[i, 1], src[i, 2]
+        ux, uy, uz = (qx - grid[0]) / cell, (qy - grid[1]) / cell, (qz - grid[2]) / cell
+        x0 = int(max(np.floor(ux - rc), 0.0))
+        x1 = int(min(np.floor(ux + rc), nx - 1.0))
+        y0 = int(max(np.floor(uy - rc), 0.0))
+        y1 = int(min(np.floor(uy + rc), ny - 1.0))
         c = 0
         m = 0
-        # The three cells along z of one (x, y) are consecutive keys: one range each (at
-        # the grid's edge the range may take in a far cell; the distance test drops it).
-        for dx in range(-1, 2):
-            for dy in range(-1, 2):
-                kx, ky = base[0] + dx, base[1] + dy
-                if min(kx, ky) < 0 or max(kx, ky) >= (1 << _CELL_BITS):
+        for ix in range(x0, x1 + 1):
+            gx = max(ix - ux, 0.0, ux - ix - 1.0)
+            for iy in range(y0, y1 + 1):
+                gy = max(iy - uy, 0.0, uy - iy - 1.0)
+                g2 = gx * gx + gy * gy
+                if g2 >= rc * rc:
                     continue
-                key = (((kx << _CELL_BITS) | ky) << _CELL_BITS) | base[2]
-                lo = np.searchsorted(ref_keys, key - 1)
-                hi = np.searchsorted(ref_keys, key + 2)
-                for j in range(lo, hi):
-                    ex = tgt[i, 0] - ref_tgt[j, 0]
-                    ey = tgt[i, 1] - ref_tgt[j, 1]
-                    ez = tgt[i, 2] - ref_tgt[j, 2]
+                half = np.sqrt(rc * rc - g2)   # the sphere's half-height over this column
+                z0 = int(max(np.floor(uz - half), 0.0))
+                z1 = int(min(np.floor(uz + half), nz - 1.0))
+                if z0 > z1:
+                    continue
+                column = (ix * ny + iy) * nz
+                first, end = start[column + z0], start[column + z1 + 1]
+                # 0-based slices and no branch: the loop vectorises (2-3x faster).
+                tx, ty, tz = tx_all[first:end], ty_all[first:end], tz_all[first:end]
+                sx, sy, sz = sx_all[first:end], sy_all[first:end], sz_all[first:end]
+                for j in range(end - first):
+                    ex, ey, ez = qx - tx[j], qy - ty[j], qz - tz[j]
                     e2 = ex * ex + ey * ey + ez * ez
-                    if e2 >= r2 or e2 == 0.0:
-                        continue
-                    m += 1
-                    sx = src[i, 0] - ref_src[j, 0]
-                    sy = src[i, 1] - ref_src[j, 1]
-                    sz = src[i, 2] - ref_src[j, 2]
-                    if abs(np.sqrt(sx * sx + sy * sy + sz * sz) - np.sqrt(e2)) < tolerance:
-                        c += 1
+                    fx, fy, fz = px - sx[j], py - sy[j], pz - sz[j]
+                    f2 = fx * fx + fy * fy + fz * fz
+                    near = (e2 < r2) & (e2 != 0.0)
+                    m += near
+                    c += near & (abs(np.sqrt(f2) - np.sqrt(e2)) < tolerance)
         counts[i] = c
         neighbours[i] = m
-    return counts, neighbours
+    return hi - lo
 
 
-@compiled("UniTuple(i8[::1], 2)(f8[:, ::1], f8[:, ::1], i8[::1], f8, f8)")
-def _consistency_counts_within(src, tgt, keys, radius, tolerance):
-    # The same counts as _consistency_counts when the queries are the references themselves
-    # (sorted by cell key): the test is symmetric, so each pair is tested once, for both.
+def _counts(src, tgt, table, start, grid, dims, radius, tolerance):
+    """_consistency_counts over all queries, on the process's threads."""
     n = len(src)
-    counts = np.zeros(n, dtype=np.int64)
-    neighbours = np.zeros(n, dtype=np.int64)
-    r2 = radius * radius
-    base = np.empty(3, dtype=np.int64)
-    for i in range(n):
-        for a in range(3):
-            base[a] = int(np.floor(tgt[i, a] / radius)) + _CELL_OFFSET
-        for dx in range(-1, 2):
-            for dy in range(-1, 2):
-                kx, ky = base[0] + dx, base[1] + dy
-                if min(kx, ky) < 0 or max(kx, ky) >= (1 << _CELL_BITS):
-                    continue
-                key = (((kx << _CELL_BITS) | ky) << _CELL_BITS) | base[2]
-                lo = max(np.searchsorted(keys, key - 1), i + 1)
-                hi = np.searchsorted(keys, key + 2)
-                for j in range(lo, hi):
-                    ex = tgt[i, 0] - tgt[j, 0]
-                    ey = tgt[i, 1] - tgt[j, 1]
-                    ez = tgt[i, 2] - tgt[j, 2]
-                    e2 = ex * ex + ey * ey + ez * ez
-                    if e2 >= r2 or e2 == 0.0:
-                        continue
-                    neighbours[i] += 1
-                    neighbours[j] += 1
-                    sx = src[i, 0] - src[j, 0]
-                    sy = src[i, 1] - src[j, 1]
-                    sz = src[i, 2] - src[j, 2]
-                    if abs(np.sqrt(sx * sx + sy * sy + sz * sz) - np.sqrt(e2)) < tolerance:
-                        counts[i] += 1
-                        counts[j] += 1
+    counts, neighbours = np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int64)
+    split_rows(_consistency_counts, row_parts(n, 512), src, tgt, table, start, grid, dims,
+               float(radius), float(tolerance), counts, neighbours)
     return counts, neighbours
+
+
+def _binned_references(src, tgt, ref, radius):
+    """The references as _consistency_counts reads them: (ref (6, R), start, grid, dims)."""
+    points = tgt[ref]
+    origin = points.min(0)
+    extent = points.max(0) - origin
+    cell = _CELL_PER_RADIUS * radius
+    while np.prod(extent // cell + 1) > _MAX_CELLS:
+        cell *= 2.0
+    dims = (extent // cell).astype(np.int64) + 1
+    idx = np.minimum(((points - origin) // cell).astype(np.int64), dims - 1)
+    lin = (idx[:, 0] * dims[1] + idx[:, 1]) * dims[2] + idx[:, 2]
+    order = np.argsort(lin, kind="stable")
+    start = np.zeros(int(np.prod(dims)) + 1, dtype=np.int64)
+    np.cumsum(np.bincount(lin, minlength=len(start) - 1), out=start[1:])
+    ref = ref[order]
+    table = np.ascontiguousarray(np.concatenate([tgt[ref].T, src[ref].T]))
+    return table, start, np.append(origin, cell), dims
 
 
 # Queries for the chance rate p0: enough for a rate within about +-0.005 on typical data.
@@ -143,29 +140,15 @@ def consistency_scores(src, tgt, radius: float, tolerance: float, rng: np.random
     if reference_size is None:
         reference_size = 4096 if n <= 8192 else max(1024, 4096 * 8192 // n)
     ref = np.arange(n) if n <= reference_size else rng.choice(n, reference_size, replace=False)
-    keys = _cell_keys(tgt[ref], radius)
-    order = np.argsort(keys, kind="stable")
-    ref = ref[order]
-    ref_src, ref_tgt, ref_keys = np.ascontiguousarray(src[ref]), np.ascontiguousarray(tgt[ref]), keys[order]
-    # The references against each other: each pair once (the test is symmetric); the other
-    # correspondences (N > reference_size) against the references.
-    counts, neighbours = np.empty(n, np.int64), np.empty(n, np.int64)
-    counts[ref], neighbours[ref] = _consistency_counts_within(ref_src, ref_tgt, ref_keys, float(radius),
-                                                              float(tolerance))
-    if len(ref) < n:
-        rest = np.ones(n, bool)
-        rest[ref] = False
-        rest = np.flatnonzero(rest)
-        counts[rest], neighbours[rest] = _consistency_counts(np.ascontiguousarray(src[rest]),
-                                                             np.ascontiguousarray(tgt[rest]), ref_src, ref_tgt,
-                                                             ref_keys, float(radius), float(tolerance))
+    table, start, grid, dims = _binned_references(src, tgt, ref, radius)
+    counts, neighbours = _counts(src, tgt, table, start, grid, dims, radius, tolerance)
     if score == "count":
         return counts.astype(np.float64)
     # Chance agreement: queries whose source point comes from another, random correspondence.
     q = rng.choice(n, min(n, _CHANCE_QUERIES), replace=False)
-    null_counts, null_neighbours = _consistency_counts(
+    null_counts, null_neighbours = _counts(
         np.ascontiguousarray(src[rng.permutation(q)]), np.ascontiguousarray(tgt[q]),
-        ref_src, ref_tgt, ref_keys, float(radius), float(tolerance))
+        table, start, grid, dims, radius, tolerance)
     p0 = null_counts.sum() / max(null_neighbours.sum(), 1)
     return np.maximum(counts - p0 * neighbours, 0.0)
 
