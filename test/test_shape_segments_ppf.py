@@ -1,17 +1,17 @@
 """The pieces of the PPF shape front end: support planes cut by piece size, connected
 segments, oriented model surface, point-pair voting and its correspondences, damped ICP."""
 import numpy as np
-from scipy.spatial import cKDTree
+import pytest
 
 from multi_instance_reg.meshes import box_mesh, sample_surface
 from multi_instance_reg.messages import CameraIntrinsics
 from multi_instance_reg.rgbd.mesh_model import build_model_from_mesh
 from multi_instance_reg.rgbd.ppf import PPFModel
 from multi_instance_reg.rgbd.segments import connected_segments, support_mask
-from multi_instance_reg.rgbd.shape import icp_point_to_plane
+from multi_instance_reg.rgbd.shape import PointGrid, icp_point_to_plane
 from multi_instance_reg.rgbd.shape_frontend import oriented_downsample
 from multi_instance_reg.symmetry import closest_symmetric_pose
-from multi_instance_reg.transforms import make_transform
+from multi_instance_reg.transforms import make_transform, rotation_angle_deg
 
 
 def _intrinsics():
@@ -112,8 +112,8 @@ def test_icp_does_not_slide_a_box_seen_by_its_top_alone():
     scene_n = np.tile([0, 0, -1.0], (len(scene), 1))
     start = T.copy()
     start[:3, 3] += [0.005, -0.004, 0.003]
-    out, share = icp_point_to_plane(start, surface, scene, scene_n, cKDTree(scene), 2 * model.shape_voxel, 15,
-                                    model_normals=normals)
+    out, share = icp_point_to_plane(start, surface, PointGrid(scene, scene_n, 2 * model.shape_voxel),
+                                    2 * model.shape_voxel, 15, model_normals=normals)
     assert share > 0.5
     assert np.linalg.norm(out[:3, 3] - start[:3, 3]) < 0.01           # no drift along the face
     assert abs(out[2, 3] - T[2, 3]) < 0.003                            # the depth is corrected
@@ -271,3 +271,37 @@ def test_texture_agreement_picks_the_symmetric_pose_the_matches_agree_with():
     flipped = make_transform(np.eye(3), [0.0, 0.0, 1.0 + 0.075])
     _, _, shown = texture_agreement(flipped, kp, kp_normals, None, model_xyz, scene_xyz, depth, K, 0.01, 0.01)
     assert shown == 0
+
+
+@pytest.mark.parametrize("association", ["nearest", "projective"])
+def test_refinement_corrects_a_box_pose_with_either_icp_association(association):
+    from dataclasses import replace
+
+    from multi_instance_reg.rgbd.pipeline import FrontEndConfig
+    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+
+    model = _box_model()
+    intr = _intrinsics()
+    K = intr.K
+    T = make_transform(np.diag([1.0, -1.0, -1.0]), [0.0, 0.0, 1.5])       # top (+z) at 1.425 m, facing the camera
+    # Depth image: the box's top over a floor at the box's bottom (1.575 m).
+    v, u = np.mgrid[0:240, 0:320]
+    depth = np.full((240, 320), 1.575, np.float32)
+    x, y = (u - K[0, 2]) / K[0, 0] * 1.425, (v - K[1, 2]) / K[1, 1] * 1.425
+    depth[(np.abs(x) < 0.15) & (np.abs(y) < 0.1)] = 1.425
+    shape = ShapeFrontEnd(model, replace(FrontEndConfig(), shape_icp_association=association))
+    cloud = shape.frame_cloud(depth, intr, None)
+    # Tilted 6 deg and 6 mm too far: the top's ends are off by more than the depth check's
+    # tolerance, so only a refined pose is supported better than the start.
+    a = np.radians(6.0)
+    start = T @ make_transform(np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]]), [0, 0, 0])
+    start[:3, 3] += [0.004, -0.003, 0.006]
+    kept = shape.refine_and_check([start], cloud, depth, intr)
+    assert len(kept) == 1
+    out = kept[0][0]
+    assert rotation_angle_deg(out[:3, :3].T @ T[:3, :3]) < 2.0
+    assert abs(out[2, 3] - T[2, 3]) < 0.002                            # the depth is corrected
+    # A face seen alone does not fix the pose along it: the top's centre slides no further
+    # from where it is than where it started.
+    top = np.array([0.0, 0.0, 0.075, 1.0])
+    assert np.linalg.norm((out @ top - T @ top)[:2]) < np.linalg.norm((start @ top - T @ top)[:2]) + 0.002

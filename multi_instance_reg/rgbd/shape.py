@@ -127,12 +127,28 @@ def normals_and_variation(points: np.ndarray, voxel: float, toward=None, along=N
     nbr_f = neighbours(points, FEATURE_RADIUS * voxel, MAX_NEIGHBOURS, tree)
     nbr_n = neighbours(points, NORMAL_RADIUS * voxel, 16, tree)
     normals, variation = _normals_and_variation(np.ascontiguousarray(points, np.float64), nbr_n, nbr_f)
+    return _orient(normals, points, toward, along), variation, nbr_f
+
+
+def surface_normals(points: np.ndarray, voxel: float, toward, tree=None) -> np.ndarray:
+    """The normals of ``normals_and_variation`` alone (facing ``toward``), without the wider
+    neighbourhood the variation and FPFH need: point-pair voting uses only the normals, and
+    that search was half of the frame cloud's time."""
+    tree = tree or cKDTree(points)
+    nbr_n = neighbours(points, NORMAL_RADIUS * voxel, 16, tree)
+    normals, _ = _normals_and_variation(np.ascontiguousarray(points, np.float64), nbr_n,
+                                        np.zeros((len(points), 0), np.int64))
+    return _orient(normals, points, toward, None)
+
+
+def _orient(normals: np.ndarray, points: np.ndarray, toward, along) -> np.ndarray:
+    """Normals flipped to face ``toward`` (a viewpoint) or to agree with ``along`` (N, 3)."""
     if toward is not None:
         flip = np.einsum("ij,ij->i", normals, np.asarray(toward, np.float64) - points) < 0
     else:
         flip = np.einsum("ij,ij->i", normals, along) < 0
     normals[flip] *= -1.0
-    return normals, variation, nbr_f
+    return normals
 
 
 @numba.njit(cache=True, fastmath=True)
@@ -252,52 +268,182 @@ class ShapeMatcher:
 
 # --------------------------------------------------------------------------- per instance
 
-def icp_point_to_plane(T: np.ndarray, model_pts: np.ndarray, scene_pts: np.ndarray, scene_normals: np.ndarray,
-                       scene_tree: cKDTree, max_dist: float, iterations: int = 10,
-                       model_normals: np.ndarray | None = None) -> tuple[np.ndarray, float]:
-    """Refine T (model -> camera) by point-to-plane ICP of the model points (with
-    ``model_normals``: those facing the camera at the current pose; the far side would pull
-    the model onto the visible surface) against the scene points; returns (T, share of
-    those model points with a scene point within ``max_dist``)."""
-    T = np.asarray(T, np.float64).copy()
+class PointGrid:
+    """Points sorted into cubic cells of side ``cell`` (a dense table of where each cell's
+    points start), for the nearest point within ``cell`` of a query in compiled code (27
+    cells visited). Built once per frame; ICP asks it a few hundred queries per round, for
+    which a k-d tree's per-call overhead dominated."""
+
+    MAX_CELLS = 1 << 22     # cells are widened beyond this (a wide, deep scene; 32 MB table)
+
+    def __init__(self, points: np.ndarray, normals: np.ndarray, cell: float):
+        pts = np.ascontiguousarray(points, np.float64).reshape(-1, 3)
+        self.lo = pts.min(axis=0) if len(pts) else np.zeros(3)
+        span = (pts.max(axis=0) - self.lo) if len(pts) else np.zeros(3)
+        cell = float(cell)
+        if np.prod(np.floor(span / cell) + 1) > self.MAX_CELLS:
+            cell *= (np.prod(span / cell + 1) / self.MAX_CELLS) ** (1 / 3) * 1.01
+        self.cell = cell
+        self.dims = (np.floor(span / cell) + 1).astype(np.int64)
+        idx = np.minimum(np.floor((pts - self.lo) / cell).astype(np.int64), self.dims - 1)
+        keys = (idx[:, 0] * self.dims[1] + idx[:, 1]) * self.dims[2] + idx[:, 2]
+        order = np.argsort(keys, kind="stable")
+        self.start = np.searchsorted(keys[order], np.arange(int(np.prod(self.dims)) + 1))
+        self.points = np.ascontiguousarray(pts[order])
+        self.normals = np.ascontiguousarray(np.asarray(normals, np.float64).reshape(-1, 3)[order])
+
+
+@numba.njit(cache=True)
+def _grid_nearest(x, y, z, pts, start, lo, dims, cell, max_dist):
+    """Index (into the grid's points) of the nearest point closer than ``max_dist`` (<=
+    cell), -1 if none. The query's own column of cells first; a neighbouring cell is
+    skipped when its box is no nearer than the best point so far (the answer is the same)."""
+    fx, fy, fz = (x - lo[0]) / cell, (y - lo[1]) / cell, (z - lo[2]) / cell
+    bx, by, bz = int(math.floor(fx)), int(math.floor(fy)), int(math.floor(fz))
+    best, best_d2 = -1, max_dist * max_dist
+    # Distance from the query to the lower / upper neighbour cell along each axis.
+    gx = ((fx - bx) * cell, (bx + 1 - fx) * cell)
+    gy = ((fy - by) * cell, (by + 1 - fy) * cell)
+    gz = ((fz - bz) * cell, (bz + 1 - fz) * cell)
+    for c in range(9):
+        # Columns in the order (0, 0), then the other eight.
+        dx = (0, -1, 1, 0, 0, -1, -1, 1, 1)[c]
+        dy = (0, 0, 0, -1, 1, -1, 1, -1, 1)[c]
+        kx, ky = bx + dx, by + dy
+        if kx < 0 or ky < 0 or kx >= dims[0] or ky >= dims[1]:
+            continue
+        ex = 0.0 if dx == 0 else (gx[0] if dx < 0 else gx[1])
+        ey = 0.0 if dy == 0 else (gy[0] if dy < 0 else gy[1])
+        col2 = ex * ex + ey * ey
+        if col2 >= best_d2:
+            continue
+        z0 = bz - 1 if col2 + gz[0] * gz[0] < best_d2 else bz
+        z1 = bz + 1 if col2 + gz[1] * gz[1] < best_d2 else bz
+        z0, z1 = max(z0, 0), min(z1, dims[2] - 1)
+        if z0 > z1:
+            continue
+        # The cells along z of one (x, y) hold consecutive points.
+        base = (kx * dims[1] + ky) * dims[2]
+        for j in range(start[base + z0], start[base + z1 + 1]):
+            ex2, ey2, ez2 = pts[j, 0] - x, pts[j, 1] - y, pts[j, 2] - z
+            d2 = ex2 * ex2 + ey2 * ey2 + ez2 * ez2
+            if d2 < best_d2:
+                best, best_d2 = j, d2
+    return best
+
+
+@numba.njit(cache=True)
+def apply_twist(T, x, centre):
+    """exp of the twist x = (omega, tau) about ``centre``, applied on the left of T (Rodrigues);
+    the ICP step here and the tracker's (``tracking/icp.py``)."""
+    w0, w1, w2 = x[0], x[1], x[2]
+    theta = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+    K = np.array([[0.0, -w2, w1], [w2, 0.0, -w0], [-w1, w0, 0.0]])
+    if theta < 1e-12:
+        R = np.eye(3) + K
+    else:
+        R = np.eye(3) + np.sin(theta) / theta * K + (1.0 - np.cos(theta)) / (theta * theta) * (K @ K)
+    out = np.eye(4)
+    out[:3, :3] = R @ T[:3, :3]
+    out[:3, 3] = R @ (T[:3, 3] - centre) + centre + x[3:]
+    return out
+
+
+@numba.njit(cache=True)
+def _icp_grid(T0, mp, mn, use_normals, sp, sn, start, lo, dims, cell, max_dist, iterations):
+    T = T0.copy()
     share = 0.0
     floor = 0.5 * max_dist
+    P = mp.shape[0]
+    src = np.empty((P, 3))
+    dst = np.empty((P, 3))
+    nrm = np.empty((P, 3))
+    H = np.empty((6, 6))
+    g = np.empty(6)
+    a = np.empty(6)
     for it in range(iterations):
-        R, t = T[:3, :3], T[:3, 3]
-        p = model_pts @ R.T + t
-        if model_normals is not None:
-            # Facing the camera by more than grazing (as in ``depth_support``).
-            p = p[np.einsum("ij,ij->i", model_normals @ R.T, p) < -0.2 * np.linalg.norm(p, axis=1)]
-        d, j = scene_tree.query(p, k=1, distance_upper_bound=max_dist)   # one thread: small queries
-        ok = np.isfinite(d)
-        share = float(ok.mean()) if len(ok) else 0.0
-        if ok.sum() < 6:
+        m = 0
+        seen = 0
+        for i in range(P):
+            px = T[0, 0] * mp[i, 0] + T[0, 1] * mp[i, 1] + T[0, 2] * mp[i, 2] + T[0, 3]
+            py = T[1, 0] * mp[i, 0] + T[1, 1] * mp[i, 1] + T[1, 2] * mp[i, 2] + T[1, 3]
+            pz = T[2, 0] * mp[i, 0] + T[2, 1] * mp[i, 1] + T[2, 2] * mp[i, 2] + T[2, 3]
+            if use_normals:
+                # Facing the camera by more than grazing (as in ``depth_support``).
+                nx = T[0, 0] * mn[i, 0] + T[0, 1] * mn[i, 1] + T[0, 2] * mn[i, 2]
+                ny = T[1, 0] * mn[i, 0] + T[1, 1] * mn[i, 1] + T[1, 2] * mn[i, 2]
+                nz = T[2, 0] * mn[i, 0] + T[2, 1] * mn[i, 1] + T[2, 2] * mn[i, 2]
+                if not (nx * px + ny * py + nz * pz < -0.2 * math.sqrt(px * px + py * py + pz * pz)):
+                    continue
+            seen += 1
+            j = _grid_nearest(px, py, pz, sp, start, lo, dims, cell, max_dist)
+            if j < 0:
+                continue
+            src[m, 0], src[m, 1], src[m, 2] = px, py, pz
+            for k in range(3):
+                dst[m, k] = sp[j, k]
+                nrm[m, k] = sn[j, k]
+            m += 1
+        share = m / seen if seen > 0 else 0.0
+        if m < 6:
             break
-        src, dst, n = p[ok], scene_pts[j[ok]], scene_normals[j[ok]]
         # Linearised about the points' centroid c: minimise sum ((R_d (src - c) + c + t_d -
         # dst) . n)^2 over a small rotation (w) and t_d. Damped: directions the surface does
         # not constrain (sliding along a face seen alone) stay put instead of drifting.
-        c = src.mean(axis=0)
-        A = np.hstack([np.cross(src - c, n), n])
-        b = np.einsum("ij,ij->i", dst - src, n)
-        H = A.T @ A
-        H[np.diag_indices(6)] += 1e-3 * np.trace(H) / 6.0 + 1e-12
-        try:
-            x = np.linalg.solve(H, A.T @ b)
-        except np.linalg.LinAlgError:
-            break
-        w, dt = x[:3], x[3:]
-        angle = np.linalg.norm(w)
-        Rd = cv2.Rodrigues(w.reshape(3, 1))[0] if angle > 0 else np.eye(3)
-        T_d = np.eye(4)
-        T_d[:3, :3], T_d[:3, 3] = Rd, c - Rd @ c + dt
-        T = T_d @ T
-        if angle < 1e-4 and np.linalg.norm(dt) < 1e-5:
+        c0, c1, c2 = 0.0, 0.0, 0.0
+        for i in range(m):
+            c0 += src[i, 0]
+            c1 += src[i, 1]
+            c2 += src[i, 2]
+        c0, c1, c2 = c0 / m, c1 / m, c2 / m
+        H[:] = 0.0
+        g[:] = 0.0
+        for i in range(m):
+            sx, sy, sz = src[i, 0] - c0, src[i, 1] - c1, src[i, 2] - c2
+            nx, ny, nz = nrm[i, 0], nrm[i, 1], nrm[i, 2]
+            a[0], a[1], a[2] = sy * nz - sz * ny, sz * nx - sx * nz, sx * ny - sy * nx
+            a[3], a[4], a[5] = nx, ny, nz
+            b = (dst[i, 0] - src[i, 0]) * nx + (dst[i, 1] - src[i, 1]) * ny + (dst[i, 2] - src[i, 2]) * nz
+            for r in range(6):
+                g[r] += a[r] * b
+                for s in range(r, 6):
+                    H[r, s] += a[r] * a[s]
+        for r in range(6):
+            for s in range(r):
+                H[r, s] = H[s, r]
+        damp = 1e-3 * (H[0, 0] + H[1, 1] + H[2, 2] + H[3, 3] + H[4, 4] + H[5, 5]) / 6.0 + 1e-12
+        for r in range(6):
+            H[r, r] += damp
+        x = np.linalg.solve(H, g)
+        angle = math.sqrt(x[0] * x[0] + x[1] * x[1] + x[2] * x[2])
+        # T <- T_d T with T_d = (R_d, c - R_d c + t_d): about c, then shifted.
+        T = apply_twist(T, x, np.array((c0, c1, c2)))
+        if angle < 1e-4 and math.sqrt(x[3] * x[3] + x[4] * x[4] + x[5] * x[5]) < 1e-5:
             break
         # Tighter, but not below half the start: the depth noise (several mm at 2 m) must
         # not leave only a few random pairs, which let the model slide along a face.
-        max_dist = max(0.6 * max_dist, floor) if it >= 2 else max_dist
+        if it >= 2:
+            max_dist = max(0.6 * max_dist, floor)
     return T, share
+
+
+def icp_point_to_plane(T: np.ndarray, model_pts: np.ndarray, scene_grid: PointGrid, max_dist: float,
+                       iterations: int = 10, model_normals: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+    """Refine T (model -> camera) by point-to-plane ICP of the model points (with
+    ``model_normals``: those facing the camera at the current pose; the far side would pull
+    the model onto the visible surface) against the scene points and normals in ``scene_grid``
+    (nearest within ``max_dist``, at most the grid's cell); returns (T, share of those model points with a scene point
+    within ``max_dist``). Compiled: 30-50 hypotheses a frame of ~15 rounds each cost 250 ms
+    as numpy calls around a k-d tree."""
+    if max_dist > scene_grid.cell * (1 + 1e-9):
+        raise ValueError(f"max_dist {max_dist} exceeds the grid's cell {scene_grid.cell}")
+    mp = np.ascontiguousarray(model_pts, np.float64)
+    use_normals = model_normals is not None
+    mn = np.ascontiguousarray(model_normals if use_normals else model_pts, np.float64)
+    T, share = _icp_grid(np.ascontiguousarray(T, np.float64), mp, mn, use_normals, scene_grid.points, scene_grid.normals,
+                         scene_grid.start, scene_grid.lo, scene_grid.dims, scene_grid.cell, float(max_dist),
+                         int(iterations))
+    return T, float(share)
 
 
 def depth_support(T: np.ndarray, model_pts: np.ndarray, model_normals: np.ndarray, depth_m: np.ndarray,
@@ -308,33 +454,49 @@ def depth_support(T: np.ndarray, model_pts: np.ndarray, model_normals: np.ndarra
     (share within ``tolerance`` of the measured depth, share lying clearly in front of
     the measured surface - there is nothing there - i.e. more than ``tolerance`` nearer the
     camera than the measurement, number of such points). Points behind the measurement may
-    be occluded and count as neither."""
-    R, t = T[:3, :3], T[:3, 3]
-    p = model_pts @ R.T + t
-    n = model_normals @ R.T
-    facing = np.einsum("ij,ij->i", n, -p) > 0.2 * np.linalg.norm(p, axis=1)
-    p = p[facing]
-    if len(p) == 0:
-        return 0.0, 1.0, 0
+    be occluded and count as neither. Compiled (a projection per point; called 2-4 times
+    per hypothesis)."""
     K = intrinsics.K
-    z = p[:, 2]
-    front = z > 0.05
-    p, z = p[front], z[front]
-    u = np.round(K[0, 0] * p[:, 0] / z + K[0, 2]).astype(np.int64)
-    v = np.round(K[1, 1] * p[:, 1] / z + K[1, 2]).astype(np.int64)
-    h, w = depth_m.shape
-    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    u, v, z = u[inside], v[inside], z[inside]
-    measured = depth_m[v, u]
-    valid = measured > 0
-    z, measured = z[valid], measured[valid]
-    m = len(z)
-    if m == 0:
+    return _depth_support(np.ascontiguousarray(T, np.float64), np.ascontiguousarray(model_pts, np.float64),
+                          np.ascontiguousarray(model_normals, np.float64), depth_m,
+                          float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), float(tolerance))
+
+
+@numba.njit(cache=True)
+def _depth_support(T, mp, mn, depth, fx, fy, cx, cy, tolerance):
+    h, w = depth.shape
+    facing = 0
+    m = 0
+    agree = 0
+    free = 0
+    for i in range(mp.shape[0]):
+        px = T[0, 0] * mp[i, 0] + T[0, 1] * mp[i, 1] + T[0, 2] * mp[i, 2] + T[0, 3]
+        py = T[1, 0] * mp[i, 0] + T[1, 1] * mp[i, 1] + T[1, 2] * mp[i, 2] + T[1, 3]
+        pz = T[2, 0] * mp[i, 0] + T[2, 1] * mp[i, 1] + T[2, 2] * mp[i, 2] + T[2, 3]
+        nx = T[0, 0] * mn[i, 0] + T[0, 1] * mn[i, 1] + T[0, 2] * mn[i, 2]
+        ny = T[1, 0] * mn[i, 0] + T[1, 1] * mn[i, 1] + T[1, 2] * mn[i, 2]
+        nz = T[2, 0] * mn[i, 0] + T[2, 1] * mn[i, 1] + T[2, 2] * mn[i, 2]
+        if not (-(nx * px + ny * py + nz * pz) > 0.2 * math.sqrt(px * px + py * py + pz * pz)):
+            continue
+        facing += 1
+        if not pz > 0.05:
+            continue
+        u = round(fx * px / pz + cx)
+        v = round(fy * py / pz + cy)
+        if u < 0 or u >= w or v < 0 or v >= h:
+            continue
+        measured = depth[v, u]
+        if not measured > 0:
+            continue
+        m += 1
+        diff = measured - pz
+        if abs(diff) < tolerance:
+            agree += 1
+        if diff > tolerance:        # measured surface further away: the model fills empty space
+            free += 1
+    if facing == 0 or m == 0:
         return 0.0, 1.0, 0
-    diff = measured - z
-    agree = np.abs(diff) < tolerance
-    free = diff > tolerance          # measured surface further away: the model fills empty space
-    return float(agree.mean()), float(free.mean()), m
+    return agree / m, free / m, m
 
 
 def scene_cloud(depth_m: np.ndarray, intrinsics: CameraIntrinsics, mask: np.ndarray, voxel: float,
@@ -346,5 +508,5 @@ def scene_cloud(depth_m: np.ndarray, intrinsics: CameraIntrinsics, mask: np.ndar
     return voxel_downsample(np.asarray(pts, np.float64), voxel)
 
 
-__all__ = ["shape_voxel", "voxel_downsample", "describe", "fpfh", "normals_and_variation", "ShapeMatcher",
-           "icp_point_to_plane", "depth_support", "scene_cloud", "FPFH_DIM"]
+__all__ = ["shape_voxel", "voxel_downsample", "describe", "fpfh", "normals_and_variation", "surface_normals", "ShapeMatcher",
+           "icp_point_to_plane", "PointGrid", "apply_twist", "depth_support", "scene_cloud", "FPFH_DIM"]

@@ -22,8 +22,12 @@ from .lifting import depth_to_cloud
 from .ppf import ANGLE_BINS as ANGLE_STEPS, PPFModel, cluster_poses
 from .segments import connected_segments, support_mask
 from .verify import outline_continuation
-from .shape import (ShapeMatcher, depth_support, describe, icp_point_to_plane, normals_and_variation, scene_cloud,
-                    voxel_downsample)
+from .shape import (PointGrid, ShapeMatcher, depth_support, describe, icp_point_to_plane, scene_cloud,
+                    surface_normals, voxel_downsample)
+
+
+# ICP pairs a model point with a scene point at most this many voxels away.
+ICP_REACH = 2.0
 
 
 @dataclass
@@ -36,6 +40,7 @@ class FrameCloud:
     segments: np.ndarray | None = None    # (M,) segment label per point (-1: none), ppf only
     poses: np.ndarray | None = None       # (K, 4, 4) pose hypotheses clustered from the votes, ppf only
     up: np.ndarray | None = None          # (3,) the largest support plane's normal, towards the camera, ppf only
+    grid: PointGrid | None = None         # the points and normals for ICP's nearest-point search
 
 
 class ShapeFrontEnd:
@@ -97,7 +102,8 @@ class ShapeFrontEnd:
             return FrameCloud(pts, np.zeros_like(pts), np.zeros(0, np.int64), np.zeros((0, 33), np.float32), None)
         normals, variation, desc = describe(pts, self.voxel, toward=np.zeros(3))
         salient = np.flatnonzero(variation >= self.fe.shape_min_variation)
-        return FrameCloud(pts, normals, salient, desc[salient], cKDTree(pts))
+        return FrameCloud(pts, normals, salient, desc[salient], cKDTree(pts),
+                          grid=PointGrid(pts, normals, ICP_REACH * self.voxel))
 
     def segment_cloud(self, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> FrameCloud:
         """Depth in range, minus the large pieces of dominant planes (floor, pallet top,
@@ -114,10 +120,10 @@ class ShapeFrontEnd:
         if len(pts) < 10:
             return empty
         tree = cKDTree(pts)
-        normals, _, _ = normals_and_variation(pts, self.voxel, toward=np.zeros(3), tree=tree)
+        normals = surface_normals(pts, self.voxel, toward=np.zeros(3), tree=tree)
         labels = connected_segments(pts, fe.shape_segment_link * self.voxel, fe.shape_min_segment)
         return FrameCloud(pts, normals, np.zeros(0, np.int64), np.zeros((0, 33), np.float32), tree, labels,
-                          up=ground[0] if ground else None)
+                          up=ground[0] if ground else None, grid=PointGrid(pts, normals, ICP_REACH * self.voxel))
 
     def correspondences(self, cloud: FrameCloud) -> tuple[np.ndarray, np.ndarray]:
         """(model points (N, 3), scene points (N, 3)). ppf: each reference point of a
@@ -145,7 +151,7 @@ class ShapeFrontEnd:
         image agrees with the model's visible surface: (T, support share, agreeing points)."""
         fe = self.fe
         out = []
-        if cloud.tree is None:
+        if cloud.grid is None:
             return out
         tol = self.depth_tolerance
         first = min(3, fe.shape_icp_iterations)
@@ -168,14 +174,11 @@ class ShapeFrontEnd:
             # (most of ECC's clusters are wrong).
             if fit(T0)[1] < 0.25 * fe.shape_min_support:
                 continue
-            T = icp_point_to_plane(T0, self._surface, cloud.points, cloud.normals, cloud.tree,
-                                   max_dist=2.0 * self.voxel, iterations=first, model_normals=self._surface_normals)[0]
+            T = self._icp(T0, cloud, depth_m, intrinsics, ICP_REACH * self.voxel, first)
             cand = max([fit(T0) + (T0,), fit(T) + (T,)], key=lambda c: c[0])
             if cand[1] < 0.5 * fe.shape_min_support:
                 continue
-            T = icp_point_to_plane(cand[4], self._surface, cloud.points, cloud.normals, cloud.tree,
-                                   max_dist=1.5 * self.voxel, iterations=fe.shape_icp_iterations - first,
-                                   model_normals=self._surface_normals)[0]
+            T = self._icp(cand[4], cloud, depth_m, intrinsics, 1.5 * self.voxel, fe.shape_icp_iterations - first)
             # ICP can slide a box seen by one face alone: keep whichever pose the depth
             # image supports better.
             _, support, free, n, T = max([cand, fit(T) + (T,)], key=lambda c: c[0])
@@ -190,6 +193,18 @@ class ShapeFrontEnd:
             if support - free - 2.0 * outline >= fe.shape_min_evidence:
                 out.append((T, support, int(round(support * n))))
         return out
+
+    def _icp(self, T, cloud: FrameCloud, depth_m, intrinsics, max_dist: float, iterations: int) -> np.ndarray:
+        """Point-to-plane ICP of the model's surface facing the camera, paired as
+        ``shape_icp_association`` says: with the frame cloud's nearest points, or with the
+        depth pixels the model points project to (the tracker's ICP)."""
+        if self.fe.shape_icp_association == "projective":
+            from ..tracking.icp import align_projective
+
+            return align_projective(T, self._surface, self._surface_normals, depth_m, intrinsics, iterations,
+                                    max_dist, 0.5 * max_dist).T
+        return icp_point_to_plane(T, self._surface, cloud.grid, max_dist=max_dist, iterations=iterations,
+                                  model_normals=self._surface_normals)[0]
 
 
 def oriented_downsample(points: np.ndarray, normals: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:

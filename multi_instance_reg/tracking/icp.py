@@ -20,6 +20,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..messages import CameraIntrinsics
+from ..rgbd.shape import apply_twist, normals_and_variation
 
 
 @dataclass
@@ -36,8 +37,6 @@ def model_normals(points: np.ndarray) -> np.ndarray:
     own point spacing), turned to point away from the cloud's centre: right for the convex
     objects of a tabletop, and only the sign is at stake (point-to-plane residuals do not
     depend on it, the back-face test does)."""
-    from ..rgbd.shape import normals_and_variation
-
     pts = np.asarray(points, dtype=np.float64)
     spacing = float(np.median(cKDTree(pts).query(pts, k=2)[0][:, 1]))
     normals, _, _ = normals_and_variation(pts, spacing, along=pts - pts.mean(axis=0))
@@ -121,22 +120,6 @@ def _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, max_dist, centre, A, b):
 
 
 @numba.njit(cache=True)
-def _apply_twist(T, x, centre):
-    """exp of the twist x = (omega, tau) about ``centre``, applied on the left of T (Rodrigues)."""
-    w0, w1, w2 = x[0], x[1], x[2]
-    theta = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
-    K = np.array([[0.0, -w2, w1], [w2, 0.0, -w0], [-w1, w0, 0.0]])
-    if theta < 1e-12:
-        R = np.eye(3) + K
-    else:
-        R = np.eye(3) + np.sin(theta) / theta * K + (1.0 - np.cos(theta)) / (theta * theta) * (K @ K)
-    out = np.eye(4)
-    out[:3, :3] = R @ T[:3, :3]
-    out[:3, 3] = R @ (T[:3, 3] - centre) + centre + x[3:]
-    return out
-
-
-@numba.njit(cache=True)
 def _constrained_step(A, b, radius, damping, min_information):
     """The twist solving A x = b in the directions the depth constrains, 0 in the others.
 
@@ -186,12 +169,35 @@ def _icp(T0, pts, nrm, depth, fx, fy, cx, cy, iterations, max_dist, inlier_dist,
         if used < 6:
             break
         x = _constrained_step(A, b, radius, damping, min_information)
-        T = _apply_twist(T, x, centre)
+        T = apply_twist(T, x, centre)
         if np.abs(x[:3]).max() < 1e-6 and np.abs(x[3:]).max() < 1e-6:
             break
     centre = T[:3, :3] @ centroid + T[:3, 3]
     used, visible, sq, facing, inside = _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, inlier_dist, centre, A, b)
     return T, used, visible, sq, facing, inside
+
+
+def align_projective(T_init: np.ndarray, points: np.ndarray, normals: np.ndarray, depth_m: np.ndarray,
+                     intrinsics: CameraIntrinsics, iterations: int, max_distance: float, inlier_distance: float,
+                     damping: float = 1e-3, min_information: float = 0.0, centroid=None, radius=None) -> IcpResult:
+    """Projective point-to-plane ICP of model ``points`` / ``normals`` (model frame) against a
+    depth image, from ``T_init``: the tracker's update, and the shape front end's refinement
+    (``frontend.shape_icp_association: projective``). ``centroid`` / ``radius``: the points'
+    own unless given (the tracker keeps them)."""
+    points = np.ascontiguousarray(points, np.float64)
+    if centroid is None:
+        centroid = points.mean(axis=0)
+    if radius is None:
+        radius = float(np.sqrt(np.mean(np.sum((points - centroid) ** 2, axis=1)))) or 1.0
+    K = intrinsics.K
+    depth = np.ascontiguousarray(depth_m, dtype=np.float32)
+    T, used, visible, sq, facing, inside = _icp(
+        np.ascontiguousarray(T_init, dtype=np.float64), points, np.ascontiguousarray(normals, np.float64), depth,
+        float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), int(iterations), float(max_distance),
+        float(inlier_distance), float(damping), float(min_information), np.ascontiguousarray(centroid, np.float64),
+        float(radius))
+    return IcpResult(T, used / visible if visible else 0.0, int(visible),
+                     float(np.sqrt(sq / used)) if used else float("nan"), inside / facing if facing else 0.0)
 
 
 class ProjectiveICP:
@@ -210,14 +216,9 @@ class ProjectiveICP:
         self.damping = float(damping)
 
     def align(self, T_init: np.ndarray, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> IcpResult:
-        K = intrinsics.K
-        depth = np.ascontiguousarray(depth_m, dtype=np.float32)
-        T, used, visible, sq, facing, inside = _icp(np.ascontiguousarray(T_init, dtype=np.float64), self.points, self.normals, depth,
-                                    float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]),
-                                    self.iterations, self.max_distance, self.inlier_distance, self.damping,
-                                    self.min_information, self.centroid, self.radius)
-        return IcpResult(T, used / visible if visible else 0.0, int(visible),
-                         float(np.sqrt(sq / used)) if used else float("nan"), inside / facing if facing else 0.0)
+        return align_projective(T_init, self.points, self.normals, depth_m, intrinsics, self.iterations,
+                                self.max_distance, self.inlier_distance, self.damping, self.min_information,
+                                self.centroid, self.radius)
 
 
-__all__ = ["IcpResult", "ProjectiveICP", "model_normals", "sample_model"]
+__all__ = ["IcpResult", "ProjectiveICP", "align_projective", "model_normals", "sample_model"]
