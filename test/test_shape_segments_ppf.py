@@ -78,13 +78,19 @@ def _visible(points, normals, T, noise, seed=0):
     return P[vis] + np.random.default_rng(seed).normal(0, noise, (vis.sum(), 3)), N[vis]
 
 
-def test_ppf_votes_recover_the_pose_and_give_consistent_correspondences():
+def _box_seen_by_ppf():
+    """The box model's point-pair features, a pose, and the points / normals it shows there."""
     model = _box_model()
     surface, normals = oriented_downsample(model.shape_points, model.shape_normals, model.shape_voxel)
     ppf = PPFModel(surface, normals, float(np.linalg.norm(model.extent)), model.shape_voxel, model.symmetries,
                    bucket_cap=1000)
     T = make_transform(np.array([[0.36, -0.48, 0.8], [0.8, 0.6, 0.0], [-0.48, 0.64, 0.6]]), [0.1, -0.05, 1.2])
     P, N = _visible(surface, normals, T, 0.001)
+    return model, ppf, T, P, N
+
+
+def test_ppf_votes_recover_the_pose_and_give_consistent_correspondences():
+    model, ppf, T, P, N = _box_seen_by_ppf()
     s, m, poses, share = ppf.vote(P, N, np.zeros(len(P), np.int64), ref_step=2, max_partners=200)
     assert len(s) > 20
     errs = []
@@ -222,12 +228,7 @@ def test_outline_continuation_ignores_a_neighbour_past_a_gap_and_what_lies_below
 def test_ppf_partners_stay_within_the_objects_reach_in_a_joined_segment():
     """A segment that joins the object with a wide surface far away (touching objects, a
     pallet's layer): the references still vote with partners on their own object."""
-    model = _box_model()
-    surface, normals = oriented_downsample(model.shape_points, model.shape_normals, model.shape_voxel)
-    ppf = PPFModel(surface, normals, float(np.linalg.norm(model.extent)), model.shape_voxel, model.symmetries,
-                   bucket_cap=1000)
-    T = make_transform(np.array([[0.36, -0.48, 0.8], [0.8, 0.6, 0.0], [-0.48, 0.64, 0.6]]), [0.1, -0.05, 1.2])
-    P, N = _visible(surface, normals, T, 0.001)
+    model, ppf, T, P, N = _box_seen_by_ppf()
     g = np.stack(np.meshgrid(np.arange(0.6, 2.6, 0.012), np.arange(-1.0, 1.0, 0.012)), -1).reshape(-1, 2)
     far = np.column_stack([g, np.full(len(g), 1.4)])          # 28,000 points, all beyond the object's reach
     pts = np.vstack([P, far])
