@@ -36,6 +36,7 @@ from scipy.spatial.transform import Rotation
 from ..messages import CameraIntrinsics
 from ..params import param
 from ..transforms import invert_transform, rotation_angle_deg
+from ..rgbd.shape import apply_twist as twist_step
 from .icp import ProjectiveICP
 
 TENTATIVE, CONFIRMED, COASTING = "tentative", "confirmed", "coasting"
@@ -127,6 +128,9 @@ def proper_pose(T) -> np.ndarray:
     return T
 
 
+_ORIGIN = np.zeros(3)
+
+
 def relative_twist(T_from: np.ndarray, T_to: np.ndarray) -> np.ndarray:
     """(rotvec, translation) of D with T_to = D T_from."""
     D = T_to @ invert_transform(T_from)
@@ -134,11 +138,8 @@ def relative_twist(T_from: np.ndarray, T_to: np.ndarray) -> np.ndarray:
 
 
 def apply_twist(T: np.ndarray, twist: np.ndarray, scale: float = 1.0) -> np.ndarray:
-    out = np.eye(4)
-    R = Rotation.from_rotvec(scale * twist[:3]).as_matrix()
-    out[:3, :3] = R @ T[:3, :3]
-    out[:3, 3] = R @ T[:3, 3] + scale * twist[3:]
-    return out
+    """exp(scale * twist) applied on the left of T, about the camera's origin (a velocity over scale s)."""
+    return twist_step(np.asarray(T, np.float64), scale * np.asarray(twist, np.float64), _ORIGIN)
 
 
 def local_residual(T_from: np.ndarray, T_to: np.ndarray) -> np.ndarray:
