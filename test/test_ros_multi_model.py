@@ -112,6 +112,7 @@ def test_a_model_swap_under_a_tracked_10hz_stream_loses_at_most_one_frame(poster
         stats = probe.subscribe(String, "/instance_registration/stats")
         camera = CameraPublisher(probe)
         assert camera.wait_for_subscribers(proc=node), stop(node)
+        assert probe.wait_for_publishers(["/instances/poses"], proc=node), stop(node)   # every frame counted
         rgb, depth, K = two_posters()
         sent = []
 

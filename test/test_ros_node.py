@@ -249,6 +249,7 @@ def test_a_reliable_30hz_camera_loses_no_frame_and_the_newest_is_always_processe
         stats = probe.subscribe(String, "/instance_registration/stats")
         camera = CameraPublisher(probe)
         assert camera.wait_for_subscribers(proc=node), stop(node)
+        assert probe.wait_for_publishers(["/instances/poses"], proc=node), stop(node)   # every frame counted
         rgb, depth, K = poster_frame()
         start_time, sent = time.monotonic(), []
         for k in range(60):

@@ -39,6 +39,9 @@ def test_live_replay_matches_offline_quality(scene_bag, object_model, tmp_path):
                                "--wait-for-node", "60", "--idle-timeout", "3", "--timeout", "150"],
                               domain, tmp_path / "listen.log")
         assert wait_until(lambda: "listening" in output(listen), 90, proc=listen), output(listen)
+        # The listener waits for the node; the probe must be matched too, or the first frame's
+        # poses can reach the listener and not the probe (seen once in a fresh-clone run).
+        assert probe.wait_for_publishers(["/instances/poses"], proc=node), stop(node)
         play = start(["multi_instance_reg.tools.cli", "play", str(scene_bag), "--rate", "0.25",
                       "--wait-for", COLOUR, DEPTH, INFO], domain)
         assert play.wait(120) == 0, stop(play)
