@@ -198,6 +198,7 @@ class InstanceRegistration:
             self._shape = ShapeFrontEnd(model, fe)
             self._shape_ecc = ECC(self._shape.ecc_config(self.config.ecc))
             if self.correspondences == "both":
+                self._keypoints_xyz = model.keypoints_xyz.astype(np.float64)
                 self._keypoint_normals = self._shape.surface_normals_at(model.keypoints_xyz)
         self._box_grid = box_grid(model.extent) + np.asarray(model.box_centre, dtype=np.float64)
         self._planes: list = []
@@ -401,16 +402,17 @@ class InstanceRegistration:
         overlap = box_overlaps(self.model, transforms, self._box_grid)
         kept = list(range(len(textured.instances)))
         instances = list(textured.instances)
+        # The frame's matches, as texture_agreement reads them: converted once, not per instance.
+        match_model, match_scene = textured.model_xyz.astype(np.float64), textured.scene_xyz.astype(np.float64)
         for k, inst in enumerate(shaped.instances, start=len(kept)):
             if all(overlap[k, j] <= fe.max_overlap and overlap[j, k] <= fe.max_overlap for j in kept):
                 # The texture has its say: a shape pose that shows the model's textured
                 # faces is kept only when some of the frame's matches agree with it (they
                 # also pick which of its symmetric poses it is).
-                T, agree, shown = texture_agreement(inst.T, self.model.keypoints_xyz.astype(np.float64),
-                                                    self._keypoint_normals, self.model.symmetries,
-                                                    textured.model_xyz.astype(np.float64),
-                                                    textured.scene_xyz.astype(np.float64), depth_m, intrinsics,
-                                                    self.config.ecc.inlier_thresh, self._shape.depth_tolerance)
+                T, agree, shown = texture_agreement(inst.T, self._keypoints_xyz, self._keypoint_normals,
+                                                    self.model.symmetries, match_model, match_scene, depth_m,
+                                                    intrinsics, self.config.ecc.inlier_thresh,
+                                                    self._shape.depth_tolerance)
                 if shown >= fe.both_min_shown_keypoints and agree < fe.both_min_agreeing:
                     continue
                 kept.append(k)

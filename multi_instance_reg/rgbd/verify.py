@@ -42,6 +42,12 @@ def _points_and_normals(depth: np.ndarray, K: np.ndarray, rows: np.ndarray, cols
     return P[good], n, ok
 
 
+def facing_camera(p: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """Which surface points (camera frame) face the camera clearly (normal within about 78 deg
+    of the line of sight, not grazing) and lie in front of it."""
+    return (np.einsum("ij,ij->i", n, -p) > 0.2 * np.linalg.norm(p, axis=1)) & (p[:, 2] > 0.05)
+
+
 def outline_continuation(T: np.ndarray, model_pts: np.ndarray, model_normals: np.ndarray, depth_m: np.ndarray,
                          intrinsics: CameraIntrinsics, voxel: float, tolerance: float,
                          max_angle_deg: float = 30.0, up: np.ndarray | None = None) -> tuple[float, int]:
@@ -60,7 +66,7 @@ def outline_continuation(T: np.ndarray, model_pts: np.ndarray, model_normals: np
     p = model_pts @ R.T + t
     floor = None if up is None else float(np.min(p @ up)) + tolerance
     n = model_normals @ R.T
-    facing = (np.einsum("ij,ij->i", n, -p) > 0.2 * np.linalg.norm(p, axis=1)) & (p[:, 2] > 0.05)
+    facing = facing_camera(p, n)
     p, n = p[facing], n[facing]
     if len(p) < 3:
         return 0.0, 0
@@ -149,7 +155,7 @@ def texture_agreement(T: np.ndarray, keypoints: np.ndarray, keypoint_normals: np
             best, agree = TS, n
     p = keypoints @ best[:3, :3].T + best[:3, 3]
     nrm = keypoint_normals @ best[:3, :3].T
-    facing = (np.einsum("ij,ij->i", nrm, -p) > 0.2 * np.linalg.norm(p, axis=1)) & (p[:, 2] > 0.05)
+    facing = facing_camera(p, nrm)
     p = p[facing]
     K = intrinsics.K
     u = np.round(K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2]).astype(np.int64)
