@@ -30,6 +30,14 @@ class IcpResult:
     visible: int            # model points that face the camera, project into the image and have a depth measurement there
     rmse: float             # metres, point-to-plane, over the confirmed points
     in_view: float = 1.0    # share of the model points facing the camera that project into the image
+    occluded: int = 0       # visible model points behind the measured surface (something in front of them)
+
+    @property
+    def unoccluded_fitness(self) -> float:
+        """Share of the visible model points the depth confirms, those hidden behind something
+        else left out: how well the pose fits where the object can be seen at all."""
+        seen = self.visible - self.occluded
+        return self.fitness * self.visible / seen if seen > 0 else 0.0
 
 
 def model_normals(points: np.ndarray) -> np.ndarray:
@@ -67,6 +75,7 @@ def _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, max_dist, centre, A, b):
     visible = 0
     facing = 0
     inside = 0
+    occluded = 0
     sq = 0.0
     for i in range(6):
         b[i] = 0.0
@@ -97,6 +106,8 @@ def _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, max_dist, centre, A, b):
             continue
         visible += 1
         if abs(z - qz) > max_dist:
+            if z < qz:
+                occluded += 1
             continue
         s = z / qz                                   # the depth pixel lifted along q's ray
         r = nx * (qx * s - qx) + ny * (qy * s - qy) + nz * (qz * s - qz)
@@ -116,7 +127,7 @@ def _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, max_dist, centre, A, b):
     for i in range(6):
         for j in range(i):
             A[i, j] = A[j, i]
-    return used, visible, sq, facing, inside
+    return used, visible, sq, facing, inside, occluded
 
 
 @numba.njit(cache=True)
@@ -165,7 +176,7 @@ def _icp(T0, pts, nrm, depth, fx, fy, cx, cy, iterations, max_dist, inlier_dist,
         frac = it / max(iterations - 1, 1)
         gate = max_dist + (inlier_dist - max_dist) * frac
         centre = T[:3, :3] @ centroid + T[:3, 3]
-        used, _, _, _, _ = _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, gate, centre, A, b)
+        used, _, _, _, _, _ = _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, gate, centre, A, b)
         if used < 6:
             break
         x = _constrained_step(A, b, radius, damping, min_information)
@@ -173,8 +184,9 @@ def _icp(T0, pts, nrm, depth, fx, fy, cx, cy, iterations, max_dist, inlier_dist,
         if np.abs(x[:3]).max() < 1e-6 and np.abs(x[3:]).max() < 1e-6:
             break
     centre = T[:3, :3] @ centroid + T[:3, 3]
-    used, visible, sq, facing, inside = _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, inlier_dist, centre, A, b)
-    return T, used, visible, sq, facing, inside
+    used, visible, sq, facing, inside, occluded = _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, inlier_dist, centre,
+                                                             A, b)
+    return T, used, visible, sq, facing, inside, occluded
 
 
 def align_projective(T_init: np.ndarray, points: np.ndarray, normals: np.ndarray, depth_m: np.ndarray,
@@ -191,13 +203,14 @@ def align_projective(T_init: np.ndarray, points: np.ndarray, normals: np.ndarray
         radius = float(np.sqrt(np.mean(np.sum((points - centroid) ** 2, axis=1)))) or 1.0
     K = intrinsics.K
     depth = np.ascontiguousarray(depth_m, dtype=np.float32)
-    T, used, visible, sq, facing, inside = _icp(
+    T, used, visible, sq, facing, inside, occluded = _icp(
         np.ascontiguousarray(T_init, dtype=np.float64), points, np.ascontiguousarray(normals, np.float64), depth,
         float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), int(iterations), float(max_distance),
         float(inlier_distance), float(damping), float(min_information), np.ascontiguousarray(centroid, np.float64),
         float(radius))
     return IcpResult(T, used / visible if visible else 0.0, int(visible),
-                     float(np.sqrt(sq / used)) if used else float("nan"), inside / facing if facing else 0.0)
+                     float(np.sqrt(sq / used)) if used else float("nan"), inside / facing if facing else 0.0,
+                     int(occluded))
 
 
 class ProjectiveICP:

@@ -51,7 +51,7 @@ class TrackerConfig:
     gate_rotation_deg: float = param(30.0, "a detection within the position gate whose orientation differs by more than this is the object in a symmetric pose: the track keeps its own orientation", 1.0, 180.0)
     flip_after: int = param(3, "detections in a row, agreeing with each other but not with their track's orientation, that turn the track to theirs", 1, 1000)
     confirm_detections: int = param(2, "detections that confirm a new (tentative) track; a tentative track ends at its first miss", 1, 100)
-    confirm_fitness: float = param(0.9, "a new track is confirmed at once, on its first detection, when the ICP from that detection's pose confirms at least this share of the visible model points (and icp_min_in_view holds): the depth then vouches for the detection as a second detection would; 0 = off (only detections confirm)", 0.0, 1.0)
+    confirm_fitness: float = param(0.9, "a new track is confirmed at once, on its first detection, when the ICP from that detection's pose confirms at least this share of the visible model points not hidden behind something nearer (and icp_min_fitness and icp_min_in_view hold): the depth then vouches for the detection as a second detection would; 0 = off (only detections confirm)", 0.0, 1.0)
     coast_s: float = param(1.0, "s: a confirmed track that is neither detected nor confirmed by the depth for longer than this ends (it is published as coasting meanwhile)", 0.0, 60.0)
     max_undetected_s: float = param(1.5, "s: a track kept by the depth alone, with no detection for longer than this, ends (0 = never)", 0.0, 3600.0)
     duplicate_distance: float = param(0.015, "m: two tracks whose positions come closer than this follow one object: the younger ends", 0.0, 1.0)
@@ -347,7 +347,10 @@ class InstanceTracker:
                 if tr.fitness >= c.icp_min_fitness and step_m <= c.icp_max_step and step_deg <= c.icp_max_step_deg:
                     tr.T = proper_pose(res.T)
                     seen[tr.track_id] = True
-                    if tr.state == TENTATIVE and c.confirm_fitness > 0 and tr.fitness >= c.confirm_fitness:
+                    # Confirmed at birth where the depth vouches for the whole of the object it
+                    # can see: points hidden behind a neighbour are no evidence against it.
+                    if (tr.state == TENTATIVE and c.confirm_fitness > 0 and tr.fitness > 0
+                            and res.unoccluded_fitness >= c.confirm_fitness):
                         tr.state = CONFIRMED
         movers = [tr for tr in self.tracks if seen[tr.track_id] and len(tr.history) >= 2 and tr.track_id not in jumped
                   and stamp_ns > tr.history[-2][0]]
