@@ -58,7 +58,8 @@ class TrackerConfig:
     camera_motion: bool = param(True, "predict every track by one motion shared by all (the camera's: objects rest and the camera moves), estimated robustly on each frame from the tracks the depth or a detection saw (median rotation, then median translation), plus the track's own residual velocity; an occluded (coasting) track follows the shared motion. Off: each track's own constant velocity, an occluded one follows the nearest seen track")
     velocity_decay: float = param(0.5, "share of a track's own velocity (with camera_motion: what the shared motion does not explain) kept per frame the track is updated by the depth alone (no detection): a velocity the depth does not confirm (a box sliding along the table plane it shares with its neighbours) dies out instead of carrying the track away from a resting object; 1 = constant velocity", 0.0, 1.0)
     smoothing: float = param(0.0, "pose smoothing, 0 = off (the published pose is the measured one) to 0.95 (heavy): the published pose is a constant-velocity (alpha-beta) filter of the measured one with gain 1 - smoothing, so a resting object's pose settles and a steadily moving one does not lag; a measurement further than icp_max_step / icp_max_step_deg from the filter restarts it", 0.0, 0.95)
-    detection_gain: float = param(0.3, "with smoothing on: share of an agreeing detection's correction (within icp_max_step / icp_max_step_deg of a confirmed track, no symmetric flip) that moves the track; the ICP then re-fits what the depth constrains, so this filters only what it does not (a box seen from its top: its yaw and where it lies on the table), which a detection would otherwise reset with its own noise on every frame. 1 = reset; unused with smoothing 0 (the track is then the measured pose)", 0.01, 1.0)
+    detection_gain: float = param(0.3, "with smoothing on: share of an agreeing detection's correction (within icp_max_step / icp_max_step_deg of a confirmed track, no symmetric flip) that moves a resting track in the steady state, for a detection of detection_gain_inliers inliers (a Kalman gain: the first detections of a track are averaged, weaker ones pull less, stronger ones more); the ICP then re-fits what the depth constrains, so this filters only what it does not (a box seen from its top: its yaw and where it lies on the table), which a detection would otherwise reset with its own noise on every frame. 1 = reset; unused with smoothing 0 (the track is then the measured pose)", 0.01, 1.0)
+    detection_gain_inliers: int = param(100, "inliers of the detection that detection_gain refers to; a detection's pose variance is taken as inversely proportional to its inliers", 1, 100000)
     publish_tentative: bool = param(False, "also publish tracks not yet confirmed (state tentative)")
     icp: bool = param(True, "bring every track up to date on every frame by projective point-to-plane ICP of the model against the depth image (off: tracks move only with detections)")
     icp_points: int = param(1000, "model points used by the ICP of one track", 20, 20000)
@@ -66,6 +67,7 @@ class TrackerConfig:
     icp_damping: float = param(0.001, "Levenberg damping of each ICP step, relative to the mean eigenvalue of its normal equations (rotation scaled by the object's radius): holds back what the depth barely constrains", 0.0, 10.0)
     icp_min_information: float = param(0.03, "an ICP step moves the pose only in the directions the depth constrains: those whose information (eigenvalue of the normal equations, rotation scaled by the object's radius) is at least this share of the best-constrained one; the others (a box seen from its top: where it lies in that plane) stay at the prediction or the detection. 0 = every direction", 0.0, 1.0)
     icp_min_in_view: float = param(0.25, "share of the model points facing the camera that must project into the image for the depth to count at all (below: a miss; an instance leaving the view is not kept, nor confirmed, by the few points on the image border)", 0.0, 1.0)
+    icp_min_measured: float = param(0.5, "share of the model points the depth usually measures on a track (its running mean over the frames it was seen) that must have a depth measurement on a frame for the ICP to count (below: a miss): an arm too close for the depth camera leaves a sliver of the object, which the ICP would tilt the pose to. 0 = off", 0.0, 1.0)
     icp_max_distance: float = param(0.03, "m: depth pairs farther apart than this are ignored in the first ICP iteration (the gate shrinks to icp_inlier_distance by the last)", 0.001, 0.5)
     icp_inlier_distance: float = param(0.006, "m: a model point counts as confirmed by the depth within this distance", 0.0005, 0.1)
     icp_max_step: float = param(0.01, "m: an ICP result that moves the track's pose further than this from its prediction (or from the detection of this frame) is refused: the model slid along a plane it shares with something else", 0.0005, 1.0)
@@ -101,14 +103,19 @@ class Track:
     inliers: int = 0
     score: float = 0.0
     fitness: float = 0.0
+    measured_ref: float = 0.0           # model points the depth measured on this track, running mean over its seen frames
     state: str = TENTATIVE
+    state_before: str = TENTATIVE       # at the start of the latest frame
     detected_since_output: bool = True
     velocity: np.ndarray = field(default_factory=lambda: np.zeros(6))   # twist per second (rotvec, translation)
     out_velocity: np.ndarray = field(default_factory=lambda: np.zeros(6))  # of T_out: rotvec about its origin, translation; per second
     history: deque = field(default_factory=lambda: deque(maxlen=HISTORY))   # (stamp_ns, T)
     flip_votes: list = field(default_factory=list)                      # recent disagreeing orientations
     T_before_jump: np.ndarray | None = None   # the track's own pose when a detection moved it further than icp_max_step on this frame
-    pulled: bool = False                      # a detection moved it only detection_gain of the way on this frame
+    far_detections: int = 0                   # detections in a row that were that far from the track
+    pull_variance: float = 1.0                # of the pose where the depth leaves it free, in units of a detection with detection_gain_inliers inliers
+    frames_since_pull: int = 0
+    pulled: float = 0.0                       # share of the way a detection moved it on this frame (0: none, or reset to it)
 
     def pose_at(self, stamp_ns: int) -> np.ndarray | None:
         for s, T in reversed(self.history):
@@ -216,6 +223,8 @@ class InstanceTracker:
                 tr.T_out = local_step(tr.T_out, tr.out_velocity * dt)   # the filter's own velocity
                 tr.stamp_ns = stamp_ns
             tr.history.append((stamp_ns, tr.T.copy()))
+            tr.state_before = tr.state
+            tr.frames_since_pull += 1
         self.stamp_ns = stamp_ns
 
     def _closest_symmetric(self, T_det: np.ndarray, T_ref: np.ndarray) -> tuple[np.ndarray, float]:
@@ -282,16 +291,26 @@ class InstanceTracker:
         motion = tr.T @ invert_transform(T_then)
         T_new = proper_pose(motion @ T_det)
         step = local_residual(tr.T, T_new)
-        if tr.state != TENTATIVE and np.linalg.norm(T_new[:3, 3] - tr.T[:3, 3]) > c.icp_max_step:
-            # A detection far from a confirmed track may be a bad one (few inliers on an
-            # object half hidden by an arm): the depth decides between the two (_align).
+        far = (np.linalg.norm(step[3:]) > c.icp_max_step
+               or (not flipped and np.degrees(np.linalg.norm(step[:3])) > c.icp_max_step_deg))
+        if tr.state != TENTATIVE and far:
+            # A detection far from a confirmed track, in position or orientation, may be a bad
+            # one (few inliers on an object half hidden by an arm): the depth decides between
+            # the two (_align).
             tr.T_before_jump = tr.T.copy()
-        elif (tr.state != TENTATIVE and c.smoothing > 0 and not flipped
-              and np.degrees(np.linalg.norm(step[:3])) <= c.icp_max_step_deg):
+            tr.far_detections += 1
+        elif tr.state != TENTATIVE and c.smoothing > 0 and not flipped:
             # An agreeing detection: pull part of the way. The ICP (_align) re-fits what the
             # depth constrains, so this filters the rest, which the depth leaves at the track.
-            T_new = proper_pose(local_step(tr.T, c.detection_gain * step))
-            tr.pulled = True
+            # A Kalman gain: the first detections of a track are averaged, weak ones pull
+            # less, and a resting track settles at detection_gain (see _pull_gain).
+            gain = self._pull_gain(tr, det.inliers)
+            T_new = proper_pose(local_step(tr.T, gain * step))
+            tr.pulled = gain
+        if not far:
+            tr.far_detections = 0
+            if not tr.pulled:
+                self._reset_pull(tr, det.inliers)     # the track is reset to this detection
         tr.T = T_new
         if tr.stamp_ns == stamp_ns and tr.history:
             tr.history[-1] = (stamp_ns, tr.T.copy())
@@ -302,6 +321,28 @@ class InstanceTracker:
         tr.detected_since_output = True
         if tr.state == TENTATIVE and tr.detections >= c.confirm_detections:
             tr.state = CONFIRMED
+
+    def _detection_variance(self, inliers: int) -> float:
+        """A detection's pose variance, in units of one with detection_gain_inliers inliers:
+        inversely proportional to its inliers."""
+        return self.config.detection_gain_inliers / max(int(inliers), 1)
+
+    def _reset_pull(self, tr: Track, inliers: int) -> None:
+        """The track's pose is now this detection's: its variance is the detection's."""
+        tr.pull_variance, tr.frames_since_pull = self._detection_variance(inliers), 0
+
+    def _pull_gain(self, tr: Track, inliers: int) -> float:
+        """How far an agreeing detection moves the track (a scalar Kalman filter on what the
+        depth leaves free): the track's variance grows by q a frame, q chosen so that a resting
+        track's gain settles at detection_gain for a detection of detection_gain_inliers
+        inliers (steady state of a random walk: q = g^2 / (1 - g))."""
+        g = self.config.detection_gain
+        if g >= 1.0:
+            return 1.0
+        variance = tr.pull_variance + g * g / (1.0 - g) * tr.frames_since_pull
+        gain = variance / (variance + self._detection_variance(inliers))
+        tr.pull_variance, tr.frames_since_pull = (1.0 - gain) * variance, 0
+        return gain
 
     def _birth(self, det, stamp_ns: int, candidates) -> None:
         T = proper_pose(det.T)
@@ -314,6 +355,7 @@ class InstanceTracker:
         tr = Track(self.next_id, T, T.copy(), born_ns=now, stamp_ns=now, last_seen_ns=now,
                    last_detected_ns=now, inliers=int(det.inliers), score=float(det.score))
         tr.history.append((now, T.copy()))
+        self._reset_pull(tr, det.inliers)
         if self.config.confirm_detections <= 1:
             tr.state = CONFIRMED
         self.next_id += 1
@@ -334,12 +376,29 @@ class InstanceTracker:
                 res = self._icp.align(tr.T, depth_m, intrinsics)
                 if jumped_from is not None:
                     own = self._icp.align(jumped_from, depth_m, intrinsics)
-                    if own.fitness > res.fitness:
-                        # The depth confirms the track better than the detection: keep the track.
+                    # The depth decides: the detection wins where the depth confirms it
+                    # (icp_min_fitness) better than the track. Where the depth cannot tell the
+                    # two apart (a box's yaw seen from its top; an arm hiding most of the
+                    # object) one detection is not enough to move the track: flip_after such
+                    # detections in a row are.
+                    undecided = own.fitness == res.fitness or max(own.fitness, res.fitness) < c.icp_min_fitness
+                    if undecided:
+                        take_detection = tr.far_detections >= c.flip_after
+                    else:
+                        take_detection = res.fitness > own.fitness
+                    if take_detection:
+                        tr.far_detections = 0
+                        self._reset_pull(tr, tr.inliers)
+                    else:
                         tr.T, res = jumped_from, own
                 # An instance all but out of view is no evidence: a handful of points on the
                 # image border would confirm it while it lags behind.
                 tr.fitness = res.fitness if res.in_view >= c.icp_min_in_view else 0.0
+                # Nor is a sliver: most of the points the depth usually measures on this track
+                # gone without anything measured in front of them (an arm too close for the
+                # depth camera) leaves a few that the ICP would tilt the pose to.
+                if tr.measured_ref > 0 and res.visible < c.icp_min_measured * tr.measured_ref:
+                    tr.fitness = 0.0
                 step_m = float(np.linalg.norm(res.T[:3, 3] - tr.T[:3, 3]))
                 step_deg = rotation_angle_deg(res.T[:3, :3] @ tr.T[:3, :3].T)
                 # A large step is the model sliding along a plane it shares with a neighbour
@@ -347,6 +406,7 @@ class InstanceTracker:
                 if tr.fitness >= c.icp_min_fitness and step_m <= c.icp_max_step and step_deg <= c.icp_max_step_deg:
                     tr.T = proper_pose(res.T)
                     seen[tr.track_id] = True
+                    tr.measured_ref = res.visible if tr.measured_ref <= 0 else 0.9 * tr.measured_ref + 0.1 * res.visible
                     # Confirmed at birth where the depth vouches for the whole of the object it
                     # can see: points hidden behind a neighbour are no evidence against it.
                     if (tr.state == TENTATIVE and c.confirm_fitness > 0 and tr.fitness > 0
@@ -362,25 +422,31 @@ class InstanceTracker:
                 tr.last_seen_ns = stamp_ns
                 if tr.state == COASTING:
                     tr.state = CONFIRMED
-                if T_prev is not None and stamp_ns > prev_stamp and tr.track_id not in jumped:
+                # The track's velocity is measured only from a confirmed pose: the step from a
+                # coasting one (a prediction) or a tentative one (one detection) is the
+                # correction of that pose, not the object's motion.
+                measured_before = tr.state_before == CONFIRMED
+                if (T_prev is not None and stamp_ns > prev_stamp and tr.track_id not in jumped
+                        and measured_before):
                     dt = (stamp_ns - prev_stamp) * 1e-9
                     # The track's own motion: what the shared (camera) motion does not explain.
                     start = apply_twist(T_prev, shared, dt) if shared is not None else T_prev
                     v = relative_twist(start, tr.T) / dt
                     w = 0.5
                     if tr.pulled:
-                        # v holds detection_gain (g) of the detection's residual: weigh it so
+                        # v holds the pull (g) of the detection's residual: weigh it so
                         # that the velocity gets Kalata's beta for alpha g, not half of it, or
                         # the prediction feeds detection noise back. (The shared motion keeps
                         # 0.5: it must follow a sweeping camera; at Kalata's weight the tracks
                         # lagged, development sweep seed 21 IDF1 0.998 -> 0.984.)
-                        g = c.detection_gain
+                        g = tr.pulled
                         w = min(0.5, kalata_beta(g) / g)
                     tr.velocity = (1.0 - w) * tr.velocity + w * v
-                    if tr.last_detected_ns != stamp_ns:
-                        # Depth only: the ICP leaves what the depth does not constrain at the
-                        # prediction, so the measured motion repeats the predicted one there
-                        # and a velocity (detection noise) would persist and drift the track.
+                    if tr.pulled or tr.last_detected_ns != stamp_ns:
+                        # Depth only, or a detection's pull: the ICP leaves what the depth does
+                        # not constrain at the prediction (plus the pull's share of a detection),
+                        # so the measured motion mostly repeats the predicted one there and a
+                        # velocity made of detection noise would persist and drift the track.
                         tr.velocity = c.velocity_decay * tr.velocity
                 self._filter_output(tr, (stamp_ns - prev_stamp) * 1e-9 if T_prev is not None else 0.0)
             else:
@@ -408,7 +474,7 @@ class InstanceTracker:
                 self.ended += 1
                 continue
             tr.history[-1] = (stamp_ns, tr.T.copy())
-            tr.pulled = False
+            tr.pulled = 0.0
             alive.append(tr)
         self.tracks = self._without_duplicates(alive)
 
@@ -439,10 +505,10 @@ class InstanceTracker:
         c = self.config
         residual = local_residual(tr.T_out, tr.T)
         alpha = 1.0 - c.smoothing
-        if (alpha >= 1.0 or dt <= 0 or np.linalg.norm(residual[3:]) > c.icp_max_step
+        if (alpha >= 1.0 or dt <= 0 or tr.state_before == TENTATIVE or np.linalg.norm(residual[3:]) > c.icp_max_step
                 or np.degrees(np.linalg.norm(residual[:3])) > c.icp_max_step_deg):
-            # Off, or the pose jumped (a reset by a disagreeing detection): publish the
-            # measurement, and start from the track's own velocity (about the camera's origin
+            # Off, just confirmed (nothing published yet), or the pose jumped (a reset by a
+            # disagreeing detection): publish the measurement, and start from the track's own velocity (about the camera's origin
             # there: the object's origin t moves by omega x t + tau).
             tr.T_out = tr.T.copy()
             v = tr.velocity + (self.camera_velocity if c.camera_motion else 0.0)   # own + shared (first order)
