@@ -187,6 +187,8 @@ class InstanceTracker:
         self.ended = 0                   # tracks ended so far
         self.stamp_ns: int | None = None # latest frame
         self.camera_velocity = np.zeros(6)   # shared motion per second (relative_twist form), camera_motion on
+        self.camera_correction: np.ndarray | None = None   # this frame's correction of the predicted camera motion
+        self._frame_dt = 0.0                 # s since the frame before
         # Rotations (model frame) under which the object looks the same; identity first.
         self.symmetries = [np.eye(3)] + [np.asarray(S, dtype=np.float64)[:3, :3] for S in (symmetries or [])]
         self.set_config(config or TrackerConfig())
@@ -203,6 +205,7 @@ class InstanceTracker:
         frame, or None when the detector did not run on it) correct them before the depth
         alignment. Returns what to publish for this frame."""
         self._predict(stamp_ns)
+        self._align_camera(depth_m, intrinsics)
         if detections is not None:
             self._fuse(stamp_ns, detections)
         self._align(stamp_ns, depth_m, intrinsics)
@@ -225,7 +228,29 @@ class InstanceTracker:
             tr.history.append((stamp_ns, tr.T.copy()))
             tr.state_before = tr.state
             tr.frames_since_pull += 1
+        self._frame_dt = (stamp_ns - self.stamp_ns) * 1e-9 if self.stamp_ns is not None else 0.0
         self.stamp_ns = stamp_ns
+
+    def _align_camera(self, depth_m, intrinsics) -> None:
+        """With camera_motion: correct the prediction by the one motion that aligns all
+        confirmed tracks to the depth together (the camera's, as the objects rest), before the
+        detections and each track's own ICP. Sets camera_correction (None: not measured)."""
+        c = self.config
+        self.camera_correction = None
+        anchors = [tr for tr in self.tracks if tr.state != TENTATIVE]
+        if not (c.camera_motion and anchors and self._icp is not None and depth_m is not None
+                and intrinsics is not None):
+            return
+        res = self._icp.align_all([tr.T for tr in anchors], depth_m, intrinsics)
+        step_m = float(np.linalg.norm(res.T[:3, 3]))
+        step_deg = rotation_angle_deg(res.T[:3, :3])
+        if res.fitness < c.icp_min_fitness or step_m > c.icp_max_step or step_deg > c.icp_max_step_deg:
+            return
+        D = proper_pose(res.T)
+        self.camera_correction = D
+        for tr in self.tracks:
+            tr.T = proper_pose(D @ tr.T)
+            tr.history[-1] = (tr.history[-1][0], tr.T.copy())
 
     def _closest_symmetric(self, T_det: np.ndarray, T_ref: np.ndarray) -> tuple[np.ndarray, float]:
         """The detection turned by the model symmetry that brings it closest to T_ref, and
@@ -485,6 +510,13 @@ class InstanceTracker:
         track's position is better known than its orientation, which a lever arm of half a
         metre would turn into millimetres). Updates camera_velocity for the next prediction;
         with no such track the last one stays."""
+        if self.camera_correction is not None and self._frame_dt > 0:
+            # Measured by the joint alignment: the predicted motion, corrected.
+            dt = self._frame_dt
+            M = self.camera_correction @ apply_twist(np.eye(4), self.camera_velocity, dt)
+            measured = relative_twist(np.eye(4), M) / dt
+            self.camera_velocity = 0.5 * self.camera_velocity + 0.5 * measured
+            return measured
         if not movers:
             return self.camera_velocity.copy()
         dts = np.array([(stamp_ns - tr.history[-2][0]) * 1e-9 for tr in movers])
