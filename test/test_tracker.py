@@ -373,17 +373,12 @@ def test_agreeing_detections_pull_the_unconstrained_directions_part_of_the_way()
     # their yaw nor where they lie on the table, and those follow the detections. Detections
     # with 1.5 mm and 1 deg of white noise in exactly those directions. Reset by every
     # detection (detection_gain 1) the published pose (smoothing 0.5) keeps 0.6 of it;
-    # pulled 0.3 of the way it must keep less (measured: 0.87 of that in position, 0.84 in
-    # yaw; the shared camera motion, estimated from the same noisy tracks, limits the gain),
-    # centred where the reset one was.
+    # pulled by the Kalman gain (detection_gain 0.3 for 100 inliers, these have 40) it must
+    # keep less (measured: 0.53 of that in position, 0.58 in yaw), centred where the reset
+    # one was.
     from scipy.spatial.transform import Rotation
     xs = (-0.16, -0.08, 0.0, 0.08, 0.16)
-    # Depth on the top faces only, 1 mm of noise (as in test_icp_moves_only_what_the_depth_constrains).
-    u, v = np.meshgrid(np.arange(320), np.arange(240))
-    X, Y = (u - 160) / 500.0 * 0.76, (v - 120) / 500.0 * 0.76
-    top = np.any([(np.abs(X - x) <= 0.027) & (np.abs(Y) <= 0.027) for x in xs], axis=0)
-    depth = np.zeros((240, 320), np.float32)
-    depth[top] = 0.76 + np.random.default_rng(5).normal(0.0, 0.001, top.sum()).astype(np.float32)
+    depth = top_faces_depth(xs)
     rng = np.random.default_rng(7)
     dets = [[Det(make_transform(rot_z(rng.normal(0, 1.0)), [x + rng.normal(0, 0.0015), rng.normal(0, 0.0015), 0.78]), 40)
              for x in xs] for _ in range(150)]
@@ -397,5 +392,95 @@ def test_agreeing_detections_pull_the_unconstrained_directions_part_of_the_way()
         spread[gain] = (np.median(pos[:, :, :2].std(axis=0)), np.median(yaw.std(axis=0)))
         centre[gain] = (pos.mean(axis=0), yaw.mean(axis=0))
     assert np.abs(centre[0.3][0] - centre[1.0][0]).max() < 0.0005 and np.abs(centre[0.3][1] - centre[1.0][1]).max() < 0.3
-    assert spread[0.3][0] < 0.95 * spread[1.0][0] and spread[0.3][1] < 0.9 * spread[1.0][1]
+    assert spread[0.3][0] < 0.7 * spread[1.0][0] and spread[0.3][1] < 0.7 * spread[1.0][1]
     assert spread[1.0][1] > 0.3                       # the noise did reach the published pose before
+
+
+def top_faces_depth(xs, noise=0.001, seed=5):
+    """The top faces (0.76 m) of boxes centred at (x, 0), nothing else measured: the depth
+    fixes their height and tilt, not their yaw nor where they lie on the table."""
+    u, v = np.meshgrid(np.arange(320), np.arange(240))
+    X, Y = (u - 160) / 500.0 * 0.76, (v - 120) / 500.0 * 0.76
+    top = np.any([(np.abs(X - x) <= 0.027) & (np.abs(Y) <= 0.027) for x in xs], axis=0)
+    depth = np.zeros((240, 320), np.float32)
+    depth[top] = 0.76 + np.random.default_rng(seed).normal(0.0, noise, top.sum()).astype(np.float32)
+    return depth
+
+
+def yaw_deg(T):
+    from scipy.spatial.transform import Rotation
+    return float(np.degrees(Rotation.from_matrix(T[:3, :3]).as_rotvec()[2]))
+
+
+def test_a_turned_detection_the_depth_cannot_judge_moves_the_track_only_when_repeated():
+    # A settled track of a box seen from its top; a detection turned by 8 deg (beyond
+    # icp_max_step_deg, inside gate_rotation_deg) that the depth fits as well as the track:
+    # one such detection (a weak one on a half-hidden box) leaves the track; flip_after of
+    # them in a row move it (the track was the wrong one).
+    depth = top_faces_depth([0.0])
+    tr = box_tracker()
+    for k in range(5):
+        tr.step(k * FRAME_NS, depth, BOX_INTR, [box_det(0.0)])
+    turned = Det(make_transform(rot_z(8.0), [0.0, 0.0, 0.78]), 8)
+    out = tr.step(5 * FRAME_NS, depth, BOX_INTR, [turned])
+    assert abs(yaw_deg(out[0].T)) < 0.5
+    for k in range(6, 6 + tr.config.flip_after):
+        out = tr.step(k * FRAME_NS, depth, BOX_INTR, [turned])
+    assert abs(yaw_deg(out[0].T) - 8.0) < 0.5 and out[0].track_id == 0
+
+
+def test_a_weak_detection_pulls_a_settled_track_less_than_a_strong_one():
+    # With smoothing on, the pull is a Kalman gain: a detection's variance is inversely
+    # proportional to its inliers.
+    depth = top_faces_depth([0.0])
+    moved = {}
+    for inliers in (10, 300):
+        tr = box_tracker(smoothing=0.5)
+        for k in range(20):
+            tr.step(k * FRAME_NS, depth, BOX_INTR, [box_det(0.0, inliers=100)])
+        tr.step(20 * FRAME_NS, depth, BOX_INTR, [Det(make_transform(rot_z(3.0), [0.0, 0.0, 0.78]), inliers)])
+        moved[inliers] = yaw_deg(tr.tracks[0].T)
+    assert 0.0 < moved[10] < 0.5 * moved[300] and moved[300] < 3.0
+
+
+def test_a_sliver_of_depth_does_not_move_a_track():
+    # An arm too close for the depth camera hides all but a strip of the box's top: the few
+    # points left are no measurement of the pose (icp_min_measured), the track coasts where
+    # it was; with the check off the strip counts as seen.
+    depth = without_edge_depth(box_depth(0.0))
+    sliver = depth.copy()
+    sliver[:, :172] = 0.0
+    for share, state in ((0.5, "coasting"), (0.0, "confirmed")):
+        tr = box_tracker(icp_min_measured=share)
+        for k in range(5):
+            tr.step(k * FRAME_NS, depth, BOX_INTR, [box_det(0.0)])
+        out = tr.step(5 * FRAME_NS, sliver, BOX_INTR, None)
+        assert [o.state for o in out] == [state]
+        assert np.linalg.norm(out[0].T[:3, 3] - [0.0, 0.0, 0.78]) < 0.002
+
+
+def test_the_joint_alignment_measures_the_camera_motion():
+    # Five boxes with their sides in view (table and box depth, no depth at the edges); the
+    # camera moved by 3 mm and 0.5 deg since the poses were known. One alignment of all five
+    # recovers the turn (which the top of one box does not show) and brings every box closer
+    # to its true pose than that box's own alignment does (measured: 1.0-1.1 mm left in the
+    # table's plane, which the steep sides barely measure, against 1.5-2.2 mm and 0.1-0.7
+    # deg for each box alone).
+    centres = ((-0.15, -0.08), (0.15, -0.08), (0.0, 0.0), (-0.15, 0.08), (0.15, 0.08))
+    u, v = np.meshgrid(np.arange(320), np.arange(240))
+    depth = np.full((240, 320), 0.80, np.float32)
+    X, Y = (u - 160) / 500.0 * 0.76, (v - 120) / 500.0 * 0.76
+    for x, y in centres:
+        depth[(np.abs(X - x) <= 0.03) & (np.abs(Y - y) <= 0.03)] = 0.76
+    depth = without_edge_depth(depth)
+    motion = make_transform(rot_z(0.5), [0.003, -0.002, 0.0])
+    truth = [make_transform(np.eye(3), [x, y, 0.78]) for x, y in centres]
+    known = [np.linalg.inv(motion) @ T for T in truth]       # where the tracks think they are
+    icp = ProjectiveICP(box_model().points_xyz, 400, 10, 0.03, 0.006)
+    D = icp.align_all(known, depth, BOX_INTR).T
+    assert rotation_angle_deg(D[:3, :3].T @ motion[:3, :3]) < 0.1
+    for T_known, T_true in zip(known, truth):
+        alone = icp.align(T_known, depth, BOX_INTR).T
+        joint = D @ T_known
+        assert np.linalg.norm(joint[:3, 3] - T_true[:3, 3]) < np.linalg.norm(alone[:3, 3] - T_true[:3, 3])
+        assert rotation_angle_deg(joint[:3, :3].T @ T_true[:3, :3]) < 0.1
