@@ -406,11 +406,19 @@ class InstanceTracker:
                     # two apart (a box's yaw seen from its top; an arm hiding most of the
                     # object) one detection is not enough to move the track: flip_after such
                     # detections in a row are.
-                    undecided = own.fitness == res.fitness or max(own.fitness, res.fitness) < c.icp_min_fitness
+                    if tr.state == COASTING:
+                        # Not confirmed by the depth on the frame before, mostly because
+                        # something covers it: the points hidden behind that are evidence
+                        # for neither pose. (For a confirmed track this cost the pan with the
+                        # arm two identity switches.)
+                        own_f, res_f = own.unoccluded_fitness, res.unoccluded_fitness
+                    else:
+                        own_f, res_f = own.fitness, res.fitness
+                    undecided = own_f == res_f or max(own_f, res_f) < c.icp_min_fitness
                     if undecided:
                         take_detection = tr.far_detections >= c.flip_after
                     else:
-                        take_detection = res.fitness > own.fitness
+                        take_detection = res_f > own_f
                     if take_detection:
                         tr.far_detections = 0
                         self._reset_pull(tr, tr.inliers)
