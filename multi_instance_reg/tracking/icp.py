@@ -235,9 +235,9 @@ class ProjectiveICP:
 
     def align_all(self, poses, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> IcpResult:
         """One rigid motion D (camera frame) that aligns every instance at its pose in
-        ``poses`` to the depth image at once: the camera's motion when the objects rest. The
-        instances constrain what each one alone leaves free (a box's yaw seen from its top is
-        its neighbour's tilt), and thousands of points average the depth noise."""
+        ``poses`` to the depth image at once: the camera's motion when the objects rest. What
+        one instance leaves free (a box seen from its top: where it lies on the table) the
+        others' faces may constrain, and thousands of points average the depth noise."""
         pts = np.concatenate([T[:3, :3] @ self.points.T + T[:3, 3:4] for T in poses], axis=1).T
         nrm = np.concatenate([T[:3, :3] @ self.normals.T for T in poses], axis=1).T
         return align_projective(np.eye(4), pts, nrm, depth_m, intrinsics, self.iterations, self.max_distance,

@@ -55,7 +55,7 @@ class TrackerConfig:
     coast_s: float = param(1.0, "s: a confirmed track that is neither detected nor confirmed by the depth for longer than this ends (it is published as coasting meanwhile)", 0.0, 60.0)
     max_undetected_s: float = param(1.5, "s: a track kept by the depth alone, with no detection for longer than this, ends (0 = never)", 0.0, 3600.0)
     duplicate_distance: float = param(0.015, "m: two tracks whose positions come closer than this follow one object: the younger ends", 0.0, 1.0)
-    camera_motion: bool = param(True, "predict every track by one motion shared by all (the camera's: objects rest and the camera moves), estimated robustly on each frame from the tracks the depth or a detection saw (median rotation, then median translation), plus the track's own residual velocity; an occluded (coasting) track follows the shared motion. Off: each track's own constant velocity, an occluded one follows the nearest seen track")
+    camera_motion: bool = param(True, "predict every track by one motion shared by all (the camera's: objects rest and the camera moves), corrected on each frame by one ICP of all confirmed and coasting tracks together against the depth (where that is refused or no such track is in view: the median rotation, then the median translation of the steps of the tracks the depth or a detection saw), plus the track's own residual velocity; an occluded (coasting) track follows the shared motion. Off: each track's own constant velocity, an occluded one follows the nearest seen track")
     velocity_decay: float = param(0.5, "share of a track's own velocity (with camera_motion: what the shared motion does not explain) kept per frame the track is updated by the depth alone (no detection): a velocity the depth does not confirm (a box sliding along the table plane it shares with its neighbours) dies out instead of carrying the track away from a resting object; 1 = constant velocity", 0.0, 1.0)
     smoothing: float = param(0.0, "pose smoothing, 0 = off (the published pose is the measured one) to 0.95 (heavy): the published pose is a constant-velocity (alpha-beta) filter of the measured one with gain 1 - smoothing, so a resting object's pose settles and a steadily moving one does not lag; a measurement further than icp_max_step / icp_max_step_deg from the filter restarts it", 0.0, 0.95)
     detection_gain: float = param(0.3, "with smoothing on: share of an agreeing detection's correction (within icp_max_step / icp_max_step_deg of a confirmed track, no symmetric flip) that moves a resting track in the steady state, for a detection of detection_gain_inliers inliers (a Kalman gain: the first detections of a track are averaged, weaker ones pull less, stronger ones more); the ICP then re-fits what the depth constrains, so this filters only what it does not (a box seen from its top: its yaw and where it lies on the table), which a detection would otherwise reset with its own noise on every frame. 1 = reset; unused with smoothing 0 (the track is then the measured pose)", 0.01, 1.0)
@@ -233,8 +233,9 @@ class InstanceTracker:
 
     def _align_camera(self, depth_m, intrinsics) -> None:
         """With camera_motion: correct the prediction by the one motion that aligns all
-        confirmed tracks to the depth together (the camera's, as the objects rest), before the
-        detections and each track's own ICP. Sets camera_correction (None: not measured)."""
+        confirmed and coasting tracks to the depth together (the camera's, as the objects
+        rest), before the detections and each track's own ICP. Sets camera_correction (None:
+        not measured; the median of the tracks' own steps is used then)."""
         c = self.config
         self.camera_correction = None
         anchors = [tr for tr in self.tracks if tr.state != TENTATIVE]
@@ -548,8 +549,9 @@ class InstanceTracker:
         if (alpha >= 1.0 or dt <= 0 or tr.state_before == TENTATIVE or np.linalg.norm(residual[3:]) > c.icp_max_step
                 or np.degrees(np.linalg.norm(residual[:3])) > c.icp_max_step_deg):
             # Off, just confirmed (nothing published yet), or the pose jumped (a reset by a
-            # disagreeing detection): publish the measurement, and start from the track's own velocity (about the camera's origin
-            # there: the object's origin t moves by omega x t + tau).
+            # disagreeing detection): publish the measurement, and start from the track's own
+            # velocity (about the camera's origin there: the object's origin t moves by
+            # omega x t + tau).
             tr.T_out = tr.T.copy()
             v = tr.velocity + (self.camera_velocity if c.camera_motion else 0.0)   # own + shared (first order)
             omega, tau = v[:3], v[3:]
