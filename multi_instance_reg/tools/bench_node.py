@@ -42,7 +42,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--model", type=Path, action="append", default=[],
                         help="model file, once per object (default: make the demo's one-object data)")
     parser.add_argument("--frames", type=int, default=300, metavar="N", help="frames at 30 Hz for the latency figures")
-    parser.add_argument("--overload-frames", type=int, default=300, metavar="N", help="frames at --overload-rate")
+    parser.add_argument("--overload-frames", type=int, default=300, metavar="N", help="frames at --overload-rate (0 = skip)")
     parser.add_argument("--overload-rate", type=float, default=60.0, metavar="HZ")
     parser.add_argument("--rss-frames", type=int, default=5000, metavar="N",
                         help="frames at 30 Hz for the memory figures (0 = skip)")
@@ -272,16 +272,17 @@ def run(args) -> int:
             "e2e_ms_p50": _pct(lat, 50), "e2e_ms_p95": _pct(lat, 95), "e2e_ms_mean": round(float(lat.mean()), 1) if len(lat) else None}
 
         # 2. overload.
-        first, last = bench.publish(args.overload_frames, args.overload_rate)
-        _settle(bench, last)
-        span = (last - first) / 3
-        early, late = bench.window(first, first + span), bench.window(last - span, last)
-        figures["overload"] = {
-            "rate_hz": args.overload_rate, "frames_sent": args.overload_frames,
-            "frames_with_poses": int(len(bench.window(first, last))),
-            "dropped": args.overload_frames - int(len(bench.window(first, last))),
-            "e2e_ms_p50_first_third": _pct(early, 50), "e2e_ms_p50_last_third": _pct(late, 50),
-            "e2e_ms_p95_first_third": _pct(early, 95), "e2e_ms_p95_last_third": _pct(late, 95)}
+        if args.overload_frames:
+            first, last = bench.publish(args.overload_frames, args.overload_rate)
+            _settle(bench, last)
+            span = (last - first) / 3
+            early, late = bench.window(first, first + span), bench.window(last - span, last)
+            figures["overload"] = {
+                "rate_hz": args.overload_rate, "frames_sent": args.overload_frames,
+                "frames_with_poses": int(len(bench.window(first, last))),
+                "dropped": args.overload_frames - int(len(bench.window(first, last))),
+                "e2e_ms_p50_first_third": _pct(early, 50), "e2e_ms_p50_last_third": _pct(late, 50),
+                "e2e_ms_p95_first_third": _pct(early, 95), "e2e_ms_p95_last_third": _pct(late, 95)}
 
         # 3. memory over a long replay.
         if args.rss_frames:
@@ -351,11 +352,12 @@ def _print(f: dict) -> None:
           f"{r['colour_images_received_by_node']} colour images arrived at the node")
     print(f"  of which the node's per-frame work (tracking; without tracking the pipeline) p50 {r['pipeline_ms_p50']} ms; "
           f"node + DDS + waiting p50 {r['node_and_dds_ms_p50']} ms")
-    o = f["overload"]
-    print(f"camera outrunning the pipeline ({o['rate_hz']:g} Hz, {o['frames_sent']} frames):")
-    print(f"  p50 {o['e2e_ms_p50_first_third']} ms in the first third, {o['e2e_ms_p50_last_third']} ms in the last; "
-          f"p95 {o['e2e_ms_p95_first_third']} / {o['e2e_ms_p95_last_third']} ms; "
-          f"{o['frames_with_poses']} processed, {o['dropped']} dropped")
+    if "overload" in f:
+        o = f["overload"]
+        print(f"camera outrunning the pipeline ({o['rate_hz']:g} Hz, {o['frames_sent']} frames):")
+        print(f"  p50 {o['e2e_ms_p50_first_third']} ms in the first third, {o['e2e_ms_p50_last_third']} ms in the last; "
+              f"p95 {o['e2e_ms_p95_first_third']} / {o['e2e_ms_p95_last_third']} ms; "
+              f"{o['frames_with_poses']} processed, {o['dropped']} dropped")
     if "long_replay" in f:
         m = f["long_replay"]
         print(f"{m['frames_sent']} frames at 30 Hz: poses for {100 * m['share_with_poses']:.1f} % of them "
