@@ -243,6 +243,12 @@ def test_outline_shift_moves_a_face_onto_the_patch_its_outline_bounds():
     assert np.linalg.norm(off[:3, 3] + shift - T[:3, 3]) < 0.006
     # At the right pose nothing to move.
     assert np.linalg.norm(outline_shift(T, face, normals, depth, K, 0.01, 0.01, reach=0.04)) < 0.003
+    # Turned in its plane (about the line of sight, through its centre): the turn back.
+    c, sn = np.cos(np.radians(7.0)), np.sin(np.radians(7.0))
+    turned = T.copy()
+    turned[:3, :3] = np.array([[c, -sn, 0], [sn, c, 0], [0, 0, 1]]) @ T[:3, :3]
+    _, turn = outline_shift(turned, face, normals, depth, K, 0.01, 0.01, reach=0.04, with_turn=True)
+    assert abs(np.degrees(turn) + 7.0) < 1.5
     # On a piece of a larger surface (no gap: the plane goes on beyond reach) no patch bounds it.
     depth[rows, cols.stop:cols.stop + 60] = 1.3
     assert outline_shift(off, face, normals, depth, K, 0.01, 0.01, reach=0.04) is None

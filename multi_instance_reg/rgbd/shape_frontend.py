@@ -22,7 +22,7 @@ from .lifting import depth_to_cloud
 from .ppf import ANGLE_BINS as ANGLE_STEPS, PPFModel, cluster_poses
 from .segments import connected_segments, support_mask
 from .verify import facing_camera, outline_continuation, outline_shift
-from .shape import (PointGrid, ShapeMatcher, depth_support, describe, icp_point_to_plane, scene_cloud,
+from .shape import (PointGrid, ShapeMatcher, apply_twist, depth_support, describe, icp_point_to_plane, scene_cloud,
                     surface_normals, voxel_downsample)
 
 
@@ -192,13 +192,21 @@ class ShapeFrontEnd:
                 T1 = T
                 for _ in range(fe.shape_outline_rounds):
                     same = max(3.0 * fe.shape_depth_noise * float(T1[2, 3]) ** 2, 0.002)
-                    shift = outline_shift(T1, self._surface, self._surface_normals, depth_m, intrinsics,
-                                          self.voxel, same, 0.1 * self.diameter + self.voxel)
-                    if shift is not None:
-                        shift = self._unheld(T1) @ shift
-                    if shift is None or np.linalg.norm(shift) < 0.25 * self.voxel:
+                    moved = outline_shift(T1, self._surface, self._surface_normals, depth_m, intrinsics,
+                                          self.voxel, same, 0.1 * self.diameter + self.voxel, with_turn=True)
+                    if moved is None:
+                        break
+                    unheld, axis, centre = self._unheld(T1)
+                    shift = unheld @ moved[0]
+                    turn = moved[1] if axis is not None else 0.0
+                    if np.linalg.norm(shift) < 0.25 * self.voxel and abs(turn) * self.diameter < 0.25 * self.voxel:
                         break
                     T1 = T1.copy()
+                    if turn != 0.0:
+                        # About the one held direction (the face's normal), through the visible
+                        # surface's centre; image u towards v is a turn about +z.
+                        a = axis if axis[2] >= 0 else -axis
+                        T1 = apply_twist(T1, np.concatenate([turn * a, np.zeros(3)]), centre)
                     T1[:3, 3] += shift
                     T1 = self._icp(T1, cloud, depth_m, intrinsics, 1.5 * self.voxel, first)
                     _, support, free, n = fit(T1)
@@ -209,19 +217,24 @@ class ShapeFrontEnd:
                 out.append(kept)
         return out
 
-    def _unheld(self, T) -> np.ndarray:
+    def _unheld(self, T):
         """(3, 3) projection onto the directions in which the visible surface's normals do not
         hold the model (point-to-plane ICP's weak translations): a face seen alone, its
         plane; a lying cylinder, its axis. Elsewhere ICP places the model, and the outline
-        shift must not move it."""
+        shift must not move it. With it: the one held direction when only one is (a face
+        seen alone: turning about it is free too), else None, and the visible surface's
+        centre (camera frame)."""
         R, t = T[:3, :3], T[:3, 3]
+        p = self._surface @ R.T + t
         n = self._surface_normals @ R.T
-        n = n[facing_camera(self._surface @ R.T + t, n)]
+        facing = facing_camera(p, n)
+        n = n[facing]
         if len(n) < 3:
-            return np.zeros((3, 3))
+            return np.zeros((3, 3)), None, t
         w, V = np.linalg.eigh(n.T @ n / len(n))
         weak = V[:, w < UNHELD_SHARE]
-        return weak @ weak.T
+        held = V[:, w >= UNHELD_SHARE]
+        return weak @ weak.T, (held[:, 0] if held.shape[1] == 1 else None), p[facing].mean(axis=0)
 
     def _judge(self, T, support, free, n, cloud: FrameCloud, depth_m, intrinsics):
         """(T, support, agreeing points) when the depth and the outline accept pose T, else None."""

@@ -18,6 +18,9 @@ from scipy.spatial import cKDTree
 
 from ..messages import CameraIntrinsics
 
+# Second-moment elongation (0: round, 1: a line) above which a mask's long axis is defined.
+MIN_ELONGATION = 0.2
+
 
 def _points_and_normals(depth: np.ndarray, K: np.ndarray, rows: np.ndarray, cols: np.ndarray, step: int = 2
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -136,7 +139,7 @@ def outline_continuation(T: np.ndarray, model_pts: np.ndarray, model_normals: np
 
 def outline_shift(T: np.ndarray, model_pts: np.ndarray, model_normals: np.ndarray, depth_m: np.ndarray,
                   intrinsics: CameraIntrinsics, voxel: float, tolerance: float, reach: float,
-                  max_angle_deg: float = 30.0) -> np.ndarray | None:
+                  max_angle_deg: float = 30.0, with_turn: bool = False):
     """The translation (camera frame, parallel to the image plane) that moves the model's
     silhouette at pose T onto the patch of depth surface it lies on, or None when there is
     no bounded patch. The patch: pixels within ``reach`` of the silhouette where the nearest
@@ -145,7 +148,10 @@ def outline_shift(T: np.ndarray, model_pts: np.ndarray, model_normals: np.ndarra
     to hold it in its plane: a pose off by a few centimetres along it stays off, and
     overhangs a gap ("free") while the face continues on the other side. Its outline, where
     the depth steps away, does place it. A patch that reaches ``reach`` beyond the
-    silhouette is part of a larger surface: None (the outline check rejects such poses)."""
+    silhouette is part of a larger surface: None (the outline check rejects such poses).
+    ``with_turn``: (translation, turn): also the angle (radians, about the line of sight,
+    image u towards v) that turns the silhouette's long axis onto the patch's; 0 when either
+    is not elongated (a face seen alone cannot be turned in its plane by ICP either)."""
     R, t = T[:3, :3], T[:3, 3]
     p = model_pts @ R.T + t
     n = model_normals @ R.T
@@ -210,7 +216,22 @@ def outline_shift(T: np.ndarray, model_pts: np.ndarray, model_normals: np.ndarra
     pr, pc = np.nonzero(patch)
     br, bc = np.nonzero(body)
     du, dv = pc.mean() - bc.mean(), pr.mean() - br.mean()
-    return np.array([du * zm / K[0, 0], dv * zm / K[1, 1], 0.0])
+    shift = np.array([du * zm / K[0, 0], dv * zm / K[1, 1], 0.0])
+    if not with_turn:
+        return shift
+    # The turn in the image between the two masks' long axes (second moments), when both
+    # have one (an elongated face; a square's axes are not defined).
+    def axis(r, c):
+        r, c = r - r.mean(), c - c.mean()
+        a, b, d = (c * c).mean(), (r * c).mean(), (r * r).mean()
+        elong = np.hypot(a - d, 2 * b) / max(a + d, 1e-12)
+        return 0.5 * np.arctan2(2 * b, a - d), elong
+    ap, ep = axis(pr, pc)
+    ab, eb = axis(br, bc)
+    turn = 0.0
+    if min(ep, eb) > MIN_ELONGATION:
+        turn = float((ap - ab + np.pi / 2) % np.pi - np.pi / 2)
+    return shift, turn
 
 
 def texture_agreement(T: np.ndarray, keypoints: np.ndarray, keypoint_normals: np.ndarray, symmetries,
