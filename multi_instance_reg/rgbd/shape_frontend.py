@@ -185,18 +185,20 @@ class ShapeFrontEnd:
             # image supports better.
             _, support, free, n, T = max([cand, fit(T) + (T,)], key=lambda c: c[0])
             kept = self._judge(T, support, free, n, cloud, depth_m, intrinsics)
-            if kept is None and support >= fe.shape_min_support:
+            if kept is None and support >= fe.shape_min_support :
                 # The depth confirms it, but it overhangs empty space or stops short of its
                 # face's edge: off along a face seen alone, where ICP cannot hold it. Moved onto the
                 # patch its outline bounds, ICP'd back onto the depth, judged again.
                 T1 = T
                 for _ in range(fe.shape_outline_rounds):
+                    unheld, axis, centre = self._unheld(T1)
+                    if not unheld.any():
+                        break       # the normals hold every direction: ICP has placed it
                     same = max(3.0 * fe.shape_depth_noise * float(T1[2, 3]) ** 2, 0.002)
                     moved = outline_shift(T1, self._surface, self._surface_normals, depth_m, intrinsics,
                                           self.voxel, same, 0.1 * self.diameter + self.voxel, with_turn=True)
                     if moved is None:
                         break
-                    unheld, axis, centre = self._unheld(T1)
                     shift = unheld @ moved[0]
                     turn = moved[1] if axis is not None else 0.0
                     if np.linalg.norm(shift) < 0.25 * self.voxel and abs(turn) * self.diameter < 0.25 * self.voxel:

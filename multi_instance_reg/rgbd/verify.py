@@ -187,8 +187,12 @@ def outline_shift(T: np.ndarray, model_pts: np.ndarray, model_normals: np.ndarra
     crop[vi[shown] - v0, ui[shown] - u0] = 1
     body = cv2.dilate(crop, disc(splat)) > 0
     region = cv2.dilate(body.astype(np.uint8), disc(reach_px)) > 0
+    # Looked at every half voxel: finer pixels add nothing to where a voxel-sampled model
+    # sits, and every pixel of a carton at 1.5 m cost 36 ms a call.
+    step = max(1, int(0.5 * voxel * px_per_m))
+    body, region = body[::step, ::step], region[::step, ::step]
     rows, cols = np.nonzero(region)
-    P, nP, ok = _points_and_normals(depth_m, K, rows + v0, cols + u0)
+    P, nP, ok = _points_and_normals(depth_m, K, rows * step + v0, cols * step + u0)
     rows, cols = rows[ok], cols[ok]
     if len(rows) == 0:
         return None
@@ -216,7 +220,7 @@ def outline_shift(T: np.ndarray, model_pts: np.ndarray, model_normals: np.ndarra
     pr, pc = np.nonzero(patch)
     br, bc = np.nonzero(body)
     du, dv = pc.mean() - bc.mean(), pr.mean() - br.mean()
-    shift = np.array([du * zm / K[0, 0], dv * zm / K[1, 1], 0.0])
+    shift = np.array([du * step * zm / K[0, 0], dv * step * zm / K[1, 1], 0.0])
     if not with_turn:
         return shift
     # The turn in the image between the two masks' long axes (second moments), when both
