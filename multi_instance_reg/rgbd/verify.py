@@ -185,12 +185,13 @@ def outline_shift(T: np.ndarray, model_pts: np.ndarray, model_normals: np.ndarra
     disc = lambda r: cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
     crop = np.zeros((v1 - v0, u1 - u0), np.uint8)
     crop[vi[shown] - v0, ui[shown] - u0] = 1
-    body = cv2.dilate(crop, disc(splat)) > 0
-    region = cv2.dilate(body.astype(np.uint8), disc(reach_px)) > 0
+    body = cv2.dilate(crop, disc(splat))
     # Looked at every half voxel: finer pixels add nothing to where a voxel-sampled model
     # sits, and every pixel of a carton at 1.5 m cost 36 ms a call.
     step = max(1, int(0.5 * voxel * px_per_m))
-    body, region = body[::step, ::step], region[::step, ::step]
+    body = body[::step, ::step]
+    region = cv2.dilate(body, disc(max(1, int(round(reach_px / step))))) > 0
+    body = body > 0
     rows, cols = np.nonzero(region)
     P, nP, ok = _points_and_normals(depth_m, K, rows * step + v0, cols * step + u0)
     rows, cols = rows[ok], cols[ok]
