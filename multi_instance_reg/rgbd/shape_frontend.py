@@ -185,10 +185,10 @@ class ShapeFrontEnd:
             # image supports better.
             _, support, free, n, T = max([cand, fit(T) + (T,)], key=lambda c: c[0])
             kept = self._judge(T, support, free, n, cloud, depth_m, intrinsics)
-            if kept is None and support >= fe.shape_min_support :
+            if kept is None and support >= fe.shape_min_support:
                 # The depth confirms it, but it overhangs empty space or stops short of its
-                # face's edge: off along a face seen alone, where ICP cannot hold it. Moved onto the
-                # patch its outline bounds, ICP'd back onto the depth, judged again.
+                # face's edge: off along a face seen alone, where ICP cannot hold it. Moved
+                # onto the patch its outline bounds, ICP'd back onto the depth, judged again.
                 T1 = T
                 for _ in range(fe.shape_outline_rounds):
                     unheld, axis, centre = self._unheld(T1)
@@ -206,7 +206,8 @@ class ShapeFrontEnd:
                     T1 = T1.copy()
                     if turn != 0.0:
                         # About the one held direction (the face's normal), through the visible
-                        # surface's centre; image u towards v is a turn about +z.
+                        # surface's centre; image u towards v is a turn about +z (the turn is
+                        # measured in the image: exact for a face square to the line of sight).
                         a = axis if axis[2] >= 0 else -axis
                         T1 = apply_twist(T1, np.concatenate([turn * a, np.zeros(3)]), centre)
                     T1[:3, 3] += shift
