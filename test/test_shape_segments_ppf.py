@@ -225,6 +225,34 @@ def test_outline_continuation_ignores_a_neighbour_past_a_gap_and_what_lies_below
     assert below > 0.1 and with_up < 0.02
 
 
+
+def test_outline_shift_moves_a_face_onto_the_patch_its_outline_bounds():
+    from multi_instance_reg.rgbd.verify import outline_shift
+
+    K, face, normals = _face_and_depth()
+    T = make_transform(np.eye(3), [0.0, 0.0, 1.3])
+    rows, cols = _face_pixels(K, face, T)
+    # The box top, a neighbour's top past a 3 px gap on the pallet's grid, pallet below.
+    depth = np.full((240, 320), 1.5, np.float32)
+    depth[rows, cols] = 1.3
+    depth[rows, cols.stop + 3:cols.stop + 60] = 1.3
+    off = T.copy()
+    off[:3, 3] += [0.025, -0.015, 0.0]                        # 2.9 cm off along the face
+    shift = outline_shift(off, face, normals, depth, K, 0.01, 0.01, reach=0.04)
+    assert shift is not None and abs(shift[2]) < 1e-9
+    assert np.linalg.norm(off[:3, 3] + shift - T[:3, 3]) < 0.006
+    # At the right pose nothing to move.
+    assert np.linalg.norm(outline_shift(T, face, normals, depth, K, 0.01, 0.01, reach=0.04)) < 0.003
+    # Turned in its plane (about the line of sight, through its centre): the turn back.
+    c, sn = np.cos(np.radians(7.0)), np.sin(np.radians(7.0))
+    turned = T.copy()
+    turned[:3, :3] = np.array([[c, -sn, 0], [sn, c, 0], [0, 0, 1]]) @ T[:3, :3]
+    _, turn = outline_shift(turned, face, normals, depth, K, 0.01, 0.01, reach=0.04, with_turn=True)
+    assert abs(np.degrees(turn) + 7.0) < 1.5
+    # On a piece of a larger surface (no gap: the plane goes on beyond reach) no patch bounds it.
+    depth[rows, cols.stop:cols.stop + 60] = 1.3
+    assert outline_shift(off, face, normals, depth, K, 0.01, 0.01, reach=0.04) is None
+
 def test_ppf_partners_stay_within_the_objects_reach_in_a_joined_segment():
     """A segment that joins the object with a wide surface far away (touching objects, a
     pallet's layer): the references still vote with partners on their own object."""

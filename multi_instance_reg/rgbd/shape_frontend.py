@@ -21,13 +21,15 @@ from .model import ObjectModel
 from .lifting import depth_to_cloud
 from .ppf import ANGLE_BINS as ANGLE_STEPS, PPFModel, cluster_poses
 from .segments import connected_segments, support_mask
-from .verify import outline_continuation
-from .shape import (PointGrid, ShapeMatcher, depth_support, describe, icp_point_to_plane, scene_cloud,
+from .verify import facing_camera, outline_continuation, outline_shift
+from .shape import (PointGrid, ShapeMatcher, apply_twist, depth_support, describe, icp_point_to_plane, scene_cloud,
                     surface_normals, voxel_downsample)
 
 
 # ICP pairs a model point with a scene point at most this many voxels away.
 ICP_REACH = 2.0
+# A direction holds ICP when at least this share of the visible normals' weight lies along it.
+UNHELD_SHARE = 0.1
 
 
 @dataclass
@@ -182,17 +184,75 @@ class ShapeFrontEnd:
             # ICP can slide a box seen by one face alone: keep whichever pose the depth
             # image supports better.
             _, support, free, n, T = max([cand, fit(T) + (T,)], key=lambda c: c[0])
-            if n < fe.shape_min_visible or support < fe.shape_min_support or free > fe.shape_max_free:
-                continue
-            # A piece of a larger surface (a carton fitted onto a crate's top) agrees with the
-            # depth wherever it covers: what tells is the same surface continuing just past
-            # its outline, "same" meaning within the depth noise (3 sigma) at its distance.
-            same = max(3.0 * fe.shape_depth_noise * float(T[2, 3]) ** 2, 0.002)
-            outline, _ = outline_continuation(T, self._surface, self._surface_normals, depth_m, intrinsics,
-                                              self.voxel, same, up=cloud.up)
-            if support - free - 2.0 * outline >= fe.shape_min_evidence:
-                out.append((T, support, int(round(support * n))))
+            kept = self._judge(T, support, free, n, cloud, depth_m, intrinsics)
+            if kept is None and support >= fe.shape_min_support:
+                # The depth confirms it, but it overhangs empty space or stops short of its
+                # face's edge: off along a face seen alone, where ICP cannot hold it. Moved
+                # onto the patch its outline bounds, ICP'd back onto the depth, judged again.
+                T1 = T
+                for _ in range(fe.shape_outline_rounds):
+                    unheld, axis, centre = self._unheld(T1)
+                    if not unheld.any():
+                        break       # the normals hold every direction: ICP has placed it
+                    same = max(3.0 * fe.shape_depth_noise * float(T1[2, 3]) ** 2, 0.002)
+                    moved = outline_shift(T1, self._surface, self._surface_normals, depth_m, intrinsics,
+                                          self.voxel, same, 0.1 * self.diameter + self.voxel, with_turn=True)
+                    if moved is None:
+                        break
+                    shift = unheld @ moved[0]
+                    turn = moved[1] if axis is not None else 0.0
+                    if np.linalg.norm(shift) < 0.25 * self.voxel and abs(turn) * self.diameter < 0.25 * self.voxel:
+                        break
+                    T1 = T1.copy()
+                    if turn != 0.0:
+                        # About the one held direction (the face's normal), through the visible
+                        # surface's centre; image u towards v is a turn about +z (the turn is
+                        # measured in the image: exact for a face square to the line of sight).
+                        a = axis if axis[2] >= 0 else -axis
+                        T1 = apply_twist(T1, np.concatenate([turn * a, np.zeros(3)]), centre)
+                    T1[:3, 3] += shift
+                    T1 = self._icp(T1, cloud, depth_m, intrinsics, 1.5 * self.voxel, first)
+                    _, support, free, n = fit(T1)
+                    kept = self._judge(T1, support, free, n, cloud, depth_m, intrinsics)
+                    if kept is not None:
+                        break
+            if kept is not None:
+                out.append(kept)
         return out
+
+    def _unheld(self, T):
+        """(3, 3) projection onto the directions in which the visible surface's normals do not
+        hold the model (point-to-plane ICP's weak translations): a face seen alone, its
+        plane; a lying cylinder, its axis. Elsewhere ICP places the model, and the outline
+        shift must not move it. With it: the one held direction when only one is (a face
+        seen alone: turning about it is free too), else None, and the visible surface's
+        centre (camera frame)."""
+        R, t = T[:3, :3], T[:3, 3]
+        p = self._surface @ R.T + t
+        n = self._surface_normals @ R.T
+        facing = facing_camera(p, n)
+        n = n[facing]
+        if len(n) < 3:
+            return np.zeros((3, 3)), None, t
+        w, V = np.linalg.eigh(n.T @ n / len(n))
+        weak = V[:, w < UNHELD_SHARE]
+        held = V[:, w >= UNHELD_SHARE]
+        return weak @ weak.T, (held[:, 0] if held.shape[1] == 1 else None), p[facing].mean(axis=0)
+
+    def _judge(self, T, support, free, n, cloud: FrameCloud, depth_m, intrinsics):
+        """(T, support, agreeing points) when the depth and the outline accept pose T, else None."""
+        fe = self.fe
+        if n < fe.shape_min_visible or support < fe.shape_min_support or free > fe.shape_max_free:
+            return None
+        # A piece of a larger surface (a carton fitted onto a crate's top) agrees with the
+        # depth wherever it covers: what tells is the same surface continuing just past
+        # its outline, "same" meaning within the depth noise (3 sigma) at its distance.
+        same = max(3.0 * fe.shape_depth_noise * float(T[2, 3]) ** 2, 0.002)
+        outline, _ = outline_continuation(T, self._surface, self._surface_normals, depth_m, intrinsics,
+                                          self.voxel, same, up=cloud.up)
+        if support - free - 2.0 * outline >= fe.shape_min_evidence:
+            return T, support, int(round(support * n))
+        return None
 
     def _icp(self, T, cloud: FrameCloud, depth_m, intrinsics, max_dist: float, iterations: int) -> np.ndarray:
         """Point-to-plane ICP of the model's surface facing the camera, paired as
