@@ -145,12 +145,19 @@ class ShapeFrontEnd:
         s, m = self._matcher.match(cloud.descriptors)
         return self._model_pts[self._model_idx[m]], cloud.points[cloud.salient[s]]
 
-    def refine_and_check(self, transforms, cloud: FrameCloud, depth_m: np.ndarray, intrinsics: CameraIntrinsics
-                         ) -> list[tuple[np.ndarray, float, int]]:
+    def refine_and_check(self, transforms, cloud: FrameCloud, depth_m: np.ndarray, intrinsics: CameraIntrinsics,
+                         distinct=None) -> list[tuple[np.ndarray, float, int]]:
         """Each transform refined by ICP against the frame's points and kept when the depth
-        image agrees with the model's visible surface: (T, support share, agreeing points)."""
+        image agrees with the model's visible surface: (T, support share, agreeing points).
+
+        ``distinct(T, kept)`` (optional; kept: the poses kept so far): whether T may stand
+        beside them (the caller's one-instance-per-place rule). Given it, the hypotheses
+        that pass the depth checks are taken most agreeing points first and the outline
+        check is run only on those distinct from the ones kept: the same instances as
+        checking all and then keeping the distinct ones, for fewer outline checks."""
         fe = self.fe
         out = []
+        pending = []
         if cloud.grid is None:
             return out
         tol = self.depth_tolerance
@@ -184,6 +191,14 @@ class ShapeFrontEnd:
             _, support, free, n, T = max([cand, fit(T) + (T,)], key=lambda c: c[0])
             if n < fe.shape_min_visible or support < fe.shape_min_support or free > fe.shape_max_free:
                 continue
+            # The outline's share is at least 0: without the evidence even at 0, no need to look.
+            if support - free >= fe.shape_min_evidence:
+                pending.append((T, support, free, int(round(support * n))))
+        if distinct is not None:
+            pending.sort(key=lambda c: -c[3])
+        for T, support, free, count in pending:
+            if distinct is not None and not distinct(T, [c[0] for c in out]):
+                continue
             # A piece of a larger surface (a carton fitted onto a crate's top) agrees with the
             # depth wherever it covers: what tells is the same surface continuing just past
             # its outline, "same" meaning within the depth noise (3 sigma) at its distance.
@@ -191,7 +206,7 @@ class ShapeFrontEnd:
             outline, _ = outline_continuation(T, self._surface, self._surface_normals, depth_m, intrinsics,
                                               self.voxel, same, up=cloud.up)
             if support - free - 2.0 * outline >= fe.shape_min_evidence:
-                out.append((T, support, int(round(support * n))))
+                out.append((T, support, count))
         return out
 
     def _icp(self, T, cloud: FrameCloud, depth_m, intrinsics, max_dist: float, iterations: int) -> np.ndarray:
