@@ -38,6 +38,30 @@ _CELL_PER_RADIUS = 1.5
 _MAX_CELLS = 1 << 18
 
 
+@compiled()
+def _column_run(start, dims, rc, ux, uy, uz, ix, iy):
+    """The run start[first:end] of references in column (ix, iy) within the query's sphere
+    (centre ux, uy, uz and radius rc in cell units; end <= first: none)."""
+    gx = max(ix - ux, 0.0, ux - ix - 1.0)
+    gy = max(iy - uy, 0.0, uy - iy - 1.0)
+    g2 = gx * gx + gy * gy
+    if g2 >= rc * rc:
+        return 0, 0
+    half = np.sqrt(rc * rc - g2)   # the sphere's half-height over this column
+    z0 = int(max(np.floor(uz - half), 0.0))
+    z1 = int(min(np.floor(uz + half), dims[2] - 1.0))
+    if z0 > z1:
+        return 0, 0
+    column = (ix * dims[1] + iy) * dims[2]
+    return start[column + z0], start[column + z1 + 1]
+
+
+@compiled()
+def _span(u, rc, n):
+    """The cells along one axis that a sphere at u (radius rc, cell units) reaches."""
+    return int(max(np.floor(u - rc), 0.0)), int(min(np.floor(u + rc), n - 1.0))
+
+
 @compiled("i8(f8[:, ::1], f8[:, ::1], f8[:, ::1], i8[::1], f8[::1], i8[::1], f8, f8, i8[::1], i8[::1], i8, i8)", parallel=True)
 def _consistency_counts(src, tgt, ref, start, grid, dims, radius, tolerance, counts, neighbours, lo, hi):
     """Per query lo..hi-1, into counts and neighbours: the reference neighbours within
@@ -48,7 +72,6 @@ def _consistency_counts(src, tgt, ref, start, grid, dims, radius, tolerance, cou
     cell c (index (ix * ny + iy) * nz + iz) is start[c]:start[c + 1]. grid = origin x, y, z
     and the cell's width; dims = nx, ny, nz."""
     r2 = radius * radius
-    nx, ny, nz = dims[0], dims[1], dims[2]
     cell = grid[3]
     # The sphere in cell units, a hair larger so that rounding never drops a cell a
     # neighbour is in (visiting extra points is harmless: the distance test decides).
@@ -59,26 +82,15 @@ def _consistency_counts(src, tgt, ref, start, grid, dims, radius, tolerance, cou
         qx, qy, qz = tgt[i, 0], tgt[i, 1], tgt[i, 2]
         px, py, pz = src[i, 0], src[i, 1], src[i, 2]
         ux, uy, uz = (qx - grid[0]) / cell, (qy - grid[1]) / cell, (qz - grid[2]) / cell
-        x0 = int(max(np.floor(ux - rc), 0.0))
-        x1 = int(min(np.floor(ux + rc), nx - 1.0))
-        y0 = int(max(np.floor(uy - rc), 0.0))
-        y1 = int(min(np.floor(uy + rc), ny - 1.0))
+        x0, x1 = _span(ux, rc, dims[0])
+        y0, y1 = _span(uy, rc, dims[1])
         c = 0
         m = 0
         for ix in range(x0, x1 + 1):
-            gx = max(ix - ux, 0.0, ux - ix - 1.0)
             for iy in range(y0, y1 + 1):
-                gy = max(iy - uy, 0.0, uy - iy - 1.0)
-                g2 = gx * gx + gy * gy
-                if g2 >= rc * rc:
+                first, end = _column_run(start, dims, rc, ux, uy, uz, ix, iy)
+                if first >= end:
                     continue
-                half = np.sqrt(rc * rc - g2)   # the sphere's half-height over this column
-                z0 = int(max(np.floor(uz - half), 0.0))
-                z1 = int(min(np.floor(uz + half), nz - 1.0))
-                if z0 > z1:
-                    continue
-                column = (ix * ny + iy) * nz
-                first, end = start[column + z0], start[column + z1 + 1]
                 # 0-based slices and no branch: the loop vectorises (2-3x faster).
                 tx, ty, tz = tx_all[first:end], ty_all[first:end], tz_all[first:end]
                 sx, sy, sz = sx_all[first:end], sy_all[first:end], sz_all[first:end]
@@ -101,7 +113,6 @@ def _consistency_counts_pairs(ref, start, grid, dims, radius, tolerance, counts,
     symmetric, so each pair is visited once, from its first position in cell order, and
     counted for both; counts and neighbours are per position in ``ref``."""
     r2 = radius * radius
-    nx, ny, nz = dims[0], dims[1], dims[2]
     cell = grid[3]
     rc = radius / cell * (1.0 + 1e-9) + 1e-9
     tx_all, ty_all, tz_all = ref[0], ref[1], ref[2]
@@ -111,27 +122,15 @@ def _consistency_counts_pairs(ref, start, grid, dims, radius, tolerance, counts,
         qx, qy, qz = tx_all[a], ty_all[a], tz_all[a]
         px, py, pz = sx_all[a], sy_all[a], sz_all[a]
         ux, uy, uz = (qx - grid[0]) / cell, (qy - grid[1]) / cell, (qz - grid[2]) / cell
-        x0 = int(max(np.floor(ux - rc), 0.0))
-        x1 = int(min(np.floor(ux + rc), nx - 1.0))
-        y0 = int(max(np.floor(uy - rc), 0.0))
-        y1 = int(min(np.floor(uy + rc), ny - 1.0))
+        x0, x1 = _span(ux, rc, dims[0])
+        y0, y1 = _span(uy, rc, dims[1])
         c = 0
         m = 0
         for ix in range(x0, x1 + 1):
-            gx = max(ix - ux, 0.0, ux - ix - 1.0)
             for iy in range(y0, y1 + 1):
-                gy = max(iy - uy, 0.0, uy - iy - 1.0)
-                g2 = gx * gx + gy * gy
-                if g2 >= rc * rc:
-                    continue
-                half = np.sqrt(rc * rc - g2)
-                z0 = int(max(np.floor(uz - half), 0.0))
-                z1 = int(min(np.floor(uz + half), nz - 1.0))
-                if z0 > z1:
-                    continue
-                column = (ix * ny + iy) * nz
+                first, end = _column_run(start, dims, rc, ux, uy, uz, ix, iy)
                 # Only the positions after a: the pairs before were counted from there.
-                first, end = max(start[column + z0], a + 1), start[column + z1 + 1]
+                first = max(first, a + 1)
                 if first >= end:
                     continue
                 tx, ty, tz = tx_all[first:end], ty_all[first:end], tz_all[first:end]
