@@ -288,3 +288,25 @@ def test_gamma_rule_decides_an_instance_at_exactly_the_threshold(rule, expected)
     r = ECC(dataclasses.replace(ECCConfig.paper(), gamma_rule=rule)).register(src, tgt)
     assert list(r.inlier_counts) == [60, 30][:expected]
     assert evaluate_scene(np.stack(Ts)[:expected], r.transforms).hits == expected
+
+
+@pytest.mark.parametrize("n, reference_size", [(1500, None), (1500, 600)])
+def test_consistency_counts_pair_once_equal_the_per_query_counts(n, reference_size):
+    # The references among themselves are counted once per pair (the test is symmetric);
+    # every count must equal the plain per-query kernel's, shared target points included.
+    from multi_instance_reg.core import sampling
+
+    rng = np.random.default_rng(7)
+    tgt = rng.random((n, 3))
+    src = tgt @ Rotation.from_euler("z", 90, degrees=True).as_matrix().T + rng.normal(0, 0.02, (n, 3))
+    src[: n // 3] = rng.random((n // 3, 3))
+    tgt[10:20] = tgt[0]
+    scores = sampling.consistency_scores(src, tgt, 0.3, 0.05, np.random.default_rng(0),
+                                         reference_size=reference_size, score="count")
+    # The same reference subset, counted query by query.
+    r = np.random.default_rng(0)
+    ref = np.arange(n) if reference_size is None else r.choice(n, reference_size, replace=False)
+    table, start, grid, dims, _ = sampling._binned_references(src, tgt, ref, 0.3)
+    counts, _ = sampling._counts(src, tgt, table, start, grid, dims, 0.3, 0.05)
+    assert counts.sum() > n
+    assert np.array_equal(scores, counts.astype(np.float64))

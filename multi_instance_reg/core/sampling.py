@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import native
 from .native import compiled, prange, row_parts, split_rows
 
 # Neighbour search: the references are binned on a grid of cells 1.5 x radius wide (measured
@@ -35,6 +36,30 @@ from .native import compiled, prange, row_parts, split_rows
 _CELL_PER_RADIUS = 1.5
 # At most this many cells (the bin starts cost 8 bytes each); a wider cloud gets larger cells.
 _MAX_CELLS = 1 << 18
+
+
+@compiled()
+def _column_run(start, dims, rc, ux, uy, uz, ix, iy):
+    """The run start[first:end] of references in column (ix, iy) within the query's sphere
+    (centre ux, uy, uz and radius rc in cell units; end <= first: none)."""
+    gx = max(ix - ux, 0.0, ux - ix - 1.0)
+    gy = max(iy - uy, 0.0, uy - iy - 1.0)
+    g2 = gx * gx + gy * gy
+    if g2 >= rc * rc:
+        return 0, 0
+    half = np.sqrt(rc * rc - g2)   # the sphere's half-height over this column
+    z0 = int(max(np.floor(uz - half), 0.0))
+    z1 = int(min(np.floor(uz + half), dims[2] - 1.0))
+    if z0 > z1:
+        return 0, 0
+    column = (ix * dims[1] + iy) * dims[2]
+    return start[column + z0], start[column + z1 + 1]
+
+
+@compiled()
+def _span(u, rc, n):
+    """The cells along one axis that a sphere at u (radius rc, cell units) reaches."""
+    return int(max(np.floor(u - rc), 0.0)), int(min(np.floor(u + rc), n - 1.0))
 
 
 @compiled("i8(f8[:, ::1], f8[:, ::1], f8[:, ::1], i8[::1], f8[::1], i8[::1], f8, f8, i8[::1], i8[::1], i8, i8)", parallel=True)
@@ -47,7 +72,6 @@ def _consistency_counts(src, tgt, ref, start, grid, dims, radius, tolerance, cou
     cell c (index (ix * ny + iy) * nz + iz) is start[c]:start[c + 1]. grid = origin x, y, z
     and the cell's width; dims = nx, ny, nz."""
     r2 = radius * radius
-    nx, ny, nz = dims[0], dims[1], dims[2]
     cell = grid[3]
     # The sphere in cell units, a hair larger so that rounding never drops a cell a
     # neighbour is in (visiting extra points is harmless: the distance test decides).
@@ -58,26 +82,15 @@ def _consistency_counts(src, tgt, ref, start, grid, dims, radius, tolerance, cou
         qx, qy, qz = tgt[i, 0], tgt[i, 1], tgt[i, 2]
         px, py, pz = src[i, 0], src[i, 1], src[i, 2]
         ux, uy, uz = (qx - grid[0]) / cell, (qy - grid[1]) / cell, (qz - grid[2]) / cell
-        x0 = int(max(np.floor(ux - rc), 0.0))
-        x1 = int(min(np.floor(ux + rc), nx - 1.0))
-        y0 = int(max(np.floor(uy - rc), 0.0))
-        y1 = int(min(np.floor(uy + rc), ny - 1.0))
+        x0, x1 = _span(ux, rc, dims[0])
+        y0, y1 = _span(uy, rc, dims[1])
         c = 0
         m = 0
         for ix in range(x0, x1 + 1):
-            gx = max(ix - ux, 0.0, ux - ix - 1.0)
             for iy in range(y0, y1 + 1):
-                gy = max(iy - uy, 0.0, uy - iy - 1.0)
-                g2 = gx * gx + gy * gy
-                if g2 >= rc * rc:
+                first, end = _column_run(start, dims, rc, ux, uy, uz, ix, iy)
+                if first >= end:
                     continue
-                half = np.sqrt(rc * rc - g2)   # the sphere's half-height over this column
-                z0 = int(max(np.floor(uz - half), 0.0))
-                z1 = int(min(np.floor(uz + half), nz - 1.0))
-                if z0 > z1:
-                    continue
-                column = (ix * ny + iy) * nz
-                first, end = start[column + z0], start[column + z1 + 1]
                 # 0-based slices and no branch: the loop vectorises (2-3x faster).
                 tx, ty, tz = tx_all[first:end], ty_all[first:end], tz_all[first:end]
                 sx, sy, sz = sx_all[first:end], sy_all[first:end], sz_all[first:end]
@@ -94,6 +107,51 @@ def _consistency_counts(src, tgt, ref, start, grid, dims, radius, tolerance, cou
     return hi - lo
 
 
+@compiled("i8(f8[:, ::1], i8[::1], f8[::1], i8[::1], f8, f8, i8[::1], i8[::1])")
+def _consistency_counts_pairs(ref, start, grid, dims, radius, tolerance, counts, neighbours):
+    """_consistency_counts with every correspondence a reference (ref as there): the test is
+    symmetric, so each pair is visited once, from its first position in cell order, and
+    counted for both; counts and neighbours are per position in ``ref``."""
+    r2 = radius * radius
+    cell = grid[3]
+    rc = radius / cell * (1.0 + 1e-9) + 1e-9
+    tx_all, ty_all, tz_all = ref[0], ref[1], ref[2]
+    sx_all, sy_all, sz_all = ref[3], ref[4], ref[5]
+    n = ref.shape[1]
+    for a in range(n):
+        qx, qy, qz = tx_all[a], ty_all[a], tz_all[a]
+        px, py, pz = sx_all[a], sy_all[a], sz_all[a]
+        ux, uy, uz = (qx - grid[0]) / cell, (qy - grid[1]) / cell, (qz - grid[2]) / cell
+        x0, x1 = _span(ux, rc, dims[0])
+        y0, y1 = _span(uy, rc, dims[1])
+        c = 0
+        m = 0
+        for ix in range(x0, x1 + 1):
+            for iy in range(y0, y1 + 1):
+                first, end = _column_run(start, dims, rc, ux, uy, uz, ix, iy)
+                # Only the positions after a: the pairs before were counted from there.
+                first = max(first, a + 1)
+                if first >= end:
+                    continue
+                tx, ty, tz = tx_all[first:end], ty_all[first:end], tz_all[first:end]
+                sx, sy, sz = sx_all[first:end], sy_all[first:end], sz_all[first:end]
+                cb, mb = counts[first:end], neighbours[first:end]
+                for j in range(end - first):
+                    ex, ey, ez = qx - tx[j], qy - ty[j], qz - tz[j]
+                    e2 = ex * ex + ey * ey + ez * ez
+                    fx, fy, fz = px - sx[j], py - sy[j], pz - sz[j]
+                    f2 = fx * fx + fy * fy + fz * fz
+                    near = (e2 < r2) & (e2 != 0.0)
+                    agree = near & (abs(np.sqrt(f2) - np.sqrt(e2)) < tolerance)
+                    m += near
+                    c += agree
+                    mb[j] += near
+                    cb[j] += agree
+        counts[a] += c
+        neighbours[a] += m
+    return n
+
+
 def _counts(src, tgt, table, start, grid, dims, radius, tolerance):
     """_consistency_counts over all queries, on the process's threads."""
     n = len(src)
@@ -104,7 +162,8 @@ def _counts(src, tgt, table, start, grid, dims, radius, tolerance):
 
 
 def _binned_references(src, tgt, ref, radius):
-    """The references as _consistency_counts reads them: (ref (6, R), start, grid, dims)."""
+    """The references as _consistency_counts reads them: (ref (6, R), start, grid, dims, and
+    the order that sorted ``ref`` by cell)."""
     points = tgt[ref]
     origin = points.min(0)
     extent = points.max(0) - origin
@@ -117,9 +176,8 @@ def _binned_references(src, tgt, ref, radius):
     order = np.argsort(lin, kind="stable")
     start = np.zeros(int(np.prod(dims)) + 1, dtype=np.int64)
     np.cumsum(np.bincount(lin, minlength=len(start) - 1), out=start[1:])
-    ref = ref[order]
-    table = np.ascontiguousarray(np.concatenate([tgt[ref].T, src[ref].T]))
-    return table, start, np.append(origin, cell), dims
+    table = np.ascontiguousarray(np.concatenate([tgt[ref[order]].T, src[ref[order]].T]))
+    return table, start, np.append(origin, cell), dims, order
 
 
 # Queries for the chance rate p0: enough for a rate within about +-0.005 on typical data.
@@ -140,8 +198,19 @@ def consistency_scores(src, tgt, radius: float, tolerance: float, rng: np.random
     if reference_size is None:
         reference_size = 4096 if n <= 8192 else max(1024, 4096 * 8192 // n)
     ref = np.arange(n) if n <= reference_size else rng.choice(n, reference_size, replace=False)
-    table, start, grid, dims = _binned_references(src, tgt, ref, radius)
-    counts, neighbours = _counts(src, tgt, table, start, grid, dims, radius, tolerance)
+    table, start, grid, dims, order = _binned_references(src, tgt, ref, radius)
+    if native.THREADS == 1:
+        # The references among themselves: each pair once (the test is symmetric; the same
+        # counts, half the pairs), then the other correspondences against them.
+        by_position = np.zeros(len(ref), dtype=np.int64), np.zeros(len(ref), dtype=np.int64)
+        _consistency_counts_pairs(table, start, grid, dims, float(radius), float(tolerance), *by_position)
+        counts, neighbours = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
+        counts[ref[order]], neighbours[ref[order]] = by_position
+        rest = np.setdiff1d(np.arange(n), ref)
+        if len(rest):
+            counts[rest], neighbours[rest] = _counts(src[rest], tgt[rest], table, start, grid, dims, radius, tolerance)
+    else:
+        counts, neighbours = _counts(src, tgt, table, start, grid, dims, radius, tolerance)
     if score == "count":
         return counts.astype(np.float64)
     # Chance agreement: queries whose source point comes from another, random correspondence.

@@ -147,8 +147,8 @@ class ShapeFrontEnd:
         s, m = self._matcher.match(cloud.descriptors)
         return self._model_pts[self._model_idx[m]], cloud.points[cloud.salient[s]]
 
-    def refine_and_check(self, transforms, cloud: FrameCloud, depth_m: np.ndarray, intrinsics: CameraIntrinsics
-                         ) -> list[tuple[np.ndarray, float, int]]:
+    def refine_and_check(self, transforms, cloud: FrameCloud, depth_m: np.ndarray,
+                         intrinsics: CameraIntrinsics) -> list[tuple[np.ndarray, float, int]]:
         """Each transform refined by ICP against the frame's points and kept when the depth
         image agrees with the model's visible surface: (T, support share, agreeing points)."""
         fe = self.fe
@@ -243,6 +243,9 @@ class ShapeFrontEnd:
         """(T, support, agreeing points) when the depth and the outline accept pose T, else None."""
         fe = self.fe
         if n < fe.shape_min_visible or support < fe.shape_min_support or free > fe.shape_max_free:
+            return None
+        # The outline's share is at least 0: without the evidence even at 0, no need to look.
+        if support - free < fe.shape_min_evidence:
             return None
         # A piece of a larger surface (a carton fitted onto a crate's top) agrees with the
         # depth wherever it covers: what tells is the same surface continuing just past
