@@ -54,16 +54,26 @@ def limit_blas_threads(count: int = 1) -> int:
 _POOL: ThreadPoolExecutor | None = None
 
 
-def map_in_chunks(function, rows: np.ndarray, min_chunk: int = 256) -> list:
-    """``function`` applied to consecutive chunks of ``rows``, one per core, in a shared
-    thread pool; the results in order. For calls that release the GIL and use one core
-    (OpenCV's FLANN search): on 2 cores, half the time."""
+def submit_in_chunks(function, rows: np.ndarray, min_chunk: int = 256):
+    """``function`` started on consecutive chunks of ``rows``, one per core, in a shared
+    thread pool; returns a callable that waits and gives the results in order. The caller
+    can do other work meanwhile (several models' searches queued at once, one model's
+    clustering while the next one's search runs)."""
     global _POOL
     cores = os.cpu_count() or 1
     parts = int(min(cores, max(1, len(rows) // min_chunk)))
     if parts <= 1:
-        return [function(rows)]
+        result = [function(rows)]
+        return lambda: result
     if _POOL is None:
         _POOL = ThreadPoolExecutor(cores, thread_name_prefix="mireg")
     bounds = np.linspace(0, len(rows), parts + 1).astype(int)
-    return list(_POOL.map(function, [rows[a:b] for a, b in zip(bounds[:-1], bounds[1:])]))
+    futures = [_POOL.submit(function, rows[a:b]) for a, b in zip(bounds[:-1], bounds[1:])]
+    return lambda: [f.result() for f in futures]
+
+
+def map_in_chunks(function, rows: np.ndarray, min_chunk: int = 256) -> list:
+    """``function`` applied to consecutive chunks of ``rows``, one per core, in a shared
+    thread pool; the results in order. For calls that release the GIL and use one core
+    (OpenCV's FLANN search): on 2 cores, half the time."""
+    return submit_in_chunks(function, rows, min_chunk)()

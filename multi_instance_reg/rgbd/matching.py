@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..threads import map_in_chunks
+from ..threads import submit_in_chunks
 
 MATCHERS = ("flann", "brute_force")
 
@@ -63,12 +63,23 @@ class DescriptorMatcher:
         Accepted when best / second < ratio, "second" being the nearest descriptor whose model
         point lies more than ``separation`` from the best one's (accepted too when there is none).
         """
+        return self.match_later(scene_desc, chunk)()
+
+    def match_later(self, scene_desc: np.ndarray, chunk: int = 4096):
+        """``match``, started: returns a callable that gives its result. The FLANN search runs
+        in the shared thread pool meanwhile; brute force runs when called."""
         q_all = np.ascontiguousarray(scene_desc, dtype=np.float32)
         n_q, n_m = len(q_all), len(self.desc)
         if n_q == 0 or n_m == 0:
-            return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32)
+            return lambda: (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32))
         if self._flann is not None:
-            return self._match_knn(q_all)
+            search = submit_in_chunks(lambda rows: self._flann.knnSearch(rows, self.neighbours,
+                                                                         params={"checks": self.flann_checks}), q_all)
+            return lambda: self._accept_knn(search())
+        return lambda: self._match_brute_force(q_all, chunk)
+
+    def _match_brute_force(self, q_all: np.ndarray, chunk: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        n_q = len(q_all)
         best_all = np.zeros(n_q, np.int64)
         ratio_all = np.zeros(n_q, np.float32)
         for start in range(0, n_q, chunk):
@@ -93,11 +104,9 @@ class DescriptorMatcher:
         accept = np.nonzero(ratio_all < self.ratio)[0]
         return accept.astype(np.int64), best_all[accept], ratio_all[accept]
 
-    def _match_knn(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The same test on the approximate k nearest neighbours; when all of them are the
-        best one's physical point, the match is unambiguous."""
-        parts = map_in_chunks(lambda rows: self._flann.knnSearch(rows, self.neighbours,
-                                                                 params={"checks": self.flann_checks}), q)
+    def _accept_knn(self, parts: list) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The same test on the approximate k nearest neighbours (FLANN's results per chunk of
+        queries); when all of them are the best one's physical point, the match is unambiguous."""
         idx = np.concatenate([p[0] for p in parts]).astype(np.int64)
         d2 = np.concatenate([p[1] for p in parts])
         dist = np.sqrt(np.maximum(d2, 0.0))          # FLANN's L2 gives squared distances

@@ -92,11 +92,17 @@ class MultiModelRegistration:
         if self._sift:
             keypoints = self.pipelines[self._sift[0]].detect(rgb, depth_m, intrinsics, t)
             n_kp = keypoints.detected
+            # Every model's search is queued at once; each model's ECC and selection run as soon
+            # as its matches are in, while the pool searches the next models' (the search
+            # releases the GIL): "matching" is the time spent waiting for them.
             t1 = time.perf_counter()
-            matches = {k: self.pipelines[k].match(keypoints) for k in self._sift}
+            pending = {k: self.pipelines[k].match_later(keypoints) for k in self._sift}
             t["matching"] += (time.perf_counter() - t1) * 1e3
             for k in self._sift:
-                per_model[k] = self.pipelines[k].solve(keypoints, *matches[k])
+                t1 = time.perf_counter()
+                matches = pending[k]()
+                t["matching"] += (time.perf_counter() - t1) * 1e3
+                per_model[k] = self.pipelines[k].solve(keypoints, *matches)
         for k, pipeline in enumerate(self.pipelines):
             if k not in per_model:
                 per_model[k] = pipeline.register_frame(rgb, depth_m, intrinsics)

@@ -302,7 +302,12 @@ class InstanceRegistration:
     def match(self, keypoints: "SceneKeypoints") -> tuple[np.ndarray, np.ndarray]:
         """(scene indices, model indices) of the accepted matches, one-to-many: every scene
         keypoint to its nearest model descriptor."""
-        return self._matcher.match(keypoints.descriptors)[:2]
+        return self.match_later(keypoints)()
+
+    def match_later(self, keypoints: "SceneKeypoints"):
+        """``match``, started in the shared thread pool: returns a callable that gives its result."""
+        matches = self._matcher.match_later(keypoints.descriptors)
+        return lambda: matches()[:2]
 
     def solve(self, keypoints: "SceneKeypoints", scene_idx: np.ndarray, model_idx: np.ndarray) -> FrameResult:
         """Instances from matches (scene keypoint ``scene_idx[i]`` to model keypoint
