@@ -334,3 +334,33 @@ def test_refinement_corrects_a_box_pose_with_either_icp_association(association)
     # from where it is than where it started.
     top = np.array([0.0, 0.0, 0.075, 1.0])
     assert np.linalg.norm((out @ top - T @ top)[:2]) < np.linalg.norm((start @ top - T @ top)[:2]) + 0.002
+
+
+def test_depth_points_and_normals_are_the_central_differences_of_the_depth_image():
+    # The outline checks' compiled per-pixel points and normals against the same central
+    # differences written with whole arrays: a tilted plane with holes, pixels at the border.
+    from multi_instance_reg.rgbd.verify import _points_and_normals
+
+    K = _intrinsics().K
+    rng = np.random.default_rng(3)
+    rows_all, cols_all = np.mgrid[0:240, 0:320]
+    depth = (1.2 + 0.001 * cols_all + 0.0005 * rows_all + rng.normal(0, 0.002, (240, 320))).astype(np.float32)
+    depth[rng.random((240, 320)) < 0.05] = 0.0
+    rows, cols = rng.integers(0, 240, 3000), rng.integers(0, 320, 3000)
+    P, n, ok = _points_and_normals(depth, K, rows, cols, step=2)
+
+    def xyz(r, c):
+        z = depth[r, c].astype(np.float64)
+        return np.stack([z * (c - K[0, 2]) / K[0, 0], z * (r - K[1, 2]) / K[1, 1], z], axis=1)
+
+    inside = (rows >= 2) & (rows < 238) & (cols >= 2) & (cols < 318)
+    r, c = np.clip(rows, 2, 237), np.clip(cols, 2, 317)
+    centre, right, left, down, up = (xyz(r + dr, c + dc) for dr, dc in ((0, 0), (0, 2), (0, -2), (2, 0), (-2, 0)))
+    expect_ok = inside & (centre[:, 2] > 0) & (right[:, 2] > 0) & (left[:, 2] > 0) & (down[:, 2] > 0) & (up[:, 2] > 0)
+    assert np.array_equal(ok, expect_ok) and 0 < ok.sum() < len(ok)
+    m = np.cross(right - left, down - up)[expect_ok]
+    m /= np.linalg.norm(m, axis=1, keepdims=True)
+    m *= np.where(np.einsum("ij,ij->i", m, centre[expect_ok]) > 0, -1.0, 1.0)[:, None]
+    np.testing.assert_allclose(P, centre[expect_ok], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(n, m, rtol=0, atol=1e-9)
+    assert (np.einsum("ij,ij->i", n, P) < 0).all()           # towards the camera

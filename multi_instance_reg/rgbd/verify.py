@@ -12,7 +12,10 @@ its outline: the same surface, continuing.
 """
 from __future__ import annotations
 
+import math
+
 import cv2
+import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -26,23 +29,74 @@ def _points_and_normals(depth: np.ndarray, K: np.ndarray, rows: np.ndarray, cols
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Camera-frame points and normals (towards the camera; central differences ``step``
     pixels apart) at the given pixels, and which of them have all four neighbours' depth."""
+    ok = np.zeros(len(rows), np.bool_)
+    P = np.empty((len(rows), 3))
+    n = np.empty((len(rows), 3))
+    m = _points_and_normals_kernel(np.asarray(depth), float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]),
+                                   np.asarray(rows, np.int64), np.asarray(cols, np.int64), int(step), P, n, ok)
+    return P[:m], n[:m], ok
+
+
+@numba.njit(cache=True)
+def _points_and_normals_kernel(depth, fx, fy, cx, cy, rows, cols, s, P, N, ok):
+    # One pass per pixel instead of five gathers and their temporaries (the outline checks
+    # call this on every hypothesis); the same arithmetic as the array form it replaced.
     h, w = depth.shape
-    s = int(step)
-    inside = (rows >= s) & (rows < h - s) & (cols >= s) & (cols < w - s)
-    rows, cols = rows[inside], cols[inside]
+    m = 0
+    for i in range(rows.shape[0]):
+        r, c = rows[i], cols[i]
+        if r < s or r >= h - s or c < s or c >= w - s:
+            continue
+        z0, zr, zl, zd, zu = (float(depth[r, c]), float(depth[r, c + s]), float(depth[r, c - s]),
+                              float(depth[r + s, c]), float(depth[r - s, c]))
+        if not (z0 > 0 and zr > 0 and zl > 0 and zd > 0 and zu > 0):
+            continue
+        x0, y0 = z0 * (c - cx) / fx, z0 * (r - cy) / fy
+        ax = zr * (c + s - cx) / fx - zl * (c - s - cx) / fx
+        ay = zr * (r - cy) / fy - zl * (r - cy) / fy
+        az = zr - zl
+        bx = zd * (c - cx) / fx - zu * (c - cx) / fx
+        by = zd * (r + s - cy) / fy - zu * (r - s - cy) / fy
+        bz = zd - zu
+        nx, ny, nz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+        norm = max(math.sqrt(nx * nx + ny * ny + nz * nz), 1e-12)
+        nx, ny, nz = nx / norm, ny / norm, nz / norm
+        if nx * x0 + ny * y0 + nz * z0 > 0:
+            nx, ny, nz = -nx, -ny, -nz
+        P[m, 0], P[m, 1], P[m, 2] = x0, y0, z0
+        N[m, 0], N[m, 1], N[m, 2] = nx, ny, nz
+        ok[i] = True
+        m += 1
+    return m
 
-    def xyz(r, c):
-        z = depth[r, c].astype(np.float64)
-        return np.stack([z * (c - K[0, 2]) / K[0, 0], z * (r - K[1, 2]) / K[1, 1], z], axis=1)
 
-    P, right, left, down, up = (xyz(rows + dr, cols + dc) for dr, dc in ((0, 0), (0, s), (0, -s), (s, 0), (-s, 0)))
-    ok = np.zeros(len(inside), bool)
-    good = (P[:, 2] > 0) & (right[:, 2] > 0) & (left[:, 2] > 0) & (down[:, 2] > 0) & (up[:, 2] > 0)
-    ok[np.flatnonzero(inside)[good]] = True
-    n = np.cross(right[good] - left[good], down[good] - up[good])
-    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-    n *= np.where(np.einsum("ij,ij->i", n, P[good]) > 0, -1.0, 1.0)[:, None]
-    return P[good], n, ok
+def _face_continues(P: np.ndarray, nP: np.ndarray, p: np.ndarray, n: np.ndarray, tolerance: float,
+                    max_angle_deg: float) -> np.ndarray:
+    """Which measured points P (normals nP) continue a visible model face: among the eight
+    nearest model points p (normals n), two whose plane passes within ``tolerance`` and
+    whose normal is within ``max_angle_deg``. One stray normal (a sample at an edge oriented
+    the wrong way) must not stand for the surface beside the object, and at a box's edge the
+    nearest points are as often on the side face seen beside the top (a carton fitted
+    across a wider carton's top, turned onto its side)."""
+    k = min(8, len(p))
+    _, j = cKDTree(p).query(P, k=k)
+    return _face_votes(P, nP, p, n, j.reshape(len(P), k), float(tolerance),
+                       math.cos(math.radians(max_angle_deg)), min(2, k))
+
+
+@numba.njit(cache=True)
+def _face_votes(P, nP, p, n, j, tolerance, cos_min, need):
+    out = np.zeros(P.shape[0], np.bool_)
+    for i in range(P.shape[0]):
+        votes = 0
+        for a in range(j.shape[1]):
+            q = j[i, a]
+            off = abs((P[i, 0] - p[q, 0]) * n[q, 0] + (P[i, 1] - p[q, 1]) * n[q, 1] + (P[i, 2] - p[q, 2]) * n[q, 2])
+            cos = nP[i, 0] * n[q, 0] + nP[i, 1] * n[q, 1] + nP[i, 2] * n[q, 2]
+            if off < tolerance and cos > cos_min:
+                votes += 1
+        out[i] = votes >= need
+    return out
 
 
 def facing_camera(p: np.ndarray, n: np.ndarray) -> np.ndarray:
@@ -105,16 +159,7 @@ def outline_continuation(T: np.ndarray, model_pts: np.ndarray, model_normals: np
     rows, cols = rows[ok], cols[ok]
     if len(rows) == 0:
         return 0.0, 0
-    # Among the eight nearest model points, two whose face it continues: one stray normal (a
-    # sample at an edge oriented the wrong way) must not stand for the surface beside the
-    # object, and at a box's edge the nearest points are as often on the side face seen
-    # beside the top (a carton fitted across a wider carton's top, turned onto its side).
-    _, j = cKDTree(p).query(P, k=min(8, len(p)))
-    j = j.reshape(len(P), -1)
-    off = np.abs(np.einsum("ikj,ikj->ik", P[:, None, :] - p[j], n[j]))
-    cos = np.einsum("ij,ikj->ik", nP, n[j])
-    votes = ((off < tolerance) & (cos > np.cos(np.radians(max_angle_deg)))).sum(axis=1)
-    cont = votes >= min(2, j.shape[1])
+    cont = _face_continues(P, nP, p, n, tolerance, max_angle_deg)
     counted = len(P)
     if floor is not None:
         # The support, not more of the object's own surface: out of the share, yet at least
@@ -197,11 +242,7 @@ def outline_shift(T: np.ndarray, model_pts: np.ndarray, model_normals: np.ndarra
     rows, cols = rows[ok], cols[ok]
     if len(rows) == 0:
         return None
-    _, j = cKDTree(p).query(P, k=min(8, len(p)))
-    j = j.reshape(len(P), -1)
-    off = np.abs(np.einsum("ikj,ikj->ik", P[:, None, :] - p[j], n[j]))
-    cos = np.einsum("ij,ikj->ik", nP, n[j])
-    on = ((off < tolerance) & (cos > np.cos(np.radians(max_angle_deg)))).sum(axis=1) >= min(2, j.shape[1])
+    on = _face_continues(P, nP, p, n, tolerance, max_angle_deg)
     grid = np.zeros(region.shape, np.uint8)
     grid[rows[on], cols[on]] = 1
     count, labels = cv2.connectedComponents(grid, connectivity=8)
