@@ -344,7 +344,7 @@ def apply_twist(T, x, centre):
     else:
         R = np.eye(3) + np.sin(theta) / theta * K + (1.0 - np.cos(theta)) / (theta * theta) * (K @ K)
     out = np.eye(4)
-    out[:3, :3] = R @ T[:3, :3]
+    out[:3, :3] = R @ np.ascontiguousarray(T[:3, :3])   # contiguous: numba warns on the slice
     out[:3, 3] = R @ (T[:3, 3] - centre) + centre + x[3:]
     return out
 
