@@ -26,6 +26,7 @@ class ECCConfig:
     gamma_thresh: float = param(0.5, "drop instances from the first k whose inliers / best inliers fall to this (see gamma_rule)", 0.0, 1.0)
     gamma_counts: str = param("clusters", "which inlier counts gamma compares: clusters (the refined clusters' sizes, as the authors' code) or fitted (each candidate cluster's transform fitted, all N re-assigned, its inliers counted: our reading of the paper's 'transformations by their inlier numbers')", choices=("fitted", "clusters"))
     gamma_rule: str = param("at_or_below", "where gamma_thresh cuts: at_or_below (the paper: gamma_k <= gamma_thresh is dropped) or below (the authors' code: gamma_k < gamma_thresh; an instance with exactly that share is kept)", choices=("at_or_below", "below"))
+    covered_instances: str = param("keep", "selected instances whose inliers all lie within inlier_thresh of the model as a stronger selected instance places it: keep (the paper) or drop (it explains no target point the stronger one's object does not occupy: the model turned over in place, collecting chance matches on the surface; core/placement.py)", choices=("keep", "drop"))
     # Large inputs (Sec. 3.6).
     max_correspondences: int = param(1024, "cluster at most this many correspondences; the rest are assigned afterwards (0 = all)", 0, 10_000_000)
     sampling: str = param("uniform", "how to choose them: uniform (the paper) or consistency (keep those whose distances to spatial neighbours are preserved)", choices=("uniform", "consistency"))
@@ -43,7 +44,7 @@ class ECCConfig:
     def modelnet() -> "ECCConfig":
         """The project's defaults for the synthetic benchmark (ModelNet units)."""
         return replace(ECCConfig(), spatial_sigma=2.0, alpha_floor=3, sampling="consistency", sampling_exponent=3.0,
-                       gamma_counts="fitted", gamma_rule="below")
+                       gamma_counts="fitted", gamma_rule="below", covered_instances="drop")
 
     @staticmethod
     def metric() -> "ECCConfig":

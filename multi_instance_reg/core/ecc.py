@@ -17,6 +17,7 @@ from .compatibility import compatibility_matrix
 from .config import ECCConfig
 from .sampling import choose_sample
 from .refinement import assign, assign_nearest, fit_transforms, instance_scores, merge_duplicates, relabel, residuals
+from .placement import covered_by_stronger
 
 
 @dataclass
@@ -144,7 +145,8 @@ class ECC:
     def select(self, x, y, labels):
         """Clusters larger than min_cluster_size, by inlier count; stop at the first whose
         count falls to gamma_thresh of the best (Sec. 3.5; gamma_rule: at or below, or only
-        below it). Final fits use all inliers."""
+        below it); with covered_instances drop, without those whose inliers all lie on a
+        stronger instance's placed model (placement.py). Final fits use all inliers."""
         cfg = self.config
         n = len(x)
         counts = np.bincount(labels[labels >= 0], minlength=1)
@@ -172,12 +174,19 @@ class ECC:
         sel_labels = np.where(labels >= 0, remap[np.maximum(labels, 0)], -1)
         T = fit_transforms(x, y, sel_labels, len(cand))
         final, best_errors = assign_nearest(x, y, T, cfg.inlier_thresh)
-        counts = np.bincount(final[final >= 0], minlength=len(cand))
-        scores = instance_scores(final, best_errors, cfg.inlier_thresh, len(cand))
+        if cfg.covered_instances == "drop":
+            # An instance whose inliers all lie on the model as a stronger one places it
+            # (placement.py); its correspondences go to the nearest kept transform or out.
+            keep = covered_by_stronger(x, y, T, final, cfg.inlier_thresh)
+            if not keep.all():
+                T = T[keep]
+                final, best_errors = assign_nearest(x, y, T, cfg.inlier_thresh)
+        counts = np.bincount(final[final >= 0], minlength=len(T))
+        scores = instance_scores(final, best_errors, cfg.inlier_thresh, len(T))
         # Sort by inlier count and renumber the labels to match; empty transforms go.
         order = np.argsort(-counts, kind="stable")
         order = order[counts[order] > 0]
-        rank = -np.ones(len(cand) + 1, dtype=np.int64)
+        rank = -np.ones(len(T) + 1, dtype=np.int64)
         rank[order] = np.arange(len(order))
         final = rank[final]  # -1 maps through rank[-1] = -1
         return T[order], final, counts[order].astype(np.int64), scores[order]
