@@ -34,6 +34,16 @@ def _all_within(points: np.ndarray, model: np.ndarray, radius: float) -> bool:
     return True
 
 
+def distinct_points(points: np.ndarray) -> np.ndarray:
+    """The distinct rows of ``points`` (sources repeat: one model point, many matches), found
+    by one key per row, its projection on a fixed direction: np.unique(axis=0) sorts rows
+    as byte strings, 16 ms at N = 16,384 against about 1 ms. Two distinct points with the
+    same key (a measure-zero tie) would leave one of them out, which can only keep an
+    instance that would have been dropped."""
+    keys = points @ np.array([1.0, np.sqrt(2.0), np.sqrt(3.0)])
+    return points[np.unique(keys, return_index=True)[1]]
+
+
 def covered_by_stronger(x: np.ndarray, y: np.ndarray, transforms: np.ndarray, labels: np.ndarray,
                         inlier_thresh: float) -> np.ndarray:
     """(M,) bool, True for the instances to keep: going from the most inliers down, an
@@ -55,7 +65,7 @@ def covered_by_stronger(x: np.ndarray, y: np.ndarray, transforms: np.ndarray, la
         near = [j for j in kept if np.linalg.norm(centres[m] - centres[j]) <= 2.0 * reach + inlier_thresh]
         if near:
             if model is None:
-                model = np.unique(x, axis=0)
+                model = distinct_points(x)
             targets = y[labels == m]
             for j in near:
                 R, t = transforms[j, :3, :3], transforms[j, :3, 3]
