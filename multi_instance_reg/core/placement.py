@@ -55,7 +55,8 @@ def covered_by_stronger(x: np.ndarray, y: np.ndarray, transforms: np.ndarray, la
     # Only instances whose placed models can touch are compared: centres (the sources'
     # centroid placed) closer than twice the model's reach plus the threshold.
     centroid = x.mean(0)
-    reach = np.sqrt(((x - centroid) ** 2).sum(1).max())
+    offsets = x - centroid
+    reach = np.sqrt(np.einsum("ij,ij->i", offsets, offsets).max())
     centres = transforms[:, :3, :3] @ centroid + transforms[:, :3, 3]
     model = None
     kept = []
