@@ -65,10 +65,14 @@ def covered_by_stronger(x: np.ndarray, y: np.ndarray, transforms: np.ndarray, la
             continue
         near = [j for j in kept if np.linalg.norm(centres[m] - centres[j]) <= 2.0 * reach + inlier_thresh]
         if near:
-            if model is None:
-                model = distinct_points(x)
             targets = y[labels == m]
             for j in near:
+                # First the sphere j's placed model lies in: an inlier outside it settles it.
+                offsets = targets - centres[j]
+                if np.einsum("ij,ij->i", offsets, offsets).max() > (reach + inlier_thresh) ** 2:
+                    continue
+                if model is None:
+                    model = distinct_points(x)
                 R, t = transforms[j, :3, :3], transforms[j, :3, 3]
                 if _all_within((targets - t) @ R, model, inlier_thresh):  # in j's model frame
                     keep[m] = False
