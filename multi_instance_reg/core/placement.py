@@ -19,17 +19,21 @@ from __future__ import annotations
 
 import numpy as np
 
-# Inliers tested per block: a copy that is not covered is usually seen in the first block.
-_BLOCK = 32
+# Inliers tested per block (a block's squared distances to 256 model points: 2 MB).
+_BLOCK = 1024
 
 
 def _all_within(points: np.ndarray, model: np.ndarray, radius: float) -> bool:
-    """Whether every point lies within ``radius`` of some model point (early exit)."""
+    """Whether every point lies within ``radius`` of some model point (early exit). The
+    squared distances by |p|^2 + |m|^2 - 2 p.m, one matrix product a block: both sets lie in
+    the model's frame, near its origin, so the expansion loses nothing that matters at the
+    scale of ``radius``."""
     r2 = radius * radius
+    model_sq = np.einsum("ij,ij->i", model, model)
     for lo in range(0, len(points), _BLOCK):
         block = points[lo:lo + _BLOCK]
-        d2 = ((block[:, None, :] - model[None, :, :]) ** 2).sum(2).min(1)
-        if (d2 > r2).any():
+        d2 = np.einsum("ij,ij->i", block, block)[:, None] + model_sq[None, :] - 2.0 * (block @ model.T)
+        if (d2.min(1) > r2).any():
             return False
     return True
 
