@@ -62,14 +62,19 @@ def covered_by_stronger(x: np.ndarray, y: np.ndarray, transforms: np.ndarray, la
     offsets = x - centroid
     reach = np.sqrt(np.einsum("ij,ij->i", offsets, offsets).max())
     centres = transforms[:, :3, :3] @ centroid + transforms[:, :3, 3]
+    gaps = np.sqrt(((centres[:, None, :] - centres[None, :, :]) ** 2).sum(2))
+    touching = gaps <= 2.0 * reach + inlier_thresh
+    # Each instance's inliers: one sort of the labels instead of a mask per instance.
+    by_label = np.argsort(labels, kind="stable")
+    first = np.searchsorted(labels[by_label], np.arange(count + 1))
     model = None
-    kept = []
+    kept = np.zeros(count, dtype=bool)
     for m in np.argsort(-inliers, kind="stable"):
         if inliers[m] == 0:
             continue
-        near = [j for j in kept if np.linalg.norm(centres[m] - centres[j]) <= 2.0 * reach + inlier_thresh]
-        if near:
-            targets = y[labels == m]
+        near = np.flatnonzero(kept & touching[m])
+        if len(near):
+            targets = y[by_label[first[m]:first[m + 1]]]
             for j in near:
                 # First the sphere j's placed model lies in: an inlier outside it settles it.
                 offsets = targets - centres[j]
@@ -81,6 +86,5 @@ def covered_by_stronger(x: np.ndarray, y: np.ndarray, transforms: np.ndarray, la
                 if _all_within((targets - t) @ R, model, inlier_thresh):  # in j's model frame
                     keep[m] = False
                     break
-        if keep[m]:
-            kept.append(m)
+        kept[m] = keep[m]
     return keep
