@@ -26,8 +26,10 @@ class ECCConfig:
     gamma_thresh: float = param(0.5, "drop instances from the first k whose inliers / best inliers fall to this (see gamma_rule)", 0.0, 1.0)
     gamma_counts: str = param("clusters", "which inlier counts gamma compares: clusters (the refined clusters' sizes, as the authors' code) or fitted (each candidate cluster's transform fitted, all N re-assigned, its inliers counted: our reading of the paper's 'transformations by their inlier numbers')", choices=("fitted", "clusters"))
     gamma_rule: str = param("at_or_below", "where gamma_thresh cuts: at_or_below (the paper: gamma_k <= gamma_thresh is dropped) or below (the authors' code: gamma_k < gamma_thresh; an instance with exactly that share is kept)", choices=("at_or_below", "below"))
+    covered_instances: str = param("keep", "selected instances whose inliers all lie within inlier_thresh of the model as a stronger selected instance places it: keep (the paper) or drop (it explains no target point the stronger one's object does not occupy: the model turned over in place, collecting chance matches on the surface; core/placement.py)", choices=("keep", "drop"))
     # Large inputs (Sec. 3.6).
     max_correspondences: int = param(1024, "cluster at most this many correspondences; the rest are assigned afterwards (0 = all)", 0, 10_000_000)
+    lost_clusters: str = param("drop", "with sampling (N > max_correspondences), clusters of 3 or more sampled correspondences that the refinement dropped whole (their size in the sample understates an under-drawn instance): drop (the paper) or test (fit each, count its inliers among all N, keep it as a candidate if that count is more than chance: a-contrario, number of false alarms below 1; core/significance.py)", choices=("drop", "test"))
     sampling: str = param("uniform", "how to choose them: uniform (the paper) or consistency (keep those whose distances to spatial neighbours are preserved)", choices=("uniform", "consistency"))
     sampling_score: str = param("chance", "consistency sampling: score each correspondence by its agreeing neighbours in excess of chance (chance: a z-score against the agreement rate of randomly re-paired correspondences) or by their raw number (count: crowded outlier regions score high)", choices=("chance", "count"))
     sampling_exponent: float = param(6.0, "consistency sampling: draw with weights (score + 1)^exponent; 0 = uniform", 0.0, 100.0)
@@ -43,7 +45,8 @@ class ECCConfig:
     def modelnet() -> "ECCConfig":
         """The project's defaults for the synthetic benchmark (ModelNet units)."""
         return replace(ECCConfig(), spatial_sigma=2.0, alpha_floor=3, sampling="consistency", sampling_exponent=3.0,
-                       gamma_counts="fitted", gamma_rule="below")
+                       gamma_counts="fitted", gamma_rule="below", covered_instances="drop",
+                       lost_clusters="test")
 
     @staticmethod
     def metric() -> "ECCConfig":

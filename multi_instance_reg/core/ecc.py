@@ -17,6 +17,8 @@ from .compatibility import compatibility_matrix
 from .config import ECCConfig
 from .sampling import choose_sample
 from .refinement import assign, assign_nearest, fit_transforms, instance_scores, merge_duplicates, relabel, residuals
+from .placement import covered_by_stronger
+from .significance import meaningful
 
 
 @dataclass
@@ -84,7 +86,7 @@ class ECC:
             labels_all[sample] = labels
             labels = self.refine(x, y, labels_all)
         elif len(sample) < n:
-            labels = self.upsample(xs, ys, self.refine(xs, ys, labels), x, y)
+            labels = self.upsample(xs, ys, self.refine(xs, ys, labels), x, y, clusters=labels)
         else:  # the sample is every row, in another order
             labels_all = np.empty(n, dtype=np.int64)
             labels_all[sample] = self.refine(xs, ys, labels)
@@ -133,18 +135,57 @@ class ECC:
             labels = new_labels
         return labels
 
-    def upsample(self, xs, ys, sample_labels, x, y) -> np.ndarray:
-        """Assign every correspondence to the transforms found on the sample (Sec. 3.6)."""
+    def upsample(self, xs, ys, sample_labels, x, y, clusters=None) -> np.ndarray:
+        """Assign every correspondence to the transforms found on the sample (Sec. 3.6).
+
+        With lost_clusters test (and ``clusters``, the sample's clustering), the clusters of
+        at least 3 that the refinement dropped whole are fitted too and judged on all N: an
+        instance whose inliers the sample under-drew shows up in the sample only as such
+        small clusters (alpha there reaches round(1024 / 100) = 10), while among all N it
+        has its full support. Each is kept if its inliers among all N are more than chance
+        (significance.py); the rest go, and selection judges the survivors as any other."""
+        cfg = self.config
         n_clusters = int(sample_labels.max()) + 1 if (sample_labels >= 0).any() else 0
-        if n_clusters == 0:
+        T = fit_transforms(xs, ys, sample_labels, n_clusters) if n_clusters else np.zeros((0, 4, 4))
+        extra = self._lost_clusters(xs, ys, clusters, sample_labels) if cfg.lost_clusters == "test" and clusters is not None else None
+        if extra is not None and len(extra):
+            T = np.concatenate([T, extra])
+        if len(T) == 0:
             return -np.ones(len(x), dtype=np.int64)
-        T = fit_transforms(xs, ys, sample_labels, n_clusters)
-        return assign_nearest(x, y, T, self.config.inlier_thresh)[0]
+        labels, errors = assign_nearest(x, y, T, cfg.inlier_thresh)
+        if extra is None or len(extra) == 0:
+            return labels
+        counts = np.bincount(labels[labels >= 0], minlength=len(T))
+        # Only those that could pass selection's size cut are tested (the rest go anyway);
+        # the number of tests counts every lost cluster looked at.
+        tested = np.flatnonzero(counts[n_clusters:] > cfg.min_cluster_size) + n_clusters
+        keep = np.ones(len(T), dtype=bool)
+        keep[n_clusters:] = False
+        keep[tested] = meaningful(x, y, T, labels, errors, tested, np.random.default_rng(cfg.seed), hypotheses=len(extra))
+        if keep.all():
+            return labels
+        return assign_nearest(x, y, T[keep], cfg.inlier_thresh)[0]
+
+    @staticmethod
+    def _lost_clusters(xs, ys, clusters, refined) -> np.ndarray:
+        """Transforms fitted to the clusters (of at least 3: a rigid fit) none of whose
+        members the refinement kept."""
+        lost = clusters.copy()
+        lost[np.isin(clusters, clusters[refined >= 0])] = -1
+        lost, count = relabel(lost)
+        if count == 0:
+            return np.zeros((0, 4, 4))
+        sizes = np.bincount(lost[lost >= 0], minlength=count)
+        big = np.flatnonzero(sizes >= 3)
+        remap = -np.ones(count, dtype=np.int64)
+        remap[big] = np.arange(len(big))
+        return fit_transforms(xs, ys, np.where(lost >= 0, remap[np.maximum(lost, 0)], -1), len(big)) if len(big) else np.zeros((0, 4, 4))
 
     def select(self, x, y, labels):
         """Clusters larger than min_cluster_size, by inlier count; stop at the first whose
         count falls to gamma_thresh of the best (Sec. 3.5; gamma_rule: at or below, or only
-        below it). Final fits use all inliers."""
+        below it); with covered_instances drop, without those whose inliers all lie on a
+        stronger instance's placed model (placement.py). Final fits use all inliers."""
         cfg = self.config
         n = len(x)
         counts = np.bincount(labels[labels >= 0], minlength=1)
@@ -172,12 +213,19 @@ class ECC:
         sel_labels = np.where(labels >= 0, remap[np.maximum(labels, 0)], -1)
         T = fit_transforms(x, y, sel_labels, len(cand))
         final, best_errors = assign_nearest(x, y, T, cfg.inlier_thresh)
-        counts = np.bincount(final[final >= 0], minlength=len(cand))
-        scores = instance_scores(final, best_errors, cfg.inlier_thresh, len(cand))
+        if cfg.covered_instances == "drop":
+            # An instance whose inliers all lie on the model as a stronger one places it
+            # (placement.py); its correspondences go to the nearest kept transform or out.
+            keep = covered_by_stronger(x, y, T, final, cfg.inlier_thresh)
+            if not keep.all():
+                T = T[keep]
+                final, best_errors = assign_nearest(x, y, T, cfg.inlier_thresh)
+        counts = np.bincount(final[final >= 0], minlength=len(T))
+        scores = instance_scores(final, best_errors, cfg.inlier_thresh, len(T))
         # Sort by inlier count and renumber the labels to match; empty transforms go.
         order = np.argsort(-counts, kind="stable")
         order = order[counts[order] > 0]
-        rank = -np.ones(len(cand) + 1, dtype=np.int64)
+        rank = -np.ones(len(T) + 1, dtype=np.int64)
         rank[order] = np.arange(len(order))
         final = rank[final]  # -1 maps through rank[-1] = -1
         return T[order], final, counts[order].astype(np.int64), scores[order]
