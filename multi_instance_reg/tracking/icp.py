@@ -175,7 +175,7 @@ def _icp(T0, pts, nrm, depth, fx, fy, cx, cy, iterations, max_dist, inlier_dist,
     for it in range(iterations):
         frac = it / max(iterations - 1, 1)
         gate = max_dist + (inlier_dist - max_dist) * frac
-        centre = T[:3, :3] @ centroid + T[:3, 3]
+        centre = np.ascontiguousarray(T[:3, :3]) @ centroid + T[:3, 3]   # contiguous: numba warns on the slice
         used, _, _, _, _, _ = _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, gate, centre, A, b)
         if used < 6:
             break
@@ -183,7 +183,7 @@ def _icp(T0, pts, nrm, depth, fx, fy, cx, cy, iterations, max_dist, inlier_dist,
         T = apply_twist(T, x, centre)
         if np.abs(x[:3]).max() < 1e-6 and np.abs(x[3:]).max() < 1e-6:
             break
-    centre = T[:3, :3] @ centroid + T[:3, 3]
+    centre = np.ascontiguousarray(T[:3, :3]) @ centroid + T[:3, 3]
     used, visible, sq, facing, inside, occluded = _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, inlier_dist, centre,
                                                              A, b)
     return T, used, visible, sq, facing, inside, occluded
