@@ -231,3 +231,65 @@ def test_box_overlaps_of_instances():
     assert O.shape == (3, 3) and np.allclose(np.diag(O), 1.0)
     assert 0.3 < O[0, 1] < 0.7 and O[0, 2] == 0.0 and O[2, 0] == 0.0
     assert box_overlaps(Model, [], box_grid(Model.extent)).shape == (0, 0)
+
+
+def _box_cloud(extent, step=0.004):
+    """Dense points on the surface of a box centred at the origin."""
+    h = np.asarray(extent) / 2.0
+    axes = [np.arange(-hi, hi + 1e-9, step) for hi in h]
+    pts = []
+    for a in range(3):
+        b, c = [i for i in range(3) if i != a]
+        B, C = np.meshgrid(axes[b], axes[c], indexing="ij")
+        for sign in (-1.0, 1.0):
+            p = np.zeros((B.size, 3))
+            p[:, a], p[:, b], p[:, c] = sign * h[a], B.ravel(), C.ravel()
+            pts.append(p)
+    return np.concatenate(pts)
+
+
+def test_free_space_share_tells_a_box_on_the_depth_from_one_in_empty_space():
+    from multi_instance_reg.rgbd.verify import free_space_share, surface_samples
+
+    extent = np.array([0.18, 0.12, 0.05])
+    pts, normals = surface_samples(_box_cloud(extent), extent)
+    assert len(pts) > 100 and np.allclose(np.linalg.norm(normals, axis=1), 1.0)
+    # Outward: along the offset from the centre on the faces (z: top and bottom faces).
+    top = pts[:, 2] > extent[2] / 2 - 1e-6
+    assert top.sum() > 20 and (normals[top, 2] > 0.5).all() and np.median(normals[top, 2]) > 0.95
+
+    def pose(z_top, x=0.0, tilt_deg=0.0):
+        """Camera looking down +z at a table; the box's top face (its +z face) towards the
+        camera, at depth z_top; tilted about the y axis through its -x end."""
+        T = np.eye(4)
+        T[:3, :3] = np.diag([1.0, -1.0, -1.0])              # box +z -> camera -z (towards it)
+        a = np.radians(tilt_deg)
+        R = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+        T[:3, :3] = R @ T[:3, :3]
+        end = np.array([-extent[0] / 2, 0.0, z_top])
+        T[:3, 3] = end - R @ (end - np.array([0.0, 0.0, z_top + extent[2] / 2]))
+        T[0, 3] += x
+        return T
+
+    flat = np.full((480, 640), 0.8, np.float32)
+    pivot_at = lambda T: T[:3, :3] @ np.array([-extent[0] / 2 + 0.01, 0.0, extent[2] / 2]) + T[:3, 3]
+    slope = np.tan(np.radians(10.0))
+
+    def share(T, depth, slope=slope):
+        s, m = free_space_share(T, pts, normals, depth, INTRINSICS, pivot_at(T), 0.008, slope)
+        assert m > 50
+        return s
+
+    # On the depth: nothing in empty space. Floating 8 cm in front of it: all of it.
+    assert share(pose(0.8), flat) == 0.0
+    assert share(pose(0.72), flat) > 0.95
+    # Hidden behind something nearer: no evidence against it.
+    assert share(pose(0.8), np.full((480, 640), 0.7, np.float32)) == 0.0
+    # Slid half off a raised surface onto a table 5 cm lower (a fit to repeated texture on a
+    # real box, shifted along it): the overhanging half fills empty space.
+    step = flat.copy()
+    step[:, 320:] = 0.85
+    assert 0.3 < share(pose(0.8, x=0.0), step) < 0.7
+    # Tilted by 5 deg about the end its inliers are at: within the tilt allowed, not without.
+    assert share(pose(0.8, tilt_deg=5.0), flat) < 0.05
+    assert share(pose(0.8, tilt_deg=5.0), flat, slope=0.0) > 0.3

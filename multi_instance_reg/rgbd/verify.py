@@ -312,4 +312,76 @@ def texture_agreement(T: np.ndarray, keypoints: np.ndarray, keypoint_normals: np
     return best, agree, int(shown.sum())
 
 
-__all__ = ["outline_continuation", "outline_shift", "texture_agreement"]
+def surface_samples(points: np.ndarray, extent, max_points: int = 600) -> tuple[np.ndarray, np.ndarray]:
+    """(P, 3) points spread over a model's dense cloud (model frame), at most ``max_points``,
+    and their outward normals (PCA over the neighbours, turned away from the cloud's centre:
+    right for the convex objects of a tabletop; only the back-face test reads the sign)."""
+    from .shape import NORMAL_RADIUS, _normals_and_variation, neighbours, shape_voxel, voxel_downsample
+
+    pts = np.asarray(points, np.float64)
+    if len(pts) < 3:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    voxel = shape_voxel(extent)
+    pts = voxel_downsample(pts, voxel)
+    nbr = neighbours(pts, NORMAL_RADIUS * voxel, 16, cKDTree(pts))
+    normals, _ = _normals_and_variation(np.ascontiguousarray(pts), nbr, np.zeros((len(pts), 0), np.int64))
+    flip = np.einsum("ij,ij->i", normals, pts - pts.mean(axis=0)) < 0
+    normals[flip] *= -1.0
+    if len(pts) > max_points:
+        pick = np.sort(np.random.default_rng(0).choice(len(pts), max_points, replace=False))
+        pts, normals = pts[pick], normals[pick]
+    return np.ascontiguousarray(pts), np.ascontiguousarray(normals)
+
+
+def free_space_share(T: np.ndarray, points: np.ndarray, normals: np.ndarray, depth_m: np.ndarray,
+                     intrinsics: CameraIntrinsics, pivot: np.ndarray, tolerance: float, slope: float
+                     ) -> tuple[float, int]:
+    """Does the model at pose T fill space the depth camera sees to be empty?
+
+    Of the model's surface points (model frame, with outward normals) that face the camera
+    and project into the image onto a valid depth pixel: the share lying in front of the
+    measured surface by more than ``tolerance + slope x`` their distance from ``pivot``
+    (camera frame; the inliers' centre), and how many points were judged. The margin grows
+    away from the inliers because a pose fitted to a few close matches is sure there and
+    may be tilted elsewhere (slope = tan of the tilt allowed); points behind the measurement
+    may be hidden and count as neither. Compiled: a projection per point."""
+    K = intrinsics.K
+    return _free_space_share(np.ascontiguousarray(T, np.float64), points, normals, depth_m,
+                             float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]),
+                             np.ascontiguousarray(pivot, np.float64), float(tolerance), float(slope))
+
+
+@numba.njit(cache=True)
+def _free_space_share(T, mp, mn, depth, fx, fy, cx, cy, pivot, tolerance, slope):
+    h, w = depth.shape
+    m = 0
+    free = 0
+    for i in range(mp.shape[0]):
+        px = T[0, 0] * mp[i, 0] + T[0, 1] * mp[i, 1] + T[0, 2] * mp[i, 2] + T[0, 3]
+        py = T[1, 0] * mp[i, 0] + T[1, 1] * mp[i, 1] + T[1, 2] * mp[i, 2] + T[1, 3]
+        pz = T[2, 0] * mp[i, 0] + T[2, 1] * mp[i, 1] + T[2, 2] * mp[i, 2] + T[2, 3]
+        nx = T[0, 0] * mn[i, 0] + T[0, 1] * mn[i, 1] + T[0, 2] * mn[i, 2]
+        ny = T[1, 0] * mn[i, 0] + T[1, 1] * mn[i, 1] + T[1, 2] * mn[i, 2]
+        nz = T[2, 0] * mn[i, 0] + T[2, 1] * mn[i, 1] + T[2, 2] * mn[i, 2]
+        # Facing the camera, not at a grazing angle (the test of shape.depth_support).
+        if not (-(nx * px + ny * py + nz * pz) > 0.2 * math.sqrt(px * px + py * py + pz * pz)):
+            continue
+        if not pz > 0.05:
+            continue
+        u = round(fx * px / pz + cx)
+        v = round(fy * py / pz + cy)
+        if u < 0 or u >= w or v < 0 or v >= h:
+            continue
+        measured = depth[v, u]
+        if not measured > 0:
+            continue
+        m += 1
+        dx, dy, dz = px - pivot[0], py - pivot[1], pz - pivot[2]
+        if measured - pz > tolerance + slope * math.sqrt(dx * dx + dy * dy + dz * dz):
+            free += 1
+    if m == 0:
+        return 0.0, 0
+    return free / m, m
+
+
+__all__ = ["outline_continuation", "outline_shift", "texture_agreement", "surface_samples", "free_space_share"]
