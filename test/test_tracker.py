@@ -443,6 +443,26 @@ def test_a_weak_detection_pulls_a_settled_track_less_than_a_strong_one():
     assert 0.0 < moved[10] < 0.5 * moved[300] and moved[300] < 3.0
 
 
+def test_with_smoothing_a_weak_turned_detection_is_pulled_by_its_gain_a_strong_one_left_to_the_depth():
+    # "Far" in orientation is in units of the detection's spread: 8 deg off a settled track is
+    # within the noise of an 8-inlier detection (gate 5 deg x sqrt(100 / 8) = 17.7 deg), so it
+    # pulls the track by its small gain and repeating it moves the track only gradually; for a
+    # 300-inlier one it is a jump the depth cannot judge, taken after flip_after in a row.
+    depth = top_faces_depth([0.0])
+    yaws = {}
+    for inliers in (8, 300):
+        tr = box_tracker(smoothing=0.5)
+        for k in range(20):
+            tr.step(k * FRAME_NS, depth, BOX_INTR, [box_det(0.0, inliers=100)])
+        turned = Det(make_transform(rot_z(8.0), [0.0, 0.0, 0.78]), inliers)
+        yaws[inliers] = []
+        for k in range(20, 20 + tr.config.flip_after):
+            tr.step(k * FRAME_NS, depth, BOX_INTR, [turned])
+            yaws[inliers].append(yaw_deg(tr.tracks[0].T))
+    assert 0.0 < yaws[8][0] < 1.0 and yaws[8][0] < yaws[8][-1] < 3.0, yaws[8]
+    assert abs(yaws[300][0]) < 0.5 and abs(yaws[300][-1] - 8.0) < 0.5, yaws[300]
+
+
 def test_a_sliver_of_depth_does_not_move_a_track():
     # An arm too close for the depth camera hides all but a strip of the box's top: the few
     # points left are no measurement of the pose (icp_min_measured), the track coasts where

@@ -58,7 +58,7 @@ class TrackerConfig:
     camera_motion: bool = param(True, "predict every track by one motion shared by all (the camera's: objects rest and the camera moves), corrected on each frame by one ICP of all confirmed and coasting tracks together against the depth (where that is refused or no such track is in view: the median rotation, then the median translation of the steps of the tracks the depth or a detection saw), plus the track's own residual velocity; an occluded (coasting) track follows the shared motion. Off: each track's own constant velocity, an occluded one follows the nearest seen track")
     velocity_decay: float = param(0.5, "share of a track's own velocity (with camera_motion: what the shared motion does not explain) kept per frame the track is updated by the depth alone (no detection): a velocity the depth does not confirm (a box sliding along the table plane it shares with its neighbours) dies out instead of carrying the track away from a resting object; 1 = constant velocity", 0.0, 1.0)
     smoothing: float = param(0.0, "pose smoothing, 0 = off (the published pose is the measured one) to 0.95 (heavy): the published pose is a constant-velocity (alpha-beta) filter of the measured one with gain 1 - smoothing, so a resting object's pose settles and a steadily moving one does not lag; a measurement further than icp_max_step / icp_max_step_deg from the filter restarts it", 0.0, 0.95)
-    detection_gain: float = param(0.3, "with smoothing on: share of an agreeing detection's correction (within icp_max_step / icp_max_step_deg of a confirmed track, no symmetric flip) that moves a resting track in the steady state, for a detection of detection_gain_inliers inliers (a Kalman gain: the first detections of a track are averaged, weaker ones pull less, stronger ones more); the ICP then re-fits what the depth constrains, so this filters only what it does not (a box seen from its top: its yaw and where it lies on the table), which a detection would otherwise reset with its own noise on every frame. 1 = reset; unused with smoothing 0 (the track is then the measured pose)", 0.01, 1.0)
+    detection_gain: float = param(0.3, "with smoothing on: share of an agreeing detection's correction (within icp_max_step and, in orientation, icp_max_step_deg times its spread of a confirmed track, no symmetric flip) that moves a resting track in the steady state, for a detection of detection_gain_inliers inliers (a Kalman gain: the first detections of a track are averaged, weaker ones pull less, stronger ones more); the ICP then re-fits what the depth constrains, so this filters only what it does not (a box seen from its top: its yaw and where it lies on the table), which a detection would otherwise reset with its own noise on every frame. 1 = reset; unused with smoothing 0 (the track is then the measured pose)", 0.01, 1.0)
     detection_gain_inliers: int = param(100, "inliers of the detection that detection_gain refers to; a detection's pose variance is taken as inversely proportional to its inliers", 1, 100000)
     publish_tentative: bool = param(False, "also publish tracks not yet confirmed (state tentative)")
     icp: bool = param(True, "bring every track up to date on every frame by projective point-to-plane ICP of the model against the depth image (off: tracks move only with detections)")
@@ -71,7 +71,7 @@ class TrackerConfig:
     icp_max_distance: float = param(0.03, "m: depth pairs farther apart than this are ignored in the first ICP iteration (the gate shrinks to icp_inlier_distance by the last)", 0.001, 0.5)
     icp_inlier_distance: float = param(0.006, "m: a model point counts as confirmed by the depth within this distance", 0.0005, 0.1)
     icp_max_step: float = param(0.01, "m: an ICP result that moves the track's pose further than this from its prediction (or from the detection of this frame) is refused: the model slid along a plane it shares with something else", 0.0005, 1.0)
-    icp_max_step_deg: float = param(5.0, "deg: the same for the rotation", 0.1, 180.0)
+    icp_max_step_deg: float = param(5.0, "deg: the same for the rotation; with smoothing on, a detection further than this times its spread (sqrt(detection_gain_inliers / inliers), at least 1) from a confirmed track is left for the depth to decide, a nearer one is pulled by its gain", 0.1, 180.0)
     icp_min_fitness: float = param(0.35, "share of the visible model points (facing the camera, with a depth measurement) the depth must confirm for the track to count as seen on a frame (below: a miss, e.g. occluded)", 0.0, 1.0)
 
 
@@ -317,8 +317,14 @@ class InstanceTracker:
         motion = tr.T @ invert_transform(T_then)
         T_new = proper_pose(motion @ T_det)
         step = local_residual(tr.T, T_new)
+        # With smoothing, "far" in orientation is in units of the detection's own spread (the
+        # standard deviation of the pull's variance model, inliers^-1/2), as a Kalman filter
+        # gates its innovations: a weak detection a few degrees off is its noise, pulled by its
+        # small gain, not a jump for the depth to decide. (Static + arm sequences: one
+        # 5-9-inlier detection 6-7 deg off had turned a settled track for 1-15 frames.)
+        spread = np.sqrt(max(1.0, self._detection_variance(det.inliers))) if c.smoothing > 0 else 1.0
         far = (np.linalg.norm(step[3:]) > c.icp_max_step
-               or (not flipped and np.degrees(np.linalg.norm(step[:3])) > c.icp_max_step_deg))
+               or (not flipped and np.degrees(np.linalg.norm(step[:3])) > c.icp_max_step_deg * spread))
         if tr.state != TENTATIVE and far:
             # A detection far from a confirmed track, in position or orientation, may be a bad
             # one (few inliers on an object half hidden by an arm): the depth decides between
