@@ -155,6 +155,27 @@ def test_outline_continuation_tells_a_box_top_from_a_piece_of_a_larger_surface()
     assert crate > 0.9 and floor > 0.9
 
 
+def test_in_view_share_counts_the_facing_surface_inside_the_image():
+    from multi_instance_reg.rgbd.verify import in_view_share
+
+    K = _intrinsics()
+    g = np.stack(np.meshgrid(np.arange(-0.1, 0.1001, 0.01), np.arange(-0.065, 0.0651, 0.01)), -1).reshape(-1, 2)
+    face = np.column_stack([g, np.zeros(len(g))])
+    normals = np.tile([0.0, 0.0, -1.0], (len(face), 1))
+
+    def at(row, col, z):
+        return make_transform(np.eye(3), z * (np.linalg.inv(K.K) @ [col, row, 1.0]))
+
+    assert in_view_share(at(120, 160, 1.0), face, normals, K) == 1.0
+    # Centred on the image's left edge: the left half of the face is outside.
+    assert 0.4 < in_view_share(at(120, 0, 1.0), face, normals, K) < 0.6
+    assert in_view_share(at(120, -200, 1.0), face, normals, K) == 0.0
+    # Turned away from the camera: nothing faces it.
+    away = at(120, 160, 1.0)
+    away[:3, :3] = np.diag([1.0, -1.0, -1.0])
+    assert in_view_share(away, face, normals, K) == 0.0
+
+
 def test_pose_clusters_rank_agreeing_references_above_scattered_ones():
     from multi_instance_reg.rgbd.ppf import cluster_poses
     from multi_instance_reg.symmetry import _rotation

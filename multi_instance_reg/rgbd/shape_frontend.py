@@ -21,7 +21,7 @@ from .model import ObjectModel
 from .lifting import depth_to_cloud
 from .ppf import ANGLE_BINS as ANGLE_STEPS, PPFModel, cluster_poses
 from .segments import connected_segments, support_mask
-from .verify import facing_camera, outline_continuation, outline_shift
+from .verify import facing_camera, in_view_share, outline_continuation, outline_shift
 from .shape import (PointGrid, ShapeMatcher, apply_twist, depth_support, describe, icp_point_to_plane, scene_cloud,
                     surface_normals, voxel_downsample)
 
@@ -243,6 +243,9 @@ class ShapeFrontEnd:
         """(T, support, agreeing points) when the depth and the outline accept pose T, else None."""
         fe = self.fe
         if n < fe.shape_min_visible or support < fe.shape_min_support or free > fe.shape_max_free:
+            return None
+        if fe.shape_min_in_view > 0 and in_view_share(T, self._surface, self._surface_normals,
+                                                      intrinsics) < fe.shape_min_in_view:
             return None
         # The outline's share is at least 0: without the evidence even at 0, no need to look.
         if support - free < fe.shape_min_evidence:

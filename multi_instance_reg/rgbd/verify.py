@@ -105,6 +105,23 @@ def facing_camera(p: np.ndarray, n: np.ndarray) -> np.ndarray:
     return (np.einsum("ij,ij->i", n, -p) > 0.2 * np.linalg.norm(p, axis=1)) & (p[:, 2] > 0.05)
 
 
+def in_view_share(T: np.ndarray, model_pts: np.ndarray, model_normals: np.ndarray,
+                  intrinsics: CameraIntrinsics) -> float:
+    """Share of the model's surface facing the camera at pose T that projects inside the
+    image: the depth and outline checks can only judge that part."""
+    p = model_pts @ T[:3, :3].T + T[:3, 3]
+    n = model_normals @ T[:3, :3].T
+    facing = facing_camera(p, n)
+    if not facing.any():
+        return 0.0
+    p = p[facing]
+    K = intrinsics.K
+    u = K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2]
+    v = K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]
+    inside = (u >= -0.5) & (u < intrinsics.width - 0.5) & (v >= -0.5) & (v < intrinsics.height - 0.5)
+    return float(inside.mean())
+
+
 def outline_continuation(T: np.ndarray, model_pts: np.ndarray, model_normals: np.ndarray, depth_m: np.ndarray,
                          intrinsics: CameraIntrinsics, voxel: float, tolerance: float,
                          max_angle_deg: float = 30.0, up: np.ndarray | None = None) -> tuple[float, int]:
