@@ -125,18 +125,24 @@ def test_icp_does_not_slide_a_box_seen_by_its_top_alone():
     assert abs(out[2, 3] - T[2, 3]) < 0.003                            # the depth is corrected
 
 
+def _face_model():
+    """A 0.2 x 0.13 m face (points every cm, normals towards the camera), centred at its origin."""
+    g = np.stack(np.meshgrid(np.arange(-0.1, 0.1001, 0.01), np.arange(-0.065, 0.0651, 0.01)), -1).reshape(-1, 2)
+    face = np.column_stack([g, np.zeros(len(g))])
+    return face, np.tile([0.0, 0.0, -1.0], (len(face), 1))
+
+
+def _looking_at(K):
+    """at(row, col, z): the pose that puts the model's origin on pixel (row, col) at depth z."""
+    return lambda row, col, z: make_transform(np.eye(3), z * (np.linalg.inv(K.K) @ [col, row, 1.0]))
+
+
 def test_outline_continuation_tells_a_box_top_from_a_piece_of_a_larger_surface():
     from multi_instance_reg.rgbd.verify import outline_continuation
 
     K = _intrinsics()
-    # The model: a 0.2 x 0.13 m face (normals towards the camera), centred at its origin.
-    g = np.stack(np.meshgrid(np.arange(-0.1, 0.1001, 0.01), np.arange(-0.065, 0.0651, 0.01)), -1).reshape(-1, 2)
-    face = np.column_stack([g, np.zeros(len(g))])
-    normals = np.tile([0.0, 0.0, -1.0], (len(face), 1))
-
-    def at(row, col, z):
-        return make_transform(np.eye(3), z * (np.linalg.inv(K.K) @ [col, row, 1.0]))
-
+    face, normals = _face_model()
+    at = _looking_at(K)
     depth = np.full((240, 320), 1.5, np.float32)            # floor
     depth[120:220, 160:300] = 1.3                            # a crate top, 0.46 x 0.325 m
     # A box top exactly as big as the model, standing 0.2 m above the floor.
@@ -159,13 +165,8 @@ def test_in_view_share_counts_the_facing_surface_inside_the_image():
     from multi_instance_reg.rgbd.verify import in_view_share
 
     K = _intrinsics()
-    g = np.stack(np.meshgrid(np.arange(-0.1, 0.1001, 0.01), np.arange(-0.065, 0.0651, 0.01)), -1).reshape(-1, 2)
-    face = np.column_stack([g, np.zeros(len(g))])
-    normals = np.tile([0.0, 0.0, -1.0], (len(face), 1))
-
-    def at(row, col, z):
-        return make_transform(np.eye(3), z * (np.linalg.inv(K.K) @ [col, row, 1.0]))
-
+    face, normals = _face_model()
+    at = _looking_at(K)
     assert in_view_share(at(120, 160, 1.0), face, normals, K) == 1.0
     # Centred on the image's left edge: the left half of the face is outside.
     assert 0.4 < in_view_share(at(120, 0, 1.0), face, normals, K) < 0.6
