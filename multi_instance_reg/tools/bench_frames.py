@@ -203,8 +203,9 @@ def run_models(args, bags, models, config) -> int:
     print(f"reported as the wrong object: {together['confusions']} (alone: "
           f"{', '.join(str(f['confusions']) for f in alone)})")
     side = side_by_side_latency(bags, models, config)
-    print(f"side by side, frame by frame ({side['frames']} frames, each through {models[0].name} alone, then all "
-          f"{len(models)}): p50 {side['one_p50']:.1f} -> {side['all_p50']:.1f} ms = {side['ratio']:.2f} x; "
+    print(f"side by side, frame by frame ({side['frames']} frames, each through {models[0].name} alone and all "
+          f"{len(models)} in turn, {side['repeats']} times, its median): p50 {side['one_p50']:.1f} -> "
+          f"{side['all_p50']:.1f} ms = {side['ratio']:.2f} x; "
           f"load average {os.getloadavg()[0]:.2f}")
     if args.json:
         Path(args.json).write_text(json.dumps({"alone": dict(zip((m.name for m in models), alone)),
@@ -212,9 +213,11 @@ def run_models(args, bags, models, config) -> int:
     return 0
 
 
-def side_by_side_latency(bags, models, config) -> dict:
-    """p50 latency of the first model alone and of all models, each frame through both in
-    turn, so that a host whose speed drifts slows both alike."""
+def side_by_side_latency(bags, models, config, repeats: int = 3) -> dict:
+    """p50 latency of the first model alone and of all models: each frame through both in
+    turn, ``repeats`` times (which goes first alternating), so that a host whose speed
+    drifts slows both alike; per frame the median of its runs, then the median over frames
+    (a single run of a frame moved the ratio by up to 0.1 on the shared 2-core host)."""
     import time
 
     from ..datasets.rgbd_bag import RGBDBag
@@ -226,12 +229,18 @@ def side_by_side_latency(bags, models, config) -> dict:
     for bag in bags:
         with RGBDBag(bag) as frames:
             for f in frames:
-                for key, reg in (("one", one), ("all", every)):
-                    t0 = time.perf_counter()
-                    reg.register_frame(f.rgb, f.depth_m, f.intrinsics)
-                    times[key].append((time.perf_counter() - t0) * 1e3)
+                runs = {"one": [], "all": []}
+                for r in range(repeats):
+                    pair = (("one", one), ("all", every))
+                    for key, reg in (pair if r % 2 == 0 else pair[::-1]):
+                        t0 = time.perf_counter()
+                        reg.register_frame(f.rgb, f.depth_m, f.intrinsics)
+                        runs[key].append((time.perf_counter() - t0) * 1e3)
+                for key in times:
+                    times[key].append(float(np.median(runs[key])))
     p50 = {k: float(np.median(v)) for k, v in times.items()}
-    return {"frames": len(times["one"]), "one_p50": p50["one"], "all_p50": p50["all"], "ratio": p50["all"] / p50["one"]}
+    return {"frames": len(times["one"]), "repeats": repeats, "one_p50": p50["one"], "all_p50": p50["all"],
+            "ratio": p50["all"] / p50["one"]}
 
 
 def _replay_all(args, bags, models, config):
