@@ -54,21 +54,64 @@ def limit_blas_threads(count: int = 1) -> int:
 _POOL: ThreadPoolExecutor | None = None
 
 
+def shared_pool() -> ThreadPoolExecutor | None:
+    """The shared thread pool (one worker per core), or None on a single core."""
+    global _POOL
+    cores = os.cpu_count() or 1
+    if cores <= 1:
+        return None
+    if _POOL is None:
+        _POOL = ThreadPoolExecutor(cores, thread_name_prefix="mireg")
+    return _POOL
+
+
+def submit_each(function, items) -> list:
+    """``function(item)`` started for each item in the shared thread pool (in order; run
+    at once, in this thread, on a single core); returns one future-like object per item,
+    whose ``result()`` waits. For independent tasks whose time is mostly in calls that
+    release the GIL (nogil numba kernels, k-d tree queries, OpenCV)."""
+    pool = shared_pool()
+    if pool is None:
+        return [_Done(function, item) for item in items]
+    return [pool.submit(function, item) for item in items]
+
+
+def map_each(function, items) -> list:
+    """``function(item)`` for each item, in the shared thread pool; the results in order."""
+    return [f.result() for f in submit_each(function, items)]
+
+
+class _Done:
+    """A task run at once (no pool): its result, or its exception, kept for ``result()``."""
+
+    def __init__(self, function, item):
+        try:
+            self._value, self._error = function(item), None
+        except BaseException as exc:  # re-raised in result(), as a Future does
+            self._value, self._error = None, exc
+
+    def result(self):
+        if self._error is not None:
+            raise self._error
+        return self._value
+
+    def cancel(self) -> bool:
+        return False
+
+
 def submit_in_chunks(function, rows: np.ndarray, min_chunk: int = 256):
     """``function`` started on consecutive chunks of ``rows``, one per core, in a shared
     thread pool; returns a callable that waits and gives the results in order. The caller
     can do other work meanwhile (several models' searches queued at once, one model's
     clustering while the next one's search runs)."""
-    global _POOL
     cores = os.cpu_count() or 1
     parts = int(min(cores, max(1, len(rows) // min_chunk)))
     if parts <= 1:
         result = [function(rows)]
         return lambda: result
-    if _POOL is None:
-        _POOL = ThreadPoolExecutor(cores, thread_name_prefix="mireg")
+    pool = shared_pool()
     bounds = np.linspace(0, len(rows), parts + 1).astype(int)
-    futures = [_POOL.submit(function, rows[a:b]) for a, b in zip(bounds[:-1], bounds[1:])]
+    futures = [pool.submit(function, rows[a:b]) for a, b in zip(bounds[:-1], bounds[1:])]
     return lambda: [f.result() for f in futures]
 
 

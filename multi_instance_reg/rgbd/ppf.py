@@ -296,14 +296,15 @@ class PPFModel:
 
 
 def cluster_poses(poses: np.ndarray, weights: np.ndarray, max_angle_deg: float, max_shift: float,
-                  max_clusters: int, min_members: int = 2) -> np.ndarray:
+                  max_clusters: int, min_members: int = 2, indices: bool = False) -> np.ndarray:
     """Pose hypotheses straight from the references' votes (Drost et al.'s pose clustering):
     greedily, strongest reference first, a pose joins the first cluster whose seed it is
     within ``max_angle_deg`` and ``max_shift`` of; clusters ranked by their summed weight.
     Returns the seeds of the best ``max_clusters`` clusters of at least ``min_members``
-    (K, 4, 4). ``poses`` should be canonical over the symmetries (``canonical_poses``)."""
+    (K, 4, 4), or with ``indices`` their indices in ``poses`` (K,). ``poses`` should be
+    canonical over the symmetries (``canonical_poses``)."""
     if len(poses) == 0:
-        return np.zeros((0, 4, 4))
+        return np.zeros(0, np.int64) if indices else np.zeros((0, 4, 4))
     order = np.argsort(-np.asarray(weights), kind="stable")
     R = poses[order, :3, :3]
     t = poses[order, :3, 3]
@@ -313,7 +314,10 @@ def cluster_poses(poses: np.ndarray, weights: np.ndarray, max_angle_deg: float, 
     counts = np.bincount(label, minlength=len(seeds))
     score = np.bincount(label, weights=w, minlength=len(seeds))
     best = [k for k in np.argsort(-score, kind="stable") if counts[k] >= min_members][:max_clusters]
-    return poses[order[[seeds[k] for k in best]]] if best else np.zeros((0, 4, 4))
+    chosen = order[np.asarray([seeds[k] for k in best], np.int64)]
+    if indices:
+        return chosen
+    return poses[chosen] if best else np.zeros((0, 4, 4))
 
 
 @numba.njit(cache=True)

@@ -293,7 +293,7 @@ class PointGrid:
         self.normals = np.ascontiguousarray(np.asarray(normals, np.float64).reshape(-1, 3)[order])
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _grid_nearest(x, y, z, pts, start, lo, dims, cell, max_dist):
     """Index (into the grid's points) of the nearest point closer than ``max_dist`` (<=
     cell), -1 if none. The query's own column of cells first; a neighbouring cell is
@@ -332,7 +332,7 @@ def _grid_nearest(x, y, z, pts, start, lo, dims, cell, max_dist):
     return best
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def apply_twist(T, x, centre):
     """exp of the twist x = (omega, tau) about ``centre``, applied on the left of T (Rodrigues);
     the ICP step here and the tracker's (``tracking/icp.py``)."""
@@ -349,7 +349,7 @@ def apply_twist(T, x, centre):
     return out
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _icp_grid(T0, mp, mn, use_normals, sp, sn, start, lo, dims, cell, max_dist, iterations):
     T = T0.copy()
     share = 0.0
@@ -462,7 +462,7 @@ def depth_support(T: np.ndarray, model_pts: np.ndarray, model_normals: np.ndarra
                           float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), float(tolerance))
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _depth_support(T, mp, mn, depth, fx, fy, cx, cy, tolerance):
     h, w = depth.shape
     facing = 0

@@ -22,6 +22,7 @@ from .lifting import depth_to_cloud
 from .ppf import ANGLE_BINS as ANGLE_STEPS, PPFModel, cluster_poses
 from .segments import connected_segments, support_mask
 from .verify import facing_camera, in_view_share, outline_continuation, outline_shift
+from ..threads import submit_each
 from .shape import (PointGrid, ShapeMatcher, apply_twist, depth_support, describe, icp_point_to_plane, scene_cloud,
                     surface_normals, voxel_downsample)
 
@@ -148,13 +149,53 @@ class ShapeFrontEnd:
         return self._model_pts[self._model_idx[m]], cloud.points[cloud.salient[s]]
 
     def refine_and_check(self, transforms, cloud: FrameCloud, depth_m: np.ndarray,
-                         intrinsics: CameraIntrinsics) -> list[tuple[np.ndarray, float, int]]:
+                         intrinsics: CameraIntrinsics, started: dict | None = None
+                         ) -> list[tuple[np.ndarray, float, int]]:
         """Each transform refined by ICP against the frame's points and kept when the depth
-        image agrees with the model's visible surface: (T, support share, agreeing points)."""
-        fe = self.fe
-        out = []
+        image agrees with the model's visible surface: (T, support share, agreeing points).
+        Hypotheses that are one pose (ECC's and the vote clusters' for one instance) are
+        refined once: the first of each group, in the order given (``distinct``). Each is
+        refined and judged on its own, so they run in the shared thread pool, two at a
+        time on two cores (the compiled kernels, k-d tree queries and OpenCV calls release
+        the GIL); the results in the order of ``distinct``, the same as one at a time.
+        ``started``: {index in transforms: task} already submitted (``start_refining``)."""
         if cloud.grid is None:
-            return out
+            return []
+        started = started or {}
+        order = self.distinct(transforms)
+        for k in set(started) - set(order):
+            started[k].cancel()      # absorbed by an earlier hypothesis: not needed
+        tasks = [started[k] if k in started else None for k in order]
+        missing = [k for k, task in zip(order, tasks) if task is None]
+        new = iter(submit_each(lambda T0: self.refine_one(T0, cloud, depth_m, intrinsics),
+                               [np.array(transforms[k], np.float64) for k in missing]))
+        tasks = [task if task is not None else next(new) for task in tasks]
+        return [r for r in (task.result() for task in tasks) if r is not None]
+
+    def start_refining(self, transforms, cloud: FrameCloud, depth_m: np.ndarray, intrinsics: CameraIntrinsics
+                       ) -> list:
+        """``refine_one`` of each transform submitted to the shared thread pool now (the
+        vote clusters' poses, while ECC runs); the tasks, one per transform, for
+        ``refine_and_check(..., started={index in its transforms: task})``."""
+        if cloud.grid is None:
+            return []
+        return submit_each(lambda T0: self.refine_one(T0, cloud, depth_m, intrinsics),
+                           [np.array(T, np.float64) for T in transforms])
+
+    def distinct(self, transforms) -> list[int]:
+        """Indices of the transforms to refine: the first of each group of near-identical
+        ones (within the vote clusters' 24 deg and a tenth of the diagonal), in the order
+        the groups are refined."""
+        if len(transforms) <= 1:
+            return list(range(len(transforms)))
+        return list(cluster_poses(np.stack([np.asarray(T, np.float64) for T in transforms]),
+                                  -np.arange(len(transforms), dtype=np.float64), 360.0 / ANGLE_STEPS,
+                                  0.1 * self.diameter, len(transforms), min_members=1, indices=True))
+
+    def refine_one(self, T0: np.ndarray, cloud: FrameCloud, depth_m: np.ndarray, intrinsics: CameraIntrinsics):
+        """One hypothesis refined by ICP and judged: (T, support share, agreeing points), or
+        None. Reads only the frame's data: safe to run in several threads at once."""
+        fe = self.fe
         tol = self.depth_tolerance
         first = min(3, fe.shape_icp_iterations)
         def fit(T):
@@ -164,61 +205,52 @@ class ShapeFrontEnd:
             support, free, n = depth_support(T, self._surface, self._surface_normals, depth_m, intrinsics, tol_T)
             return support - free, support, free, n
 
-        # Hypotheses that are one pose (ECC's and the vote clusters' for one instance) are
-        # refined once: the first of each group, in the order given.
-        if len(transforms) > 1:
-            transforms = cluster_poses(np.stack([np.asarray(T, np.float64) for T in transforms]),
-                                       -np.arange(len(transforms), dtype=np.float64), 360.0 / ANGLE_STEPS,
-                                       0.1 * self.diameter, len(transforms), min_members=1)
-        for T0 in transforms:
-            # The depth check first (a projection, no search), then a few rounds of ICP: a
-            # hypothesis the depth hardly supports is dropped without paying for the rest
-            # (most of ECC's clusters are wrong).
-            if fit(T0)[1] < 0.25 * fe.shape_min_support:
-                continue
-            T = self._icp(T0, cloud, depth_m, intrinsics, ICP_REACH * self.voxel, first)
-            cand = max([fit(T0) + (T0,), fit(T) + (T,)], key=lambda c: c[0])
-            if cand[1] < 0.5 * fe.shape_min_support:
-                continue
-            T = self._icp(cand[4], cloud, depth_m, intrinsics, 1.5 * self.voxel, fe.shape_icp_iterations - first)
-            # ICP can slide a box seen by one face alone: keep whichever pose the depth
-            # image supports better.
-            _, support, free, n, T = max([cand, fit(T) + (T,)], key=lambda c: c[0])
-            kept = self._judge(T, support, free, n, cloud, depth_m, intrinsics)
-            if kept is None and support >= fe.shape_min_support:
-                # The depth confirms it, but it overhangs empty space or stops short of its
-                # face's edge: off along a face seen alone, where ICP cannot hold it. Moved
-                # onto the patch its outline bounds, ICP'd back onto the depth, judged again.
-                T1 = T
-                for _ in range(fe.shape_outline_rounds):
-                    unheld, axis, centre = self._unheld(T1)
-                    if not unheld.any():
-                        break       # the normals hold every direction: ICP has placed it
-                    same = max(3.0 * fe.shape_depth_noise * float(T1[2, 3]) ** 2, 0.002)
-                    moved = outline_shift(T1, self._surface, self._surface_normals, depth_m, intrinsics,
-                                          self.voxel, same, 0.1 * self.diameter + self.voxel, with_turn=True)
-                    if moved is None:
-                        break
-                    shift = unheld @ moved[0]
-                    turn = moved[1] if axis is not None else 0.0
-                    if np.linalg.norm(shift) < 0.25 * self.voxel and abs(turn) * self.diameter < 0.25 * self.voxel:
-                        break
-                    T1 = T1.copy()
-                    if turn != 0.0:
-                        # About the one held direction (the face's normal), through the visible
-                        # surface's centre; image u towards v is a turn about +z (the turn is
-                        # measured in the image: exact for a face square to the line of sight).
-                        a = axis if axis[2] >= 0 else -axis
-                        T1 = apply_twist(T1, np.concatenate([turn * a, np.zeros(3)]), centre)
-                    T1[:3, 3] += shift
-                    T1 = self._icp(T1, cloud, depth_m, intrinsics, 1.5 * self.voxel, first)
-                    _, support, free, n = fit(T1)
-                    kept = self._judge(T1, support, free, n, cloud, depth_m, intrinsics)
-                    if kept is not None:
-                        break
-            if kept is not None:
-                out.append(kept)
-        return out
+        # The depth check first (a projection, no search), then a few rounds of ICP: a
+        # hypothesis the depth hardly supports is dropped without paying for the rest
+        # (most of ECC's clusters are wrong).
+        if fit(T0)[1] < 0.25 * fe.shape_min_support:
+            return None
+        T = self._icp(T0, cloud, depth_m, intrinsics, ICP_REACH * self.voxel, first)
+        cand = max([fit(T0) + (T0,), fit(T) + (T,)], key=lambda c: c[0])
+        if cand[1] < 0.5 * fe.shape_min_support:
+            return None
+        T = self._icp(cand[4], cloud, depth_m, intrinsics, 1.5 * self.voxel, fe.shape_icp_iterations - first)
+        # ICP can slide a box seen by one face alone: keep whichever pose the depth
+        # image supports better.
+        _, support, free, n, T = max([cand, fit(T) + (T,)], key=lambda c: c[0])
+        kept = self._judge(T, support, free, n, cloud, depth_m, intrinsics)
+        if kept is None and support >= fe.shape_min_support:
+            # The depth confirms it, but it overhangs empty space or stops short of its
+            # face's edge: off along a face seen alone, where ICP cannot hold it. Moved
+            # onto the patch its outline bounds, ICP'd back onto the depth, judged again.
+            T1 = T
+            for _ in range(fe.shape_outline_rounds):
+                unheld, axis, centre = self._unheld(T1)
+                if not unheld.any():
+                    break       # the normals hold every direction: ICP has placed it
+                same = max(3.0 * fe.shape_depth_noise * float(T1[2, 3]) ** 2, 0.002)
+                moved = outline_shift(T1, self._surface, self._surface_normals, depth_m, intrinsics,
+                                      self.voxel, same, 0.1 * self.diameter + self.voxel, with_turn=True)
+                if moved is None:
+                    break
+                shift = unheld @ moved[0]
+                turn = moved[1] if axis is not None else 0.0
+                if np.linalg.norm(shift) < 0.25 * self.voxel and abs(turn) * self.diameter < 0.25 * self.voxel:
+                    break
+                T1 = T1.copy()
+                if turn != 0.0:
+                    # About the one held direction (the face's normal), through the visible
+                    # surface's centre; image u towards v is a turn about +z (the turn is
+                    # measured in the image: exact for a face square to the line of sight).
+                    a = axis if axis[2] >= 0 else -axis
+                    T1 = apply_twist(T1, np.concatenate([turn * a, np.zeros(3)]), centre)
+                T1[:3, 3] += shift
+                T1 = self._icp(T1, cloud, depth_m, intrinsics, 1.5 * self.voxel, first)
+                _, support, free, n = fit(T1)
+                kept = self._judge(T1, support, free, n, cloud, depth_m, intrinsics)
+                if kept is not None:
+                    break
+        return kept
 
     def _unheld(self, T):
         """(3, 3) projection onto the directions in which the visible surface's normals do not

@@ -37,7 +37,7 @@ def _points_and_normals(depth: np.ndarray, K: np.ndarray, rows: np.ndarray, cols
     return P[:m], n[:m], ok
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _points_and_normals_kernel(depth, fx, fy, cx, cy, rows, cols, s, P, N, ok):
     # One pass per pixel instead of five gathers and their temporaries (the outline checks
     # call this on every hypothesis); the same arithmetic as the array form it replaced.
@@ -84,7 +84,7 @@ def _face_continues(P: np.ndarray, nP: np.ndarray, p: np.ndarray, n: np.ndarray,
                        math.cos(math.radians(max_angle_deg)), min(2, k))
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _face_votes(P, nP, p, n, j, tolerance, cos_min, need):
     out = np.zeros(P.shape[0], np.bool_)
     for i in range(P.shape[0]):
