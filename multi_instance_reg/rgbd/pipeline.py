@@ -375,12 +375,12 @@ class InstanceRegistration:
         t["matching"] = (t5 - t4) * 1e3
         hypotheses = [] if cloud.poses is None else list(cloud.poses)
         # The vote clusters' poses do not depend on ECC: they are refined on the other core
-        # while ECC runs (those an ECC transform turns out to duplicate are dropped then).
+        # while ECC runs (those an ECC transform turns out to duplicate are not used).
         started = self._shape.start_refining(hypotheses, cloud, depth_m, intrinsics)
         if len(src) >= 3:
             reg = self._shape_ecc.register(src, tgt)
             hypotheses = [np.asarray(T, np.float64) for T in reg.transforms] + hypotheses
-        started = {len(hypotheses) - len(started) + k: task for k, task in enumerate(started)}
+        offset = len(hypotheses) - (0 if cloud.poses is None else len(cloud.poses))
         t6 = time.perf_counter()
         t["ecc"] = (t6 - t5) * 1e3
         if fe.recover and fe.shape_recover_max > 0 and len(src) >= 3:
@@ -393,7 +393,7 @@ class InstanceRegistration:
                 leftover = np.sort(np.random.default_rng(0).choice(leftover, fe.shape_recover_max, replace=False))
             hypotheses += recover_small_instances(src, tgt, leftover, self._shape.diameter, self._shape.voxel,
                                                   fe.recover_min_inliers, thresh)
-        checked = self._shape.refine_and_check(hypotheses, cloud, depth_m, intrinsics, started)
+        checked = self._shape.refine_and_check(hypotheses, cloud, depth_m, intrinsics, started, offset)
         checked.sort(key=lambda c: -c[2])
         transforms = [c[0] for c in checked]
         overlap = box_overlaps(self.model, transforms, self._box_grid)

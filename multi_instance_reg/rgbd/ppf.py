@@ -28,6 +28,7 @@ import numba
 import numpy as np
 
 from ..symmetry import Symmetries
+from ..threads import map_in_chunks
 
 ANGLE_BINS = 15         # over [0, pi]: 12 deg
 TURN_BINS = 30          # over [0, 2 pi): 12 deg
@@ -109,7 +110,7 @@ def _model_pairs(p, n, d_step, a_step, n_dist):
     return keys[:k], first[:k], alpha[:k]
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _vote(p, n, refs, seg_start, seg_end, max_partners, bucket_start, entry_first, entry_alpha,
           n_model, d_step, a_step, n_dist):
     """Per reference: (model point, turn bin, votes, partners) of the accumulator's peak."""
@@ -237,9 +238,13 @@ class PPFModel:
         seg_hi = np.concatenate([bounds, [len(lab)]])
         refs = np.arange(0, len(p), max(int(ref_step), 1))
         seg = np.searchsorted(seg_hi, refs, side="right")
-        m, turn, votes, partners = _vote(p, n, refs, seg_lo[seg], seg_hi[seg], int(max_partners), self._start,
-                                         self._first, self._alpha, len(self.points), self.d_step, self.a_step,
-                                         self.n_dist)
+        lo, hi = seg_lo[seg], seg_hi[seg]
+        # Each reference votes on its own: the references in two halves on two cores (the
+        # kernel releases the GIL; the same peaks as in one call).
+        parts = map_in_chunks(lambda rows: _vote(p, n, refs[rows], lo[rows], hi[rows], int(max_partners), self._start,
+                                                 self._first, self._alpha, len(self.points), self.d_step, self.a_step,
+                                                 self.n_dist), np.arange(len(refs)), min_chunk=64)
+        m, turn, votes, partners = (np.concatenate(column) for column in zip(*parts))
         ok = m >= 0
         refs, m, turn, votes, partners = refs[ok], m[ok], turn[ok], votes[ok], partners[ok]
         poses = self._poses(p[refs], n[refs], m, (turn + 0.5) * (2 * math.pi / TURN_BINS))

@@ -9,6 +9,7 @@ refinement and depth check of the poses ECC finds from them. No ROS, no colour.
 """
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -22,7 +23,7 @@ from .lifting import depth_to_cloud
 from .ppf import ANGLE_BINS as ANGLE_STEPS, PPFModel, cluster_poses
 from .segments import connected_segments, support_mask
 from .verify import facing_camera, in_view_share, outline_continuation, outline_shift
-from ..threads import submit_each
+from ..threads import shared_pool, submit_each
 from .shape import (PointGrid, ShapeMatcher, apply_twist, depth_support, describe, icp_point_to_plane, scene_cloud,
                     surface_normals, voxel_downsample)
 
@@ -149,23 +150,22 @@ class ShapeFrontEnd:
         return self._model_pts[self._model_idx[m]], cloud.points[cloud.salient[s]]
 
     def refine_and_check(self, transforms, cloud: FrameCloud, depth_m: np.ndarray,
-                         intrinsics: CameraIntrinsics, started: dict | None = None
+                         intrinsics: CameraIntrinsics, started: "Prefetch | None" = None, offset: int = 0
                          ) -> list[tuple[np.ndarray, float, int]]:
         """Each transform refined by ICP against the frame's points and kept when the depth
         image agrees with the model's visible surface: (T, support share, agreeing points).
         Hypotheses that are one pose (ECC's and the vote clusters' for one instance) are
         refined once: the first of each group, in the order given (``distinct``). Each is
-        refined and judged on its own, so they run in the shared thread pool, two at a
-        time on two cores (the compiled kernels, k-d tree queries and OpenCV calls release
-        the GIL); the results in the order of ``distinct``, the same as one at a time.
-        ``started``: {index in transforms: task} already submitted (``start_refining``)."""
+        refined and judged on its own (``refine_one``), so they run in the shared thread
+        pool, two at a time on two cores (the compiled kernels, k-d tree queries and OpenCV
+        calls release the GIL); the results in the order of ``distinct``, the same as one
+        at a time. ``started``: a ``Prefetch`` (``start_refining``) of ``transforms[offset:]``
+        already under way; what it has taken on is used, the rest is refined here."""
         if cloud.grid is None:
             return []
-        started = started or {}
         order = self.distinct(transforms)
-        for k in set(started) - set(order):
-            started[k].cancel()      # absorbed by an earlier hypothesis: not needed
-        tasks = [started[k] if k in started else None for k in order]
+        claimed = started.stop() if started is not None else set()
+        tasks = [_Claimed(started, k - offset) if k - offset in claimed else None for k in order]
         missing = [k for k, task in zip(order, tasks) if task is None]
         new = iter(submit_each(lambda T0: self.refine_one(T0, cloud, depth_m, intrinsics),
                                [np.array(transforms[k], np.float64) for k in missing]))
@@ -173,14 +173,15 @@ class ShapeFrontEnd:
         return [r for r in (task.result() for task in tasks) if r is not None]
 
     def start_refining(self, transforms, cloud: FrameCloud, depth_m: np.ndarray, intrinsics: CameraIntrinsics
-                       ) -> list:
-        """``refine_one`` of each transform submitted to the shared thread pool now (the
-        vote clusters' poses, while ECC runs); the tasks, one per transform, for
-        ``refine_and_check(..., started={index in its transforms: task})``."""
-        if cloud.grid is None:
-            return []
-        return submit_each(lambda T0: self.refine_one(T0, cloud, depth_m, intrinsics),
-                           [np.array(T, np.float64) for T in transforms])
+                       ) -> "Prefetch | None":
+        """The vote clusters' poses refined on one worker of the shared thread pool while
+        ECC runs on this thread, the weakest first: the strongest are the ones most often
+        duplicated by an ECC transform (and then not needed); ``refine_and_check(...,
+        started=)`` stops it and takes its results. None on a single core."""
+        if cloud.grid is None or len(transforms) == 0:
+            return None
+        return Prefetch(lambda T0: self.refine_one(T0, cloud, depth_m, intrinsics),
+                        [np.array(T, np.float64) for T in transforms], range(len(transforms) - 1, -1, -1))
 
     def distinct(self, transforms) -> list[int]:
         """Indices of the transforms to refine: the first of each group of near-identical
@@ -303,6 +304,50 @@ class ShapeFrontEnd:
                                     max_dist, 0.5 * max_dist).T
         return icp_point_to_plane(T, self._surface, cloud.grid, max_dist=max_dist, iterations=iterations,
                                   model_normals=self._surface_normals)[0]
+
+
+class Prefetch:
+    """``function`` of items, in the given order, on one worker of the shared thread pool,
+    until ``stop``; the results by item index (``result``). Nothing is run on a single core."""
+
+    def __init__(self, function, items, order):
+        self._function, self._items, self._order = function, items, list(order)
+        self._lock = threading.Lock()
+        self._stopped = False
+        self._claimed: set[int] = set()
+        self._done: dict = {}
+        pool = shared_pool()
+        self._future = pool.submit(self._run) if pool is not None else None
+
+    def _run(self) -> None:
+        for k in self._order:
+            with self._lock:
+                if self._stopped:
+                    return
+                self._claimed.add(k)
+            self._done[k] = self._function(self._items[k])
+
+    def stop(self) -> set[int]:
+        """Takes on no more items; returns those it has taken on (done, or under way)."""
+        with self._lock:
+            self._stopped = True
+            return set(self._claimed)
+
+    def result(self, k: int):
+        """Item k's result (one taken on), once it is done."""
+        if self._future is not None:
+            self._future.result()      # the worker's exception, if any, is raised here
+        return self._done[k]
+
+
+class _Claimed:
+    """Item k of a Prefetch, as a task with ``result()``."""
+
+    def __init__(self, prefetch: Prefetch, k: int):
+        self._prefetch, self._k = prefetch, k
+
+    def result(self):
+        return self._prefetch.result(self._k)
 
 
 def oriented_downsample(points: np.ndarray, normals: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
