@@ -369,14 +369,17 @@ class InstanceRegistration:
         t["lifting"] = (t3 - t0) * 1e3
         cloud = self._shape.frame_cloud(depth_m, intrinsics, None if search is None else search > 0)
         t4 = time.perf_counter()
-        src, tgt = self._shape.correspondences(cloud)
+        # The vote clusters' poses do not depend on ECC: they are refined on the other core
+        # while the correspondences are made and ECC runs (those an ECC transform turns
+        # out to duplicate are not used).
+        started = []
+        src, tgt = self._shape.correspondences(cloud, on_poses=lambda: started.append(
+            self._shape.start_refining(list(cloud.poses), cloud, depth_m, intrinsics)))
+        started = started[0] if started else None
         t5 = time.perf_counter()
         t["shape"] = (t4 - t3) * 1e3
         t["matching"] = (t5 - t4) * 1e3
         hypotheses = [] if cloud.poses is None else list(cloud.poses)
-        # The vote clusters' poses do not depend on ECC: they are refined on the other core
-        # while ECC runs (those an ECC transform turns out to duplicate are not used).
-        started = self._shape.start_refining(hypotheses, cloud, depth_m, intrinsics)
         if len(src) >= 3:
             reg = self._shape_ecc.register(src, tgt)
             hypotheses = [np.asarray(T, np.float64) for T in reg.transforms] + hypotheses

@@ -123,16 +123,22 @@ class ShapeFrontEnd:
                            np.full(len(pts), -1, np.int64))
         if len(pts) < 10:
             return empty
+        # The segments on the other core while the normals are estimated here (neither
+        # needs the other; both searches release the GIL).
+        segments = submit_each(lambda p: connected_segments(p, fe.shape_segment_link * self.voxel,
+                                                            fe.shape_min_segment), [pts])[0]
         tree = cKDTree(pts)
         normals = surface_normals(pts, self.voxel, toward=np.zeros(3), tree=tree)
-        labels = connected_segments(pts, fe.shape_segment_link * self.voxel, fe.shape_min_segment)
+        labels = segments.result()
         return FrameCloud(pts, normals, np.zeros(0, np.int64), np.zeros((0, 33), np.float32), tree, labels,
                           up=ground[0] if ground else None, grid=PointGrid(pts, normals, ICP_REACH * self.voxel))
 
-    def correspondences(self, cloud: FrameCloud) -> tuple[np.ndarray, np.ndarray]:
+    def correspondences(self, cloud: FrameCloud, on_poses=None) -> tuple[np.ndarray, np.ndarray]:
         """(model points (N, 3), scene points (N, 3)). ppf: each reference point of a
         segment with the model point its pair votes choose (over the symmetries); fpfh: each
-        salient scene point with its ``shape_neighbours`` nearest model descriptors."""
+        salient scene point with its ``shape_neighbours`` nearest model descriptors.
+        ``on_poses()`` is called as soon as ``cloud.poses`` (ppf) is set, before the
+        correspondences are made (to start their refinement)."""
         if self.features == "ppf":
             if cloud.segments is None or not np.any(cloud.segments >= 0):
                 return np.zeros((0, 3)), np.zeros((0, 3))
@@ -144,6 +150,8 @@ class ShapeFrontEnd:
                 # does not group (too few agree among the rest) still gets a hypothesis.
                 cloud.poses = cluster_poses(poses, share, 360.0 / ANGLE_STEPS, 0.1 * self.diameter,
                                             self.fe.shape_pose_clusters)
+            if on_poses is not None:
+                on_poses()
             src, s = self._ppf.correspondences(s, poses, cloud.points, canonical=True)
             return src, cloud.points[s]
         s, m = self._matcher.match(cloud.descriptors)
