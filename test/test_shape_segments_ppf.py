@@ -386,3 +386,66 @@ def test_depth_points_and_normals_are_the_central_differences_of_the_depth_image
     np.testing.assert_allclose(P, centre[expect_ok], rtol=0, atol=1e-12)
     np.testing.assert_allclose(n, m, rtol=0, atol=1e-9)
     assert (np.einsum("ij,ij->i", n, P) < 0).all()           # towards the camera
+
+
+def test_votes_split_over_threads_give_the_peaks_of_one_call(monkeypatch):
+    import multi_instance_reg.rgbd.ppf as ppf_module
+
+    model, ppf, T, P, N = _box_seen_by_ppf()
+    labels = np.zeros(len(P), np.int64)
+    split = ppf.vote(P, N, labels, ref_step=1, max_partners=200)
+    assert len(split[0]) >= 128          # enough references for two parts
+    monkeypatch.setattr(ppf_module, "map_in_chunks", lambda function, rows, min_chunk=0: [function(rows)])
+    whole = ppf.vote(P, N, labels, ref_step=1, max_partners=200)
+    for a, b in zip(split, whole):
+        assert np.array_equal(a, b)
+
+
+def test_refinement_in_the_thread_pool_gives_the_serial_results():
+    """Hypotheses refined two at a time, and some of them started early (``start_refining``,
+    as the pipeline does during ECC), give exactly what one at a time gives, in the same order."""
+    from multi_instance_reg.rgbd.pipeline import FrontEndConfig
+    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.symmetry import _rotation
+
+    model = _box_model()
+    intr = _intrinsics()
+    K = intr.K
+    T = make_transform(np.diag([1.0, -1.0, -1.0]), [0.0, 0.0, 1.5])
+    v, u = np.mgrid[0:240, 0:320]
+    depth = np.full((240, 320), 1.575, np.float32)
+    x, y = (u - K[0, 2]) / K[0, 0] * 1.425, (v - K[1, 2]) / K[1, 1] * 1.425
+    depth[(np.abs(x) < 0.15) & (np.abs(y) < 0.1)] = 1.425
+    shape = ShapeFrontEnd(model, FrontEndConfig())
+    cloud = shape.frame_cloud(depth, intr, None)
+    rng = np.random.default_rng(3)
+    hypotheses = [T @ make_transform(_rotation(rng.normal(size=3), np.radians(rng.uniform(0, 40))),
+                                     rng.normal(0, 0.03, 3)) for _ in range(12)]
+    hypotheses += [hypotheses[2].copy(), T.copy()]          # a duplicate, and the true pose
+    order = shape.distinct(hypotheses)
+    assert 2 < len(order) < len(hypotheses)                  # the duplicate is refined once
+    serial = [shape.refine_one(np.array(hypotheses[k]), cloud, depth, intr) for k in order]
+    serial = [r for r in serial if r is not None]
+    assert len(serial) >= 1
+    for early in (None, 4):
+        started = None
+        if early is not None:
+            started = shape.start_refining(hypotheses[early:], cloud, depth, intr)
+        pooled = shape.refine_and_check(hypotheses, cloud, depth, intr, started, early or 0)
+        assert len(pooled) == len(serial)
+        for a, b in zip(pooled, serial):
+            assert np.array_equal(a[0], b[0]) and a[1:] == b[1:]
+
+
+def test_thread_pool_helpers_keep_order_and_raise_errors():
+    from multi_instance_reg.rgbd.shape_frontend import Prefetch
+    from multi_instance_reg.threads import map_each, submit_each
+
+    assert map_each(lambda x: x * x, range(20)) == [x * x for x in range(20)]
+    task = submit_each(lambda x: 1 // x, [0])[0]
+    with pytest.raises(ZeroDivisionError):
+        task.result()
+    done = Prefetch(lambda x: x + 100, list(range(10)), range(9, -1, -1))
+    claimed = done.stop()
+    assert claimed <= set(range(10))
+    assert all(done.result(k) == k + 100 for k in claimed)
