@@ -463,29 +463,34 @@ def depth_support(T: np.ndarray, model_pts: np.ndarray, model_normals: np.ndarra
 
 
 @numba.njit(cache=True, nogil=True)
-def _depth_support(T, mp, mn, depth, fx, fy, cx, cy, tolerance):
+def measured_at(T, mp, mn, i, depth, fx, fy, cx, cy):
+    """Model point i (normal mn[i]) at pose T: its camera-frame point and the depth measured
+    at its pixel, or 0 there when it does not face the camera clearly (normal within about
+    78 deg of the line of sight), lies behind it, falls outside the image or on no depth.
+    The projection the depth checks share (here and ``verify.free_space_share``)."""
+    px = T[0, 0] * mp[i, 0] + T[0, 1] * mp[i, 1] + T[0, 2] * mp[i, 2] + T[0, 3]
+    py = T[1, 0] * mp[i, 0] + T[1, 1] * mp[i, 1] + T[1, 2] * mp[i, 2] + T[1, 3]
+    pz = T[2, 0] * mp[i, 0] + T[2, 1] * mp[i, 1] + T[2, 2] * mp[i, 2] + T[2, 3]
+    nx = T[0, 0] * mn[i, 0] + T[0, 1] * mn[i, 1] + T[0, 2] * mn[i, 2]
+    ny = T[1, 0] * mn[i, 0] + T[1, 1] * mn[i, 1] + T[1, 2] * mn[i, 2]
+    nz = T[2, 0] * mn[i, 0] + T[2, 1] * mn[i, 1] + T[2, 2] * mn[i, 2]
+    if not (-(nx * px + ny * py + nz * pz) > 0.2 * math.sqrt(px * px + py * py + pz * pz)) or not pz > 0.05:
+        return px, py, pz, 0.0
     h, w = depth.shape
-    facing = 0
+    u = round(fx * px / pz + cx)
+    v = round(fy * py / pz + cy)
+    if u < 0 or u >= w or v < 0 or v >= h:
+        return px, py, pz, 0.0
+    return px, py, pz, float(depth[v, u])
+
+
+@numba.njit(cache=True, nogil=True)
+def _depth_support(T, mp, mn, depth, fx, fy, cx, cy, tolerance):
     m = 0
     agree = 0
     free = 0
     for i in range(mp.shape[0]):
-        px = T[0, 0] * mp[i, 0] + T[0, 1] * mp[i, 1] + T[0, 2] * mp[i, 2] + T[0, 3]
-        py = T[1, 0] * mp[i, 0] + T[1, 1] * mp[i, 1] + T[1, 2] * mp[i, 2] + T[1, 3]
-        pz = T[2, 0] * mp[i, 0] + T[2, 1] * mp[i, 1] + T[2, 2] * mp[i, 2] + T[2, 3]
-        nx = T[0, 0] * mn[i, 0] + T[0, 1] * mn[i, 1] + T[0, 2] * mn[i, 2]
-        ny = T[1, 0] * mn[i, 0] + T[1, 1] * mn[i, 1] + T[1, 2] * mn[i, 2]
-        nz = T[2, 0] * mn[i, 0] + T[2, 1] * mn[i, 1] + T[2, 2] * mn[i, 2]
-        if not (-(nx * px + ny * py + nz * pz) > 0.2 * math.sqrt(px * px + py * py + pz * pz)):
-            continue
-        facing += 1
-        if not pz > 0.05:
-            continue
-        u = round(fx * px / pz + cx)
-        v = round(fy * py / pz + cy)
-        if u < 0 or u >= w or v < 0 or v >= h:
-            continue
-        measured = depth[v, u]
+        _, _, pz, measured = measured_at(T, mp, mn, i, depth, fx, fy, cx, cy)
         if not measured > 0:
             continue
         m += 1
@@ -494,7 +499,7 @@ def _depth_support(T, mp, mn, depth, fx, fy, cx, cy, tolerance):
             agree += 1
         if diff > tolerance:        # measured surface further away: the model fills empty space
             free += 1
-    if facing == 0 or m == 0:
+    if m == 0:
         return 0.0, 1.0, 0
     return agree / m, free / m, m
 

@@ -20,6 +20,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..messages import CameraIntrinsics
+from .shape import measured_at
 
 # Second-moment elongation (0: round, 1: a line) above which a mask's long axis is defined.
 MIN_ELONGATION = 0.2
@@ -370,26 +371,10 @@ def free_space_share(T: np.ndarray, points: np.ndarray, normals: np.ndarray, dep
 
 @numba.njit(cache=True)
 def _free_space_share(T, mp, mn, depth, fx, fy, cx, cy, pivot, tolerance, slope):
-    h, w = depth.shape
     m = 0
     free = 0
     for i in range(mp.shape[0]):
-        px = T[0, 0] * mp[i, 0] + T[0, 1] * mp[i, 1] + T[0, 2] * mp[i, 2] + T[0, 3]
-        py = T[1, 0] * mp[i, 0] + T[1, 1] * mp[i, 1] + T[1, 2] * mp[i, 2] + T[1, 3]
-        pz = T[2, 0] * mp[i, 0] + T[2, 1] * mp[i, 1] + T[2, 2] * mp[i, 2] + T[2, 3]
-        nx = T[0, 0] * mn[i, 0] + T[0, 1] * mn[i, 1] + T[0, 2] * mn[i, 2]
-        ny = T[1, 0] * mn[i, 0] + T[1, 1] * mn[i, 1] + T[1, 2] * mn[i, 2]
-        nz = T[2, 0] * mn[i, 0] + T[2, 1] * mn[i, 1] + T[2, 2] * mn[i, 2]
-        # Facing the camera, not at a grazing angle (the test of shape.depth_support).
-        if not (-(nx * px + ny * py + nz * pz) > 0.2 * math.sqrt(px * px + py * py + pz * pz)):
-            continue
-        if not pz > 0.05:
-            continue
-        u = round(fx * px / pz + cx)
-        v = round(fy * py / pz + cy)
-        if u < 0 or u >= w or v < 0 or v >= h:
-            continue
-        measured = depth[v, u]
+        px, py, pz, measured = measured_at(T, mp, mn, i, depth, fx, fy, cx, cy)
         if not measured > 0:
             continue
         m += 1
