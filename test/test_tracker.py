@@ -429,15 +429,22 @@ def test_a_turned_detection_the_depth_cannot_judge_moves_the_track_only_when_rep
     assert abs(yaw_deg(out[0].T) - 8.0) < 0.5 and out[0].track_id == 0
 
 
+def settled_box_tracker(depth, frames):
+    """A tracker with smoothing 0.5 whose one track has had ``frames`` 100-inlier detections
+    of a box at rest (yaw 0)."""
+    tr = box_tracker(smoothing=0.5)
+    for k in range(frames):
+        tr.step(k * FRAME_NS, depth, BOX_INTR, [box_det(0.0, inliers=100)])
+    return tr
+
+
 def test_a_weak_detection_pulls_a_settled_track_less_than_a_strong_one():
     # With smoothing on, the pull is a Kalman gain: a detection's variance is inversely
     # proportional to its inliers.
     depth = top_faces_depth([0.0])
     moved = {}
     for inliers in (10, 300):
-        tr = box_tracker(smoothing=0.5)
-        for k in range(20):
-            tr.step(k * FRAME_NS, depth, BOX_INTR, [box_det(0.0, inliers=100)])
+        tr = settled_box_tracker(depth, 20)
         tr.step(20 * FRAME_NS, depth, BOX_INTR, [Det(make_transform(rot_z(3.0), [0.0, 0.0, 0.78]), inliers)])
         moved[inliers] = yaw_deg(tr.tracks[0].T)
     assert 0.0 < moved[10] < 0.5 * moved[300] and moved[300] < 3.0
@@ -451,9 +458,7 @@ def test_with_smoothing_a_weak_turned_detection_is_pulled_by_its_gain_a_strong_o
     depth = top_faces_depth([0.0])
     yaws = {}
     for inliers in (8, 300):
-        tr = box_tracker(smoothing=0.5)
-        for k in range(20):
-            tr.step(k * FRAME_NS, depth, BOX_INTR, [box_det(0.0, inliers=100)])
+        tr = settled_box_tracker(depth, 20)
         turned = Det(make_transform(rot_z(8.0), [0.0, 0.0, 0.78]), inliers)
         yaws[inliers] = []
         for k in range(20, 20 + tr.config.flip_after):

@@ -147,13 +147,13 @@ class ECC:
         cfg = self.config
         n_clusters = int(sample_labels.max()) + 1 if (sample_labels >= 0).any() else 0
         T = fit_transforms(xs, ys, sample_labels, n_clusters) if n_clusters else np.zeros((0, 4, 4))
-        extra = self._lost_clusters(xs, ys, clusters, sample_labels) if cfg.lost_clusters == "test" and clusters is not None else None
-        if extra is not None and len(extra):
-            T = np.concatenate([T, extra])
+        testing = cfg.lost_clusters == "test" and clusters is not None
+        extra = self._lost_clusters(xs, ys, clusters, sample_labels) if testing else np.zeros((0, 4, 4))
+        T = np.concatenate([T, extra])
         if len(T) == 0:
             return -np.ones(len(x), dtype=np.int64)
         labels, errors = assign_nearest(x, y, T, cfg.inlier_thresh)
-        if extra is None or len(extra) == 0:
+        if len(extra) == 0:
             return labels
         counts = np.bincount(labels[labels >= 0], minlength=len(T))
         # Only those that could pass selection's size cut are tested (the rest go anyway);
@@ -173,13 +173,11 @@ class ECC:
         lost = clusters.copy()
         lost[np.isin(clusters, clusters[refined >= 0])] = -1
         lost, count = relabel(lost)
-        if count == 0:
-            return np.zeros((0, 4, 4))
-        sizes = np.bincount(lost[lost >= 0], minlength=count)
-        big = np.flatnonzero(sizes >= 3)
-        remap = -np.ones(count, dtype=np.int64)
-        remap[big] = np.arange(len(big))
-        return fit_transforms(xs, ys, np.where(lost >= 0, remap[np.maximum(lost, 0)], -1), len(big)) if len(big) else np.zeros((0, 4, 4))
+        if count:
+            small = np.bincount(lost[lost >= 0], minlength=count) < 3
+            lost[(lost >= 0) & small[np.maximum(lost, 0)]] = -1
+            lost, count = relabel(lost)      # the same order: relabel numbers by first appearance
+        return fit_transforms(xs, ys, lost, count) if count else np.zeros((0, 4, 4))
 
     def select(self, x, y, labels):
         """Clusters larger than min_cluster_size, by inlier count; stop at the first whose

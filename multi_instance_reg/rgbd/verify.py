@@ -334,17 +334,14 @@ def surface_samples(points: np.ndarray, extent, max_points: int = 600) -> tuple[
     """(P, 3) points spread over a model's dense cloud (model frame), at most ``max_points``,
     and their outward normals (PCA over the neighbours, turned away from the cloud's centre:
     right for the convex objects of a tabletop; only the back-face test reads the sign)."""
-    from .shape import NORMAL_RADIUS, _normals_and_variation, neighbours, shape_voxel, voxel_downsample
+    from .shape import shape_voxel, surface_normals, voxel_downsample
 
     pts = np.asarray(points, np.float64)
     if len(pts) < 3:
         return np.zeros((0, 3)), np.zeros((0, 3))
     voxel = shape_voxel(extent)
     pts = voxel_downsample(pts, voxel)
-    nbr = neighbours(pts, NORMAL_RADIUS * voxel, 16, cKDTree(pts))
-    normals, _ = _normals_and_variation(np.ascontiguousarray(pts), nbr, np.zeros((len(pts), 0), np.int64))
-    flip = np.einsum("ij,ij->i", normals, pts - pts.mean(axis=0)) < 0
-    normals[flip] *= -1.0
+    normals = -surface_normals(pts, voxel, toward=pts.mean(axis=0))     # away from the centre
     if len(pts) > max_points:
         pick = np.sort(np.random.default_rng(0).choice(len(pts), max_points, replace=False))
         pts, normals = pts[pick], normals[pick]
