@@ -110,6 +110,34 @@ def test_matchers_agree_and_flann_is_deterministic(method):
     assert np.mean(m[s < 300] == s[s < 300]) > 0.99
 
 
+def test_joint_index_matches_each_model_as_its_own_exact_search_does():
+    """One index over three models: (nearly) every match it accepts, the model's own exact
+    search accepts too, to the same model point, and it finds nearly all of them; a keypoint that
+    two models share (same texture) matches both, and the matches come back per model."""
+    from multi_instance_reg.rgbd.matching import JointMatcher
+
+    rng = np.random.default_rng(4)
+    descs = [prepare_descriptors(rng.random((n, 128)).astype(np.float32)) for n in (900, 300, 1500)]
+    xyzs = [rng.uniform(-0.1, 0.1, (len(d), 3)) for d in descs]
+    descs[1][:40] = descs[0][:40]                   # the can's label printed on the snack box too
+    queries = [d[:200] + rng.normal(0, 0.01, (200, 128)).astype(np.float32) for d in descs]
+    scene = prepare_descriptors(np.vstack(queries + [rng.random((300, 128)).astype(np.float32)]))
+    joint = JointMatcher(descs, xyzs, ratio=0.8, separation=0.01).match_later(scene)()
+    assert len(joint) == 3
+    for k, (s, m, r) in enumerate(joint):
+        es, em, _ = DescriptorMatcher(descs[k], xyzs[k], method="brute_force").match(scene)
+        exact = dict(zip(es.tolist(), em.tolist()))
+        agree = [exact.get(a) == b for a, b in zip(s.tolist(), m.tolist())]
+        assert np.mean(agree) >= 0.99                # approximate search: a rare second found too far
+        assert len(s) >= 0.95 * len(es) and np.all(r < 0.8)
+        own = (s >= 200 * k) & (s < 200 * (k + 1))
+        assert own.sum() >= 190 and np.all(m[own] == s[own] - 200 * k)
+    both, shared = set(joint[0][0].tolist()) & set(joint[1][0].tolist()), set(range(40)) | set(range(200, 240))
+    assert len(both & shared) >= 68 and len(both - shared) <= 2
+    empty = JointMatcher(descs, xyzs).match_later(np.zeros((0, 128), np.float32))()
+    assert [len(s) for s, _, _ in empty] == [0, 0, 0]
+
+
 def test_work_split_over_threads_comes_back_in_order():
     from multi_instance_reg.threads import map_in_chunks
     rows = np.arange(1000)

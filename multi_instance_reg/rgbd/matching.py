@@ -118,3 +118,66 @@ class DescriptorMatcher:
         ratio = np.where(has_second, dist[:, 0] / np.maximum(second, 1e-12), 0.0).astype(np.float32)
         accept = np.flatnonzero(ratio < self.ratio)
         return accept.astype(np.int64), best[accept], ratio[accept]
+
+
+class JointMatcher:
+    """One FLANN index over several models' descriptors, each knowing its model: a frame's
+    keypoints are searched once, not once per model (``MultiModelRegistration``).
+
+    Per keypoint and per model among its ``neighbours`` nearest descriptors: that model's
+    nearest is its match when the ratio test of ``DescriptorMatcher`` passes within that
+    model (the second is the model's next descriptor more than ``separation`` away in 3D, so
+    a keypoint that two objects share still matches both; the selection across models decides
+    which object a region is). When that second is not among the neighbours, the farthest
+    neighbour's distance stands in for it: the true second is at least that far, so the
+    ratio used is never below the true one (a match accepted here, the model's own index
+    would accept too, up to the search's approximation).
+
+    The search spends its checks over all models' descriptors, so it needs more of them than
+    one model's index for the same matches (``frontend.joint_flann_checks``)."""
+
+    def __init__(self, model_descs: list, model_xyzs: list, ratio: float = 0.8, separation: float = 0.01,
+                 neighbours: int = 16, flann_trees: int = 4, flann_checks: int = 48, seed: int = 0):
+        descs = [np.ascontiguousarray(d, dtype=np.float32).reshape(-1, 128) for d in model_descs]
+        self.models = len(descs)
+        self.owner = np.concatenate([np.full(len(d), k, np.int64) for k, d in enumerate(descs)])
+        self.first = np.concatenate([[0], np.cumsum([len(d) for d in descs])]).astype(np.int64)
+        self.xyz = np.concatenate([np.asarray(x, np.float32).reshape(-1, 3) for x in model_xyzs])
+        self.desc = np.concatenate(descs)
+        self.neighbours = int(min(neighbours, len(self.desc)))
+        self.flann_checks = int(flann_checks)
+        self.ratio = float(ratio)
+        self.separation = float(separation)
+        cv2.setRNGSeed(int(seed))      # the same index, and matches, in every run (as DescriptorMatcher)
+        self._flann = cv2.flann_Index(self.desc, {"algorithm": 1, "trees": int(flann_trees)}) if len(self.desc) else None
+
+    def match_later(self, scene_desc: np.ndarray):
+        """The search started in the shared thread pool; returns a callable that gives, per
+        model, (scene indices, that model's keypoint indices, distance ratios)."""
+        q = np.ascontiguousarray(scene_desc, dtype=np.float32)
+        if len(q) == 0 or self._flann is None or self.neighbours < 2:
+            none = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32))
+            return lambda: [none] * self.models
+        search = submit_in_chunks(lambda rows: self._flann.knnSearch(rows, self.neighbours,
+                                                                     params={"checks": self.flann_checks}), q)
+        return lambda: self._accept(search())
+
+    def _accept(self, parts: list) -> list:
+        idx = np.concatenate([p[0] for p in parts]).astype(np.int64)
+        dist = np.sqrt(np.maximum(np.concatenate([p[1] for p in parts]), 0.0))
+        owner = self.owner[idx]
+        after = np.arange(idx.shape[1])[None, :]
+        out = []
+        for k in range(self.models):
+            mine = owner == k
+            found = mine.any(axis=1)
+            first = mine.argmax(axis=1)[:, None]
+            best = np.take_along_axis(idx, first, axis=1)[:, 0]
+            gap = np.linalg.norm(self.xyz[idx] - self.xyz[best][:, None, :], axis=2)
+            distinct = mine & (gap > self.separation) & (after > first)
+            second = np.where(distinct.any(axis=1),
+                              np.take_along_axis(dist, distinct.argmax(axis=1)[:, None], axis=1)[:, 0], dist[:, -1])
+            ratio = (np.take_along_axis(dist, first, axis=1)[:, 0] / np.maximum(second, 1e-12)).astype(np.float32)
+            accept = np.flatnonzero(found & (ratio < self.ratio))
+            out.append((accept, best[accept] - self.first[k], ratio[accept]))
+        return out

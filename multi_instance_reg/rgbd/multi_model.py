@@ -8,13 +8,12 @@
 What is shared and what is not:
 - SIFT runs once per frame (``InstanceRegistration.detect``: search region, keypoints,
   lifting); it depends on the frame, not on the model.
-- Matching: each model's own index, searched exactly as with that model alone, so that each
-  model gets the correspondences it would get alone. Measured on mixed scenes (3 models, 33k
-  descriptors): one FLANN index over all models' descriptors needed 3 x the checks to keep
-  the smallest model's matches (the search spends its checks on the nearest model), and those
-  96 checks in a 16 MB index cost more than three 32-check searches in three small ones (63.6
-  against 46.0 ms a frame on one thread). A keypoint may match several models; which object
-  a region is, is decided by the selection below.
+- Matching (``frontend.multi_model_index``): ``joint``, the default with several SIFT
+  models, searches one FLANN index over all models' descriptors once a frame and applies
+  the ratio test within each model (``matching.JointMatcher``); ``per_model`` searches each
+  model's own index exactly as with that model alone (three searches cost 2.8 x one). A
+  keypoint may match several models; which object a region is, is decided by the selection
+  below.
 - ECC, recovery and selection run per model on that model's correspondences
   (``InstanceRegistration.solve``).
 - Across models, one region of the image is one object: the instances of all models, by
@@ -33,6 +32,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..messages import CameraIntrinsics
+from .matching import JointMatcher, prepare_descriptors
 from .model import ObjectModel
 from .pipeline import STAGES, FrameResult, Instance, InstanceRegistration, PipelineConfig, box_grid, check_frame
 
@@ -73,6 +73,12 @@ class MultiModelRegistration:
         self.config = self.pipelines[0].config
         self._sift = [k for k, p in enumerate(self.pipelines) if p.correspondences == "sift"]
         self._grids = [box_grid(m.extent) + np.asarray(m.box_centre, np.float64) for m in models]
+        fe = self.config.frontend
+        self._joint = None
+        if len(self._sift) > 1 and fe.matcher == "flann" and fe.multi_model_index == "joint":
+            self._joint = JointMatcher([prepare_descriptors(models[k].descriptors, fe.root_sift) for k in self._sift],
+                                       [models[k].keypoints_xyz for k in self._sift], fe.ratio, fe.ratio_separation,
+                                       flann_checks=fe.joint_flann_checks)
 
     @property
     def names(self) -> list[str]:
@@ -92,11 +98,15 @@ class MultiModelRegistration:
         if self._sift:
             keypoints = self.pipelines[self._sift[0]].detect(rgb, depth_m, intrinsics, t)
             n_kp = keypoints.detected
-            # Every model's search is queued at once; each model's ECC and selection run as soon
-            # as its matches are in, while the pool searches the next models' (the search
-            # releases the GIL): "matching" is the time spent waiting for them.
+            # One joint search; or every model's own search queued at once, each model's ECC
+            # and selection running as soon as its matches are in while the pool searches the
+            # next models' (the search releases the GIL). "matching" is the time spent waiting.
             t1 = time.perf_counter()
-            pending = {k: self.pipelines[k].match_later(keypoints) for k in self._sift}
+            if self._joint is not None:
+                joint = self._joint.match_later(keypoints.descriptors)()
+                pending = {k: (lambda m=m: m[:2]) for k, m in zip(self._sift, joint)}
+            else:
+                pending = {k: self.pipelines[k].match_later(keypoints) for k in self._sift}
             t["matching"] += (time.perf_counter() - t1) * 1e3
             for k in self._sift:
                 t1 = time.perf_counter()

@@ -52,6 +52,8 @@ class FrontEndConfig:
     ratio_separation: float = param(0.01, "metres: model points closer than this to the best match count as the same physical point in the ratio test", 0.0, 1.0)
     matcher: str = param("flann", "descriptor search: flann (approximate kd-trees, about twice as fast) or brute_force (exact)", choices=("flann", "brute_force"))
     flann_checks: int = param(32, "flann: leaves the kd-tree search visits per query (each model has its own index); fewer is faster (16: matching 15 -> 9 ms a frame, MHF1 0.962 -> 0.952 on the held-out synthetic scenes)", 1, 4096)
+    multi_model_index: str = param("joint", "several models (flann): joint (one index over every model's descriptors, each knowing its model, searched once a frame; the ratio test within each model) or per_model (each model's own index, searched as with that model alone). Mixed scenes of 3 objects (seeds 0-2, 7, 11, 13): mean MHF1 per object within 0.4 points of per_model's, as close as re-seeding per_model's own trees; 3 models / 1 model latency 1.32 / 1.36 -> 1.19 / 1.24 x (seeds 7 / 1, loaded host)", choices=("joint", "per_model"))
+    joint_flann_checks: int = param(48, "flann, multi_model_index joint: leaves the search visits per query over all models' descriptors (it needs more than one model's index for the same matches: 32 lost the can's matches)", 1, 4096)
     root_sift: bool = param(True, "compare descriptors as RootSIFT (Hellinger kernel) instead of plain L2")
     # Lifting.
     depth_window: int = param(5, "side in pixels of the window whose median valid depth lifts a keypoint (odd)", 1, 31)
