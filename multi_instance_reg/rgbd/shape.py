@@ -457,11 +457,11 @@ def depth_support(T: np.ndarray, model_pts: np.ndarray, model_normals: np.ndarra
     camera than the measurement, number of such points). Points behind the measurement
     count against the pose (in the number, neither agreeing nor free).
 
-    ``self_hiding`` (metres; 0 for a convex model): a point that faces the camera but lies
-    behind the model's own nearer surface is not visible at this pose and not judged at all.
-    The model's surface is drawn first, each sample a disc of this radius in its plane
-    (about the samples' spacing); a point counts as hidden behind it when more than
-    ``tolerance`` plus that radius further (a disc at a face's edge reaches past the edge).
+    ``self_hiding`` (metres; 0 for a convex model): a point more than ``tolerance`` plus this
+    behind both the measurement and the model's own nearer surface is not visible at this
+    pose and not judged at all. The model's surface is drawn where such points are (only
+    when there are any), each sample a disc of this radius in its plane (about the samples'
+    spacing; the margin: a disc at a face's edge reaches past the edge).
     An L bracket seen from behind its upright plate hides a third of its facing surface,
     which had counted against the true pose. Compiled (a projection per point; called 2-4
     times per hypothesis)."""
@@ -509,45 +509,30 @@ def measured_at(T, mp, mn, i, depth, fx, fy, cx, cy):
 
 
 @numba.njit(cache=True, nogil=True)
-def _self_depth(T, mp, mn, fx, fy, cx, cy, w, h, radius):
-    """The model's own depth image at pose T over the box of pixels its facing points fall
-    in: each facing sample a disc of ``radius`` in its tangent plane (its plane's depth along
-    each pixel's ray, where that ray meets the disc), the nearest per pixel. Returns (depth
-    (rows, cols), first column, first row); inf where no disc covers the pixel."""
-    n = mp.shape[0]
-    P = np.empty((n, 3))
-    N = np.empty((n, 3))
-    facing = np.zeros(n, np.bool_)
-    u0, v0, u1, v1 = w, h, -1, -1
-    for i in range(n):
-        for a in range(3):
-            P[i, a] = T[a, 0] * mp[i, 0] + T[a, 1] * mp[i, 1] + T[a, 2] * mp[i, 2] + T[a, 3]
-            N[i, a] = T[a, 0] * mn[i, 0] + T[a, 1] * mn[i, 1] + T[a, 2] * mn[i, 2]
-        px, py, pz = P[i, 0], P[i, 1], P[i, 2]
-        if not (-(N[i, 0] * px + N[i, 1] * py + N[i, 2] * pz) > 0.2 * math.sqrt(px * px + py * py + pz * pz)) \
-                or not pz > 0.05:
-            continue
-        facing[i] = True
-        r = int(math.ceil(radius * fx / pz)) + 1
-        u, v = int(round(fx * px / pz + cx)), int(round(fy * py / pz + cy))
-        u0, v0, u1, v1 = min(u0, u - r), min(v0, v - r), max(u1, u + r), max(v1, v + r)
-    u0, v0, u1, v1 = max(u0, 0), max(v0, 0), min(u1, w - 1), min(v1, h - 1)
-    if u1 < u0 or v1 < v0:
-        return np.full((0, 0), np.inf), 0, 0
+def _self_depth(T, mp, mn, fx, fy, cx, cy, u0, v0, u1, v1, radius):
+    """The model's own depth image at pose T over pixels [v0, v1] x [u0, u1]: each facing
+    sample a disc of ``radius`` in its tangent plane (its plane's depth along each pixel's
+    ray, where that ray meets the disc), the nearest per pixel; inf where no disc is."""
     zbuf = np.full((v1 - v0 + 1, u1 - u0 + 1), np.inf)
     r2 = radius * radius
-    for i in range(n):
-        if not facing[i]:
+    for i in range(mp.shape[0]):
+        px = T[0, 0] * mp[i, 0] + T[0, 1] * mp[i, 1] + T[0, 2] * mp[i, 2] + T[0, 3]
+        py = T[1, 0] * mp[i, 0] + T[1, 1] * mp[i, 1] + T[1, 2] * mp[i, 2] + T[1, 3]
+        pz = T[2, 0] * mp[i, 0] + T[2, 1] * mp[i, 1] + T[2, 2] * mp[i, 2] + T[2, 3]
+        nx = T[0, 0] * mn[i, 0] + T[0, 1] * mn[i, 1] + T[0, 2] * mn[i, 2]
+        ny = T[1, 0] * mn[i, 0] + T[1, 1] * mn[i, 1] + T[1, 2] * mn[i, 2]
+        nz = T[2, 0] * mn[i, 0] + T[2, 1] * mn[i, 1] + T[2, 2] * mn[i, 2]
+        nd = nx * px + ny * py + nz * pz
+        if not (-nd > 0.2 * math.sqrt(px * px + py * py + pz * pz)) or not pz > radius + 0.05:
             continue
-        px, py, pz = P[i, 0], P[i, 1], P[i, 2]
-        nd = N[i, 0] * px + N[i, 1] * py + N[i, 2] * pz
-        r = int(math.ceil(radius * fx / pz)) + 1
+        # The disc's pixels: within its radius seen at its nearest, from its rounded centre.
+        r = int(math.ceil(radius * fx / (pz - radius) + 0.5))
         uc, vc = int(round(fx * px / pz + cx)), int(round(fy * py / pz + cy))
         for v in range(max(vc - r, v0), min(vc + r, v1) + 1):
             dy = (v - cy) / fy
             for u in range(max(uc - r, u0), min(uc + r, u1) + 1):
                 dx = (u - cx) / fx
-                den = N[i, 0] * dx + N[i, 1] * dy + N[i, 2]
+                den = nx * dx + ny * dy + nz
                 if abs(den) < 1e-9:
                     continue
                 z = nd / den              # the ray (dx, dy, 1) z meets the sample's plane
@@ -556,30 +541,40 @@ def _self_depth(T, mp, mn, fx, fy, cx, cy, w, h, radius):
                 ex, ey, ez = dx * z - px, dy * z - py, z - pz
                 if ex * ex + ey * ey + ez * ez <= r2 and z < zbuf[v - v0, u - u0]:
                     zbuf[v - v0, u - u0] = z
-    return zbuf, u0, v0
+    return zbuf
 
 
 @numba.njit(cache=True, nogil=True)
 def _depth_support(T, mp, mn, depth, fx, fy, cx, cy, tolerance, self_hiding):
-    h, w = depth.shape
-    if self_hiding > 0:
-        own, u0, v0 = _self_depth(T, mp, mn, fx, fy, cx, cy, w, h, self_hiding)
     m = 0
     agree = 0
     free = 0
+    # Points behind the measurement: against the pose, unless the model hides them itself
+    # (looked at only when there are any: a true pose in plain view has none).
+    bu = np.empty(mp.shape[0], np.int64)
+    bv = np.empty(mp.shape[0], np.int64)
+    bz = np.empty(mp.shape[0])
+    nb = 0
     for i in range(mp.shape[0]):
         px, py, pz, measured = measured_at(T, mp, mn, i, depth, fx, fy, cx, cy)
         if not measured > 0:
             continue
-        if self_hiding > 0 and own[round(fy * py / pz + cy) - v0, round(fx * px / pz + cx) - u0] \
-                < pz - tolerance - self_hiding:
-            continue                # behind the model's own nearer surface: not in view at this pose
         m += 1
         diff = measured - pz
         if abs(diff) < tolerance:
             agree += 1
         if diff > tolerance:        # measured surface further away: the model fills empty space
             free += 1
+        if diff < -tolerance - self_hiding and self_hiding > 0:
+            bu[nb], bv[nb], bz[nb] = round(fx * px / pz + cx), round(fy * py / pz + cy), pz
+            nb += 1
+    if nb > 0:
+        own = _self_depth(T, mp, mn, fx, fy, cx, cy, bu[:nb].min(), bv[:nb].min(), bu[:nb].max(), bv[:nb].max(),
+                          self_hiding)
+        u0, v0 = bu[:nb].min(), bv[:nb].min()
+        for k in range(nb):
+            if own[bv[k] - v0, bu[k] - u0] < bz[k] - tolerance - self_hiding:
+                m -= 1              # behind the model's own nearer surface: not in view at this pose
     if m == 0:
         return 0.0, 1.0, 0
     return agree / m, free / m, m
