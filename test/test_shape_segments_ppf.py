@@ -497,3 +497,28 @@ def test_depth_support_leaves_out_what_a_bracket_hides_of_itself():
         support, free, _ = depth_support(T @ make_transform(np.eye(3), shift), surface, normals, depth, intr, tol,
                                          shape._self_hiding)
         assert support - free < 0.78
+
+
+def test_a_box_half_hidden_by_an_instance_found_is_judged_by_what_is_in_view():
+    from multi_instance_reg.rgbd.pipeline import PipelineConfig
+    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+
+    solid = box_mesh(0.08, 0.07, 0.05)
+    shape = ShapeFrontEnd(build_model_from_mesh(solid, "block"), PipelineConfig().frontend)
+    intr = CameraIntrinsics(K=np.array([[380.0, 0, 160], [0, 380.0, 120], [0, 0, 1]]), width=320, height=240)
+    turn = np.array([[1.0, 0, 0], [0, -0.8, -0.6], [0, 0.6, -0.8]])     # top and a side towards the camera
+    front = make_transform(turn, [0.0, 0.0, 0.6])
+    back = make_transform(turn, [0.06, 0.0, 0.7])                     # its left part behind the front box
+    dense, _ = sample_surface(solid, 0.001)
+    depth = np.maximum(_depth_of(dense, front, intr), 0)
+    behind = _depth_of(dense, back, intr)
+    depth = np.where((depth == 0) | ((behind > 0) & (behind < depth)), behind, depth)
+    cloud = shape.frame_cloud(depth, intr, None)
+    assert shape.refine_one(front, cloud, depth, intr) is not None
+    assert shape.refine_one(back, cloud, depth, intr) is None          # its hidden part counted against it
+    occluders = shape.instance_pixels([front], depth, intr)
+    again = shape.judge_behind(back, cloud, depth, intr, occluders, [front])
+    assert again is not None and np.allclose(again[0], back) and again[1] > 0.95
+    # Hidden behind the front box's face, but inside its box: not explained by it.
+    inside = front @ make_transform(np.eye(3), [0.0, 0.0, 0.02])
+    assert shape.judge_behind(inside, cloud, depth, intr, occluders, [front]) is None

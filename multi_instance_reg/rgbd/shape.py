@@ -447,8 +447,8 @@ def icp_point_to_plane(T: np.ndarray, model_pts: np.ndarray, scene_grid: PointGr
 
 
 def depth_support(T: np.ndarray, model_pts: np.ndarray, model_normals: np.ndarray, depth_m: np.ndarray,
-                  intrinsics: CameraIntrinsics, tolerance: float, self_hiding: float = 0.0
-                  ) -> tuple[float, float, int]:
+                  intrinsics: CameraIntrinsics, tolerance: float, self_hiding: float = 0.0,
+                  occluders: np.ndarray | None = None) -> tuple[float, float, int]:
     """How well the depth image agrees with the model at pose T (model -> camera).
 
     Of the model's surface points facing the camera and inside the image with valid depth:
@@ -462,14 +462,19 @@ def depth_support(T: np.ndarray, model_pts: np.ndarray, model_normals: np.ndarra
     pose and not judged at all. The model's surface is drawn where such points are (only
     when there are any), each sample a disc of this radius in its plane (about the samples'
     spacing; the margin: a disc at a face's edge reaches past the edge).
+
+    ``occluders`` ((H, W) uint8): where the measured surface is known to be something else
+    (another instance found in the frame): a point behind the measurement there is hidden
+    by it, and not judged either.
     An L bracket seen from behind its upright plate hides a third of its facing surface,
     which had counted against the true pose. Compiled (a projection per point; called 2-4
     times per hypothesis)."""
     K = intrinsics.K
+    occ = np.zeros((0, 0), np.uint8) if occluders is None else np.ascontiguousarray(occluders, np.uint8)
     return _depth_support(np.ascontiguousarray(T, np.float64), np.ascontiguousarray(model_pts, np.float64),
                           np.ascontiguousarray(model_normals, np.float64), depth_m,
                           float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), float(tolerance),
-                          float(self_hiding))
+                          float(self_hiding), occ)
 
 
 def is_convex(points: np.ndarray, normals: np.ndarray, tolerance: float) -> bool:
@@ -545,7 +550,8 @@ def _self_depth(T, mp, mn, fx, fy, cx, cy, u0, v0, u1, v1, radius):
 
 
 @numba.njit(cache=True, nogil=True)
-def _depth_support(T, mp, mn, depth, fx, fy, cx, cy, tolerance, self_hiding):
+def _depth_support(T, mp, mn, depth, fx, fy, cx, cy, tolerance, self_hiding, occluders):
+    by_others = occluders.shape[0] == depth.shape[0]
     m = 0
     agree = 0
     free = 0
@@ -559,8 +565,10 @@ def _depth_support(T, mp, mn, depth, fx, fy, cx, cy, tolerance, self_hiding):
         px, py, pz, measured = measured_at(T, mp, mn, i, depth, fx, fy, cx, cy)
         if not measured > 0:
             continue
-        m += 1
         diff = measured - pz
+        if by_others and diff < -tolerance and occluders[round(fy * py / pz + cy), round(fx * px / pz + cx)]:
+            continue                # hidden by another instance
+        m += 1
         if abs(diff) < tolerance:
             agree += 1
         if diff > tolerance:        # measured surface further away: the model fills empty space
