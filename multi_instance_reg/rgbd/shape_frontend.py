@@ -311,8 +311,11 @@ class ShapeFrontEnd:
         fe = self.fe
         tol_T = max(self.depth_tolerance, 3.0 * fe.shape_depth_noise * float(T[2, 3]) ** 2)
         args = (T, self._surface, self._surface_normals, depth_m, intrinsics, tol_T, self._self_hiding)
-        _, _, n_all = depth_support(*args)
         support, free, n = depth_support(*args, occluders)
+        # What follows only lowers the support and support - free: most are dropped here.
+        if support < fe.shape_min_support or support - free < fe.shape_min_evidence:
+            return None
+        _, _, n_all = depth_support(*args)
         if n >= n_all:
             return None
         # Points inside a found instance's box are not behind it: back into the judged ones
