@@ -516,6 +516,10 @@ def test_a_box_half_hidden_by_an_instance_found_is_judged_by_what_is_in_view():
     cloud = shape.frame_cloud(depth, intr, None)
     assert shape.refine_one(front, cloud, depth, intr) is not None
     assert shape.refine_one(back, cloud, depth, intr) is None          # its hidden part counted against it
+    rejected = []
+    kept = shape.refine_and_check([front, back], cloud, depth, intr, rejected=rejected)
+    assert len(kept) == 1 and len(rejected) == 1                       # the back box, for too little support
+    assert np.linalg.norm(rejected[0][:3, 3] - back[:3, 3]) < 0.01
     occluders = shape.instance_pixels([front], depth, intr)
     again = shape.judge_behind(back, cloud, depth, intr, occluders, [front])
     assert again is not None and np.allclose(again[0], back) and again[1] > 0.95

@@ -177,8 +177,8 @@ class ShapeFrontEnd:
         calls release the GIL); the results in the order of ``distinct``, the same as one
         at a time. ``started``: a ``Prefetch`` (``start_refining``) of ``transforms[offset:]``
         already under way; what it has taken on is used, the rest is refined here.
-        ``rejected``: receives the refined poses the checks rejected (those the depth
-        supported enough to be judged), for ``judge_behind``."""
+        ``rejected``: receives the refined poses rejected for too little support (yet enough
+        to be judged: at least half ``shape_min_support``), for ``judge_behind``."""
         if cloud.grid is None:
             return []
         order = self.distinct(transforms)
@@ -190,8 +190,9 @@ class ShapeFrontEnd:
         tasks = [task if task is not None else next(new) for task in tasks]
         results = [task.result() for task in tasks]
         if rejected is not None:
-            rejected.extend(T for kept, T in results if kept is None and T is not None)
-        return [kept for kept, _ in results if kept is not None]
+            rejected.extend(T for kept, T, support in results
+                            if kept is None and T is not None and support < self.fe.shape_min_support)
+        return [kept for kept, _, _ in results if kept is not None]
 
     def start_refining(self, transforms, cloud: FrameCloud, depth_m: np.ndarray, intrinsics: CameraIntrinsics
                        ) -> "Prefetch | None":
@@ -220,7 +221,8 @@ class ShapeFrontEnd:
         return self._refine(T0, cloud, depth_m, intrinsics)[0]
 
     def _refine(self, T0: np.ndarray, cloud: FrameCloud, depth_m: np.ndarray, intrinsics: CameraIntrinsics):
-        """``refine_one``'s result, and the refined pose it judged (None when dropped before)."""
+        """``refine_one``'s result, the refined pose it judged and its support (None, 0 when
+        dropped before)."""
         fe = self.fe
         tol = self.depth_tolerance
         first = min(3, fe.shape_icp_iterations)
@@ -236,15 +238,16 @@ class ShapeFrontEnd:
         # hypothesis the depth hardly supports is dropped without paying for the rest
         # (most of ECC's clusters are wrong).
         if fit(T0)[1] < 0.25 * fe.shape_min_support:
-            return None, None
+            return None, None, 0.0
         T = self._icp(T0, cloud, depth_m, intrinsics, ICP_REACH * self.voxel, first)
         cand = max([fit(T0) + (T0,), fit(T) + (T,)], key=lambda c: c[0])
         if cand[1] < 0.5 * fe.shape_min_support:
-            return None, None
+            return None, None, 0.0
         T = self._icp(cand[4], cloud, depth_m, intrinsics, 1.5 * self.voxel, fe.shape_icp_iterations - first)
         # ICP can slide a box seen by one face alone: keep whichever pose the depth
         # image supports better.
         _, support, free, n, T = max([cand, fit(T) + (T,)], key=lambda c: c[0])
+        support0 = support
         kept = self._judge(T, support, free, n, cloud, depth_m, intrinsics)
         if kept is None and support >= fe.shape_min_support:
             # The depth confirms it, but it overhangs empty space or stops short of its
@@ -277,7 +280,7 @@ class ShapeFrontEnd:
                 kept = self._judge(T1, support, free, n, cloud, depth_m, intrinsics)
                 if kept is not None:
                     break
-        return kept, T
+        return kept, T, support0
 
     def instance_pixels(self, transforms, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> np.ndarray:
         """(H, W) uint8: 1 where the depth image shows one of these instances (a visible
