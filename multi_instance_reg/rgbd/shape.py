@@ -447,19 +447,48 @@ def icp_point_to_plane(T: np.ndarray, model_pts: np.ndarray, scene_grid: PointGr
 
 
 def depth_support(T: np.ndarray, model_pts: np.ndarray, model_normals: np.ndarray, depth_m: np.ndarray,
-                  intrinsics: CameraIntrinsics, tolerance: float) -> tuple[float, float, int]:
+                  intrinsics: CameraIntrinsics, tolerance: float, self_hiding: float = 0.0,
+                  occluders: np.ndarray | None = None) -> tuple[float, float, int]:
     """How well the depth image agrees with the model at pose T (model -> camera).
 
     Of the model's surface points facing the camera and inside the image with valid depth:
     (share within ``tolerance`` of the measured depth, share lying clearly in front of
     the measured surface - there is nothing there - i.e. more than ``tolerance`` nearer the
-    camera than the measurement, number of such points). Points behind the measurement may
-    be occluded and count as neither. Compiled (a projection per point; called 2-4 times
-    per hypothesis)."""
+    camera than the measurement, number of such points). Points behind the measurement
+    count against the pose (in the number, neither agreeing nor free).
+
+    ``self_hiding`` (metres; 0 for a convex model): a point more than ``tolerance`` plus this
+    behind both the measurement and the model's own nearer surface is not visible at this
+    pose and not judged at all. The model's surface is drawn where such points are (only
+    when there are any), each sample a disc of this radius in its plane (about the samples'
+    spacing; the margin: a disc at a face's edge reaches past the edge).
+
+    ``occluders`` ((H, W) uint8): where the measured surface is known to be something else
+    (another instance found in the frame): a point behind the measurement there is hidden
+    by it, and not judged either.
+    An L bracket seen from behind its upright plate hides a third of its facing surface,
+    which had counted against the true pose. Compiled (a projection per point; called 2-4
+    times per hypothesis)."""
     K = intrinsics.K
+    occ = np.zeros((0, 0), np.uint8) if occluders is None else np.ascontiguousarray(occluders, np.uint8)
     return _depth_support(np.ascontiguousarray(T, np.float64), np.ascontiguousarray(model_pts, np.float64),
                           np.ascontiguousarray(model_normals, np.float64), depth_m,
-                          float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), float(tolerance))
+                          float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), float(tolerance),
+                          float(self_hiding), occ)
+
+
+def is_convex(points: np.ndarray, normals: np.ndarray, tolerance: float) -> bool:
+    """Whether a closed surface (samples with outward normals) is convex: no sample lies more
+    than ``tolerance`` in front of another's tangent plane. Then whatever faces the camera is
+    in view, and the depth check need not look for the model hiding itself."""
+    p = np.asarray(points, np.float64)
+    n = np.asarray(normals, np.float64)
+    for lo in range(0, len(p), 512):
+        rows = slice(lo, lo + 512)
+        ahead = n[rows] @ p.T - np.einsum("ik,ik->i", n[rows], p[rows])[:, None]
+        if ahead.max(initial=0.0) > tolerance:
+            return False
+    return True
 
 
 @numba.njit(cache=True, nogil=True)
@@ -485,20 +514,75 @@ def measured_at(T, mp, mn, i, depth, fx, fy, cx, cy):
 
 
 @numba.njit(cache=True, nogil=True)
-def _depth_support(T, mp, mn, depth, fx, fy, cx, cy, tolerance):
+def _self_depth(T, mp, mn, fx, fy, cx, cy, u0, v0, u1, v1, radius):
+    """The model's own depth image at pose T over pixels [v0, v1] x [u0, u1]: each facing
+    sample a disc of ``radius`` in its tangent plane (its plane's depth along each pixel's
+    ray, where that ray meets the disc), the nearest per pixel; inf where no disc is."""
+    zbuf = np.full((v1 - v0 + 1, u1 - u0 + 1), np.inf)
+    r2 = radius * radius
+    for i in range(mp.shape[0]):
+        px = T[0, 0] * mp[i, 0] + T[0, 1] * mp[i, 1] + T[0, 2] * mp[i, 2] + T[0, 3]
+        py = T[1, 0] * mp[i, 0] + T[1, 1] * mp[i, 1] + T[1, 2] * mp[i, 2] + T[1, 3]
+        pz = T[2, 0] * mp[i, 0] + T[2, 1] * mp[i, 1] + T[2, 2] * mp[i, 2] + T[2, 3]
+        nx = T[0, 0] * mn[i, 0] + T[0, 1] * mn[i, 1] + T[0, 2] * mn[i, 2]
+        ny = T[1, 0] * mn[i, 0] + T[1, 1] * mn[i, 1] + T[1, 2] * mn[i, 2]
+        nz = T[2, 0] * mn[i, 0] + T[2, 1] * mn[i, 1] + T[2, 2] * mn[i, 2]
+        nd = nx * px + ny * py + nz * pz
+        if not (-nd > 0.2 * math.sqrt(px * px + py * py + pz * pz)) or not pz > radius + 0.05:
+            continue
+        # The disc's pixels: within its radius seen at its nearest, from its rounded centre.
+        r = int(math.ceil(radius * fx / (pz - radius) + 0.5))
+        uc, vc = int(round(fx * px / pz + cx)), int(round(fy * py / pz + cy))
+        for v in range(max(vc - r, v0), min(vc + r, v1) + 1):
+            dy = (v - cy) / fy
+            for u in range(max(uc - r, u0), min(uc + r, u1) + 1):
+                dx = (u - cx) / fx
+                den = nx * dx + ny * dy + nz
+                if abs(den) < 1e-9:
+                    continue
+                z = nd / den              # the ray (dx, dy, 1) z meets the sample's plane
+                if not z > 0:
+                    continue
+                ex, ey, ez = dx * z - px, dy * z - py, z - pz
+                if ex * ex + ey * ey + ez * ez <= r2 and z < zbuf[v - v0, u - u0]:
+                    zbuf[v - v0, u - u0] = z
+    return zbuf
+
+
+@numba.njit(cache=True, nogil=True)
+def _depth_support(T, mp, mn, depth, fx, fy, cx, cy, tolerance, self_hiding, occluders):
+    by_others = occluders.shape[0] == depth.shape[0]
     m = 0
     agree = 0
     free = 0
+    # Points behind the measurement: against the pose, unless the model hides them itself
+    # (looked at only when there are any: a true pose in plain view has none).
+    bu = np.empty(mp.shape[0], np.int64)
+    bv = np.empty(mp.shape[0], np.int64)
+    bz = np.empty(mp.shape[0])
+    nb = 0
     for i in range(mp.shape[0]):
-        _, _, pz, measured = measured_at(T, mp, mn, i, depth, fx, fy, cx, cy)
+        px, py, pz, measured = measured_at(T, mp, mn, i, depth, fx, fy, cx, cy)
         if not measured > 0:
             continue
-        m += 1
         diff = measured - pz
+        if by_others and diff < -tolerance and occluders[round(fy * py / pz + cy), round(fx * px / pz + cx)]:
+            continue                # hidden by another instance
+        m += 1
         if abs(diff) < tolerance:
             agree += 1
         if diff > tolerance:        # measured surface further away: the model fills empty space
             free += 1
+        if diff < -tolerance - self_hiding and self_hiding > 0:
+            bu[nb], bv[nb], bz[nb] = round(fx * px / pz + cx), round(fy * py / pz + cy), pz
+            nb += 1
+    if nb > 0:
+        own = _self_depth(T, mp, mn, fx, fy, cx, cy, bu[:nb].min(), bv[:nb].min(), bu[:nb].max(), bv[:nb].max(),
+                          self_hiding)
+        u0, v0 = bu[:nb].min(), bv[:nb].min()
+        for k in range(nb):
+            if own[bv[k] - v0, bu[k] - u0] < bz[k] - tolerance - self_hiding:
+                m -= 1              # behind the model's own nearer surface: not in view at this pose
     if m == 0:
         return 0.0, 1.0, 0
     return agree / m, free / m, m
@@ -514,4 +598,5 @@ def scene_cloud(depth_m: np.ndarray, intrinsics: CameraIntrinsics, mask: np.ndar
 
 
 __all__ = ["shape_voxel", "voxel_downsample", "describe", "fpfh", "normals_and_variation", "surface_normals", "ShapeMatcher",
-           "icp_point_to_plane", "PointGrid", "apply_twist", "depth_support", "scene_cloud", "FPFH_DIM"]
+           "icp_point_to_plane", "PointGrid", "apply_twist", "depth_support", "is_convex", "scene_cloud",
+           "FPFH_DIM"]

@@ -12,6 +12,7 @@ from __future__ import annotations
 import threading
 from dataclasses import dataclass, replace
 
+import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -24,8 +25,8 @@ from .ppf import ANGLE_BINS as ANGLE_STEPS, PPFModel, cluster_poses
 from .segments import connected_segments, support_mask
 from .verify import facing_camera, in_view_share, outline_continuation, outline_shift
 from ..threads import shared_pool, submit_each
-from .shape import (PointGrid, ShapeMatcher, apply_twist, depth_support, describe, icp_point_to_plane, scene_cloud,
-                    surface_normals, voxel_downsample)
+from .shape import (PointGrid, ShapeMatcher, apply_twist, depth_support, describe, icp_point_to_plane, is_convex,
+                    scene_cloud, surface_normals, voxel_downsample)
 
 
 # ICP pairs a model point with a scene point at most this many voxels away.
@@ -64,6 +65,13 @@ class ShapeFrontEnd:
         # and the depth check.
         self._surface, self._surface_normals = oriented_downsample(self._model_pts, model.shape_normals, self.voxel)
         self.diameter = float(np.linalg.norm(model.extent))
+        # A non-convex object (an L bracket) hides parts of itself that face the camera: the
+        # depth check draws its own surface first (each sample a disc of about the samples'
+        # spacing) and leaves those parts out. On a convex one nothing is hidden (0: not drawn;
+        # the downsampled surfaces of boxes and cylinders stand at most 0.6 voxel in front of
+        # their own tangent planes, the bracket's 20 voxels).
+        self._self_hiding = 0.0 if is_convex(self._surface, self._surface_normals, self.voxel) \
+            else 0.75 * self.voxel
         self.features = fe.shape_features
         if self.features == "ppf":
             self._ppf = PPFModel(self._surface, self._surface_normals, self.diameter, self.voxel, model.symmetries,
@@ -158,8 +166,8 @@ class ShapeFrontEnd:
         return self._model_pts[self._model_idx[m]], cloud.points[cloud.salient[s]]
 
     def refine_and_check(self, transforms, cloud: FrameCloud, depth_m: np.ndarray,
-                         intrinsics: CameraIntrinsics, started: "Prefetch | None" = None, offset: int = 0
-                         ) -> list[tuple[np.ndarray, float, int]]:
+                         intrinsics: CameraIntrinsics, started: "Prefetch | None" = None, offset: int = 0,
+                         rejected: list | None = None) -> list[tuple[np.ndarray, float, int]]:
         """Each transform refined by ICP against the frame's points and kept when the depth
         image agrees with the model's visible surface: (T, support share, agreeing points).
         Hypotheses that are one pose (ECC's and the vote clusters' for one instance) are
@@ -168,17 +176,23 @@ class ShapeFrontEnd:
         pool, two at a time on two cores (the compiled kernels, k-d tree queries and OpenCV
         calls release the GIL); the results in the order of ``distinct``, the same as one
         at a time. ``started``: a ``Prefetch`` (``start_refining``) of ``transforms[offset:]``
-        already under way; what it has taken on is used, the rest is refined here."""
+        already under way; what it has taken on is used, the rest is refined here.
+        ``rejected``: receives the refined poses rejected for too little support (yet enough
+        to be judged: at least half ``shape_min_support``), for ``judge_behind``."""
         if cloud.grid is None:
             return []
         order = self.distinct(transforms)
         claimed = started.stop() if started is not None else set()
         tasks = [_Claimed(started, k - offset) if k - offset in claimed else None for k in order]
         missing = [k for k, task in zip(order, tasks) if task is None]
-        new = iter(submit_each(lambda T0: self.refine_one(T0, cloud, depth_m, intrinsics),
+        new = iter(submit_each(lambda T0: self._refine(T0, cloud, depth_m, intrinsics),
                                [np.array(transforms[k], np.float64) for k in missing]))
         tasks = [task if task is not None else next(new) for task in tasks]
-        return [r for r in (task.result() for task in tasks) if r is not None]
+        results = [task.result() for task in tasks]
+        if rejected is not None:
+            rejected.extend(T for kept, T, support in results
+                            if kept is None and T is not None and support < self.fe.shape_min_support)
+        return [kept for kept, _, _ in results if kept is not None]
 
     def start_refining(self, transforms, cloud: FrameCloud, depth_m: np.ndarray, intrinsics: CameraIntrinsics
                        ) -> "Prefetch | None":
@@ -188,7 +202,7 @@ class ShapeFrontEnd:
         started=)`` stops it and takes its results. None on a single core."""
         if cloud.grid is None or len(transforms) == 0:
             return None
-        return Prefetch(lambda T0: self.refine_one(T0, cloud, depth_m, intrinsics),
+        return Prefetch(lambda T0: self._refine(T0, cloud, depth_m, intrinsics),
                         [np.array(T, np.float64) for T in transforms], range(len(transforms) - 1, -1, -1))
 
     def distinct(self, transforms) -> list[int]:
@@ -204,6 +218,11 @@ class ShapeFrontEnd:
     def refine_one(self, T0: np.ndarray, cloud: FrameCloud, depth_m: np.ndarray, intrinsics: CameraIntrinsics):
         """One hypothesis refined by ICP and judged: (T, support share, agreeing points), or
         None. Reads only the frame's data: safe to run in several threads at once."""
+        return self._refine(T0, cloud, depth_m, intrinsics)[0]
+
+    def _refine(self, T0: np.ndarray, cloud: FrameCloud, depth_m: np.ndarray, intrinsics: CameraIntrinsics):
+        """``refine_one``'s result, the refined pose it judged and its support (None, 0 when
+        dropped before)."""
         fe = self.fe
         tol = self.depth_tolerance
         first = min(3, fe.shape_icp_iterations)
@@ -211,22 +230,24 @@ class ShapeFrontEnd:
             # Agreement within the depth noise at the object's distance (3 sigma; 2.4 cm at 2 m,
             # where a fixed 1.2 cm left true cartons at 0.88 support and 0.1 "free").
             tol_T = max(tol, 3.0 * fe.shape_depth_noise * float(T[2, 3]) ** 2)
-            support, free, n = depth_support(T, self._surface, self._surface_normals, depth_m, intrinsics, tol_T)
+            support, free, n = depth_support(T, self._surface, self._surface_normals, depth_m, intrinsics, tol_T,
+                                             self._self_hiding)
             return support - free, support, free, n
 
         # The depth check first (a projection, no search), then a few rounds of ICP: a
         # hypothesis the depth hardly supports is dropped without paying for the rest
         # (most of ECC's clusters are wrong).
         if fit(T0)[1] < 0.25 * fe.shape_min_support:
-            return None
+            return None, None, 0.0
         T = self._icp(T0, cloud, depth_m, intrinsics, ICP_REACH * self.voxel, first)
         cand = max([fit(T0) + (T0,), fit(T) + (T,)], key=lambda c: c[0])
         if cand[1] < 0.5 * fe.shape_min_support:
-            return None
+            return None, None, 0.0
         T = self._icp(cand[4], cloud, depth_m, intrinsics, 1.5 * self.voxel, fe.shape_icp_iterations - first)
         # ICP can slide a box seen by one face alone: keep whichever pose the depth
         # image supports better.
         _, support, free, n, T = max([cand, fit(T) + (T,)], key=lambda c: c[0])
+        support0 = support
         kept = self._judge(T, support, free, n, cloud, depth_m, intrinsics)
         if kept is None and support >= fe.shape_min_support:
             # The depth confirms it, but it overhangs empty space or stops short of its
@@ -259,7 +280,69 @@ class ShapeFrontEnd:
                 kept = self._judge(T1, support, free, n, cloud, depth_m, intrinsics)
                 if kept is not None:
                     break
-        return kept
+        return kept, T, support0
+
+    def instance_pixels(self, transforms, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> np.ndarray:
+        """(H, W) uint8: 1 where the depth image shows one of these instances (a visible
+        model point within the depth tolerance there, drawn over its voxel's footprint)."""
+        h, w = depth_m.shape
+        out = np.zeros((h, w), np.uint8)
+        K = intrinsics.K
+        for T in transforms:
+            p = self._surface @ T[:3, :3].T + T[:3, 3]
+            p = p[facing_camera(p, self._surface_normals @ T[:3, :3].T)]
+            u = np.round(K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2]).astype(np.int64)
+            v = np.round(K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]).astype(np.int64)
+            inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+            p, u, v = p[inside], u[inside], v[inside]
+            tol = max(self.depth_tolerance, 3.0 * self.fe.shape_depth_noise * float(T[2, 3]) ** 2)
+            on = np.abs(depth_m[v, u] - p[:, 2]) < tol
+            out[v[on], u[on]] = 1
+        if not out.any():
+            return out
+        r = max(1, int(round(0.75 * self.voxel * K[0, 0] / float(np.median([T[2, 3] for T in transforms])))))
+        return cv2.dilate(out, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
+
+    def judge_behind(self, T, cloud: FrameCloud, depth_m: np.ndarray, intrinsics: CameraIntrinsics,
+                     occluders: np.ndarray, found) -> tuple | None:
+        """A refined pose the checks rejected, judged again with its points hidden behind the
+        instances ``found`` (poses; ``occluders`` the pixels showing them, ``instance_pixels``)
+        left out: (T, support, agreeing points) or None. Only an instance in front explains
+        the occlusion: a pose sunk into a distractor or the table, or reaching into a found
+        instance's box, is still judged by those points. At least ``shape_min_in_view`` of its
+        judged points must remain (as for the image's edge)."""
+        fe = self.fe
+        tol_T = max(self.depth_tolerance, 3.0 * fe.shape_depth_noise * float(T[2, 3]) ** 2)
+        args = (T, self._surface, self._surface_normals, depth_m, intrinsics, tol_T, self._self_hiding)
+        support, free, n = depth_support(*args, occluders)
+        # What follows only lowers the support and support - free: most are dropped here.
+        if support < fe.shape_min_support or support - free < fe.shape_min_evidence:
+            return None
+        _, _, n_all = depth_support(*args)
+        if n >= n_all:
+            return None
+        # Points inside a found instance's box are not behind it: back into the judged ones
+        # (neither agreeing nor free).
+        p = self._surface @ T[:3, :3].T + T[:3, 3]
+        p = p[facing_camera(p, self._surface_normals @ T[:3, :3].T)]
+        centre, half = np.asarray(self.model.box_centre, np.float64), 0.5 * np.asarray(self.model.extent, np.float64)
+        inside = np.zeros(len(p), bool)
+        for F in found:
+            inside |= np.all(np.abs((p - F[:3, 3]) @ F[:3, :3] - centre) <= half, axis=1)
+        if inside.any():
+            K = intrinsics.K
+            q = p[inside]
+            u = np.round(K[0, 0] * q[:, 0] / q[:, 2] + K[0, 2]).astype(np.int64)
+            v = np.round(K[1, 1] * q[:, 1] / q[:, 2] + K[1, 2]).astype(np.int64)
+            h, w = depth_m.shape
+            ok = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+            d = depth_m[v[ok], u[ok]]
+            back = int(np.sum((d > 0) & (d < q[ok, 2] - tol_T) & (occluders[v[ok], u[ok]] > 0)))
+            if back:
+                support, free, n = support * n / (n + back), free * n / (n + back), n + back
+        if n < fe.shape_min_in_view * n_all:
+            return None
+        return self._judge(T, support, free, n, cloud, depth_m, intrinsics)
 
     def _unheld(self, T):
         """(3, 3) projection onto the directions in which the visible surface's normals do not
