@@ -509,3 +509,23 @@ def test_the_joint_alignment_measures_the_camera_motion():
         joint = D @ T_known
         assert np.linalg.norm(joint[:3, 3] - T_true[:3, 3]) < np.linalg.norm(alone[:3, 3] - T_true[:3, 3])
         assert rotation_angle_deg(joint[:3, :3].T @ T_true[:3, :3]) < 0.1
+
+
+def test_alignment_warm_up_compiles_what_a_live_frame_uses():
+    """The node compiles the depth alignment at start (tracking.icp.warm_up), not on the first
+    detection it carries forward: a live frame's types must find it compiled."""
+    from multi_instance_reg.tracking import icp
+
+    icp.warm_up()
+    kernels = [icp._icp]                 # the entry kernel; the ones it calls compile into it
+    compiled = [len(k.signatures) for k in kernels]
+    assert all(compiled)
+    rng = np.random.default_rng(1)
+    model_points = rng.uniform(-0.04, 0.04, (500, 3)).astype(np.float32)    # as a model file stores them
+    aligner = ProjectiveICP(model_points, num_points=100)
+    depth = np.full((480, 640), 0.7, np.float32)                            # as the node converts depth
+    intrinsics = CameraIntrinsics(np.array([[615.0, 0, 320], [0, 615.0, 240], [0, 0, 1]]), 640, 480)
+    T = make_transform(np.eye(3), [0.0, 0.0, 0.65])
+    aligner.align(T, depth, intrinsics)
+    aligner.align_all([T, T @ make_transform(np.eye(3), [0.1, 0, 0])], depth, intrinsics)
+    assert [len(k.signatures) for k in kernels] == compiled

@@ -141,6 +141,9 @@ class InstanceRegistrationNode(Node):
         self._pipelines = PipelineProcess.start_many(self.models, self.config, self.settings.pipeline_processes,
                                                      niceness=self._niceness)
         self._tracker = LiveObjectTrackers(self.models, self.tracker_config, self.live_config) if tracking else None
+        if tracking:
+            from ..tracking.icp import warm_up
+            warm_up()   # the depth alignment compiled now, not in the first detection carried forward
 
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)

@@ -244,4 +244,18 @@ class ProjectiveICP:
                                 self.inlier_distance, self.damping, self.min_information)
 
 
-__all__ = ["IcpResult", "ProjectiveICP", "align_projective", "model_normals", "sample_model"]
+def warm_up() -> None:
+    """Compile the alignment's kernels now (one object's and the joint form), not on the first
+    frame a track is aligned on. numba caches them on disk, but a new checkout compiles them:
+    6 s in a live node's first carried detection, longer than a short stream lasts."""
+    rng = np.random.default_rng(0)
+    icp = ProjectiveICP(rng.uniform(-0.03, 0.03, (200, 3)), num_points=50, iterations=2)
+    depth = np.full((48, 64), 0.5, np.float32)
+    intrinsics = CameraIntrinsics(np.array([[60.0, 0.0, 32.0], [0.0, 60.0, 24.0], [0.0, 0.0, 1.0]]), 64, 48)
+    T = np.eye(4)
+    T[2, 3] = 0.45
+    icp.align(T, depth, intrinsics)
+    icp.align_all([T], depth, intrinsics)
+
+
+__all__ = ["IcpResult", "ProjectiveICP", "align_projective", "model_normals", "sample_model", "warm_up"]
