@@ -492,17 +492,23 @@ def is_convex(points: np.ndarray, normals: np.ndarray, tolerance: float) -> bool
 
 
 @numba.njit(cache=True, nogil=True)
+def posed(T, mp, mn, i):
+    """Model point i and its normal at pose T (camera frame): px, py, pz, nx, ny, nz."""
+    return (T[0, 0] * mp[i, 0] + T[0, 1] * mp[i, 1] + T[0, 2] * mp[i, 2] + T[0, 3],
+            T[1, 0] * mp[i, 0] + T[1, 1] * mp[i, 1] + T[1, 2] * mp[i, 2] + T[1, 3],
+            T[2, 0] * mp[i, 0] + T[2, 1] * mp[i, 1] + T[2, 2] * mp[i, 2] + T[2, 3],
+            T[0, 0] * mn[i, 0] + T[0, 1] * mn[i, 1] + T[0, 2] * mn[i, 2],
+            T[1, 0] * mn[i, 0] + T[1, 1] * mn[i, 1] + T[1, 2] * mn[i, 2],
+            T[2, 0] * mn[i, 0] + T[2, 1] * mn[i, 1] + T[2, 2] * mn[i, 2])
+
+
+@numba.njit(cache=True, nogil=True)
 def measured_at(T, mp, mn, i, depth, fx, fy, cx, cy):
     """Model point i (normal mn[i]) at pose T: its camera-frame point and the depth measured
     at its pixel, or 0 there when it does not face the camera clearly (normal within about
     78 deg of the line of sight), lies behind it, falls outside the image or on no depth.
     The projection the depth checks share (here and ``verify.free_space_share``)."""
-    px = T[0, 0] * mp[i, 0] + T[0, 1] * mp[i, 1] + T[0, 2] * mp[i, 2] + T[0, 3]
-    py = T[1, 0] * mp[i, 0] + T[1, 1] * mp[i, 1] + T[1, 2] * mp[i, 2] + T[1, 3]
-    pz = T[2, 0] * mp[i, 0] + T[2, 1] * mp[i, 1] + T[2, 2] * mp[i, 2] + T[2, 3]
-    nx = T[0, 0] * mn[i, 0] + T[0, 1] * mn[i, 1] + T[0, 2] * mn[i, 2]
-    ny = T[1, 0] * mn[i, 0] + T[1, 1] * mn[i, 1] + T[1, 2] * mn[i, 2]
-    nz = T[2, 0] * mn[i, 0] + T[2, 1] * mn[i, 1] + T[2, 2] * mn[i, 2]
+    px, py, pz, nx, ny, nz = posed(T, mp, mn, i)
     if not (-(nx * px + ny * py + nz * pz) > 0.2 * math.sqrt(px * px + py * py + pz * pz)) or not pz > 0.05:
         return px, py, pz, 0.0
     h, w = depth.shape
@@ -521,12 +527,7 @@ def _self_depth(T, mp, mn, fx, fy, cx, cy, u0, v0, u1, v1, radius):
     zbuf = np.full((v1 - v0 + 1, u1 - u0 + 1), np.inf)
     r2 = radius * radius
     for i in range(mp.shape[0]):
-        px = T[0, 0] * mp[i, 0] + T[0, 1] * mp[i, 1] + T[0, 2] * mp[i, 2] + T[0, 3]
-        py = T[1, 0] * mp[i, 0] + T[1, 1] * mp[i, 1] + T[1, 2] * mp[i, 2] + T[1, 3]
-        pz = T[2, 0] * mp[i, 0] + T[2, 1] * mp[i, 1] + T[2, 2] * mp[i, 2] + T[2, 3]
-        nx = T[0, 0] * mn[i, 0] + T[0, 1] * mn[i, 1] + T[0, 2] * mn[i, 2]
-        ny = T[1, 0] * mn[i, 0] + T[1, 1] * mn[i, 1] + T[1, 2] * mn[i, 2]
-        nz = T[2, 0] * mn[i, 0] + T[2, 1] * mn[i, 1] + T[2, 2] * mn[i, 2]
+        px, py, pz, nx, ny, nz = posed(T, mp, mn, i)
         nd = nx * px + ny * py + nz * pz
         if not (-nd > 0.2 * math.sqrt(px * px + py * py + pz * pz)) or not pz > radius + 0.05:
             continue
