@@ -17,6 +17,32 @@ from ..threads import submit_in_chunks
 MATCHERS = ("flann", "brute_force")
 
 
+def flann_index(desc: np.ndarray, trees: int, seed: int):
+    """Randomised kd-trees over ``desc`` (float32). FLANN draws its trees from OpenCV's global
+    generator: seeded, so that the same descriptors give the same index, and matches, in
+    every run."""
+    cv2.setRNGSeed(int(seed))
+    return cv2.flann_Index(desc, {"algorithm": 1, "trees": int(trees)})
+
+
+def nearest_and_second(idx: np.ndarray, dist: np.ndarray, neighbour_xyz: np.ndarray, separation: float,
+                       mine: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ratio test's two distances on k-nearest-neighbour rows (``idx``, ``dist``: (Q, k),
+    nearest first; ``neighbour_xyz``: (Q, k, 3), each neighbour's model point). Per row,
+    among the neighbours where ``mine`` (all when None): the nearest one's index and distance,
+    and the distance of the next one whose model point lies more than ``separation`` from
+    the nearest one's (NaN when there is none among them)."""
+    first = np.zeros((len(idx), 1), np.int64) if mine is None else mine.argmax(axis=1)[:, None]
+    best = np.take_along_axis(idx, first, axis=1)[:, 0]
+    gap = np.linalg.norm(neighbour_xyz - np.take_along_axis(neighbour_xyz, first[:, :, None], axis=1), axis=2)
+    distinct = (gap > separation) & (np.arange(idx.shape[1])[None, :] > first)
+    if mine is not None:
+        distinct &= mine
+    second = np.where(distinct.any(axis=1), np.take_along_axis(dist, distinct.argmax(axis=1)[:, None], axis=1)[:, 0],
+                      np.nan)
+    return best, np.take_along_axis(dist, first, axis=1)[:, 0], second
+
+
 def prepare_descriptors(desc: np.ndarray, root_sift: bool = True) -> np.ndarray:
     """(K, 128) float32 descriptors ready for L2 matching; RootSIFT (L1-normalise, square
     root) when asked, which makes the L2 distance a Hellinger distance."""
@@ -43,10 +69,7 @@ class DescriptorMatcher:
         self.xyz = np.asarray(model_xyz, dtype=np.float32).reshape(-1, 3)
         self._flann = None
         if method == "flann" and len(self.desc) > self.neighbours:
-            # FLANN draws its random trees from OpenCV's global generator: seed it so that a
-            # model gives the same index, and the same matches, in every run.
-            cv2.setRNGSeed(int(seed))
-            self._flann = cv2.flann_Index(self.desc, {"algorithm": 1, "trees": int(flann_trees)})
+            self._flann = flann_index(self.desc, flann_trees, seed)
         self.sq = np.einsum("ij,ij->i", self.desc, self.desc)
         self.ratio = float(ratio)
         self.separation = float(separation)
@@ -110,12 +133,8 @@ class DescriptorMatcher:
         idx = np.concatenate([p[0] for p in parts]).astype(np.int64)
         d2 = np.concatenate([p[1] for p in parts])
         dist = np.sqrt(np.maximum(d2, 0.0))          # FLANN's L2 gives squared distances
-        best = idx[:, 0]
-        gap = np.linalg.norm(self.xyz[idx[:, 1:]] - self.xyz[best][:, None, :], axis=2)
-        distinct = gap > self.separation
-        has_second = distinct.any(axis=1)
-        second = np.take_along_axis(dist[:, 1:], distinct.argmax(axis=1)[:, None], axis=1)[:, 0]
-        ratio = np.where(has_second, dist[:, 0] / np.maximum(second, 1e-12), 0.0).astype(np.float32)
+        best, nearest, second = nearest_and_second(idx, dist, self.xyz[idx], self.separation)
+        ratio = np.where(np.isnan(second), 0.0, nearest / np.maximum(second, 1e-12)).astype(np.float32)
         accept = np.flatnonzero(ratio < self.ratio)
         return accept.astype(np.int64), best[accept], ratio[accept]
 
@@ -148,8 +167,7 @@ class JointMatcher:
         self.flann_checks = int(flann_checks)
         self.ratio = float(ratio)
         self.separation = float(separation)
-        cv2.setRNGSeed(int(seed))      # the same index, and matches, in every run (as DescriptorMatcher)
-        self._flann = cv2.flann_Index(self.desc, {"algorithm": 1, "trees": int(flann_trees)}) if len(self.desc) else None
+        self._flann = flann_index(self.desc, flann_trees, seed) if len(self.desc) else None
 
     def match_later(self, scene_desc: np.ndarray):
         """The search started in the shared thread pool; returns a callable that gives, per
@@ -165,19 +183,13 @@ class JointMatcher:
     def _accept(self, parts: list) -> list:
         idx = np.concatenate([p[0] for p in parts]).astype(np.int64)
         dist = np.sqrt(np.maximum(np.concatenate([p[1] for p in parts]), 0.0))
-        owner = self.owner[idx]
-        after = np.arange(idx.shape[1])[None, :]
+        owner, neighbour_xyz = self.owner[idx], self.xyz[idx]
         out = []
         for k in range(self.models):
             mine = owner == k
-            found = mine.any(axis=1)
-            first = mine.argmax(axis=1)[:, None]
-            best = np.take_along_axis(idx, first, axis=1)[:, 0]
-            gap = np.linalg.norm(self.xyz[idx] - self.xyz[best][:, None, :], axis=2)
-            distinct = mine & (gap > self.separation) & (after > first)
-            second = np.where(distinct.any(axis=1),
-                              np.take_along_axis(dist, distinct.argmax(axis=1)[:, None], axis=1)[:, 0], dist[:, -1])
-            ratio = (np.take_along_axis(dist, first, axis=1)[:, 0] / np.maximum(second, 1e-12)).astype(np.float32)
-            accept = np.flatnonzero(found & (ratio < self.ratio))
+            best, nearest, second = nearest_and_second(idx, dist, neighbour_xyz, self.separation, mine)
+            second = np.where(np.isnan(second), dist[:, -1], second)     # unseen: at least the farthest
+            ratio = (nearest / np.maximum(second, 1e-12)).astype(np.float32)
+            accept = np.flatnonzero(mine.any(axis=1) & (ratio < self.ratio))
             out.append((accept, best[accept] - self.first[k], ratio[accept]))
         return out

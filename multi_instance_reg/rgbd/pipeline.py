@@ -438,10 +438,9 @@ class InstanceRegistration:
         overlaps none kept before."""
         checked = list(checked[:first]) + sorted(checked[first:], key=lambda c: -c[2])
         overlap = box_overlaps(self.model, [c[0] for c in checked], self._box_grid)
-        kept = list(range(first))
+        kept, limit = list(range(first)), self.config.frontend.max_overlap
         for k in range(first, len(checked)):
-            if all(overlap[k, j] <= self.config.frontend.max_overlap and overlap[j, k] <= self.config.frontend.max_overlap
-                   for j in kept):
+            if all(overlap[k, j] <= limit and overlap[j, k] <= limit for j in kept):
                 kept.append(k)
         return [checked[k] for k in kept]
 
