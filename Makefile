@@ -34,7 +34,7 @@ demo: install
 test: install
 	$(PY) -m pytest -q test
 
-# Figures quoted in the README; each line prints its own table (about 15 minutes in all).
+# Figures quoted in the README; each line prints its own table (about 20 minutes in all).
 bench: install
 	$(VENV)/bin/mireg bench core
 	$(VENV)/bin/mireg bench register-startup
@@ -43,6 +43,10 @@ bench: install
 	test ! -d ../shared/reference/core || $(VENV)/bin/mireg bench table1 --reference ../shared/reference/core
 	$(VENV)/bin/mireg bench synth
 	$(VENV)/bin/mireg bench frames
+	$(VENV)/bin/mireg bench frames --objects snack_box,can,cereal_box --scenes 4 --frames 3
+	$(VENV)/bin/mireg bench frames --objects snack_box,can,cereal_box --scenes 4 --frames 3 --seed 7
+	$(VENV)/bin/mireg bench frames --untextured all --scenes 4 --frames 3
+	$(VENV)/bin/mireg bench frames --untextured all --scenes 4 --frames 3 --seed 5
 	$(VENV)/bin/mireg bench tracking
 	$(VENV)/bin/mireg bench node
 
