@@ -339,3 +339,40 @@ def test_warm_up_compiles_every_kernel_a_real_frame_uses(rendered_frame, object_
     result = reg.register_frame(frame.rgb, frame.depth_mm.astype(np.float32) / 1000.0, scene.intrinsics)
     assert len(result.instances) >= 3                        # the free-space check ran on them
     assert [len(k.signatures) for k in kernels] == compiled  # nothing new compiled
+
+
+
+def _tabletop_depth(tops_share: float = 0.0, top_height: float = 0.05, floor_rows: int = 0):
+    """Depth of a table seen from 45 deg, 0.6 m away at the image centre, with a grid of
+    object tops ``top_height`` above it covering ``tops_share`` of the image, and the floor
+    0.7 m below the table in the top ``floor_rows`` rows. Returns (depth, table normal, table d)."""
+    n = np.array([0.0, -np.sqrt(0.5), -np.sqrt(0.5)])       # towards the camera
+    u, v = np.meshgrid((np.arange(640) - K[0, 2]) / K[0, 0], (np.arange(480) - K[1, 2]) / K[1, 1])
+    along = n[0] * u + n[1] * v + n[2]
+    d_table = 0.6 * np.sqrt(0.5)
+    offset = np.zeros((480, 640))
+    side = int(round(80 * np.sqrt(tops_share)))             # one top per 80 x 80 pixel cell
+    offset[((np.arange(480) % 80) < side)[:, None] & ((np.arange(640) % 80) < side)[None, :]] = top_height
+    offset[:floor_rows] = -0.7
+    return ((d_table - offset) / -along).astype(np.float32), n, d_table
+
+
+@pytest.mark.parametrize("tops_share", [0.3, 0.6])
+def test_the_tops_of_many_objects_are_not_taken_for_the_table(tops_share):
+    # Ten snack bars lying flat: their tops are a plane of their own, parallel to the table and
+    # one object height nearer. Removing it (the second "plane") removed the objects; with
+    # the tops covering more than the table, they were even taken for the table.
+    from multi_instance_reg.rgbd.lifting import support_planes
+    depth, n, d_table = _tabletop_depth(tops_share)
+    old = support_planes(depth, INTRINSICS, count=2, thresh=0.01, min_share=0.2)
+    assert sorted(round(d - d_table, 3) for _, d in old) == [-0.05, 0.0]
+    planes = support_planes(depth, INTRINSICS, count=2, thresh=0.01, min_share=0.2, object_reach=0.2)
+    assert len(planes) == 1
+    assert planes[0][0] @ n > 0.999 and abs(planes[0][1] - d_table) < 0.002
+
+
+def test_a_table_and_the_floor_below_it_are_both_supports():
+    from multi_instance_reg.rgbd.lifting import support_planes
+    depth, n, d_table = _tabletop_depth(floor_rows=200)
+    planes = support_planes(depth, INTRINSICS, count=2, thresh=0.01, min_share=0.2, object_reach=0.2)
+    assert sorted(round(d - d_table, 2) for _, d in planes) == [0.0, 0.7]

@@ -131,22 +131,39 @@ def fit_dominant_plane(points: np.ndarray, thresh: float, iterations: int = 200,
 
 
 def support_planes(depth_m: np.ndarray, intrinsics: CameraIntrinsics, count: int = 1, thresh: float = 0.01,
-                   min_share: float = 0.2, stride: int = 8, seed: int = 0) -> list[tuple[np.ndarray, float]]:
+                   min_share: float = 0.2, stride: int = 8, seed: int = 0,
+                   object_reach: float = 0.0) -> list[tuple[np.ndarray, float]]:
     """Up to ``count`` dominant planes of a depth image (the table, then e.g. a wall), each
-    holding at least ``min_share`` of the valid pixels; found on a sparse pixel grid."""
+    holding at least ``min_share`` of the valid pixels; found on a sparse pixel grid.
+
+    The tops of many like objects resting on a table (ten snack bars lying flat) form a
+    plane of their own, parallel to the table and nearer than ``object_reach`` (the object's
+    size) to it: of two such planes only the farther, the support, is returned, so that the
+    objects are not removed with the "plane" of their tops."""
     pts, _ = depth_to_cloud(depth_m, intrinsics, stride=stride)
     pts = pts.astype(np.float64)
     total = len(pts)
-    planes = []
-    for k in range(count):
+    planes: list[tuple[np.ndarray, float]] = []
+    for k in range(count + 2):      # a plane of object tops costs a try
+        if len(planes) == count:
+            break
         # Hypotheses scored on 2,000 of the ~4,800 grid points: the same planes on the
         # synthetic scenes (the refit uses all of them), in two thirds of the time.
         plane = fit_dominant_plane(pts, thresh, iterations=100, seed=seed + k, max_sample=2000)
         if plane is None or plane[2].sum() < min_share * total:
             break
-        planes.append((plane[0], plane[1]))
-        pts = pts[~plane[2]]
+        n, d, inliers = plane
+        pts = pts[~inliers]
+        twin = next((i for i, (n0, d0) in enumerate(planes)
+                     if n0 @ n > _PARALLEL_COS and abs(d0 - d) < object_reach), None)
+        if twin is None:
+            planes.append((n, d))
+        elif d > planes[twin][1]:   # d: the plane's distance from the camera
+            planes[twin] = (n, d)
     return planes
+
+
+_PARALLEL_COS = float(np.cos(np.radians(10.0)))
 
 
 def off_planes(points: np.ndarray, planes, thresh: float) -> np.ndarray:

@@ -72,6 +72,8 @@ class MultiModelRegistration:
         self.pipelines = [InstanceRegistration(m, config) for m in models]
         self.config = self.pipelines[0].config
         self._sift = [k for k, p in enumerate(self.pipelines) if p.correspondences == "sift"]
+        if self._sift:   # one search region for every model: none may lose its objects' tops
+            self.pipelines[self._sift[0]].object_reach = max(self.pipelines[k].object_reach for k in self._sift)
         self._grids = [box_grid(m.extent) + np.asarray(m.box_centre, np.float64) for m in models]
         fe = self.config.frontend
         self._joint = None

@@ -216,6 +216,9 @@ class InstanceRegistration:
         if self.correspondences != "shape" and fe.max_free < 1.0:
             self._free_surface = surface_samples(model.points_xyz, model.extent)
         self._planes: list = []
+        # Planes parallel to a support and nearer to it than this are objects' tops, not
+        # supports (support_planes); several models searched with one detect: the largest.
+        self.object_reach = float(np.linalg.norm(model.extent))
         self._rays, self._rays_key = None, None
 
     def _search_mask(self, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> np.ndarray:
@@ -225,7 +228,8 @@ class InstanceRegistration:
         valid = (depth_m >= fe.depth_min) & (depth_m <= fe.depth_max)
         self._planes = []
         if fe.remove_planes > 0:
-            self._planes = support_planes(depth_m, intrinsics, fe.remove_planes, fe.plane_thresh, fe.plane_min_share)
+            self._planes = support_planes(depth_m, intrinsics, fe.remove_planes, fe.plane_thresh, fe.plane_min_share,
+                                          object_reach=self.object_reach)
         if self._planes:
             u, v = self._pixel_rays(intrinsics)
             for n, d in self._planes:
