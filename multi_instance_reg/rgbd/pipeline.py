@@ -59,7 +59,7 @@ class FrontEndConfig:
     depth_window: int = param(5, "side in pixels of the window whose median valid depth lifts a keypoint (odd)", 1, 31)
     depth_min: float = param(0.1, "metres: ignore depth below this", 0.0, 100.0)
     depth_max: float = param(4.0, "metres: ignore depth beyond this", 0.0, 100.0)
-    remove_planes: int = param(2, "search no keypoints on (or behind) up to this many dominant planes of the depth image: the table, then a wall (0 = search everywhere)", 0, 3)
+    remove_planes: int = param(2, "search no keypoints on (or behind) up to this many dominant planes of the depth image: the table, then a wall (0 = search everywhere); of two parallel planes nearer to each other than the object's size (the tops of several objects lying flat make one) only the farther counts", 0, 3)
     plane_thresh: float = param(0.01, "metres: keypoints closer than this to a removed plane are dropped", 0.001, 0.1)
     plane_min_share: float = param(0.2, "a plane is removed only if it holds at least this share of the valid depth pixels", 0.01, 1.0)
     depth_max_spread: float = param(0.02, "metres: drop a keypoint whose window depths spread more than this around the median (a depth edge); 0 = keep all", 0.0, 10.0)
