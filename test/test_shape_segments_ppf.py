@@ -526,3 +526,61 @@ def test_a_box_half_hidden_by_an_instance_found_is_judged_by_what_is_in_view():
     # Hidden behind the front box's face, but inside its box: not explained by it.
     inside = front @ make_transform(np.eye(3), [0.0, 0.0, 0.02])
     assert shape.judge_behind(inside, cloud, depth, intr, occluders, [front]) is None
+
+
+def test_a_bracket_split_by_a_depth_step_is_voted_as_one_pair_of_segments():
+    """Seen from behind, a bracket's upright plate and its base plate past the depth step
+    form two segments; each alone votes hardly a right pose, the pair voted together does."""
+    from multi_instance_reg.rgbd.pipeline import PipelineConfig
+    from multi_instance_reg.rgbd.segments import pairs_across_steps
+    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.synthetic.objects import get_object, object_mesh
+    from multi_instance_reg.synthetic.scene import look_at
+    from multi_instance_reg.transforms import invert_transform
+
+    mesh = object_mesh(get_object("bracket"))
+    shape = ShapeFrontEnd(build_model_from_mesh(mesh, "bracket"), PipelineConfig().frontend)
+    intr = CameraIntrinsics(K=np.array([[380.0, 0, 160], [0, 380.0, 120], [0, 0, 1]]), width=320, height=240)
+    T = invert_transform(look_at(np.array([-0.5, 0.1, 0.35]), np.zeros(3)))
+    dense, _ = sample_surface(mesh, 0.001)
+    depth = _depth_of(dense, T, intr)
+    # A block beside it in the image (not across a step from it), and a wall behind both,
+    # larger than the bracket's reach: neither is paired.
+    block = _depth_of(sample_surface(box_mesh(0.04, 0.04, 0.04), 0.001)[0], T @ make_transform(np.eye(3), [0, 0.2, 0]),
+                      intr)
+    depth = np.where(block > 0, block, depth)
+    depth[:60, :] = np.where(depth[:60, :] > 0, depth[:60, :], 0.9)
+    cloud = shape.frame_cloud(depth, intr, None)
+
+    def right(P, deg=15.0, metres=0.03):
+        return rotation_angle_deg(P[:3, :3].T @ T[:3, :3]) < deg and np.linalg.norm(P[:3, 3] - T[:3, 3]) < metres
+
+    on = np.flatnonzero(np.linalg.norm(cloud.points - T[:3, 3], axis=1) < 0.08)
+    ids = np.unique(cloud.segments[on])
+    assert len(ids) == 2 and np.all(ids >= 0)                     # the two plates
+    pairs = pairs_across_steps(cloud.points, cloud.segments, shape.diameter,
+                               shape.fe.shape_segment_link * shape.voxel)
+    assert pairs == [tuple(ids)]
+    _, _, own, _ = shape._ppf.vote(cloud.points, cloud.normals, cloud.segments, 5, 60)
+    assert sum(right(P, 10.0, 0.02) for P in own) <= 3
+    joined = shape.joined_poses(cloud)
+    assert 1 <= len(joined) <= shape.fe.shape_joined_clusters and any(right(P) for P in joined)
+    refined = [shape.refine_one(P, cloud, depth, intr) for P in joined]
+    assert any(r is not None and right(r[0], 2.0, 0.005) for r in refined)
+
+
+def test_vote_groups_in_one_call_give_each_groups_own_votes():
+    model, ppf, T, P, N = _box_seen_by_ppf()
+    third = len(P) // 3
+    groups = [np.arange(0, 2 * third), np.arange(third, len(P))]           # overlapping
+    together = ppf.vote_groups(P, N, groups, ref_step=3, max_partners=40)
+    assert np.array_equal(np.unique(together[4]), [0, 1])
+    for k, group in enumerate(groups):
+        alone = ppf.vote_groups(P, N, [group], ref_step=3, max_partners=40)
+        mine = together[4] == k
+        for x, y in zip(together[:4], alone[:4]):
+            assert np.array_equal(x[mine], y)
+    # One group of one segment: the segment's votes.
+    labels = np.zeros(len(P), np.int64)
+    for x, y in zip(ppf.vote(P, N, labels, 3, 40), ppf.vote_groups(P, N, [np.arange(len(P))], 3, 40)):
+        assert np.array_equal(x, y)

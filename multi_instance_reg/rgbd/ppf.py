@@ -224,19 +224,38 @@ class PPFModel:
         self.pairs = int(len(keys))
 
     def vote(self, points: np.ndarray, normals: np.ndarray, labels: np.ndarray, ref_step: int, max_partners: int):
-        """Peaks for reference points of the labelled segments (label >= 0). Returns (scene
-        index (R,), model index (R,), pose (R, 4, 4) model -> camera, votes / partners (R,))."""
+        """Peaks for reference points of the labelled segments (label >= 0), every
+        ``ref_step``-th point of the segments laid end to end. Returns (scene index (R,),
+        model index (R,), pose (R, 4, 4) model -> camera, votes / partners (R,))."""
         order = np.flatnonzero(labels >= 0)
         order = order[np.argsort(labels[order], kind="stable")]
-        if len(order) < 2:
-            return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 4, 4)), np.zeros(0)
-        p = np.ascontiguousarray(points[order], np.float64)
-        n = np.ascontiguousarray(normals[order], np.float64)
         lab = labels[order]
         bounds = np.flatnonzero(np.diff(lab)) + 1
-        seg_lo = np.concatenate([[0], bounds])
-        seg_hi = np.concatenate([bounds, [len(lab)]])
-        refs = np.arange(0, len(p), max(int(ref_step), 1))
+        seg_lo = np.concatenate([[0], bounds]).astype(np.int64)
+        seg_hi = np.concatenate([bounds, [len(lab)]]).astype(np.int64)
+        refs = np.arange(0, len(order), max(int(ref_step), 1))
+        return self._peaks(points, normals, order, refs, seg_lo, seg_hi, max_partners)[:4]
+
+    def vote_groups(self, points: np.ndarray, normals: np.ndarray, groups: list, ref_step: int, max_partners: int):
+        """``vote`` over groups of point indices (a point may be in several), each group's
+        every ``ref_step``-th point a reference paired with points of that group only (the
+        same peaks as one call per group). Returns ``vote``'s and each reference's group (R,)."""
+        sizes = np.asarray([len(g) for g in groups], np.int64)
+        order = np.concatenate(groups).astype(np.int64) if len(groups) else np.zeros(0, np.int64)
+        seg_hi = np.cumsum(sizes)
+        seg_lo = seg_hi - sizes
+        step = max(int(ref_step), 1)
+        refs = np.concatenate([lo + np.arange(0, size, step) for lo, size in zip(seg_lo, sizes)]) \
+            if len(groups) else np.zeros(0, np.int64)
+        return self._peaks(points, normals, order, refs.astype(np.int64), seg_lo, seg_hi, max_partners)
+
+    def _peaks(self, points, normals, order, refs, seg_lo, seg_hi, max_partners):
+        """The references ``refs`` (positions in ``order``, the scene indices of segments laid
+        end to end from ``seg_lo`` to ``seg_hi``) voted with partners of their own segment."""
+        if len(order) < 2 or len(refs) == 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 4, 4)), np.zeros(0), np.zeros(0, np.int64)
+        p = np.ascontiguousarray(points[order], np.float64)
+        n = np.ascontiguousarray(normals[order], np.float64)
         seg = np.searchsorted(seg_hi, refs, side="right")
         lo, hi = seg_lo[seg], seg_hi[seg]
         # Each reference votes on its own: the references in two halves on two cores (the
@@ -246,9 +265,9 @@ class PPFModel:
                                                  self.n_dist), np.arange(len(refs)), min_chunk=64)
         m, turn, votes, partners = (np.concatenate(column) for column in zip(*parts))
         ok = m >= 0
-        refs, m, turn, votes, partners = refs[ok], m[ok], turn[ok], votes[ok], partners[ok]
+        refs, seg, m, turn, votes, partners = refs[ok], seg[ok], m[ok], turn[ok], votes[ok], partners[ok]
         poses = self._poses(p[refs], n[refs], m, (turn + 0.5) * (2 * math.pi / TURN_BINS))
-        return order[refs], m, poses, votes / np.maximum(partners, 1)
+        return order[refs], m, poses, votes / np.maximum(partners, 1), seg
 
     def _poses(self, s, ns, m, turn) -> np.ndarray:
         """T = R_s^T Rx(turn) R_m (rotations), mapping model point m onto scene point s."""

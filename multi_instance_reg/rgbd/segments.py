@@ -103,4 +103,64 @@ def connected_segments(points: np.ndarray, link: float, min_points: int) -> np.n
     return out
 
 
-__all__ = ["support_mask", "connected_segments"]
+def pairs_across_steps(points: np.ndarray, labels: np.ndarray, reach: float, link: float) -> list[tuple[int, int]]:
+    """Pairs of segments (a, b) that may be one object split by a depth step: side by side
+    in the image (points within ``link`` of each other across the line of sight, at the
+    nearer one's distance) while apart in depth (else they would be one segment), and a
+    within ``reach`` (the object's diameter: no two points farther apart); b too, and both
+    together (then a < b), or b larger (it joins the object's other part with a neighbour).
+    A non-convex object hides part of itself: an L bracket seen from behind shows its upright
+    plate and, past a depth step, its base plate, two segments that each vote alone."""
+    ids = np.unique(labels[labels >= 0])
+    if len(ids) < 2:
+        return []
+    # Segments small enough to be (part of) one object; their points' image directions.
+    small = []
+    for s in ids:
+        if _within(points[labels == s], reach):
+            small.append(s)
+    if len(small) < 1:
+        return []
+    keep = labels >= 0
+    p = points[keep]
+    lab = labels[keep]
+    ray = p[:, :2] / p[:, 2:3]
+    # Neighbours in the image: within ``link`` at the nearer point's distance (the angle
+    # link / z is largest for the nearest point of the pair, so query with the smallest z).
+    near = cKDTree(ray).query_pairs(link / float(p[:, 2].min()), output_type="ndarray")
+    if len(near) == 0:
+        return []
+    i, j = near[:, 0], near[:, 1]
+    cross = lab[i] != lab[j]
+    i, j = i[cross], j[cross]
+    close = np.linalg.norm(ray[i] - ray[j], axis=1) <= link / np.minimum(p[i, 2], p[j, 2])
+    i, j = i[close], j[close]
+    out = []
+    for a, b in sorted({(min(x, y), max(x, y)) for x, y in zip(lab[i].tolist(), lab[j].tolist())}):
+        if a in small and b in small:
+            if _within(points[(labels == a) | (labels == b)], reach):
+                out.append((a, b))
+        elif a in small:
+            out.append((a, b))
+        elif b in small:
+            out.append((b, a))
+    return out
+
+
+def _within(p: np.ndarray, reach: float) -> bool:
+    """No two of the points farther apart than ``reach``. The box's diagonal bounds the
+    farthest pair from above and its longest side from below; only between them are the
+    pairs measured."""
+    if len(p) < 2:
+        return True
+    side = p.max(axis=0) - p.min(axis=0)
+    if np.linalg.norm(side) <= reach:
+        return True
+    if side.max() > reach:
+        return False
+    from scipy.spatial.distance import pdist
+
+    return bool(pdist(p).max() <= reach)
+
+
+__all__ = ["support_mask", "connected_segments", "pairs_across_steps"]

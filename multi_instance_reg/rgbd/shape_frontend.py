@@ -22,7 +22,7 @@ from ..messages import CameraIntrinsics
 from .model import ObjectModel
 from .lifting import depth_to_cloud
 from .ppf import ANGLE_BINS as ANGLE_STEPS, PPFModel, cluster_poses
-from .segments import connected_segments, support_mask
+from .segments import connected_segments, pairs_across_steps, support_mask
 from .verify import facing_camera, in_view_share, outline_continuation, outline_shift
 from ..threads import shared_pool, submit_each
 from .shape import (PointGrid, ShapeMatcher, apply_twist, depth_support, describe, icp_point_to_plane, is_convex,
@@ -158,12 +158,46 @@ class ShapeFrontEnd:
                 # does not group (too few agree among the rest) still gets a hypothesis.
                 cloud.poses = cluster_poses(poses, share, 360.0 / ANGLE_STEPS, 0.1 * self.diameter,
                                             self.fe.shape_pose_clusters)
+                if self._self_hiding > 0 and self.fe.shape_joined_clusters > 0:
+                    cloud.poses = np.concatenate([cloud.poses, self.joined_poses(cloud)])
             if on_poses is not None:
                 on_poses()
             src, s = self._ppf.correspondences(s, poses, cloud.points, canonical=True)
             return src, cloud.points[s]
         s, m = self._matcher.match(cloud.descriptors)
         return self._model_pts[self._model_idx[m]], cloud.points[cloud.salient[s]]
+
+    def joined_poses(self, cloud: FrameCloud) -> np.ndarray:
+        """(K, 4, 4) pose hypotheses from segments voted together in pairs: for a non-convex
+        object, two segments side by side across a depth step that one object could span
+        (``pairs_across_steps``; an L bracket seen from behind: its upright plate, and its
+        base plate past the step; or one of them joined with a neighbour), each pair's best
+        ``shape_joined_clusters`` clusters of its references' poses voted over both (of a
+        segment larger than the object, its points within the object's reach of the
+        other). Not given to ECC: its correspondences stay those of each segment alone
+        (voting across segments everywhere cost the others their references)."""
+        fe = self.fe
+        pairs = pairs_across_steps(cloud.points, cloud.segments, self.diameter, fe.shape_segment_link * self.voxel)
+        if not pairs:
+            return np.zeros((0, 4, 4))
+        groups = []
+        for a, b in pairs:
+            # b's points within reach of a's centre: all of b when both fit in the reach (the
+            # centre lies among a's points), else (b joins a neighbour) the part near a.
+            group = np.flatnonzero((cloud.segments == a) | (cloud.segments == b))
+            centre = cloud.points[cloud.segments == a].mean(axis=0)
+            groups.append(group[np.linalg.norm(cloud.points[group] - centre, axis=1) <= self.diameter])
+        # All pairs in one call (its references split over the two cores).
+        _, _, poses, share, which = self._ppf.vote_groups(cloud.points, cloud.normals, groups, fe.shape_ref_step,
+                                                          fe.shape_max_partners)
+        poses = self._ppf.canonical_poses(poses)
+        out = []
+        for k in range(len(groups)):
+            mine = which == k
+            if mine.sum() >= 2:
+                out.append(cluster_poses(poses[mine], share[mine], 360.0 / ANGLE_STEPS, 0.1 * self.diameter,
+                                         fe.shape_joined_clusters))
+        return np.concatenate(out) if out else np.zeros((0, 4, 4))
 
     def refine_and_check(self, transforms, cloud: FrameCloud, depth_m: np.ndarray,
                          intrinsics: CameraIntrinsics, started: "Prefetch | None" = None, offset: int = 0,
