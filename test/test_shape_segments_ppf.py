@@ -584,3 +584,47 @@ def test_vote_groups_in_one_call_give_each_groups_own_votes():
     labels = np.zeros(len(P), np.int64)
     for x, y in zip(ppf.vote(P, N, labels, 3, 40), ppf.vote_groups(P, N, [np.arange(len(P))], 3, 40)):
         assert np.array_equal(x, y)
+
+
+def test_outline_continuation_leaves_out_a_flush_neighbour_found_as_an_instance():
+    from multi_instance_reg.rgbd.verify import outline_continuation
+
+    K, face, normals = _face_and_depth()
+    T = make_transform(np.eye(3), [0.0, 0.0, 1.3])
+    rows, cols = _face_pixels(K, face, T)
+    depth = np.full((240, 320), 1.5, np.float32)
+    depth[rows, cols] = 1.3
+    depth[rows, cols.stop:cols.stop + 60] = 1.3                # a neighbour flush with it, no gap
+    share, n = outline_continuation(T, face, normals, depth, K, 0.01, 0.01)
+    assert share > 0.15
+    found = np.zeros(depth.shape, np.uint8)
+    found[rows, cols.stop:cols.stop + 60] = 1                  # ... found as an instance
+    share, m = outline_continuation(T, face, normals, depth, K, 0.01, 0.01, explained=found)
+    assert share < 0.02 and 0 < m < n
+
+
+def test_a_box_flush_with_an_instance_found_is_judged_by_its_outline_without_it():
+    from dataclasses import replace
+
+    from multi_instance_reg.rgbd.pipeline import PipelineConfig
+    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+
+    solid = box_mesh(0.08, 0.07, 0.05)
+    fe = PipelineConfig().frontend
+    shape = ShapeFrontEnd(build_model_from_mesh(solid, "block"), fe)
+    intr = CameraIntrinsics(K=np.array([[380.0, 0, 160], [0, 380.0, 120], [0, 0, 1]]), width=320, height=240)
+    turn = np.array([[1.0, 0, 0], [0, -0.8, -0.6], [0, 0.6, -0.8]])
+    left, right = make_transform(turn, [-0.04, 0.0, 0.6]), make_transform(turn, [0.04, 0.0, 0.6])   # side by side, touching
+    dense, _ = sample_surface(solid, 0.001)
+    a, b = _depth_of(dense, left, intr), _depth_of(dense, right, intr)
+    depth = np.where(a == 0, b, np.where(b == 0, a, np.minimum(a, b)))
+    cloud = shape.frame_cloud(depth, intr, None)
+    # Each box's faces go on into the other's: alone, each looks like a piece of a larger surface.
+    rejected = []
+    assert shape.refine_and_check([left, right], cloud, depth, intr, rejected=rejected) == []
+    assert len(rejected) == 2
+    occluders = shape.instance_pixels([left], depth, intr)
+    again = shape.judge_behind(right, cloud, depth, intr, occluders, [left])
+    assert again is not None and np.allclose(again[0], right) and again[1] > 0.95
+    off = ShapeFrontEnd(build_model_from_mesh(solid, "block"), replace(fe, shape_outline_by_instances=False))
+    assert off.judge_behind(right, cloud, depth, intr, occluders, [left]) is None

@@ -212,7 +212,9 @@ class ShapeFrontEnd:
         at a time. ``started``: a ``Prefetch`` (``start_refining``) of ``transforms[offset:]``
         already under way; what it has taken on is used, the rest is refined here.
         ``rejected``: receives the refined poses rejected for too little support (yet enough
-        to be judged: at least half ``shape_min_support``), for ``judge_behind``."""
+        to be judged: at least half ``shape_min_support``), and with
+        ``shape_outline_by_instances`` those rejected by the later checks too, for
+        ``judge_behind``."""
         if cloud.grid is None:
             return []
         order = self.distinct(transforms)
@@ -224,8 +226,8 @@ class ShapeFrontEnd:
         tasks = [task if task is not None else next(new) for task in tasks]
         results = [task.result() for task in tasks]
         if rejected is not None:
-            rejected.extend(T for kept, T, support in results
-                            if kept is None and T is not None and support < self.fe.shape_min_support)
+            rejected.extend(T for kept, T, support in results if kept is None and T is not None and (
+                support < self.fe.shape_min_support or self.fe.shape_outline_by_instances))
         return [kept for kept, _, _ in results if kept is not None]
 
     def start_refining(self, transforms, cloud: FrameCloud, depth_m: np.ndarray, intrinsics: CameraIntrinsics
@@ -346,6 +348,7 @@ class ShapeFrontEnd:
         instance's box, is still judged by those points. At least ``shape_min_in_view`` of its
         judged points must remain (as for the image's edge)."""
         fe = self.fe
+        centre, half = np.asarray(self.model.box_centre, np.float64), 0.5 * np.asarray(self.model.extent, np.float64)
         tol_T = max(self.depth_tolerance, 3.0 * fe.shape_depth_noise * float(T[2, 3]) ** 2)
         args = (T, self._surface, self._surface_normals, depth_m, intrinsics, tol_T, self._self_hiding)
         support, free, n = depth_support(*args, occluders)
@@ -354,12 +357,15 @@ class ShapeFrontEnd:
             return None
         _, _, n_all = depth_support(*args)
         if n >= n_all:
-            return None
+            # Nothing hidden: only the outline may judge it otherwise, where its band meets
+            # an instance found (a neighbour flush with it, not a larger surface).
+            if not self.fe.shape_outline_by_instances or not self._band_meets(T, occluders, intrinsics):
+                return None
+            return self._judge(T, support, free, n, cloud, depth_m, intrinsics, explained=occluders)
         # Points inside a found instance's box are not behind it: back into the judged ones
         # (neither agreeing nor free).
         p = self._surface @ T[:3, :3].T + T[:3, 3]
         p = p[facing_camera(p, self._surface_normals @ T[:3, :3].T)]
-        centre, half = np.asarray(self.model.box_centre, np.float64), 0.5 * np.asarray(self.model.extent, np.float64)
         inside = np.zeros(len(p), bool)
         for F in found:
             inside |= np.all(np.abs((p - F[:3, 3]) @ F[:3, :3] - centre) <= half, axis=1)
@@ -376,7 +382,27 @@ class ShapeFrontEnd:
                 support, free, n = support * n / (n + back), free * n / (n + back), n + back
         if n < fe.shape_min_in_view * n_all:
             return None
-        return self._judge(T, support, free, n, cloud, depth_m, intrinsics)
+        return self._judge(T, support, free, n, cloud, depth_m, intrinsics,
+                           explained=occluders if fe.shape_outline_by_instances else None)
+
+    def _band_meets(self, T, pixels: np.ndarray, intrinsics: CameraIntrinsics) -> bool:
+        """Whether any of ``pixels`` lies a voxel and a half (the outline band's outer edge)
+        from the model's visible surface at pose T, in one of eight directions: a cheap test
+        before the outline is looked at again."""
+        p = self._surface @ T[:3, :3].T + T[:3, 3]
+        p = p[facing_camera(p, self._surface_normals @ T[:3, :3].T)]
+        if len(p) == 0:
+            return False
+        K = intrinsics.K
+        u, v = K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2], K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]
+        r = 1.5 * self.voxel * K[0, 0] / p[:, 2]
+        h, w = pixels.shape
+        for a in np.arange(8) * np.pi / 4:
+            uu, vv = np.round(u + r * np.cos(a)).astype(np.int64), np.round(v + r * np.sin(a)).astype(np.int64)
+            ok = (uu >= 0) & (uu < w) & (vv >= 0) & (vv < h)
+            if pixels[vv[ok], uu[ok]].any():
+                return True
+        return False
 
     def _unheld(self, T):
         """(3, 3) projection onto the directions in which the visible surface's normals do not
@@ -397,8 +423,9 @@ class ShapeFrontEnd:
         held = V[:, w >= UNHELD_SHARE]
         return weak @ weak.T, (held[:, 0] if held.shape[1] == 1 else None), p[facing].mean(axis=0)
 
-    def _judge(self, T, support, free, n, cloud: FrameCloud, depth_m, intrinsics):
-        """(T, support, agreeing points) when the depth and the outline accept pose T, else None."""
+    def _judge(self, T, support, free, n, cloud: FrameCloud, depth_m, intrinsics, explained=None):
+        """(T, support, agreeing points) when the depth and the outline accept pose T, else None.
+        ``explained``: pixels the outline leaves out (``outline_continuation``)."""
         fe = self.fe
         if n < fe.shape_min_visible or support < fe.shape_min_support or free > fe.shape_max_free:
             return None
@@ -413,7 +440,7 @@ class ShapeFrontEnd:
         # its outline, "same" meaning within the depth noise (3 sigma) at its distance.
         same = max(3.0 * fe.shape_depth_noise * float(T[2, 3]) ** 2, 0.002)
         outline, _ = outline_continuation(T, self._surface, self._surface_normals, depth_m, intrinsics,
-                                          self.voxel, same, up=cloud.up)
+                                          self.voxel, same, up=cloud.up, explained=explained)
         if support - free - 2.0 * outline >= fe.shape_min_evidence:
             return T, support, int(round(support * n))
         return None

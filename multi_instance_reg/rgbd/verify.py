@@ -125,7 +125,8 @@ def in_view_share(T: np.ndarray, model_pts: np.ndarray, model_normals: np.ndarra
 
 def outline_continuation(T: np.ndarray, model_pts: np.ndarray, model_normals: np.ndarray, depth_m: np.ndarray,
                          intrinsics: CameraIntrinsics, voxel: float, tolerance: float,
-                         max_angle_deg: float = 30.0, up: np.ndarray | None = None) -> tuple[float, int]:
+                         max_angle_deg: float = 30.0, up: np.ndarray | None = None,
+                         explained: np.ndarray | None = None) -> tuple[float, int]:
     """Of the valid depth pixels in a band just outside the model's outline at pose T (from
     half a voxel to a voxel and a half beyond its visible surface): the share where the
     nearest visible model face continues (the measured point within ``tolerance`` of its
@@ -136,7 +137,11 @@ def outline_continuation(T: np.ndarray, model_pts: np.ndarray, model_normals: np
     ``up`` (unit, camera frame; the support plane's normal): band pixels no higher than the
     object's lowest point (within ``tolerance``) do not continue it and leave the share. What an object stands on may
     be flush with it (a carton on a carton of its size, a lying bracket's plate on the
-    table): the same surface goes on below it, and that is no sign of a larger object."""
+    table): the same surface goes on below it, and that is no sign of a larger object.
+
+    ``explained`` ((H, W) uint8): pixels known to be something else (the instances found in
+    the frame): left out of the band. A neighbour flush with the object continues its face
+    there, and it is no larger surface."""
     R, t = T[:3, :3], T[:3, 3]
     p = model_pts @ R.T + t
     floor = None if up is None else float(np.min(p @ up)) + tolerance
@@ -175,6 +180,9 @@ def outline_continuation(T: np.ndarray, model_pts: np.ndarray, model_normals: np
     rows, cols = rows + v0, cols + u0
     P, nP, ok = _points_and_normals(depth_m, K, rows, cols)
     rows, cols = rows[ok], cols[ok]
+    if explained is not None:
+        mine = explained[rows, cols] == 0
+        P, nP, rows, cols = P[mine], nP[mine], rows[mine], cols[mine]
     if len(rows) == 0:
         return 0.0, 0
     cont = _face_continues(P, nP, p, n, tolerance, max_angle_deg)
