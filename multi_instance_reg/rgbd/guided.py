@@ -86,17 +86,17 @@ class GuidedResult:
 
 def guide_instances(matcher: GuidedMatcher, transforms: list, own_scene: list, own_model: list,
                     scene_xyz: np.ndarray, scene_desc: np.ndarray, inlier_thresh: float, fit_thresh: float,
-                    rounds: int = 2, fit_iterations: int = 3, max_inliers: int | None = None) -> GuidedResult:
+                    rounds: int = 1, fit_iterations: int = 3, max_inliers: int | None = None) -> GuidedResult:
     """Guided matching for every instance, strongest first (the order given).
 
     ``own_scene[i]`` / ``own_model[i]``: the instance's inlier correspondences from the global
     matching (scene and model keypoint indices). A scene keypoint belongs to one instance only:
     those of the instances before it and the inliers of every other one are not offered to an
-    instance. Per round, the pairs of its pose join its own correspondences (its own pairing
-    kept where a keypoint has both), the pose is refitted on those within ``fit_thresh`` of it
-    (``refine_transform``) and the pairs are looked for again from the new pose. Its inliers
-    are then its correspondences within ``inlier_thresh`` of the final pose. Instances with
-    more than ``max_inliers`` inliers are kept as they are (their keypoints stay theirs).
+    instance, nor are its own inliers (they keep their pairing). Per round, the pairs of its
+    pose join its own correspondences and the pose is refitted on those within ``fit_thresh``
+    of it (``refine_transform``); a further round looks for pairs again from the new pose. Its
+    inliers are then its correspondences within ``inlier_thresh`` of the final pose. Instances
+    with more than ``max_inliers`` inliers are kept as they are (their keypoints stay theirs).
     """
     from .pipeline import refine_transform      # the pipeline imports this module
 
