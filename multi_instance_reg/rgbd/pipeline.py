@@ -31,6 +31,7 @@ from .features import SiftSettings, extract_sift_in_region
 from .lifting import backproject, lookup_depth, off_planes, support_planes, undistort_pixels
 from .matching import DescriptorMatcher, prepare_descriptors
 from .model import ObjectModel
+from .guided import GuidedMatcher, guide_instances
 from .shape_frontend import ShapeFrontEnd, resolve_correspondences
 from .verify import free_space_share, surface_samples, texture_agreement
 from ..threads import limit_blas_threads, map_each
@@ -69,6 +70,12 @@ class FrontEndConfig:
     refine: bool = param(False, "refine each instance by least squares on its correspondences re-selected with refine_thresh (measured on the synthetic scenes: no change in median RTE/RRE, so off by default)")
     refine_iterations: int = param(3, "refinement rounds per instance", 1, 50)
     refine_thresh: float = param(0.008, "metres: residual below which a correspondence joins an instance during refinement", 0.0005, 1.0)
+    # Guided matching (rgbd/guided.py), after the selection.
+    guided: bool = param(True, "SIFT: after the selection, pair each instance's unassigned nearby scene keypoints with the model keypoints its pose puts within guided_radius of them (nearest descriptor among those, below guided_max_distance: texture repeated on the object fails the global ratio test but not this one), refit the pose on its inliers and these, and count them as its inliers")
+    guided_radius: float = param(0.006, "metres: guided matching pairs a scene keypoint only with model keypoints this close to it at the instance's pose, and refits the pose on the correspondences this close to it", 0.001, 0.1)
+    guided_max_distance: float = param(0.6, "guided matching: largest descriptor distance of a pair (RootSIFT: Hellinger distance, 0 to 1.41; plain L2 of unit SIFT vectors otherwise)", 0.0, 2.0)
+    guided_max_inliers: int = param(50, "guided matching only for instances with at most this many inliers (the others are kept as they are)", 0, 100000)
+    guided_rounds: int = param(1, "guided matching: rounds of pairing and refitting per instance (each from the pose the previous one refitted)", 1, 10)
     # Selection.
     recover: bool = param(True, "after ECC, look for small instances among the unassigned correspondences with a hard pairwise-distance test (the clustering misses clusters of 4-10 in hundreds of outliers)")
     recover_min_inliers: int = param(5, "a recovered instance needs at least this many mutually consistent correspondences", 4, 1000)
@@ -204,6 +211,10 @@ class InstanceRegistration:
             self._matcher = DescriptorMatcher(prepare_descriptors(model.descriptors, fe.root_sift), model.keypoints_xyz,
                                               fe.ratio, fe.ratio_separation, method=fe.matcher,
                                               flann_checks=fe.flann_checks)
+        self._guided = None
+        if self._matcher is not None and fe.guided:
+            self._guided = GuidedMatcher(model.keypoints_xyz, self._matcher.desc, model.box_centre, model.extent,
+                                         fe.guided_radius, fe.guided_max_distance)
         self._ecc = ECC(self.config.ecc)
         self._shape = None
         if self.correspondences != "sift":
@@ -372,9 +383,50 @@ class InstanceRegistration:
                                                   fe.recover_tolerance, fe.recover_min_inliers,
                                                   self.config.ecc.inlier_thresh)
         instances, labels = self._finalise(src, tgt, transforms, keypoints.depth_m, keypoints.intrinsics)
+        if self._guided is not None and instances:
+            instances, scene_idx, model_idx, labels = self._guide(keypoints, instances, scene_idx, model_idx, labels)
+            src = self.model.keypoints_xyz[model_idx].astype(np.float64)
+            tgt = keypoints.xyz[scene_idx].astype(np.float64)
+            kp_uv = keypoints.uv[scene_idx].astype(np.float32)
         t["refinement"] = (time.perf_counter() - t5) * 1e3
         return FrameResult(instances, t, kp_uv, src.astype(np.float32), tgt.astype(np.float32), labels,
                            keypoints.detected)
+
+    def _guide(self, keypoints: "SceneKeypoints", instances: list[Instance], scene_idx: np.ndarray,
+               model_idx: np.ndarray, labels: np.ndarray):
+        """Guided matching (``rgbd/guided.py``) for the selected instances: refitted poses, their
+        inliers counted with the guided pairs, ranked again. Returns the instances and the
+        frame's correspondences (scene and model keypoint indices, labels): a guided pair
+        replaces the global match of its scene keypoint, or is added when it had none."""
+        thresh = self.config.ecc.inlier_thresh
+        fe = self.config.frontend
+        own_s = [scene_idx[labels == i] for i in range(len(instances))]
+        own_m = [model_idx[labels == i] for i in range(len(instances))]
+        g = guide_instances(self._guided, [inst.T for inst in instances], own_s, own_m, keypoints.xyz,
+                            keypoints.descriptors, thresh, fe.guided_radius, fe.guided_rounds,
+                            max_inliers=fe.guided_max_inliers)
+        counts = np.array([len(s) for s in g.scene])
+        order = np.argsort(-counts, kind="stable")           # ids are ranks by inliers
+        entry = np.full(len(keypoints.xyz), -1, np.int64)
+        entry[scene_idx] = np.arange(len(scene_idx))
+        model_idx = model_idx.copy()
+        labels = np.full(len(scene_idx), -1, np.int64)
+        added_s, added_m, added_l = [], [], []
+        out = []
+        for rank, i in enumerate(order):
+            s, m = g.scene[i], g.model[i]
+            e = entry[s]
+            model_idx[e[e >= 0]] = m[e >= 0]
+            labels[e[e >= 0]] = rank
+            added_s.append(s[e < 0])
+            added_m.append(m[e < 0])
+            added_l.append(np.full(int((e < 0).sum()), rank, np.int64))
+            score = float(np.mean(1.0 - g.residual[i] / thresh)) if len(s) else 0.0
+            out.append(Instance(rank, g.transforms[i], int(len(s)), score, self.model.name))
+        scene_idx = np.concatenate([scene_idx] + added_s)
+        model_idx = np.concatenate([model_idx] + added_m)
+        labels = np.concatenate([labels] + added_l)
+        return out, scene_idx, model_idx, labels
 
     def _register_frame_shape(self, depth_m, intrinsics, search=None) -> FrameResult:
         """Shape correspondences -> ECC -> per instance ICP and a depth check -> no two
