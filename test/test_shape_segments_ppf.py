@@ -219,17 +219,25 @@ def _face_pixels(K, face, T):
     return slice(r0, r1 + 1), slice(c0, c1 + 1)
 
 
-def test_outline_continuation_ignores_a_neighbour_past_a_gap_and_what_lies_below():
-    from multi_instance_reg.rgbd.verify import outline_continuation
-
+def _box_top_and_neighbour(gap_px: int):
+    """A box top 1.3 m below the camera on a pallet at 1.5 m, and a neighbour's top in the
+    same plane ``gap_px`` pixels to its right (0: flush with it)."""
     K, face, normals = _face_and_depth()
     T = make_transform(np.eye(3), [0.0, 0.0, 1.3])
     rows, cols = _face_pixels(K, face, T)
-    # Pallet grid: the box top, and a neighbour's top in the same plane 1 cm (3 px) away,
-    # past a gap down to the pallet; the band (0.5 to 1.5 voxels of 1 cm) reaches it.
     depth = np.full((240, 320), 1.5, np.float32)
     depth[rows, cols] = 1.3
-    depth[rows, cols.stop + 3:cols.stop + 60] = 1.3
+    neighbour = (rows, slice(cols.stop + gap_px, cols.stop + 60))
+    depth[neighbour] = 1.3
+    return K, face, normals, T, rows, cols, depth, neighbour
+
+
+def test_outline_continuation_ignores_a_neighbour_past_a_gap_and_what_lies_below():
+    from multi_instance_reg.rgbd.verify import outline_continuation
+
+    # Pallet grid: the neighbour 1 cm (3 px) away, past a gap down to the pallet; the band
+    # (0.5 to 1.5 voxels of 1 cm) reaches it.
+    K, face, normals, T, rows, cols, depth, _ = _box_top_and_neighbour(3)
     share, n = outline_continuation(T, face, normals, depth, K, 0.01, 0.01)
     assert n > 50 and share < 0.05
     # Without the gap the same plane goes on from the outline: a piece of a larger surface.
@@ -589,16 +597,11 @@ def test_vote_groups_in_one_call_give_each_groups_own_votes():
 def test_outline_continuation_leaves_out_a_flush_neighbour_found_as_an_instance():
     from multi_instance_reg.rgbd.verify import outline_continuation
 
-    K, face, normals = _face_and_depth()
-    T = make_transform(np.eye(3), [0.0, 0.0, 1.3])
-    rows, cols = _face_pixels(K, face, T)
-    depth = np.full((240, 320), 1.5, np.float32)
-    depth[rows, cols] = 1.3
-    depth[rows, cols.stop:cols.stop + 60] = 1.3                # a neighbour flush with it, no gap
+    K, face, normals, T, rows, cols, depth, neighbour = _box_top_and_neighbour(0)   # flush, no gap
     share, n = outline_continuation(T, face, normals, depth, K, 0.01, 0.01)
     assert share > 0.15
     found = np.zeros(depth.shape, np.uint8)
-    found[rows, cols.stop:cols.stop + 60] = 1                  # ... found as an instance
+    found[neighbour] = 1                                       # ... found as an instance
     share, m = outline_continuation(T, face, normals, depth, K, 0.01, 0.01, explained=found)
     assert share < 0.02 and 0 < m < n
 
