@@ -312,6 +312,24 @@ def test_consistency_counts_pair_once_equal_the_per_query_counts(n, reference_si
     assert np.array_equal(scores, counts.astype(np.float64))
 
 
+def test_distance_preservation_without_square_roots_is_the_plain_test():
+    # The sampling kernels test | |f| - |e| | < t from squared lengths without a square root;
+    # it must agree with the plain test everywhere but within rounding of the boundary.
+    from multi_instance_reg.core.sampling import _preserved
+
+    rng = np.random.default_rng(3)
+    e = rng.uniform(0.0, 1.0, 200_000)
+    f = np.concatenate([e[:100_000] + rng.normal(0, 0.05, 100_000), rng.uniform(0.0, 1.0, 100_000)])
+    f = np.abs(f)
+    f[:10] = 0.0                                  # coincident source points
+    t = 0.03
+    plain = np.abs(f - e) < t
+    fast = np.array([_preserved(a * a, b * b, t * t, 4.0 * t ** 4) for a, b in zip(f[:20_000], e[:20_000])])
+    away = np.abs(np.abs(f[:20_000] - e[:20_000]) - t) > 1e-9
+    assert plain[:20_000].sum() > 1000 and (~plain[:20_000]).sum() > 1000
+    assert np.array_equal(fast[away], plain[:20_000][away])
+
+
 def test_an_instance_turned_over_in_place_is_dropped_a_real_neighbour_kept():
     # A model symmetric under a half turn about its x axis (an ellipsoid's surface). Instance A
     # is matched sparsely (60 right, 600 of its points matched to random source points);

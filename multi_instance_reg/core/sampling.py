@@ -62,6 +62,16 @@ def _span(u, rc, n):
     return int(max(np.floor(u - rc), 0.0)), int(min(np.floor(u + rc), n - 1.0))
 
 
+@compiled()
+def _preserved(f2, e2, t2, t4):
+    """| |f| - |e| | < t from the squared lengths f2, e2 (t2 = t^2, t4 = 4 t^4), without a
+    square root (two per pair made the sampling's loop sqrt-bound): with d = f2 - e2, the
+    test is d^2 < t^2 (f2 + e2 + 2 |f||e|); true when d^2 < t^2 (f2 + e2), else square again."""
+    d = f2 - e2
+    u = d * d - t2 * (f2 + e2)
+    return (u < 0.0) | (u * u < t4 * f2 * e2)
+
+
 @compiled("i8(f8[:, ::1], f8[:, ::1], f8[:, ::1], i8[::1], f8[::1], i8[::1], f8, f8, i8[::1], i8[::1], i8, i8)", parallel=True)
 def _consistency_counts(src, tgt, ref, start, grid, dims, radius, tolerance, counts, neighbours, lo, hi):
     """Per query lo..hi-1, into counts and neighbours: the reference neighbours within
@@ -72,6 +82,8 @@ def _consistency_counts(src, tgt, ref, start, grid, dims, radius, tolerance, cou
     cell c (index (ix * ny + iy) * nz + iz) is start[c]:start[c + 1]. grid = origin x, y, z
     and the cell's width; dims = nx, ny, nz."""
     r2 = radius * radius
+    t2 = tolerance * tolerance
+    t4 = 4.0 * t2 * t2
     cell = grid[3]
     # The sphere in cell units, a hair larger so that rounding never drops a cell a
     # neighbour is in (visiting extra points is harmless: the distance test decides).
@@ -101,7 +113,7 @@ def _consistency_counts(src, tgt, ref, start, grid, dims, radius, tolerance, cou
                     f2 = fx * fx + fy * fy + fz * fz
                     near = (e2 < r2) & (e2 != 0.0)
                     m += near
-                    c += near & (abs(np.sqrt(f2) - np.sqrt(e2)) < tolerance)
+                    c += near & _preserved(f2, e2, t2, t4)
         counts[i] = c
         neighbours[i] = m
     return hi - lo
@@ -113,6 +125,8 @@ def _consistency_counts_pairs(ref, start, grid, dims, radius, tolerance, counts,
     symmetric, so each pair is visited once, from its first position in cell order, and
     counted for both; counts and neighbours are per position in ``ref``."""
     r2 = radius * radius
+    t2 = tolerance * tolerance
+    t4 = 4.0 * t2 * t2
     cell = grid[3]
     rc = radius / cell * (1.0 + 1e-9) + 1e-9
     tx_all, ty_all, tz_all = ref[0], ref[1], ref[2]
@@ -142,7 +156,7 @@ def _consistency_counts_pairs(ref, start, grid, dims, radius, tolerance, counts,
                     fx, fy, fz = px - sx[j], py - sy[j], pz - sz[j]
                     f2 = fx * fx + fy * fy + fz * fz
                     near = (e2 < r2) & (e2 != 0.0)
-                    agree = near & (abs(np.sqrt(f2) - np.sqrt(e2)) < tolerance)
+                    agree = near & _preserved(f2, e2, t2, t4)
                     m += near
                     c += agree
                     mb[j] += near
