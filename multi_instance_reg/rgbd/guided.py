@@ -20,6 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..core.refinement import residuals
+
 
 @dataclass
 class GuidedPairs:
@@ -110,7 +112,7 @@ def guide_instances(matcher: GuidedMatcher, transforms: list, own_scene: list, o
         T = np.asarray(T, np.float64)
         mine_s, mine_m = np.asarray(own_scene[i], np.int64), np.asarray(own_model[i], np.int64)
         if max_inliers is not None and len(mine_s) > max_inliers:
-            res = np.linalg.norm(matcher.xyz[mine_m] @ T[:3, :3].T + T[:3, 3] - scene_xyz64[mine_s], axis=1)
+            res = residuals(matcher.xyz[mine_m], scene_xyz64[mine_s], T)[:, 0]
             out.transforms.append(T)
             out.scene.append(mine_s)
             out.model.append(mine_m)
@@ -128,7 +130,7 @@ def guide_instances(matcher: GuidedMatcher, transforms: list, own_scene: list, o
             T = T_new
             if not moved:
                 break
-        res = np.linalg.norm(matcher.xyz[model_idx] @ T[:3, :3].T + T[:3, 3] - scene_xyz64[scene_idx], axis=1)
+        res = residuals(matcher.xyz[model_idx], scene_xyz64[scene_idx], T)[:, 0]
         keep = res < inlier_thresh
         scene_idx, model_idx, res = scene_idx[keep], model_idx[keep], res[keep]
         # Keypoints this instance took are no longer offered to the weaker ones; those it

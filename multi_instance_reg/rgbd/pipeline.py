@@ -483,14 +483,14 @@ class InstanceRegistration:
             limit = fe.max_overlap
             rejected = [T for k, T in enumerate(rejected, start=len(found))
                         if not (np.any(overlap[k, :len(found)] > limit) or np.any(overlap[:len(found), k] > limit))]
-        if fe.shape_hidden_by_instances and chosen and rejected:
-            occluders = self._shape.instance_pixels(found, depth_m, intrinsics)
-            # Each on its own, two at a time in the shared thread pool (as the refinement).
-            behind = [c for c in map_each(lambda T: self._shape.judge_behind(T, cloud, depth_m, intrinsics,
-                                                                             occluders, found), rejected)
-                      if c is not None]
-            if behind:
-                chosen = self._one_per_box(chosen + behind, first=len(chosen))
+            if rejected:
+                occluders = self._shape.instance_pixels(found, depth_m, intrinsics)
+                # Each on its own, two at a time in the shared thread pool (as the refinement).
+                behind = [c for c in map_each(lambda T: self._shape.judge_behind(T, cloud, depth_m, intrinsics,
+                                                                                 occluders, found), rejected)
+                          if c is not None]
+                if behind:
+                    chosen = self._one_per_box(chosen + behind, first=len(chosen))
         instances = [Instance(i, c[0], c[2], float(c[1]), self.model.name) for i, c in enumerate(chosen)]
         labels, _ = assign_nearest(src, tgt, [c[0] for c in chosen], self._shape_ecc.config.inlier_thresh)
         t["refinement"] = (time.perf_counter() - t6) * 1e3

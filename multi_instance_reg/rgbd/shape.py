@@ -578,9 +578,8 @@ def _depth_support(T, mp, mn, depth, fx, fy, cx, cy, tolerance, self_hiding, occ
             bu[nb], bv[nb], bz[nb] = round(fx * px / pz + cx), round(fy * py / pz + cy), pz
             nb += 1
     if nb > 0:
-        own = _self_depth(T, mp, mn, fx, fy, cx, cy, bu[:nb].min(), bv[:nb].min(), bu[:nb].max(), bv[:nb].max(),
-                          self_hiding)
         u0, v0 = bu[:nb].min(), bv[:nb].min()
+        own = _self_depth(T, mp, mn, fx, fy, cx, cy, u0, v0, bu[:nb].max(), bv[:nb].max(), self_hiding)
         for k in range(nb):
             if own[bv[k] - v0, bu[k] - u0] < bz[k] - tolerance - self_hiding:
                 m -= 1              # behind the model's own nearer surface: not in view at this pose
