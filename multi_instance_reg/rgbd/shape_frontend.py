@@ -22,6 +22,7 @@ from ..messages import CameraIntrinsics
 from .model import ObjectModel
 from .lifting import depth_to_cloud
 from .ppf import ANGLE_BINS as ANGLE_STEPS, PPFModel, cluster_poses
+from .faces import Faces, frame_patches, model_faces, nearest_face_pose, patch_poses
 from .segments import connected_segments, pairs_across_steps, support_mask
 from .verify import facing_camera, in_view_share, outline_continuation, outline_shift
 from ..threads import shared_pool, submit_each
@@ -46,6 +47,7 @@ class FrameCloud:
     poses: np.ndarray | None = None       # (K, 4, 4) pose hypotheses clustered from the votes, ppf only
     up: np.ndarray | None = None          # (3,) the largest support plane's normal, towards the camera, ppf only
     grid: PointGrid | None = None         # the points and normals for ICP's nearest-point search
+    patches: Faces | None = None          # the segments' flat patches (ppf, with shape_faces)
 
 
 class ShapeFrontEnd:
@@ -79,6 +81,10 @@ class ShapeFrontEnd:
             # The largest flat piece the object can show: its two largest box sides.
             e = np.sort(np.asarray(model.extent, np.float64))
             self._max_face_area = float(e[1] * e[2])
+            # The model's flat faces with a long axis (a carton's six): a frame patch with
+            # the same outline moments places the pose (rgbd/faces.py).
+            self._faces = model_faces(self._surface, self._surface_normals, self.voxel) \
+                if fe.shape_faces else None
         else:
             self._matcher = ShapeMatcher(model.shape_descriptors[keep], k=fe.shape_neighbours)
 
@@ -171,12 +177,31 @@ class ShapeFrontEnd:
                                             self.fe.shape_pose_clusters)
                 if self._self_hiding > 0 and self.fe.shape_joined_clusters > 0:
                     cloud.poses = np.concatenate([cloud.poses, self.joined_poses(cloud)])
+                if self._faces is not None and len(self._faces):
+                    cloud.poses = np.concatenate([cloud.poses, self.face_poses(cloud)])
             if on_poses is not None:
                 on_poses()
             src, s = self._ppf.correspondences(s, poses, cloud.points, canonical=True)
             return src, cloud.points[s]
         s, m = self._matcher.match(cloud.descriptors)
         return self._model_pts[self._model_idx[m]], cloud.points[cloud.salient[s]]
+
+    def face_poses(self, cloud: FrameCloud) -> np.ndarray:
+        """(K, 4, 4) pose hypotheses from the segments' flat patches whose outline moments are
+        a model face's (``faces.patch_poses``; a carton seen from above shows its top alone,
+        and its references' votes are blurred in the plane of it), one per pose the object's
+        symmetries tell apart. Also keeps the patches (``cloud.patches``) for ``_refine``."""
+        fe = self.fe
+        cloud.patches = frame_patches(cloud.points, cloud.normals, cloud.segments, self.diameter,
+                                      fe.shape_segment_link * self.voxel,
+                                      lambda z: max(self.depth_tolerance, 3.0 * fe.shape_depth_noise * z * z))
+        poses = patch_poses(self._faces, cloud.patches, self.voxel)
+        if len(poses) == 0:
+            return poses
+        poses = self._ppf.canonical_poses(poses)
+        keep = cluster_poses(poses, np.ones(len(poses)), 1.0, 0.1 * self.voxel, len(poses), min_members=1,
+                             indices=True)
+        return poses[np.sort(keep)]
 
     def joined_poses(self, cloud: FrameCloud) -> np.ndarray:
         """(K, 4, 4) pose hypotheses from segments voted together in pairs: for a non-convex
@@ -280,10 +305,21 @@ class ShapeFrontEnd:
         # The depth check first (a projection, no search), then a few rounds of ICP: a
         # hypothesis the depth hardly supports is dropped without paying for the rest
         # (most of ECC's clusters are wrong).
-        if fit(T0)[1] < 0.25 * fe.shape_min_support:
+        start = fit(T0)
+        if cloud.patches is not None:
+            # On a frame patch shaped as one of its faces (a carton's top seen whole): placed
+            # by the patch's outline, which holds what ICP on the face alone does not (its
+            # turn and shift in the plane), if the depth agrees at least as well.
+            on_patch = nearest_face_pose(self._faces, cloud.patches, T0, 0.1 * self.diameter + self.voxel,
+                                         self.voxel)
+            if on_patch is not None:
+                moved = fit(on_patch)
+                if moved[0] >= start[0]:
+                    T0, start = on_patch, moved
+        if start[1] < 0.25 * fe.shape_min_support:
             return None, None, 0.0
         T = self._icp(T0, cloud, depth_m, intrinsics, ICP_REACH * self.voxel, first)
-        cand = max([fit(T0) + (T0,), fit(T) + (T,)], key=lambda c: c[0])
+        cand = max([start + (T0,), fit(T) + (T,)], key=lambda c: c[0])
         if cand[1] < 0.5 * fe.shape_min_support:
             return None, None, 0.0
         T = self._icp(cand[4], cloud, depth_m, intrinsics, 1.5 * self.voxel, fe.shape_icp_iterations - first)
