@@ -5,7 +5,7 @@ refinement and depth check of the poses ECC finds from them. No ROS, no colour.
     cloud = shape.frame_cloud(depth_m, intrinsics, search_mask)    # search-region points, normals, FPFH
     src, tgt = shape.correspondences(cloud)                         # model points -> scene points
     ... ECC on (src, tgt) (with ``shape.ecc_config(base)``) ...
-    kept = shape.refine_and_check(transforms, cloud, depth_m, intrinsics)   # [(T, support, agreeing points)]
+    kept = shape.refine_and_check(transforms, cloud, depth_m, intrinsics)   # [(T, support, agreeing points, evidence)]
 """
 from __future__ import annotations
 
@@ -242,7 +242,7 @@ class ShapeFrontEnd:
                          intrinsics: CameraIntrinsics, started: "Prefetch | None" = None, offset: int = 0,
                          rejected: list | None = None) -> list[tuple[np.ndarray, float, int]]:
         """Each transform refined by ICP against the frame's points and kept when the depth
-        image agrees with the model's visible surface: (T, support share, agreeing points).
+        image agrees with the model's visible surface: (T, support share, agreeing points, evidence).
         Hypotheses that are one pose (ECC's and the vote clusters' for one instance) are
         refined once: the first of each group, in the order given (``distinct``). Each is
         refined and judged on its own (``refine_one``), so they run in the shared thread
@@ -291,7 +291,7 @@ class ShapeFrontEnd:
                                   0.1 * self.diameter, len(transforms), min_members=1, indices=True))
 
     def refine_one(self, T0: np.ndarray, cloud: FrameCloud, depth_m: np.ndarray, intrinsics: CameraIntrinsics):
-        """One hypothesis refined by ICP and judged: (T, support share, agreeing points), or
+        """One hypothesis refined by ICP and judged: (T, support share, agreeing points, evidence), or
         None. Reads only the frame's data: safe to run in several threads at once."""
         return self._refine(T0, cloud, depth_m, intrinsics)[0]
 
@@ -387,7 +387,7 @@ class ShapeFrontEnd:
                      occluders: np.ndarray, found) -> tuple | None:
         """A refined pose the checks rejected, judged again with its points hidden behind the
         instances ``found`` (poses; ``occluders`` the pixels showing them, ``instance_pixels``)
-        left out: (T, support, agreeing points) or None. Only an instance in front explains
+        left out: (T, support, agreeing points, evidence) or None. Only an instance in front explains
         the occlusion: a pose sunk into a distractor or the table, or reaching into a found
         instance's box, is still judged by those points. At least ``shape_min_in_view`` of its
         judged points must remain (as for the image's edge)."""
@@ -466,8 +466,10 @@ class ShapeFrontEnd:
         return weak @ weak.T, (held[:, 0] if held.shape[1] == 1 else None), p[facing].mean(axis=0)
 
     def _judge(self, T, support, free, n, cloud: FrameCloud, depth_m, intrinsics, explained=None):
-        """(T, support, agreeing points) when the depth and the outline accept pose T, else None.
-        ``explained``: pixels the outline leaves out (``outline_continuation``)."""
+        """(T, support, agreeing points, evidence) when the depth and the outline accept pose
+        T, else None; evidence: the judged points times support - free - 2 x outline
+        continuation (what the selection ranks by). ``explained``: pixels the outline leaves
+        out (``outline_continuation``)."""
         fe = self.fe
         if n < fe.shape_min_visible or support < fe.shape_min_support or free > fe.shape_max_free:
             return None
@@ -483,8 +485,9 @@ class ShapeFrontEnd:
         same = max(3.0 * fe.shape_depth_noise * float(T[2, 3]) ** 2, 0.002)
         outline, _ = outline_continuation(T, self._surface, self._surface_normals, depth_m, intrinsics,
                                           self.voxel, same, up=cloud.up, explained=explained)
-        if support - free - 2.0 * outline >= fe.shape_min_evidence:
-            return T, support, int(round(support * n))
+        evidence = support - free - 2.0 * outline
+        if evidence >= fe.shape_min_evidence:
+            return T, support, int(round(support * n)), evidence * n
         return None
 
     def _icp(self, T, cloud: FrameCloud, depth_m, intrinsics, max_dist: float, iterations: int) -> np.ndarray:
