@@ -3,7 +3,7 @@ patches, and the poses they give."""
 import numpy as np
 
 from multi_instance_reg.meshes import box_mesh, cylinder_mesh, sample_surface
-from multi_instance_reg.rgbd.faces import frame_patches, model_faces, nearest_face_pose, patch_poses
+from multi_instance_reg.rgbd.faces import frame_patches, matches, model_faces, nearest_face_pose, patch_poses
 from multi_instance_reg.rgbd.mesh_model import build_model_from_mesh
 from multi_instance_reg.rgbd.shape import voxel_downsample
 from multi_instance_reg.rgbd.shape_frontend import oriented_downsample
@@ -61,7 +61,8 @@ def test_a_top_seen_whole_gives_its_pose_and_a_pose_off_in_yaw_is_moved_onto_it(
     diameter = float(np.linalg.norm(model.extent))
     patches = frame_patches(P, N, np.zeros(len(P), np.int64), diameter, 2 * model.shape_voxel, lambda z: 0.01)
     assert len(patches) == 1
-    poses = patch_poses(faces, patches, model.shape_voxel)
+    fits = matches(faces, patches, model.shape_voxel)
+    poses = patch_poses(faces, patches, fits)
     assert len(poses) >= 2                                      # the top, on either sign of its axis
     best = min((_errors(model, T, Q) for Q in poses), key=lambda e: e[0])
     assert best[0] < 2.0 and best[1] < 0.01                    # within a voxel (1.6 cm here)
@@ -70,7 +71,7 @@ def test_a_top_seen_whole_gives_its_pose_and_a_pose_off_in_yaw_is_moved_onto_it(
     off = T.copy()
     off[:3, :3] = T[:3, :3] @ _yaw(12.0)
     off[:3, 3] += [0.02, 0.02, 0.0]
-    moved = nearest_face_pose(faces, patches, off, 0.1 * diameter + model.shape_voxel, model.shape_voxel)
+    moved = nearest_face_pose(faces, patches, fits, off, 0.1 * diameter + model.shape_voxel)
     assert moved is not None
     rre, rte = _errors(model, T, moved)
     assert rre < 2.0 and rte < 0.01
@@ -82,7 +83,7 @@ def test_a_partly_hidden_top_gives_no_pose():
     faces = model_faces(surface, normals, model.shape_voxel)
     diameter = float(np.linalg.norm(model.extent))
     patches = frame_patches(P, N, np.zeros(len(P), np.int64), diameter, 2 * model.shape_voxel, lambda z: 0.01)
-    poses = patch_poses(faces, patches, model.shape_voxel)
+    poses = patch_poses(faces, patches, matches(faces, patches, model.shape_voxel))
     # 0.2 x 0.2 left: no face of the box has those sides (nor a long axis).
     assert len(poses) == 0
 
@@ -97,4 +98,4 @@ def test_two_tops_in_one_segment_are_cut_apart():
     diameter = float(np.linalg.norm(model.extent))
     patches = frame_patches(Q, NQ, np.zeros(len(Q), np.int64), diameter, 2 * model.shape_voxel, lambda z: 0.01)
     assert len(patches) == 2
-    assert len(patch_poses(faces, patches, model.shape_voxel)) >= 4
+    assert len(patch_poses(faces, patches, matches(faces, patches, model.shape_voxel))) >= 4

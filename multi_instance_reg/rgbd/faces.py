@@ -44,6 +44,9 @@ class Faces:
     def __len__(self) -> int:
         return len(self.centre)
 
+    def take(self, keep) -> "Faces":
+        return Faces(self.centre[keep], self.normal[keep], self.axis[keep], self.sides[keep])
+
 
 def _moments(p: np.ndarray, n: np.ndarray):
     """Centroid, long axis and the equivalent rectangle's sides of points on a plane of normal n."""
@@ -132,11 +135,11 @@ def frame_patches(points: np.ndarray, normals: np.ndarray, labels: np.ndarray, r
     return _collect(out)
 
 
-def matches(model: Faces, frame_sides: np.ndarray, voxel: float) -> np.ndarray:
-    """(F,) bool: the model faces whose sides are those of a frame patch (long with long,
-    short with short) within SIDE_VOXELS voxels or SIDE_SHARE of the side."""
+def matches(model: Faces, frame: Faces, voxel: float) -> np.ndarray:
+    """(J, F) bool: frame patch j has the sides of model face f (long with long, short with
+    short) within SIDE_VOXELS voxels or SIDE_SHARE of the side."""
     tol = np.maximum(SIDE_VOXELS * voxel, SIDE_SHARE * model.sides)
-    return np.all(np.abs(model.sides - frame_sides[None]) <= tol, axis=1)
+    return np.all(np.abs(model.sides[None] - frame.sides[:, None]) <= tol[None], axis=2)
 
 
 def face_pose(model: Faces, f: int, centre: np.ndarray, normal: np.ndarray, axis: np.ndarray) -> np.ndarray:
@@ -153,40 +156,33 @@ def face_pose(model: Faces, f: int, centre: np.ndarray, normal: np.ndarray, axis
     return T
 
 
-def nearest_face_pose(model: Faces, frame: Faces, T: np.ndarray, reach: float, voxel: float,
+def nearest_face_pose(model: Faces, frame: Faces, fits: np.ndarray, T: np.ndarray, reach: float,
                       max_angle_deg: float = 20.0) -> np.ndarray | None:
-    """Pose T moved onto the frame patch that one of its model faces matches (``matches``)
-    and nearly lies on: normals within ``max_angle_deg``, centroids within ``reach``; of
-    those the nearest, the face's long axis onto the patch's with the sign nearest T's.
-    None when there is none."""
+    """Pose T moved onto the frame patch that one of its model faces matches (``fits``,
+    ``matches``) and nearly lies on: normals within ``max_angle_deg``, centroids within
+    ``reach``; of those the nearest, the face's long axis onto the patch's with the sign
+    nearest T's. None when there is none."""
     if len(model) == 0 or len(frame) == 0:
         return None
     R, t = T[:3, :3], T[:3, 3]
     normal = model.normal @ R.T
     centre = model.centre @ R.T + t
-    cos_max = np.cos(np.radians(max_angle_deg))
-    best, best_d = None, reach
-    for j in range(len(frame)):
-        ok = matches(model, frame.sides[j], voxel) & (normal @ frame.normal[j] > cos_max)
-        for f in np.flatnonzero(ok):
-            d = float(np.linalg.norm(centre[f] - frame.centre[j]))
-            if d < best_d:
-                best, best_d = (f, j), d
-    if best is None:
+    near = fits & (frame.normal @ normal.T > np.cos(np.radians(max_angle_deg)))
+    if not near.any():
         return None
-    f, j = best
+    d = np.where(near, np.linalg.norm(frame.centre[:, None] - centre[None], axis=2), np.inf)
+    j, f = np.unravel_index(int(np.argmin(d)), d.shape)
+    if d[j, f] >= reach:
+        return None
     axis = frame.axis[j] if (R @ model.axis[f]) @ frame.axis[j] >= 0 else -frame.axis[j]
     return face_pose(model, f, frame.centre[j], frame.normal[j], axis)
 
 
-def patch_poses(model: Faces, frame: Faces, voxel: float) -> np.ndarray:
-    """(K, 4, 4): for each frame patch, each model face it matches, on either sign of the
-    long axis."""
-    out = []
-    for j in range(len(frame)):
-        for f in np.flatnonzero(matches(model, frame.sides[j], voxel)):
-            for sign in (1.0, -1.0):
-                out.append(face_pose(model, f, frame.centre[j], frame.normal[j], sign * frame.axis[j]))
+def patch_poses(model: Faces, frame: Faces, fits: np.ndarray) -> np.ndarray:
+    """(K, 4, 4): for each frame patch, each model face it matches (``fits``), on either
+    sign of the long axis."""
+    out = [face_pose(model, f, frame.centre[j], frame.normal[j], sign * frame.axis[j])
+           for j, f in np.argwhere(fits) for sign in (1.0, -1.0)]
     return np.array(out) if out else np.zeros((0, 4, 4))
 
 

@@ -22,7 +22,7 @@ from ..messages import CameraIntrinsics
 from .model import ObjectModel
 from .lifting import depth_to_cloud
 from .ppf import ANGLE_BINS as ANGLE_STEPS, PPFModel, cluster_poses
-from .faces import Faces, frame_patches, model_faces, nearest_face_pose, patch_poses
+from .faces import Faces, frame_patches, matches, model_faces, nearest_face_pose, patch_poses
 from .segments import connected_segments, pairs_across_steps, support_mask
 from .verify import facing_camera, in_view_share, outline_continuation, outline_shift
 from ..threads import shared_pool, submit_each
@@ -47,7 +47,8 @@ class FrameCloud:
     poses: np.ndarray | None = None       # (K, 4, 4) pose hypotheses clustered from the votes, ppf only
     up: np.ndarray | None = None          # (3,) the largest support plane's normal, towards the camera, ppf only
     grid: PointGrid | None = None         # the points and normals for ICP's nearest-point search
-    patches: Faces | None = None          # the segments' flat patches (ppf, with shape_faces)
+    patches: Faces | None = None          # the segments' flat patches shaped as a model face (ppf, shape_faces)
+    patch_fits: np.ndarray | None = None  # (J, F) bool: patch j has model face f's outline
 
 
 class ShapeFrontEnd:
@@ -193,17 +194,22 @@ class ShapeFrontEnd:
         """(K, 4, 4) pose hypotheses from the segments' flat patches whose outline moments are
         a model face's (``faces.patch_poses``; a carton seen from above shows its top alone,
         and its references' votes are blurred in the plane of it), one per pose the object's
-        symmetries tell apart. Also keeps the patches (``cloud.patches``) for ``_refine``."""
+        symmetries tell apart. Also keeps those patches (``cloud.patches``, ``patch_fits``) for
+        ``_refine``."""
         fe = self.fe
-        cloud.patches = frame_patches(cloud.points, cloud.normals, cloud.segments, self.diameter,
-                                      fe.shape_segment_link * self.voxel,
-                                      lambda z: max(self.depth_tolerance, 3.0 * fe.shape_depth_noise * z * z))
-        poses = patch_poses(self._faces, cloud.patches, self.voxel)
-        if len(poses) == 0:
+        patches = frame_patches(cloud.points, cloud.normals, cloud.segments, self.diameter,
+                                fe.shape_segment_link * self.voxel,
+                                lambda z: max(self.depth_tolerance, 3.0 * fe.shape_depth_noise * z * z))
+        fits = matches(self._faces, patches, self.voxel)
+        shaped = fits.any(axis=1)
+        cloud.patches, cloud.patch_fits = patches.take(shaped), fits[shaped]
+        poses = patch_poses(self._faces, cloud.patches, cloud.patch_fits)
+        if len(poses) <= 1:
             return poses
+        # One pose per patch and face the symmetries tell apart (a box's top on either sign
+        # of its axis, or its bottom's face: one pose, up to the faces' sampling).
         poses = self._ppf.canonical_poses(poses)
-        keep = cluster_poses(poses, np.ones(len(poses)), 1.0, 0.1 * self.voxel, len(poses), min_members=1,
-                             indices=True)
+        keep = cluster_poses(poses, np.ones(len(poses)), 5.0, self.voxel, len(poses), min_members=1, indices=True)
         return poses[np.sort(keep)]
 
     def joined_poses(self, cloud: FrameCloud) -> np.ndarray:
@@ -313,8 +319,8 @@ class ShapeFrontEnd:
             # On a frame patch shaped as one of its faces (a carton's top seen whole): placed
             # by the patch's outline, which holds what ICP on the face alone does not (its
             # turn and shift in the plane), if the depth agrees at least as well.
-            on_patch = nearest_face_pose(self._faces, cloud.patches, T0, 0.1 * self.diameter + self.voxel,
-                                         self.voxel)
+            on_patch = nearest_face_pose(self._faces, cloud.patches, cloud.patch_fits, T0,
+                                         0.1 * self.diameter + self.voxel)
             if on_patch is not None:
                 moved = fit(on_patch)
                 if moved[0] >= start[0]:
