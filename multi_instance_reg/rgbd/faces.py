@@ -118,20 +118,27 @@ def frame_patches(points: np.ndarray, normals: np.ndarray, labels: np.ndarray, r
     a plane wider than ``reach`` (the object's diameter: it holds several objects' faces)
     cut into connected pieces (points within ``link``: coplanar tops of touching cartons
     are apart where a gap shows between them)."""
-    out = []
+    out, wide = [], []
     for s in np.unique(labels[labels >= 0]):
         idx = np.flatnonzero(labels == s)
         for normal, plane, _ in _planes(points, normals, idx, tolerance(float(np.median(points[idx, 2]))),
                                      min_points, per_segment):
             q = points[plane]
             if np.linalg.norm(q.max(axis=0) - q.min(axis=0)) <= reach:
-                pieces = [q]
-            else:
-                lab = connected_segments(q, link, min_points)
-                pieces = [q[lab == k] for k in range(lab.max() + 1)] if len(lab) else []
-            for piece in pieces:
-                c, axis, sides = _moments(piece, normal)
+                c, axis, sides = _moments(q, normal)
                 out.append((c, normal, axis, sides))
+            else:
+                wide.append((normal, q))
+    if wide:
+        # All wide planes cut in one call, each moved far from the others (no link across).
+        q = np.concatenate([q for _, q in wide])
+        plane_of = np.repeat(np.arange(len(wide)), [len(p) for _, p in wide])
+        lab = connected_segments(q + np.outer(plane_of, [0.0, 0.0, 10.0 * (reach + link)]), link, min_points)
+        for k in np.unique(lab[lab >= 0]):
+            piece = lab == k
+            normal = wide[plane_of[piece][0]][0]
+            c, axis, sides = _moments(q[piece], normal)
+            out.append((c, normal, axis, sides))
     return _collect(out)
 
 

@@ -182,7 +182,12 @@ class ShapeFrontEnd:
                 if self._self_hiding > 0 and self.fe.shape_joined_clusters > 0:
                     cloud.poses = np.concatenate([cloud.poses, self.joined_poses(cloud)])
                 if self._faces is not None and len(self._faces):
-                    cloud.poses = np.concatenate([cloud.poses, self.face_poses(cloud)])
+                    # The face poses first; a vote cluster that one of them would be refined
+                    # for (``distinct``) is left out: moved onto the same patch, it would be
+                    # the same pose, refined twice.
+                    faces = self.face_poses(cloud)
+                    near = _within(cloud.poses, faces, 360.0 / ANGLE_STEPS, 0.1 * self.diameter)
+                    cloud.poses = np.concatenate([faces, cloud.poses[~near]])
             if on_poses is not None:
                 on_poses()
             src, s = self._ppf.correspondences(s, poses, cloud.points, canonical=True)
@@ -551,6 +556,15 @@ class _Claimed:
 
     def result(self):
         return self._prefetch.result(self._k)
+
+
+def _within(poses: np.ndarray, others: np.ndarray, max_angle_deg: float, max_shift: float) -> np.ndarray:
+    """(len(poses),) bool: within ``max_angle_deg`` and ``max_shift`` of any of ``others``."""
+    if len(poses) == 0 or len(others) == 0:
+        return np.zeros(len(poses), bool)
+    cos = (np.einsum("aij,bij->ab", poses[:, :3, :3], others[:, :3, :3]) - 1.0) / 2.0
+    shift = np.linalg.norm(poses[:, None, :3, 3] - others[None, :, :3, 3], axis=2)
+    return np.any((cos >= np.cos(np.radians(max_angle_deg))) & (shift < max_shift), axis=1)
 
 
 def oriented_downsample(points: np.ndarray, normals: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
