@@ -154,8 +154,9 @@ def face_pose(model: Faces, f: int, centre: np.ndarray, normal: np.ndarray, axis
     onto ``axis``, its centroid onto ``centre``."""
     def frame(n, a):
         a = a - (a @ n) * n
-        a /= np.linalg.norm(a)
-        return np.stack([a, np.cross(n, a), n], axis=1)
+        a = a / np.sqrt(a @ a)
+        b = np.array([n[1] * a[2] - n[2] * a[1], n[2] * a[0] - n[0] * a[2], n[0] * a[1] - n[1] * a[0]])
+        return np.column_stack([a, b, n])       # (np.cross costs 30 us on 3-vectors)
     R = frame(normal, axis) @ frame(model.normal[f], model.axis[f]).T
     T = np.eye(4)
     T[:3, :3] = R
