@@ -1,6 +1,5 @@
 """The pieces of the PPF shape front end: support planes cut by piece size, connected
 segments, oriented model surface, point-pair voting and its correspondences, damped ICP."""
-import cv2
 import numpy as np
 import pytest
 
@@ -633,28 +632,3 @@ def test_a_box_flush_with_an_instance_found_is_judged_by_its_outline_without_it(
     off = ShapeFrontEnd(build_model_from_mesh(solid, "block"), replace(fe, shape_outline_by_instances=False))
     assert off.judge_behind(right, cloud, depth, intr, occluders, [left]) is None
 
-
-def test_support_mask_finds_a_pallet_top_below_two_layers_of_tops_and_a_wall():
-    """The pallet top seen in the gaps between cartons holds fewer pixels than the floor, a
-    wall and each layer's tops: the fifth plane. Those tops remove nothing (each carton's a
-    piece of its own) and do not use up the planes; the pallet top is removed and the
-    cartons stay apart."""
-    h, w = 240, 320
-    u = np.arange(w)[None, :].repeat(h, 0)
-    depth = np.full((h, w), 2.0, np.float32)                       # the floor
-    depth[:, :60] = 1.0 / (1.0 / 1.2 - 0.005 * u[:, :60])          # a slanted wall (1/z linear in u: a plane)
-    depth[50:210, 100:300] = 1.85                                    # the pallet top ...
-    for i in range(4):
-        for j in range(4):
-            r, c = 50 + 40 * i, 100 + 50 * j
-            depth[r + 3:r + 37, c + 3:c + 47] = 1.55 if (i + j) % 3 == 0 else 1.70   # ... under two layers of tops
-    valid = depth > 0
-    mask = support_mask(depth, _intrinsics(), valid, max_area=0.05, thresh=0.01, noise_per_m2=0.0)
-    gaps = np.abs(depth - 1.85) < 1e-3
-    tops = (depth < 1.8).astype(np.uint8)
-    tops[:, :60] = 0
-    # The removed pixels are found on every second pixel and filled in: a pixel's width at
-    # the edges either way.
-    tops = cv2.erode(tops, np.ones((5, 5), np.uint8)) > 0
-    assert mask[gaps].mean() > 0.8 and not mask[tops].any()
-    assert mask[220:, 100:].all()                                    # the floor too

@@ -25,21 +25,14 @@ from .lifting import depth_to_cloud, fit_dominant_plane
 
 
 def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.ndarray, max_area: float,
-                 thresh: float, noise_per_m2: float, max_planes: int = 4, min_share: float = 0.0,
-                 stride: int = 2, ground: list | None = None, max_tries: int = 8) -> np.ndarray:
+                 thresh: float, noise_per_m2: float, max_planes: int = 4, min_share: float = 0.03,
+                 stride: int = 2, ground: list | None = None) -> np.ndarray:
     """(H, W) bool: valid pixels that lie on a large piece of a dominant plane (support
     surfaces). A plane point is within ``thresh`` + 3 sigma(z) of it, sigma(z) =
     ``noise_per_m2`` z^2 (stereo depth noise grows with the square of the distance); a piece
-    is large when its area exceeds ``max_area`` (m^2). Up to ``max_planes`` planes with a
-    piece removed, of at most ``max_tries`` found: the planes of object faces (a layer of
-    carton tops, a row of their sides) hold more pixels than the pallet top seen between
-    them, and they remove nothing, so they do not use up the budget (the pallet top was
-    the fifth plane below two layers' tops, the floor and a wall, and was left in: it joined
-    the cartons into one segment). A plane whose points together cover no more than
-    ``max_area`` holds no piece to remove and is only set aside (a later plane may hold
-    fewer, farther pixels of a larger area); the search stops at a plane with less than
-    ``min_share`` of the pixels. ``ground``, a list, receives the unit normal (towards the camera) of the plane
-    with the largest removed area: "up", if the floor, pallet or table is in view."""
+    is large when its area exceeds ``max_area`` (m^2). ``ground``, a list, receives the
+    unit normal (towards the camera) of the plane with the largest removed area: "up", if
+    the floor, pallet or table is in view."""
     h, w = depth_m.shape
     pts, pix = depth_to_cloud(depth_m, intrinsics, valid, stride=stride)
     pts = pts.astype(np.float64)
@@ -58,10 +51,9 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
     alive = np.ones(len(pts), bool)
     total = len(pts)
     best_area = 0.0
-    removed_planes = 0
-    for k in range(max_tries):
+    for k in range(max_planes):
         cand = np.flatnonzero(alive)
-        if removed_planes >= max_planes or len(cand) < min_share * total or len(cand) < 50:
+        if len(cand) < min_share * total or len(cand) < 50:
             break
         sample = cand if len(cand) <= 3000 else rng.choice(cand, 3000, replace=False)
         plane = fit_dominant_plane(pts[sample], float(np.median(tol[sample])), iterations=150, seed=k, max_sample=3000)
@@ -71,21 +63,17 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
         on = alive & (np.abs(pts @ n + d) < tol)
         if on.sum() < min_share * total:
             break
-        area = footprint / np.maximum(np.abs(ray @ n), 0.2)
-        if area[on].sum() <= max_area:
-            alive &= ~on
-            continue
         img = np.zeros((hs, ws), np.uint8)
         img[rows[on], cols[on]] = 1
         count, labels = cv2.connectedComponents(img, connectivity=8)
         lab = labels[rows, cols]
+        area = footprint / np.maximum(np.abs(ray @ n), 0.2)
         piece_area = np.bincount(lab[on], weights=area[on], minlength=count)
         big = piece_area > max_area
         big[0] = False
         remove = on & big[lab]
         out[pix[remove, 0], pix[remove, 1]] = True
         removed_area = float(area[remove].sum())
-        removed_planes += bool(remove.any())
         if ground is not None and removed_area > best_area:
             best_area = removed_area
             ground[:] = [np.asarray(n, np.float64) * (1.0 if d > 0 else -1.0)]   # the camera's side
