@@ -631,4 +631,3 @@ def test_a_box_flush_with_an_instance_found_is_judged_by_its_outline_without_it(
     assert again is not None and np.allclose(again[0], right) and again[1] > 0.95
     off = ShapeFrontEnd(build_model_from_mesh(solid, "block"), replace(fe, shape_outline_by_instances=False))
     assert off.judge_behind(right, cloud, depth, intr, occluders, [left]) is None
-
