@@ -251,7 +251,7 @@ class ShapeFrontEnd:
 
     def refine_and_check(self, transforms, cloud: FrameCloud, depth_m: np.ndarray,
                          intrinsics: CameraIntrinsics, started: "Prefetch | None" = None, offset: int = 0,
-                         rejected: list | None = None) -> list[tuple[np.ndarray, float, int]]:
+                         rejected: list | None = None) -> list[tuple[np.ndarray, float, int, float]]:
         """Each transform refined by ICP against the frame's points and kept when the depth
         image agrees with the model's visible surface: (T, support share, agreeing points, evidence).
         Hypotheses that are one pose (ECC's and the vote clusters' for one instance) are
