@@ -114,6 +114,7 @@ class FrontEndConfig:
     shape_hidden_by_instances: bool = param(True, "shape: a pose rejected for too little support is judged again with its model points hidden behind the instances found in the frame left out (not those inside a found instance's box; at least shape_min_in_view of its points must remain), and added where no instance is. Untextured MHF1 seed 0 / 5 (tuned), 9 / 13 / 33 (held out), with the bracket's self-hiding before: bracket 0.815 -> 0.827 / 0.752 -> 0.752 / 0.742 -> 0.797 / 0.780 -> 0.780, 33: 0.805 (main 0.762); cylinders 0.985 -> 0.993 / 0.922 -> 0.964 / 0.900 -> 0.932 / 0.948 -> 0.996 / 0.964 -> 0.987; pallet 0.913 -> 0.919 / 0.920 -> 0.930 / same / same / same; false positives on distractor-only frames unchanged. Judging every rejected pose again, not only those short of support: bracket 0.850 / 0.805 on seeds 0 / 9, cylinders 0.996 / 0.959, but pallet latency p50 +8-13 ms", None, None)
     shape_joined_clusters: int = param(1, "shape ppf, non-convex models only (an L bracket; boxes and cylinders show one connected surface): two segments side by side in the image across a depth step, that one object could span, also vote together, and their best this-many pose clusters are checked as hypotheses (not given to ECC); 0 = off. Bracket MHF1 seed 0 / 5 (tuned): 0.827 -> 0.890 / 0.752 -> 0.811 alone, 0.866 -> 0.925 / 0.773 -> 0.833 with shape_outline_by_instances; both, seeds 0 / 5 / held-out 9 / 13 / 33 / 41 / 47: 0.827 / 0.752 / 0.797 / 0.780 / 0.805 / 0.805 / 0.729 -> 0.925 / 0.833 / 0.852 / 0.849 / 0.923 / 0.839 / 0.811", 0, 100)
     shape_outline_by_instances: bool = param(True, "shape (with shape_hidden_by_instances): a pose rejected by the free-space or outline check is judged again too, its outline band's pixels on the instances found left out (a neighbour flush with it continues its face there: no larger surface), and added where no instance is. MHF1 seed 0 / 5 with the bracket's joined votes: bracket 0.890 -> 0.925 / 0.811 -> 0.833, cylinders 0.993 -> 0.996 / same, pallet 0.919 -> 0.927 / same; false positives on distractor-only frames unchanged", None, None)
+    shape_faces: bool = param(True, "shape ppf, convex models with a face that has a long axis (a box; not a cylinder): the segments' flat patches whose outline (second moments) is that of a model face (a carton's top seen whole) give pose hypotheses, and a hypothesis near such a patch is moved onto it before ICP (a face seen alone holds ICP in its plane nowhere, and its point pairs differ only in their distance; rgbd/faces.py). Pallet hits seeds 0 / 5 / 9 / 13 / 33 / 41: 75 / 76 / 74 / 72 / 63 / 77 -> 83 / 82 / 84 / 84 / 79 / 83 (with the selection by evidence: 83 / 83 / 84 / 84 / 81 / 83); cylinders and bracket unchanged", None, None)
     shape_min_visible: int = param(20, "shape: an instance needs at least this many model points visible in the image with valid depth", 3, 100000)
 
 
@@ -499,10 +500,13 @@ class InstanceRegistration:
         return FrameResult(instances, t, uv, src.astype(np.float32), tgt.astype(np.float32), labels, 0)
 
     def _one_per_box(self, checked, first: int = 0) -> list:
-        """No two instances in one box: of the checked poses (T, support, agreeing points), the
-        first ``first`` kept as they are, then the rest by agreeing points, each kept when it
-        overlaps none kept before."""
-        checked = list(checked[:first]) + sorted(checked[first:], key=lambda c: -c[2])
+        """No two instances in one box: of the checked poses (T, support, agreeing points,
+        evidence), the first ``first`` kept as they are, then the rest by their evidence (the
+        depth check's net points, ``ShapeFrontEnd._judge``), each kept when it overlaps none
+        kept before. By agreeing points alone, a carton fitted lying on its side into a
+        standing one's top (its 30 x 15 cm face inside the 30 x 20 top, some of the side
+        face showing too) outnumbered the right pose by a few points while overhanging."""
+        checked = list(checked[:first]) + sorted(checked[first:], key=lambda c: -c[3])
         overlap = box_overlaps(self.model, [c[0] for c in checked], self._box_grid)
         kept, limit = list(range(first)), self.config.frontend.max_overlap
         for k in range(first, len(checked)):
