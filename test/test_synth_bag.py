@@ -13,6 +13,7 @@ from multi_instance_reg.datasets import bag_writer as bw
 from multi_instance_reg.messages import camera_info_to_intrinsics, colour_to_rgb, depth_to_metres
 from multi_instance_reg.synthetic.scene import (
     FRAME_RATE_HZ, START_STAMP_NS, generate_capture_bag, generate_scene_bag, make_tabletop_scene)
+from multi_instance_reg.datasets.rgbd_bag import read_object_description
 from multi_instance_reg.tools import cli
 from multi_instance_reg.transforms import pose_to_matrix
 
@@ -132,6 +133,19 @@ def test_cli_writes_a_bag_and_reports_bad_input(tmp_path, capsys):
     assert "already exists" in capsys.readouterr().err
     assert cli.main(["synth", "capture", "-o", str(tmp_path / "x"), "--object", "banana"]) == 2
     assert "unknown object 'banana'" in capsys.readouterr().err
+    assert cli.main(["synth", "untextured", "--preset", "cylinders", "-o", str(tmp_path / "y"),
+                     "--depth-noise-correlation", "25"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "depth noise correlation must be 0" in err and len(err.splitlines()) == 1
+
+
+def test_correlated_depth_noise_is_recorded_in_the_bag(tmp_path, capsys):
+    out = tmp_path / "corr"
+    assert cli.main(["synth", "scene", "-o", str(out), "--instances", "2", "--distractors", "0",
+                     "--frames", "1", "--seed", "3", "--depth-noise-correlation", "2.5"]) == 0
+    assert read_object_description(out)["depth_noise_correlation_px"] == 2.5
+    default = make_tabletop_scene(instances=2, distractors=0, frames=1, seed=3)
+    assert "depth_noise_correlation_px" not in default.description()       # default bags as they were
 
 
 def test_writer_rejects_bad_arrays(tmp_path):

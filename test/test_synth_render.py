@@ -187,6 +187,27 @@ def test_depth_model_range_noise_edges_and_shadow():
     assert np.mean(d[60:140, 255:290] > 0) > 0.9 and np.mean(d[60:140, 100:150 - band - 2] > 0) > 0.9
 
 
+def test_correlated_depth_noise_keeps_its_sigma_and_is_shared_by_neighbours():
+    h, w = 240, 320
+    fx = 379.05
+    flat = np.full((h, w), 1.5, np.float32)
+    sigma_z = sensor.DEPTH_NOISE_PER_M * 1.5 ** 2
+    white = sensor.simulate_depth(flat, fx, seed=2)
+    smooth = sensor.simulate_depth(flat, fx, seed=2, correlation_px=3.0)
+    assert np.array_equal(white, sensor.simulate_depth(flat, fx, seed=2, correlation_px=0.0))   # the default
+    for d, lag1 in ((white, (-0.1, 0.1)), (smooth, (0.9, 1.0))):
+        err = np.where(d > 0, d / 1000.0 - 1.5, np.nan)
+        valid = np.isfinite(err)
+        assert abs(np.std(err[valid]) / sigma_z - 1) < 0.15                  # the same noise per pixel
+        both = valid[:, :-1] & valid[:, 1:]
+        r = np.corrcoef(err[:, :-1][both], err[:, 1:][both])[0, 1]          # neighbours share it, or not
+        assert lag1[0] < r < lag1[1]
+    # Far apart, the smooth noise is independent again.
+    n = sensor.correlated_randn((h, w), 5, 3.0)
+    assert abs(n.std() - 1) < 0.05
+    assert abs(np.corrcoef(n[:, :-20].ravel(), n[:, 20:].ravel())[0, 1]) < 0.1
+
+
 def test_intrinsics_and_bad_input():
     k640 = sensor.d455_intrinsics("640x480")
     assert (k640.width, k640.height) == (640, 480) and k640.K[0, 0] == pytest.approx(379.05)

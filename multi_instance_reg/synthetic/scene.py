@@ -703,6 +703,7 @@ class SyntheticScene:
     motion: str = "sweep"                # camera path of a "scene": sweep | static | pan
     occluder: MovingObject | None = None
     more_targets: tuple = ()             # further target objects of a mixed scene (ObjectSpec)
+    depth_noise_correlation_px: float = 0.0   # > 0: depth noise smooth over this many pixels (sensor.simulate_depth)
 
     def __post_init__(self):
         wall_y = max(0.45, max(p.pose[1, 3] for p in self.placements) + 0.3)
@@ -743,6 +744,8 @@ class SyntheticScene:
             # A mixed scene: every target object, and which one each ground-truth index is.
             d["objects"] = [spec.description() for spec in (self.target,) + tuple(self.more_targets)]
             d["instance_objects"] = self.instance_objects
+        if self.depth_noise_correlation_px > 0:
+            d["depth_noise_correlation_px"] = float(self.depth_noise_correlation_px)
         if self.occluder is not None:
             first, last = self.occluder.frames
             d["occluder"] = {"name": self.occluder.spec.name, "shape": self.occluder.spec.shape,
@@ -763,7 +766,8 @@ class SyntheticScene:
         out = self._renderer.render(primitives, T_cw, count_labels=[p.label for p in instances])
         noise_seed = int(np.random.SeedSequence([self.seed, index, 17]).generate_state(1)[0])
         rgb = simulate_colour(out.radiance, noise_seed)
-        depth_mm = simulate_depth(out.depth_m, float(self.intrinsics.K[0, 0]), noise_seed + 1)
+        depth_mm = simulate_depth(out.depth_m, float(self.intrinsics.K[0, 0]), noise_seed + 1,
+                                  self.depth_noise_correlation_px)
         mask = out.labels.copy()
         mask[mask >= _DISTRACTOR_LABEL0] = LABEL_DISTRACTOR
         counts = np.bincount(mask[mask >= 0].ravel(), minlength=len(instances))
@@ -778,6 +782,14 @@ class SyntheticScene:
     def frames(self):
         for i in range(self.num_frames):
             yield self.render_frame(i)
+
+
+def check_depth_noise_correlation(pixels: float) -> float:
+    """The depth noise's correlation length in pixels, checked (0 = independent per pixel)."""
+    pixels = float(pixels)
+    if not 0.0 <= pixels <= 20.0:
+        raise InputError(f"depth noise correlation must be 0 (independent per pixel) to 20 pixels, got {pixels:g}")
+    return pixels
 
 
 def _check_common(object_name: str, seed: int, resolution: str) -> ObjectSpec:
@@ -898,10 +910,11 @@ def write_scene_bag(scene: SyntheticScene, out_path, storage: str = "sqlite3", p
 def generate_scene_bag(out_path, object_name: str | list[str] = DEFAULT_OBJECT, instances: int = 6,
                        distractors: int = 3, frames: int = 60, seed: int = 0, storage: str = "sqlite3",
                        resolution: str = "640x480", preview_dir=None, motion: str = "sweep",
-                       occluder: bool = False) -> BagSummary:
+                       occluder: bool = False, depth_noise_correlation_px: float = 0.0) -> BagSummary:
     """Make a tabletop scene (see ``make_tabletop_scene``) and write it as a rosbag2."""
     scene = make_tabletop_scene(object_name, instances, distractors, frames, seed, resolution,
                                 motion=motion, occluder=occluder)
+    scene.depth_noise_correlation_px = check_depth_noise_correlation(depth_noise_correlation_px)
     return write_scene_bag(scene, out_path, storage, preview_dir)
 
 

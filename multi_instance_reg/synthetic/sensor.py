@@ -4,7 +4,10 @@ Colour: mild optical blur, vignetting, then shot + read noise, rgb8.
 Depth (aligned to colour, 16UC1 millimetres, 0 = no measurement):
 - noise sigma_z = DEPTH_NOISE_PER_M * z^2 (z in metres), about 1.8 mm at 1 m and 7 mm at 2 m,
   the quadratic growth of a stereo camera's error (29 mm at 4 m, under the 2 % at 4 m
-  that the D455 data sheet allows);
+  that the D455 data sheet allows); independent per pixel by default, or, with
+  ``correlation_px``, shared by neighbouring pixels (a stereo matcher finds each disparity
+  over a window of pixels, so real surfaces come out wavy rather than speckled): the same
+  sigma_z per pixel, smooth over about that many pixels;
 - 0 at depth discontinuities (3x3 depth spread above 2.5 % of the depth), in the stereo
   occlusion shadow left of foreground edges (95 mm baseline), in random small dropout blobs
   (~2 % of pixels) and outside the range [MIN_RANGE_M, MAX_RANGE_M].
@@ -80,8 +83,20 @@ def simulate_colour(radiance: np.ndarray, seed: int, exposure: float = 1.0) -> n
     return np.clip(img * 255.0 + 0.5, 0, 255).astype(np.uint8)
 
 
-def simulate_depth(depth_m: np.ndarray, fx: float, seed: int) -> np.ndarray:
-    """16UC1 millimetres (0 = invalid) from true depth (H, W) float32 metres, inf = nothing."""
+def correlated_randn(shape, seed: int, correlation_px: float) -> np.ndarray:
+    """Standard normal noise smooth over ``correlation_px`` pixels: white noise blurred by a
+    Gaussian of that sigma, scaled back to unit variance (the blur divides the variance of
+    white noise by the sum of its squared weights)."""
+    white = _randn_like(shape, seed)
+    k = cv2.getGaussianKernel(2 * int(np.ceil(3 * correlation_px)) + 1, correlation_px).ravel()
+    smooth = cv2.sepFilter2D(white, -1, k, k, borderType=cv2.BORDER_REFLECT)
+    return smooth / np.float32(np.sum(k * k))
+
+
+def simulate_depth(depth_m: np.ndarray, fx: float, seed: int, correlation_px: float = 0.0) -> np.ndarray:
+    """16UC1 millimetres (0 = invalid) from true depth (H, W) float32 metres, inf = nothing.
+    ``correlation_px`` > 0: the noise is smooth over about that many pixels (see the module
+    docstring), 0: independent per pixel."""
     h, w = depth_m.shape
     finite = np.isfinite(depth_m)
     z = np.where(finite, depth_m, np.float32(50.0)).astype(np.float32)
@@ -105,7 +120,9 @@ def simulate_depth(depth_m: np.ndarray, fx: float, seed: int) -> np.ndarray:
     field = rng.random((h // 8 + 2, w // 8 + 2), dtype=np.float32)
     field = cv2.resize(field, (w + 16, h + 16), interpolation=cv2.INTER_CUBIC)[8:8 + h, 8:8 + w]
     invalid |= field > np.float32(DROPOUT_THRESHOLD)
-    noisy = z + np.float32(DEPTH_NOISE_PER_M) * z * z * _randn_like((h, w), seed + 7919)
+    unit = (correlated_randn((h, w), seed + 7919, correlation_px) if correlation_px > 0
+            else _randn_like((h, w), seed + 7919))
+    noisy = z + np.float32(DEPTH_NOISE_PER_M) * z * z * unit
     mm = np.rint(noisy * 1000.0)
     mm[invalid | (mm <= 0)] = 0
     return np.clip(mm, 0, 65535).astype(np.uint16)

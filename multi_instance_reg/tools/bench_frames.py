@@ -50,6 +50,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--untextured", default=None, choices=("pallet", "cylinders", "bracket", "all"),
                         help="benchmark the shape front end on untextured generated scenes instead "
                              "(model from the object's mesh; also distractor-only scenes and the model build time)")
+    parser.add_argument("--depth-noise-correlation", type=float, default=0.0, metavar="PX",
+                        help="generated scene bags: depth noise shared by neighbouring pixels over about PX pixels, "
+                             "as a stereo matcher's window makes it (default 0: independent per pixel; the "
+                             "captures the model is built from keep the default)")
     parser.add_argument("--correspondences", default=None, choices=("auto", "sift", "shape", "both"),
                         help="override frontend.correspondences (shape/both: the model is built from the object's mesh plus the capture bags)")
 
@@ -98,14 +102,15 @@ def generate_capture_bags(workdir: Path, object_name=None, seed: int = 0, views:
 
 
 def generate_benchmark_bag(path: Path, object_name=None, scenes: int = 6, frames: int = 5, seed: int = 0,
-                           instances_each: int = 0) -> Path:
+                           instances_each: int = 0, depth_noise_correlation_px: float = 0.0) -> Path:
     """One bag holding ``scenes`` tabletop scenes (4 to 12 instances of the object, 3
     distractors each; seeds seed+100, seed+101, ...), ``frames`` consecutive frames of each,
     with ground truth: the benchmark's (and the tests') scene set. With a list of objects
     (mixed scenes), ``instances_each`` of each in every scene, so that the bag's one
-    /ground_truth/object names every scene's instances."""
+    /ground_truth/object names every scene's instances. ``depth_noise_correlation_px``: see
+    ``sensor.simulate_depth``."""
     from ..datasets.bag_writer import RealSenseBagWriter
-    from ..synthetic.scene import DEFAULT_OBJECT, make_tabletop_scene
+    from ..synthetic.scene import DEFAULT_OBJECT, check_depth_noise_correlation, make_tabletop_scene
 
     frame_period_ns = 33_333_333
     stamp = 1_700_000_000_000_000_000
@@ -114,6 +119,7 @@ def generate_benchmark_bag(path: Path, object_name=None, scenes: int = 6, frames
             count = instances_each or INSTANCES_PER_SCENE[k % len(INSTANCES_PER_SCENE)]
             scene = make_tabletop_scene(object_name or DEFAULT_OBJECT, count,
                                         distractors=3, frames=frames, seed=seed + 100 + k)
+            scene.depth_noise_correlation_px = check_depth_noise_correlation(depth_noise_correlation_px)
             if k == 0:
                 bag.write_object_description(stamp, scene.description())
             for frame in scene.frames():
@@ -280,7 +286,8 @@ def run(args) -> int:
             if not bags:
                 print(f"generating {args.scenes} mixed scenes of {args.frames} frames ...", file=sys.stderr)
                 bags = [generate_benchmark_bag(tmp / "scenes", objects, args.scenes, args.frames, args.seed,
-                                               instances_each=args.instances_each)]
+                                               instances_each=args.instances_each,
+                                               depth_noise_correlation_px=args.depth_noise_correlation)]
             models = []
             for obj in objects:
                 print(f"generating capture bags of {obj} and its model ...", file=sys.stderr)
@@ -292,7 +299,8 @@ def run(args) -> int:
             return run_models(args, bags, [load_model(p) for p in args.model], config)
         if not bags:
             print(f"generating {args.scenes} scenes of {args.frames} frames ...", file=sys.stderr)
-            bags = [generate_benchmark_bag(tmp / "scenes", args.object, args.scenes, args.frames, args.seed)]
+            bags = [generate_benchmark_bag(tmp / "scenes", args.object, args.scenes, args.frames, args.seed,
+                                           depth_noise_correlation_px=args.depth_noise_correlation)]
         if args.model:
             model = load_model(args.model[0])
         else:

@@ -19,8 +19,10 @@ import numpy as np
 from .bench_frames import INSTANCES_PER_SCENE
 
 
-def generate_untextured_bag(path: Path, preset: str, scenes: int, frames: int, seed: int, instances=None) -> Path:
+def generate_untextured_bag(path: Path, preset: str, scenes: int, frames: int, seed: int, instances=None,
+                            depth_noise_correlation_px: float = 0.0) -> Path:
     from ..datasets.bag_writer import RealSenseBagWriter
+    from ..synthetic.scene import check_depth_noise_correlation
     from ..synthetic.untextured import make_untextured_scene
 
     stamp = 1_700_000_000_000_000_000
@@ -28,6 +30,7 @@ def generate_untextured_bag(path: Path, preset: str, scenes: int, frames: int, s
         for k in range(scenes):
             n = INSTANCES_PER_SCENE[k % len(INSTANCES_PER_SCENE)] if instances is None else instances
             scene = make_untextured_scene(preset, n, 3, frames, seed + 200 + k)
+            scene.depth_noise_correlation_px = check_depth_noise_correlation(depth_noise_correlation_px)
             if k == 0:
                 bag.write_object_description(stamp, scene.description())
             for frame in scene.frames():
@@ -59,8 +62,11 @@ def run_untextured(args, config) -> int:
             build_s = time.perf_counter() - t0
             print(f"[{preset}] generating {args.scenes} scenes + {args.scenes} distractor-only scenes of "
                   f"{args.frames} frames (seed {args.seed}) ...", file=sys.stderr)
-            bag = generate_untextured_bag(tmp / "scenes", preset, args.scenes, args.frames, args.seed)
-            empty = generate_untextured_bag(tmp / "empty", preset, args.scenes, args.frames, args.seed + 50, instances=0)
+            noise = args.depth_noise_correlation
+            bag = generate_untextured_bag(tmp / "scenes", preset, args.scenes, args.frames, args.seed,
+                                          depth_noise_correlation_px=noise)
+            empty = generate_untextured_bag(tmp / "empty", preset, args.scenes, args.frames, args.seed + 50, instances=0,
+                                            depth_noise_correlation_px=noise)
             r = replay(bag, model, config, None, args.max_rre_deg, args.max_rte, progress=sys.stderr.isatty(),
                        min_visibility=args.min_visibility)
             r_empty = replay(empty, model, config, None, args.max_rre_deg, args.max_rte, progress=sys.stderr.isatty())

@@ -38,6 +38,11 @@ def add_arguments(parser) -> None:
         p.add_argument("--preview", metavar="DIR", default=None,
                        help="also write PNGs of a few frames: colour, colourised depth, ground-truth boxes")
 
+    def depth_noise(p):
+        p.add_argument("--depth-noise-correlation", type=float, default=0.0, metavar="PX",
+                       help="depth noise shared by neighbouring pixels over about PX pixels, as a stereo "
+                            "matcher's window makes it (the same noise per pixel; default 0: independent per pixel)")
+
     scene = sub.add_parser("scene", help="K identical objects plus distractors, seen at 30 Hz by a moving or still camera",
                            description="K identical instances of an object and D distractors on a table, "
                                        "seen by a D455 at 30 Hz (hand-held sweep, tripod or slow pan, "
@@ -53,6 +58,7 @@ def add_arguments(parser) -> None:
                             "fixed on a tripod, only the sensor noise changes (pose jitter); pan = slow "
                             f"hand-held pan along the table, 0.45-0.7 m in {PAN_SECONDS:g} s and back, objects "
                             "spread along it so that instances enter and leave the view")
+    depth_noise(scene)
     scene.add_argument("--occluder", action="store_true",
                        help="an arm (a distractor, not in the ground truth) passes between the camera and "
                             "the table from about 1/3 to 2/3 of the frames, hiding instances for a few "
@@ -80,6 +86,7 @@ def add_arguments(parser) -> None:
     untextured.add_argument("--storage", choices=("sqlite3", "mcap"), default="sqlite3", help="rosbag2 storage (default sqlite3)")
     untextured.add_argument("--resolution", choices=RESOLUTIONS, default="640x480", help="colour/depth size (default 640x480)")
     untextured.add_argument("--preview", metavar="DIR", default=None, help="also write PNGs of a few frames")
+    depth_noise(untextured)
     untextured.add_argument("--mesh", metavar="FILE", default=None,
                             help="also write the object's mesh (.ply, .stl or .obj; object frame of the ground truth)")
     untextured.add_argument("--units", choices=("m", "mm"), default="m", help="units of the written mesh (default m)")
@@ -110,7 +117,8 @@ def run(args) -> int:
         from ..synthetic.untextured import generate_untextured_bag
 
         summary = generate_untextured_bag(args.output, args.preset, args.instances, args.distractors, args.frames,
-                                          args.seed, args.storage, args.resolution, args.preview, args.mesh, args.units)
+                                          args.seed, args.storage, args.resolution, args.preview, args.mesh, args.units,
+                                          args.depth_noise_correlation)
         print(f"mireg synth untextured: {summary.line()}" + (f"; mesh {args.mesh}" if args.mesh else ""))
         return 0
     if args.synth_command == "scene":
@@ -119,7 +127,8 @@ def run(args) -> int:
                                      instances=args.instances,
                                      distractors=args.distractors, frames=args.frames, seed=args.seed,
                                      storage=args.storage, resolution=args.resolution, preview_dir=args.preview,
-                                     motion=args.motion, occluder=args.occluder)
+                                     motion=args.motion, occluder=args.occluder,
+                                     depth_noise_correlation_px=args.depth_noise_correlation)
     else:
         summary = generate_capture_bag(args.output, object_name=args.object, seed=args.seed, views=args.views,
                                        storage=args.storage, resolution=args.resolution, preview_dir=args.preview)
