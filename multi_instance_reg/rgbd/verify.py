@@ -248,15 +248,18 @@ def outline_continuation(T: np.ndarray, model_pts: np.ndarray, model_normals: np
         P, nP, rows, cols = P[mine], nP[mine], rows[mine], cols[mine]
     if len(rows) == 0:
         return 0.0, 0
-    cont = _face_continues(P, nP, p, n, tolerance, max_angle_deg)
     counted = len(P)
     if floor is not None:
         # The support, not more of the object's own surface: out of the share, yet at least
         # half the band stays in it (a cylinder standing on the table kept 44 pixels of 258,
-        # and 8 of them decided).
+        # and 8 of them decided). Only the pixels above it are looked at (the floor past a
+        # carton's edge is most of the nearest-point search's work).
         above = P @ up > floor
-        cont &= above
+        cont = np.zeros(len(P), np.bool_)
+        cont[above] = _face_continues(P[above], nP[above], p, n, tolerance, max_angle_deg)
         counted = max(int(above.sum()), len(P) // 2, 1)
+    else:
+        cont = _face_continues(P, nP, p, n, tolerance, max_angle_deg)
     # Only surface that goes on from the outline itself counts: reached from the band's
     # inner edge through continuing pixels. A neighbour with its faces in line (cartons
     # on a pallet's grid) lies past a gap, a depth step that breaks the chain.
