@@ -29,6 +29,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..messages import CameraIntrinsics
+from ..threads import map_in_chunks
 from ..transforms import apply_transform, invert_transform
 
 FPFH_BINS = 11
@@ -68,9 +69,10 @@ def neighbours(points: np.ndarray, radius: float, k: int = MAX_NEIGHBOURS, tree=
     return idx.reshape(len(points), -1)
 
 
-@numba.njit(cache=True, fastmath=True)
+@numba.njit(cache=True, fastmath=True, nogil=True)
 def _normals_and_variation(points, nbr_normal, nbr_feature):
-    n = points.shape[0]
+    # Rows of the neighbour tables (of all points, or of a part of them).
+    n = nbr_normal.shape[0]
     normals = np.zeros((n, 3))
     variation = np.zeros(n)
     for i in range(n):
@@ -136,9 +138,12 @@ def surface_normals(points: np.ndarray, voxel: float, toward, tree=None) -> np.n
     that search was half of the frame cloud's time."""
     tree = tree or cKDTree(points)
     nbr_n = neighbours(points, NORMAL_RADIUS * voxel, 16, tree)
-    normals, _ = _normals_and_variation(np.ascontiguousarray(points, np.float64), nbr_n,
-                                        np.zeros((len(points), 0), np.int64))
-    return _orient(normals, points, toward, None)
+    pts = np.ascontiguousarray(points, np.float64)
+    # Rows in parts on the shared thread pool (an eigen-decomposition per point; the frame
+    # cloud's other core is free once its segments are found).
+    parts = map_in_chunks(lambda rows: _normals_and_variation(pts, rows, np.zeros((len(rows), 0), np.int64))[0],
+                          nbr_n)
+    return _orient(np.concatenate(parts), points, toward, None)
 
 
 def _orient(normals: np.ndarray, points: np.ndarray, toward, along) -> np.ndarray:
