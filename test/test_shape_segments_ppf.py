@@ -366,6 +366,23 @@ def test_refinement_corrects_a_box_pose_with_either_icp_association(association)
     assert np.linalg.norm((out @ top - T @ top)[:2]) < np.linalg.norm((start @ top - T @ top)[:2]) + 0.002
 
 
+def test_the_warm_up_frame_shows_the_object_where_it_was_drawn():
+    # warm_up runs the shape path on a made-up frame so that its compiled kernels are built
+    # before the first real frame; that frame must be one the path works through, up to a pose.
+    from multi_instance_reg.rgbd.pipeline import InstanceRegistration, PipelineConfig
+    from multi_instance_reg.symmetry import closest_symmetric_pose
+
+    model = _box_model()
+    reg = InstanceRegistration(model, PipelineConfig())
+    depth, intr, T = reg._shape.warm_up_frame()
+    assert depth.shape == (intr.height, intr.width) and np.all(depth > 0)
+    found = reg.register_frame(np.zeros(depth.shape + (3,), np.uint8), depth, intr).instances
+    assert len(found) == 1
+    Ts = closest_symmetric_pose(found[0].T, T, model.symmetries)
+    assert rotation_angle_deg(Ts[:3, :3].T @ T[:3, :3]) < 3.0 and np.linalg.norm(Ts[:3, 3] - T[:3, 3]) < 0.01
+    reg.warm_up()
+
+
 def test_depth_points_and_normals_are_the_central_differences_of_the_depth_image():
     # The outline checks' compiled per-pixel points and normals against the same central
     # differences written with whole arrays: a tilted plane with holes, pixels at the border.

@@ -87,8 +87,12 @@ class MultiModelRegistration:
         return [m.name for m in self.models]
 
     def warm_up(self) -> None:
-        """Compile the ECC kernels before the first frame (shared by every model)."""
+        """Compile the kernels before the first frame (shared by every model): the first
+        model's, and the shape path's on the first model that has shape data."""
         self.pipelines[0].warm_up()
+        shaped = [p for p in self.pipelines if p.correspondences != "sift"]
+        if shaped and shaped[0] is not self.pipelines[0]:
+            shaped[0].warm_up()
 
     def register_frame(self, rgb: np.ndarray, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> FrameResult:
         """Every instance of every model in one frame; see the module's docstring."""

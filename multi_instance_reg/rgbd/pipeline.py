@@ -267,9 +267,9 @@ class InstanceRegistration:
         return self._rays
 
     def warm_up(self) -> None:
-        """Run the clustering, the lifting and the free-space check once on a small made-up
-        problem, so that one-off costs (compiled kernels) are not paid by the first real
-        frame. numba caches its kernels on disk, but a new checkout compiles them: 1.8 s on
+        """Run the clustering, the lifting and the free-space check (and, with shape data, the
+        shape path on a made-up depth frame) once on a small made-up problem, so that one-off
+        costs (compiled kernels) are not paid by the first real frame. numba caches its kernels on disk, but a new checkout compiles them: 1.8 s on
         the first frame, in which a live node's detector fell seconds behind a short stream."""
         rng = np.random.default_rng(0)
         src = rng.uniform(-0.05, 0.05, (40, 3))
@@ -287,6 +287,9 @@ class InstanceRegistration:
             T = np.eye(4)
             T[2, 3] = 0.5
             free_space_share(T, *self._free_surface, depth, intrinsics, T[:3, 3], fe.free_tolerance, 0.1)
+        if self._shape is not None:
+            depth, intrinsics, _ = self._shape.warm_up_frame()
+            self._register_frame_shape(depth, intrinsics)
 
     def register_frame(self, rgb: np.ndarray, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> FrameResult:
         """rgb (H, W, 3) uint8, depth_m (H, W) float metres (0 = invalid), aligned to colour."""

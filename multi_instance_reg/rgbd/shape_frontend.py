@@ -115,6 +115,28 @@ class ShapeFrontEnd:
         _, j = cKDTree(self._surface).query(np.asarray(points, np.float64), k=1)
         return self._surface_normals[j]
 
+    def warm_up_frame(self) -> tuple[np.ndarray, CameraIntrinsics, np.ndarray]:
+        """A small made-up depth frame of the object in front of a wall, for ``warm_up``: the
+        shape path's kernels (support planes, normals, votes, ICP, depth and outline checks)
+        compile on their first call, seconds on a new checkout's first frame otherwise. The
+        model's camera-facing surface at an oblique pose, each sample drawn as a square of
+        its voxel's footprint, nearest first. Returns the depth, its intrinsics and the pose drawn."""
+        f, w, h = 120.0, 160, 120
+        z = max(1.6 * f * self.diameter / w, self.fe.depth_min + self.diameter)
+        c, s = np.cos(0.5), np.sin(0.5)
+        T = np.eye(4)
+        T[:3, :3] = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]]) @ np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+        T[:3, 3] = [0.0, 0.0, z]
+        depth = np.full((h, w), np.float32(z + self.diameter))       # the wall behind it
+        p = self._visible_surface(T)
+        u = np.rint(f * p[:, 0] / p[:, 2] + w / 2).astype(int)
+        v = np.rint(f * p[:, 1] / p[:, 2] + h / 2).astype(int)
+        r = int(np.ceil(f * self.voxel / z / 2))
+        for k in np.argsort(-p[:, 2]):                                # far first: the nearest stays
+            depth[max(v[k] - r, 0):max(v[k] + r + 1, 0), max(u[k] - r, 0):max(u[k] + r + 1, 0)] = p[k, 2]
+        K = np.array([[f, 0.0, w / 2], [0.0, f, h / 2], [0.0, 0.0, 1.0]])
+        return depth, CameraIntrinsics(K, w, h), T
+
     def ecc_config(self, base: ECCConfig) -> ECCConfig:
         """ECC for shape matches: thresholds no finer than the voxel they are sampled at, and
         compatibility only between points that one object can hold (spatial weight)."""
