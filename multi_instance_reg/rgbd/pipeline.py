@@ -267,10 +267,11 @@ class InstanceRegistration:
         return self._rays
 
     def warm_up(self) -> None:
-        """Run the clustering, the lifting and the free-space check (and, with shape data, the
-        shape path on a made-up depth frame) once on a small made-up problem, so that one-off
-        costs (compiled kernels) are not paid by the first real frame. numba caches its kernels on disk, but a new checkout compiles them: 1.8 s on
-        the first frame, in which a live node's detector fell seconds behind a short stream."""
+        """Run the clustering, the lifting, the free-space check and, with shape data, the
+        shape path once on small made-up input, so that one-off costs (compiled kernels) are
+        not paid by the first real frame. numba caches its kernels on disk, but a new checkout
+        compiles them: 1.8 s on the first SIFT frame (15 s on a pallet's first shape frame), in
+        which a live node's detector fell seconds behind a short stream."""
         rng = np.random.default_rng(0)
         src = rng.uniform(-0.05, 0.05, (40, 3))
         tgt = src + np.array([0.0, 0.0, 0.8])

@@ -756,6 +756,15 @@ class SyntheticScene:
     def stamp_ns(self, index: int) -> int:
         return START_STAMP_NS + int(round(index * 1e9 / FRAME_RATE_HZ))
 
+    def set_depth_noise_correlation(self, pixels: float) -> "SyntheticScene":
+        """Depth noise smooth over about ``pixels`` pixels from now on (0 = independent per
+        pixel; ``sensor.simulate_depth``), checked. Returns the scene."""
+        pixels = float(pixels)
+        if not 0.0 <= pixels <= 20.0:
+            raise InputError(f"depth noise correlation must be 0 (independent per pixel) to 20 pixels, got {pixels:g}")
+        self.depth_noise_correlation_px = pixels
+        return self
+
     def render_frame(self, index: int) -> RenderedFrame:
         T_wc = self.camera_poses[index]
         T_cw = invert_transform(T_wc)
@@ -782,14 +791,6 @@ class SyntheticScene:
     def frames(self):
         for i in range(self.num_frames):
             yield self.render_frame(i)
-
-
-def check_depth_noise_correlation(pixels: float) -> float:
-    """The depth noise's correlation length in pixels, checked (0 = independent per pixel)."""
-    pixels = float(pixels)
-    if not 0.0 <= pixels <= 20.0:
-        raise InputError(f"depth noise correlation must be 0 (independent per pixel) to 20 pixels, got {pixels:g}")
-    return pixels
 
 
 def _check_common(object_name: str, seed: int, resolution: str) -> ObjectSpec:
@@ -914,7 +915,7 @@ def generate_scene_bag(out_path, object_name: str | list[str] = DEFAULT_OBJECT, 
     """Make a tabletop scene (see ``make_tabletop_scene``) and write it as a rosbag2."""
     scene = make_tabletop_scene(object_name, instances, distractors, frames, seed, resolution,
                                 motion=motion, occluder=occluder)
-    scene.depth_noise_correlation_px = check_depth_noise_correlation(depth_noise_correlation_px)
+    scene.set_depth_noise_correlation(depth_noise_correlation_px)
     return write_scene_bag(scene, out_path, storage, preview_dir)
 
 

@@ -152,7 +152,7 @@ def generate_untextured_bag(out_path, preset: str, instances: int = 8, distracto
     see ``sensor.simulate_depth``."""
     from ..meshes import save_mesh
     from .objects import object_mesh
-    from .scene import check_depth_noise_correlation, write_scene_bag
+    from .scene import write_scene_bag
 
     from ..meshes import MESH_SUFFIXES
     from pathlib import Path
@@ -160,7 +160,7 @@ def generate_untextured_bag(out_path, preset: str, instances: int = 8, distracto
     if mesh_path is not None and Path(mesh_path).suffix.lower() not in MESH_SUFFIXES:
         raise InputError(f"mesh file {mesh_path}: unknown format; use .ply, .stl or .obj")
     scene = make_untextured_scene(preset, instances, distractors, frames, seed, resolution)
-    scene.depth_noise_correlation_px = check_depth_noise_correlation(depth_noise_correlation_px)
+    scene.set_depth_noise_correlation(depth_noise_correlation_px)
     summary = write_scene_bag(scene, out_path, storage, preview_dir)
     if mesh_path is not None:
         save_mesh(object_mesh(scene.target), mesh_path, mesh_units)

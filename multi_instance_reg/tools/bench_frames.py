@@ -110,7 +110,7 @@ def generate_benchmark_bag(path: Path, object_name=None, scenes: int = 6, frames
     /ground_truth/object names every scene's instances. ``depth_noise_correlation_px``: see
     ``sensor.simulate_depth``."""
     from ..datasets.bag_writer import RealSenseBagWriter
-    from ..synthetic.scene import DEFAULT_OBJECT, check_depth_noise_correlation, make_tabletop_scene
+    from ..synthetic.scene import DEFAULT_OBJECT, make_tabletop_scene
 
     frame_period_ns = 33_333_333
     stamp = 1_700_000_000_000_000_000
@@ -119,7 +119,7 @@ def generate_benchmark_bag(path: Path, object_name=None, scenes: int = 6, frames
             count = instances_each or INSTANCES_PER_SCENE[k % len(INSTANCES_PER_SCENE)]
             scene = make_tabletop_scene(object_name or DEFAULT_OBJECT, count,
                                         distractors=3, frames=frames, seed=seed + 100 + k)
-            scene.depth_noise_correlation_px = check_depth_noise_correlation(depth_noise_correlation_px)
+            scene.set_depth_noise_correlation(depth_noise_correlation_px)
             if k == 0:
                 bag.write_object_description(stamp, scene.description())
             for frame in scene.frames():

@@ -22,7 +22,6 @@ from .bench_frames import INSTANCES_PER_SCENE
 def generate_untextured_bag(path: Path, preset: str, scenes: int, frames: int, seed: int, instances=None,
                             depth_noise_correlation_px: float = 0.0) -> Path:
     from ..datasets.bag_writer import RealSenseBagWriter
-    from ..synthetic.scene import check_depth_noise_correlation
     from ..synthetic.untextured import make_untextured_scene
 
     stamp = 1_700_000_000_000_000_000
@@ -30,7 +29,7 @@ def generate_untextured_bag(path: Path, preset: str, scenes: int, frames: int, s
         for k in range(scenes):
             n = INSTANCES_PER_SCENE[k % len(INSTANCES_PER_SCENE)] if instances is None else instances
             scene = make_untextured_scene(preset, n, 3, frames, seed + 200 + k)
-            scene.depth_noise_correlation_px = check_depth_noise_correlation(depth_noise_correlation_px)
+            scene.set_depth_noise_correlation(depth_noise_correlation_px)
             if k == 0:
                 bag.write_object_description(stamp, scene.description())
             for frame in scene.frames():
