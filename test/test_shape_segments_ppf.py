@@ -648,3 +648,40 @@ def test_a_box_flush_with_an_instance_found_is_judged_by_its_outline_without_it(
     assert again is not None and np.allclose(again[0], right) and again[1] > 0.95
     off = ShapeFrontEnd(build_model_from_mesh(solid, "block"), replace(fe, shape_outline_by_instances=False))
     assert off.judge_behind(right, cloud, depth, intr, occluders, [left]) is None
+
+
+def test_a_bracket_pose_left_off_by_icp_gets_a_second_look_by_projective_icp(monkeypatch):
+    """Where a bracket's plates meet, nearest-point ICP can stop a few degrees off (its pairs
+    cross to the other plate); the pose then overhangs empty space and is rejected. The
+    second look aligns it by projective ICP and returns it apart (``second``); a convex
+    model, or the option off, gets none."""
+    from dataclasses import replace
+    from multi_instance_reg.rgbd.pipeline import PipelineConfig
+    from multi_instance_reg.rgbd.shape import apply_twist
+    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.synthetic.objects import get_object, object_mesh
+    from multi_instance_reg.synthetic.scene import look_at
+    from multi_instance_reg.transforms import invert_transform
+
+    intr = CameraIntrinsics(K=np.array([[380.0, 0, 160], [0, 380.0, 120], [0, 0, 1]]), width=320, height=240)
+    T = invert_transform(look_at(np.array([0.3, -0.3, 0.4]), np.zeros(3)))
+    off = apply_twist(T, np.array([0.0, np.radians(5.0), np.radians(2.0), 0.004, -0.003, 0.0]), T[:3, 3])
+    for name, mesh in (("bracket", object_mesh(get_object("bracket"))), ("block", box_mesh(0.12, 0.06, 0.08))):
+        dense, _ = sample_surface(mesh, 0.001)
+        depth = _depth_of(dense, T, intr)
+        depth = np.where(depth > 0, depth, np.float32(T[2, 3] + 0.3))      # a wall behind
+        for on in (True, False):
+            fe = replace(PipelineConfig().frontend, shape_second_look=on)
+            shape = ShapeFrontEnd(build_model_from_mesh(mesh, name), fe)
+            # The nearest-point ICP stopped where it started (as it does on a crowded table).
+            monkeypatch.setattr(shape, "_icp", lambda T0, *a, **k: T0)
+            cloud = shape.frame_cloud(depth, intr, None)
+            second = []
+            assert shape.refine_and_check([off], cloud, depth, intr, second=second) == []
+            if name == "bracket" and on:
+                assert len(second) == 1
+                P = second[0][0]
+                assert rotation_angle_deg(P[:3, :3].T @ T[:3, :3]) < 1.0
+                assert np.linalg.norm(P[:3, 3] - T[:3, 3]) < 0.002 and second[0][1] > 0.95
+            else:
+                assert second == []
