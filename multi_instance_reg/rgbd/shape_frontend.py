@@ -39,6 +39,9 @@ ICP_REACH = 2.0
 SECOND_LOOK_MIN = 0.6
 SECOND_LOOK_MIN_FREE = 0.02
 SECOND_LOOK_ITERATIONS = 10
+# A pose is rejected when the model reaches more than this many voxels through the frame's
+# largest support plane (``pierces``).
+PIERCE_VOXELS = 2.0
 # A direction holds ICP when at least this share of the visible normals' weight lies along it.
 UNHELD_SHARE = 0.1
 
@@ -53,6 +56,7 @@ class FrameCloud:
     segments: np.ndarray | None = None    # (M,) segment label per point (-1: none), ppf only
     poses: np.ndarray | None = None       # (K, 4, 4) pose hypotheses clustered from the votes, ppf only
     up: np.ndarray | None = None          # (3,) the largest support plane's normal, towards the camera, ppf only
+    up_offset: float | None = None        # that plane: up . p + up_offset = 0 on it
     grid: PointGrid | None = None         # the points and normals for ICP's nearest-point search
     patches: Faces | None = None          # the segments' flat patches shaped as a model face (ppf, shape_faces)
     patch_fits: np.ndarray | None = None  # (J, F) bool: patch j has model face f's outline
@@ -189,7 +193,8 @@ class ShapeFrontEnd:
         normals = surface_normals(pts, self.voxel, toward=np.zeros(3), tree=tree)
         labels = segments.result()
         return FrameCloud(pts, normals, np.zeros(0, np.int64), np.zeros((0, 33), np.float32), tree, labels,
-                          up=ground[0] if ground else None, grid=PointGrid(pts, normals, ICP_REACH * self.voxel))
+                          up=ground[0] if ground else None, up_offset=ground[1] if ground else None,
+                          grid=PointGrid(pts, normals, ICP_REACH * self.voxel))
 
     def correspondences(self, cloud: FrameCloud, on_poses=None) -> tuple[np.ndarray, np.ndarray]:
         """(model points (N, 3), scene points (N, 3)). ppf: each reference point of a
@@ -523,6 +528,17 @@ class ShapeFrontEnd:
         held = V[:, w >= UNHELD_SHARE]
         return weak @ weak.T, (held[:, 0] if held.shape[1] == 1 else None), p[facing].mean(axis=0)
 
+    def pierces(self, T, cloud: FrameCloud) -> bool:
+        """Whether the model at pose T reaches more than two voxels through the frame's
+        largest support plane (the table it would stand on): its points there are hidden
+        behind the table's surface, so the depth check counts them as occluded, not as
+        wrong (a bracket turned over, its upright plate sunk into the table, its base plate
+        on the true one's)."""
+        if cloud.up is None or cloud.up_offset is None:
+            return False
+        low = float(np.min(self._surface @ (T[:3, :3].T @ cloud.up))) + float(T[:3, 3] @ cloud.up)
+        return low + cloud.up_offset < -PIERCE_VOXELS * self.voxel
+
     def _judge(self, T, support, free, n, cloud: FrameCloud, depth_m, intrinsics, explained=None):
         """(T, support, agreeing points, evidence) when the depth and the outline accept pose
         T, else None; evidence: the judged points times support - free - 2 x outline
@@ -530,6 +546,8 @@ class ShapeFrontEnd:
         out (``outline_continuation``)."""
         fe = self.fe
         if n < fe.shape_min_visible or support < fe.shape_min_support or free > fe.shape_max_free:
+            return None
+        if fe.shape_reject_through_support and self.pierces(T, cloud):
             return None
         if fe.shape_min_in_view > 0 and in_view_share(T, self._surface, self._surface_normals,
                                                       intrinsics) < fe.shape_min_in_view:
