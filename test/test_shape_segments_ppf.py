@@ -41,7 +41,8 @@ def test_support_mask_keeps_a_thin_plate_on_the_table_and_says_which_way_is_up()
     tight = support_mask(depth, _intrinsics(), valid, max_area=0.05, thresh=0.004, noise_per_m2=0.002, ground=ground)
     assert loose[105:135, 105:175].all()                     # taken for the table
     assert not tight[105:135, 105:175].any() and tight[200:, :].all()
-    assert len(ground) == 1 and ground[0] @ [0.0, 0.0, -1.0] > 0.99   # the table's normal, towards the camera
+    assert len(ground) == 2 and ground[0] @ [0.0, 0.0, -1.0] > 0.99   # the table's normal, towards the camera
+    assert abs(ground[1] - 0.7) < 0.002                      # and its offset: up . p + 0.7 = 0 on it
 
 
 def test_connected_segments_split_and_drop_small():
@@ -648,3 +649,75 @@ def test_a_box_flush_with_an_instance_found_is_judged_by_its_outline_without_it(
     assert again is not None and np.allclose(again[0], right) and again[1] > 0.95
     off = ShapeFrontEnd(build_model_from_mesh(solid, "block"), replace(fe, shape_outline_by_instances=False))
     assert off.judge_behind(right, cloud, depth, intr, occluders, [left]) is None
+
+
+def test_a_bracket_pose_left_off_by_icp_gets_a_second_look_by_projective_icp(monkeypatch):
+    """Where a bracket's plates meet, nearest-point ICP can stop a few degrees off (its pairs
+    cross to the other plate); the pose then overhangs empty space and is rejected. The
+    second look aligns it by projective ICP and returns it apart (``second``); a convex
+    model, or the option off, gets none."""
+    from dataclasses import replace
+    from multi_instance_reg.rgbd.pipeline import PipelineConfig
+    from multi_instance_reg.rgbd.shape import apply_twist
+    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.synthetic.objects import get_object, object_mesh
+    from multi_instance_reg.synthetic.scene import look_at
+    from multi_instance_reg.transforms import invert_transform
+
+    intr = CameraIntrinsics(K=np.array([[380.0, 0, 160], [0, 380.0, 120], [0, 0, 1]]), width=320, height=240)
+    T = invert_transform(look_at(np.array([0.3, -0.3, 0.4]), np.zeros(3)))
+    off = apply_twist(T, np.array([0.0, np.radians(5.0), np.radians(2.0), 0.004, -0.003, 0.0]), T[:3, 3])
+    for name, mesh in (("bracket", object_mesh(get_object("bracket"))), ("block", box_mesh(0.12, 0.06, 0.08))):
+        dense, _ = sample_surface(mesh, 0.001)
+        depth = _depth_of(dense, T, intr)
+        depth = np.where(depth > 0, depth, np.float32(T[2, 3] + 0.3))      # a wall behind
+        for on in (True, False):
+            fe = replace(PipelineConfig().frontend, shape_second_look=on)
+            shape = ShapeFrontEnd(build_model_from_mesh(mesh, name), fe)
+            # The nearest-point ICP stopped where it started (as it does on a crowded table).
+            monkeypatch.setattr(shape, "_icp", lambda T0, *a, **k: T0)
+            cloud = shape.frame_cloud(depth, intr, None)
+            second = []
+            assert shape.refine_and_check([off], cloud, depth, intr, second=second) == []
+            if name == "bracket" and on:
+                assert len(second) == 1
+                P = second[0][0]
+                assert rotation_angle_deg(P[:3, :3].T @ T[:3, :3]) < 1.0
+                assert np.linalg.norm(P[:3, 3] - T[:3, 3]) < 0.002 and second[0][1] > 0.95
+            else:
+                assert second == []
+
+
+def test_a_pose_reaching_through_the_table_is_rejected():
+    """A bracket on the table, and the same bracket turned over (180 deg about its long
+    axis) and lowered so that its base plate lies where the true one's does: its upright
+    plate is sunk into the table, which the depth check counts as hidden, and it passes
+    there (support 0.88). The support plane rejects it; the true pose stays."""
+    from dataclasses import replace
+    from multi_instance_reg.rgbd.pipeline import PipelineConfig
+    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.synthetic.objects import get_object, object_mesh
+    from multi_instance_reg.synthetic.scene import look_at
+    from multi_instance_reg.transforms import invert_transform
+
+    mesh = object_mesh(get_object("bracket"))
+    intr = CameraIntrinsics(K=np.array([[380.0, 0, 160], [0, 380.0, 120], [0, 0, 1]]), width=320, height=240)
+    cam = look_at(np.array([0.3, 0.0, 0.4]), np.zeros(3))               # camera -> world, table z = 0
+    T = invert_transform(cam) @ make_transform(np.eye(3), [0.0, 0.0, 0.04])      # base plate's underside on it
+    over = invert_transform(cam) @ make_transform(np.diag([1.0, -1.0, -1.0]), [0.0, 0.0, -0.028])
+    dense, _ = sample_surface(mesh, 0.001)
+    depth = _depth_of(dense, T, intr)
+    # The table: the plane z = 0 wherever the bracket is not.
+    K = intr.K
+    v, u = np.mgrid[0:intr.height, 0:intr.width]
+    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u, float)], -1) @ cam[:3, :3].T
+    table = (-cam[2, 3] / rays[..., 2]).astype(np.float32)              # depth: the rays have z = 1 in the camera
+    depth = np.where((depth > 0) & (depth < table), depth, table)
+    for on in (True, False):
+        fe = replace(PipelineConfig().frontend, shape_reject_through_support=on)
+        shape = ShapeFrontEnd(build_model_from_mesh(mesh, "bracket"), fe)
+        cloud = shape.frame_cloud(depth, intr, None)
+        assert cloud.up is not None and float(cloud.up @ cam[2, :3]) > 0.99     # world z, in the camera frame
+        assert not shape.pierces(T, cloud) and shape.pierces(over, cloud)
+        assert shape.refine_one(T, cloud, depth, intr) is not None
+        assert (shape.refine_one(over, cloud, depth, intr) is None) == on

@@ -116,6 +116,8 @@ class FrontEndConfig:
     shape_joined_clusters: int = param(1, "shape ppf, non-convex models only (an L bracket; boxes and cylinders show one connected surface): two segments side by side in the image across a depth step, that one object could span, also vote together, and their best this-many pose clusters are checked as hypotheses (not given to ECC); 0 = off. Bracket MHF1 seed 0 / 5 (tuned): 0.827 -> 0.890 / 0.752 -> 0.811 alone, 0.866 -> 0.925 / 0.773 -> 0.833 with shape_outline_by_instances; both, seeds 0 / 5 / held-out 9 / 13 / 33 / 41 / 47: 0.827 / 0.752 / 0.797 / 0.780 / 0.805 / 0.805 / 0.729 -> 0.925 / 0.833 / 0.852 / 0.849 / 0.923 / 0.839 / 0.811", 0, 100)
     shape_outline_by_instances: bool = param(True, "shape (with shape_hidden_by_instances): a pose rejected by the free-space or outline check is judged again too, its outline band's pixels on the instances found left out (a neighbour flush with it continues its face there: no larger surface), and added where no instance is. MHF1 seed 0 / 5 with the bracket's joined votes: bracket 0.890 -> 0.925 / 0.811 -> 0.833, cylinders 0.993 -> 0.996 / same, pallet 0.919 -> 0.927 / same; false positives on distractor-only frames unchanged", None, None)
     shape_faces: bool = param(True, "shape ppf, convex models with a face that has a long axis (a box; not a cylinder): the segments' flat patches whose outline (second moments) is that of a model face (a carton's top seen whole) give pose hypotheses, and a hypothesis near such a patch is moved onto it before ICP (a face seen alone holds ICP in its plane nowhere, and its point pairs differ only in their distance; rgbd/faces.py). Pallet hits seeds 0 / 5 / 9 / 13 / 33 / 41: 75 / 76 / 74 / 72 / 63 / 77 -> 83 / 82 / 84 / 84 / 79 / 83 (with the selection by evidence: 83 / 83 / 84 / 84 / 81 / 83); cylinders and bracket unchanged", None, None)
+    shape_second_look: bool = param(True, "shape, non-convex models only (an L bracket): a refined pose rejected while overhanging space seen empty (free >= 0.02, support and support - free >= 0.6) is aligned again by projective point-to-plane ICP (each model point with the depth pixel on its ray: no pairs across the two plates where they meet, which left nearest-point ICP 4-6 deg off), judged again when the depth agrees better, and added where no instance is. Bracket MHF1, with shape_reject_through_support off, seeds 5 / 9 / 13 (tuned), 0, 113 / 127 / 139 (held out), 151 / 157 / 163 (fresh): 0.833 / 0.852 / 0.849 / 0.925 / 0.824 / 0.932 / 0.913 / 0.714 / 0.808 / 0.882 -> 0.829 / 0.885 / 0.867 / 0.946 / 0.862 / 0.944 / 0.913 / 0.764 / 0.832 / 0.887", None, None)
+    shape_reject_through_support: bool = param(True, "shape ppf: drop a pose whose model reaches more than 2 voxels through the frame's largest support plane (the plane piece with the largest area removed, taken as unbounded: the table or floor): the depth check counts what lies behind the table's surface as hidden, and a bracket turned over with its upright plate sunk into the table, or a bracket's upright fitted onto a block's top, passed. Bracket false positives on distractor-only frames, seed 0: 1 -> 0; cylinders seed 9 MHF1 0.959 -> 0.982 (MHP 1.0), cylinders and pallet seeds 0 / 5 / 13, pallet 9 unchanged. Off where the largest plane is not what objects stand on and objects lie beyond its extension", None, None)
     shape_min_visible: int = param(20, "shape: an instance needs at least this many model points visible in the image with valid depth", 3, 100000)
 
 
@@ -475,9 +477,15 @@ class InstanceRegistration:
                 leftover = np.sort(np.random.default_rng(0).choice(leftover, fe.shape_recover_max, replace=False))
             hypotheses += recover_small_instances(src, tgt, leftover, self._shape.diameter, self._shape.voxel,
                                                   fe.recover_min_inliers, thresh)
-        rejected = []
-        checked = self._shape.refine_and_check(hypotheses, cloud, depth_m, intrinsics, started, offset, rejected)
+        rejected, second = [], []
+        checked = self._shape.refine_and_check(hypotheses, cloud, depth_m, intrinsics, started, offset, rejected,
+                                               second)
         chosen = self._one_per_box(checked)
+        if second:
+            # Poses kept at their second look (a non-convex model's projective ICP) only where
+            # no instance is: ranked with the rest, a wrong one polished onto a bracket took
+            # the place of its right pose left 4 deg off (seed 0).
+            chosen = self._one_per_box(chosen + second, first=len(chosen))
         if fe.shape_hidden_by_instances and chosen and rejected:
             # Poses rejected for too little support, perhaps for what the instances found
             # hide of them, or by the outline, where a found one is flush with them: judged

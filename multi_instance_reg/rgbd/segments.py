@@ -33,7 +33,7 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
     ``noise_per_m2`` z^2 (stereo depth noise grows with the square of the distance); a piece
     is large when its area exceeds ``max_area`` (m^2). ``ground``, a list, receives the
     unit normal (towards the camera) of the plane with the largest removed area: "up", if
-    the floor, pallet or table is in view."""
+    the floor, pallet or table is in view; and its offset (up . p + offset = 0 on it)."""
     h, w = depth_m.shape
     pts, pix = depth_to_cloud(depth_m, intrinsics, valid, stride=stride)
     pts = pts.astype(np.float64)
@@ -67,7 +67,8 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
                                             count, pix, out)
         if ground is not None and removed_area > best_area:
             best_area = removed_area
-            ground[:] = [np.asarray(n, np.float64) * (1.0 if d > 0 else -1.0)]   # the camera's side
+            # The camera's side, and the offset: up . p + offset = 0 on the plane.
+            ground[:] = [np.asarray(n, np.float64) * (1.0 if d > 0 else -1.0), abs(float(d))]
         alive &= ~on
     if stride > 1:
         # Fill the pixels between the sampled ones.

@@ -26,12 +26,22 @@ from .faces import Faces, frame_patches, matches, model_faces, nearest_face_pose
 from .segments import connected_segments, pairs_across_steps, support_mask
 from .verify import facing_camera, in_view_share, outline_continuation, outline_shift
 from ..threads import shared_pool, submit_each
+from ..tracking.icp import align_projective
 from .shape import (PointGrid, ShapeMatcher, apply_twist, depth_support, describe, icp_point_to_plane, is_convex,
                     scene_cloud, surface_normals, voxel_downsample)
 
 
 # ICP pairs a model point with a scene point at most this many voxels away.
 ICP_REACH = 2.0
+# The second look (``_refine``) is tried on a rejected pose at least this far along: its
+# support and support - free, and at least this share of it in front of the depth (it
+# overhangs space seen empty: off, not hidden behind something).
+SECOND_LOOK_MIN = 0.6
+SECOND_LOOK_MIN_FREE = 0.02
+SECOND_LOOK_ITERATIONS = 10
+# A pose is rejected when the model reaches more than this many voxels through the frame's
+# largest support plane (``pierces``).
+PIERCE_VOXELS = 2.0
 # A direction holds ICP when at least this share of the visible normals' weight lies along it.
 UNHELD_SHARE = 0.1
 
@@ -46,6 +56,7 @@ class FrameCloud:
     segments: np.ndarray | None = None    # (M,) segment label per point (-1: none), ppf only
     poses: np.ndarray | None = None       # (K, 4, 4) pose hypotheses clustered from the votes, ppf only
     up: np.ndarray | None = None          # (3,) the largest support plane's normal, towards the camera, ppf only
+    up_offset: float | None = None        # that plane: up . p + up_offset = 0 on it
     grid: PointGrid | None = None         # the points and normals for ICP's nearest-point search
     patches: Faces | None = None          # the segments' flat patches shaped as a model face (ppf, shape_faces)
     patch_fits: np.ndarray | None = None  # (J, F) bool: patch j has model face f's outline
@@ -182,7 +193,8 @@ class ShapeFrontEnd:
         normals = surface_normals(pts, self.voxel, toward=np.zeros(3), tree=tree)
         labels = segments.result()
         return FrameCloud(pts, normals, np.zeros(0, np.int64), np.zeros((0, 33), np.float32), tree, labels,
-                          up=ground[0] if ground else None, grid=PointGrid(pts, normals, ICP_REACH * self.voxel))
+                          up=ground[0] if ground else None, up_offset=ground[1] if ground else None,
+                          grid=PointGrid(pts, normals, ICP_REACH * self.voxel))
 
     def correspondences(self, cloud: FrameCloud, on_poses=None) -> tuple[np.ndarray, np.ndarray]:
         """(model points (N, 3), scene points (N, 3)). ppf: each reference point of a
@@ -273,7 +285,8 @@ class ShapeFrontEnd:
 
     def refine_and_check(self, transforms, cloud: FrameCloud, depth_m: np.ndarray,
                          intrinsics: CameraIntrinsics, started: "Prefetch | None" = None, offset: int = 0,
-                         rejected: list | None = None) -> list[tuple[np.ndarray, float, int, float]]:
+                         rejected: list | None = None, second: list | None = None
+                         ) -> list[tuple[np.ndarray, float, int, float]]:
         """Each transform refined by ICP against the frame's points and kept when the depth
         image agrees with the model's visible surface: (T, support share, agreeing points, evidence).
         Hypotheses that are one pose (ECC's and the vote clusters' for one instance) are
@@ -286,7 +299,8 @@ class ShapeFrontEnd:
         ``rejected``: receives the refined poses rejected for too little support (yet enough
         to be judged: at least half ``shape_min_support``), and with
         ``shape_outline_by_instances`` those rejected by the later checks too, for
-        ``judge_behind``."""
+        ``judge_behind``. ``second``: receives the poses kept at their second look
+        (``shape_second_look``); without it they are not returned."""
         if cloud.grid is None:
             return []
         order = self.distinct(transforms)
@@ -298,9 +312,11 @@ class ShapeFrontEnd:
         tasks = [task if task is not None else next(new) for task in tasks]
         results = [task.result() for task in tasks]
         if rejected is not None:
-            rejected.extend(T for kept, T, support in results if kept is None and T is not None and (
+            rejected.extend(T for kept, T, support, _ in results if kept is None and T is not None and (
                 support < self.fe.shape_min_support or self.fe.shape_outline_by_instances))
-        return [kept for kept, _, _ in results if kept is not None]
+        if second is not None:
+            second.extend(s for _, _, _, s in results if s is not None)
+        return [kept for kept, _, _, _ in results if kept is not None]
 
     def start_refining(self, transforms, cloud: FrameCloud, depth_m: np.ndarray, intrinsics: CameraIntrinsics
                        ) -> "Prefetch | None":
@@ -353,16 +369,16 @@ class ShapeFrontEnd:
                 if moved[0] >= start[0]:
                     T0, start = on_patch, moved
         if start[1] < 0.25 * fe.shape_min_support:
-            return None, None, 0.0
+            return None, None, 0.0, None
         T = self._icp(T0, cloud, depth_m, intrinsics, ICP_REACH * self.voxel, first)
         cand = max([start + (T0,), fit(T) + (T,)], key=lambda c: c[0])
         if cand[1] < 0.5 * fe.shape_min_support:
-            return None, None, 0.0
+            return None, None, 0.0, None
         T = self._icp(cand[4], cloud, depth_m, intrinsics, 1.5 * self.voxel, fe.shape_icp_iterations - first)
         # ICP can slide a box seen by one face alone: keep whichever pose the depth
         # image supports better.
         _, support, free, n, T = max([cand, fit(T) + (T,)], key=lambda c: c[0])
-        support0 = support
+        support0, free0 = support, free
         kept = self._judge(T, support, free, n, cloud, depth_m, intrinsics)
         if kept is None and support >= fe.shape_min_support:
             # The depth confirms it, but it overhangs empty space or stops short of its
@@ -395,7 +411,21 @@ class ShapeFrontEnd:
                 kept = self._judge(T1, support, free, n, cloud, depth_m, intrinsics)
                 if kept is not None:
                     break
-        return kept, T, support0
+        second = None
+        if (kept is None and fe.shape_second_look and self._self_hiding > 0 and support0 >= SECOND_LOOK_MIN
+                and support0 - free0 >= SECOND_LOOK_MIN and free0 >= SECOND_LOOK_MIN_FREE):
+            # A non-convex model (an L bracket) rejected while overhanging empty space: where
+            # its two plates meet, the nearest-point ICP pairs model points with scene points
+            # on the other plate and stops a few degrees off. Projective pairing (each model
+            # point with the depth pixel on its own ray, the tracker's ICP) has no such
+            # pairs; its pose, if the depth agrees better, is judged again. Returned apart
+            # (``refine_and_check(second=)``): the selection adds it only where no instance is.
+            T2 = align_projective(T, self._surface, self._surface_normals, depth_m, intrinsics,
+                                  SECOND_LOOK_ITERATIONS, 1.5 * self.voxel, 0.75 * self.voxel).T
+            score, support, free, n = fit(T2)
+            if score > support0 - free0:
+                second = self._judge(T2, support, free, n, cloud, depth_m, intrinsics)
+        return kept, T, support0, second
 
     def instance_pixels(self, transforms, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> np.ndarray:
         """(H, W) uint8: 1 where the depth image shows one of these instances (a visible
@@ -498,6 +528,17 @@ class ShapeFrontEnd:
         held = V[:, w >= UNHELD_SHARE]
         return weak @ weak.T, (held[:, 0] if held.shape[1] == 1 else None), p[facing].mean(axis=0)
 
+    def pierces(self, T, cloud: FrameCloud) -> bool:
+        """Whether the model at pose T reaches more than two voxels through the frame's
+        largest support plane (the table it would stand on): its points there are hidden
+        behind the table's surface, so the depth check counts them as occluded, not as
+        wrong (a bracket turned over, its upright plate sunk into the table, its base plate
+        on the true one's)."""
+        if cloud.up is None or cloud.up_offset is None:
+            return False
+        low = float(np.min(self._surface @ (T[:3, :3].T @ cloud.up))) + float(T[:3, 3] @ cloud.up)
+        return low + cloud.up_offset < -PIERCE_VOXELS * self.voxel
+
     def _judge(self, T, support, free, n, cloud: FrameCloud, depth_m, intrinsics, explained=None):
         """(T, support, agreeing points, evidence) when the depth and the outline accept pose
         T, else None; evidence: the judged points times support - free - 2 x outline
@@ -505,6 +546,8 @@ class ShapeFrontEnd:
         out (``outline_continuation``)."""
         fe = self.fe
         if n < fe.shape_min_visible or support < fe.shape_min_support or free > fe.shape_max_free:
+            return None
+        if fe.shape_reject_through_support and self.pierces(T, cloud):
             return None
         if fe.shape_min_in_view > 0 and in_view_share(T, self._surface, self._surface_normals,
                                                       intrinsics) < fe.shape_min_in_view:
@@ -528,8 +571,6 @@ class ShapeFrontEnd:
         ``shape_icp_association`` says: with the frame cloud's nearest points, or with the
         depth pixels the model points project to (the tracker's ICP)."""
         if self.fe.shape_icp_association == "projective":
-            from ..tracking.icp import align_projective
-
             return align_projective(T, self._surface, self._surface_normals, depth_m, intrinsics, iterations,
                                     max_dist, 0.5 * max_dist).T
         return icp_point_to_plane(T, self._surface, cloud.grid, max_dist=max_dist, iterations=iterations,
