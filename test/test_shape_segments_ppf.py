@@ -718,6 +718,41 @@ def test_a_pose_reaching_through_the_table_is_rejected():
         shape = ShapeFrontEnd(build_model_from_mesh(mesh, "bracket"), fe)
         cloud = shape.frame_cloud(depth, intr, None)
         assert cloud.up is not None and float(cloud.up @ cam[2, :3]) > 0.99     # world z, in the camera frame
-        assert not shape.pierces(T, cloud) and shape.pierces(over, cloud)
+        assert not shape.pierces(T, cloud, depth, intr) and shape.pierces(over, cloud, depth, intr)
         assert shape.refine_one(T, cloud, depth, intr) is not None
         assert (shape.refine_one(over, cloud, depth, intr) is None) == on
+
+
+def test_an_object_beyond_the_tables_edge_and_lower_does_not_reach_through_it():
+    """The table (the largest plane) ends at world x = -0.22 and the floor lies 5 cm lower
+    beyond it: a bracket standing on the floor there is mostly below the table's plane, but
+    the depth on its rays reaches past that plane. Only the plane where it is there counts."""
+    from multi_instance_reg.rgbd.pipeline import PipelineConfig
+    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.synthetic.objects import get_object, object_mesh
+    from multi_instance_reg.synthetic.scene import look_at
+    from multi_instance_reg.transforms import invert_transform
+
+    mesh = object_mesh(get_object("bracket"))
+    intr = CameraIntrinsics(K=np.array([[380.0, 0, 160], [0, 380.0, 120], [0, 0, 1]]), width=320, height=240)
+    cam = look_at(np.array([0.15, 0.0, 0.4]), np.array([-0.1, 0.0, 0.0]))     # camera -> world, table z = 0
+    on_floor = invert_transform(cam) @ make_transform(np.eye(3), [-0.32, 0.0, -0.05 + 0.04])   # floor z = -0.05
+    dense, _ = sample_surface(mesh, 0.001)
+    depth = _depth_of(dense, on_floor, intr)
+    K = intr.K
+    v, u = np.mgrid[0:intr.height, 0:intr.width]
+    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u, float)], -1) @ cam[:3, :3].T
+    table = (-cam[2, 3] / rays[..., 2]).astype(np.float32)
+    floor = ((-0.05 - cam[2, 3]) / rays[..., 2]).astype(np.float32)
+    on_table = cam[0, 3] + table * rays[..., 0] > -0.22
+    ground = np.where(on_table, table, floor)
+    assert ((depth > 0) & (depth < ground)).sum() > 1000                  # the bracket in view
+    depth = np.where((depth > 0) & (depth < ground), depth, ground)
+    shape = ShapeFrontEnd(build_model_from_mesh(mesh, "bracket"), PipelineConfig().frontend)
+    cloud = shape.frame_cloud(depth, intr, None)
+    assert cloud.up is not None and float(cloud.up @ cam[2, :3]) > 0.99
+    assert abs(cloud.up_offset - 0.4) < 0.01                              # the table, not the floor
+    heights = (dense @ on_floor[:3, :3].T + on_floor[:3, 3]) @ cloud.up + cloud.up_offset
+    assert np.mean(heights < -2 * shape.voxel) > 0.3                      # the plane without bound would cut it
+    assert not shape.pierces(on_floor, cloud, depth, intr)
+    assert shape.refine_one(on_floor, cloud, depth, intr) is not None

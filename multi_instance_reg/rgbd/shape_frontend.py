@@ -42,6 +42,9 @@ SECOND_LOOK_ITERATIONS = 10
 # A pose is rejected when the model reaches more than this many voxels through the frame's
 # largest support plane (``pierces``).
 PIERCE_VOXELS = 2.0
+# ... where the depth does not reach past the plane on the rays of at least this share of them.
+PIERCE_SHARE = 0.3
+PIERCE_MIN_POINTS = 3
 # A direction holds ICP when at least this share of the visible normals' weight lies along it.
 UNHELD_SHARE = 0.1
 
@@ -528,16 +531,36 @@ class ShapeFrontEnd:
         held = V[:, w >= UNHELD_SHARE]
         return weak @ weak.T, (held[:, 0] if held.shape[1] == 1 else None), p[facing].mean(axis=0)
 
-    def pierces(self, T, cloud: FrameCloud) -> bool:
+    def pierces(self, T, cloud: FrameCloud, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> bool:
         """Whether the model at pose T reaches more than two voxels through the frame's
-        largest support plane (the table it would stand on): its points there are hidden
-        behind the table's surface, so the depth check counts them as occluded, not as
-        wrong (a bracket turned over, its upright plate sunk into the table, its base plate
-        on the true one's)."""
+        largest support plane (the table it would stand on) where the depth shows that plane:
+        its points there are hidden behind the table's surface, so the depth check counts
+        them as occluded, not as wrong (a bracket turned over, its upright plate sunk into the
+        table, its base plate on the true one's). Only where the plane is seen: the plane
+        extended without bound would also cut off objects standing lower beyond its edge (on
+        the floor beside a table, a lower shelf)."""
         if cloud.up is None or cloud.up_offset is None:
             return False
-        low = float(np.min(self._surface @ (T[:3, :3].T @ cloud.up))) + float(T[:3, 3] @ cloud.up)
-        return low + cloud.up_offset < -PIERCE_VOXELS * self.voxel
+        up, offset = cloud.up, cloud.up_offset
+        pts = self._surface @ T[:3, :3].T + T[:3, 3]
+        below = pts[pts @ up + offset < -PIERCE_VOXELS * self.voxel]
+        if len(below) == 0:
+            return False
+        K = intrinsics.K
+        h, w = depth_m.shape
+        z = np.maximum(below[:, 2], 1e-6)
+        u = np.rint(K[0, 0] * below[:, 0] / z + K[0, 2]).astype(np.int64)
+        v = np.rint(K[1, 1] * below[:, 1] / z + K[1, 2]).astype(np.int64)
+        inside = (below[:, 2] > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        d = depth_m[v[inside], u[inside]].astype(np.float64)
+        rays = np.stack([(u[inside] - K[0, 2]) / K[0, 0], (v[inside] - K[1, 2]) / K[1, 1], np.ones(len(d))], axis=1)
+        # Depth along each ray at which it meets the plane; the plane is there when the depth
+        # measured on that ray stops at it or before it (the table, or the object on it),
+        # not when it reaches past it (the floor beyond the table's edge).
+        along = rays @ up
+        plane_depth = np.where(along < 0, -offset / np.where(along < 0, along, -1.0), np.inf)
+        there = (d > 0) & (d <= plane_depth + self.voxel)
+        return int(there.sum()) >= max(PIERCE_MIN_POINTS, PIERCE_SHARE * len(below))
 
     def _judge(self, T, support, free, n, cloud: FrameCloud, depth_m, intrinsics, explained=None):
         """(T, support, agreeing points, evidence) when the depth and the outline accept pose
@@ -547,7 +570,7 @@ class ShapeFrontEnd:
         fe = self.fe
         if n < fe.shape_min_visible or support < fe.shape_min_support or free > fe.shape_max_free:
             return None
-        if fe.shape_reject_through_support and self.pierces(T, cloud):
+        if fe.shape_reject_through_support and self.pierces(T, cloud, depth_m, intrinsics):
             return None
         if fe.shape_min_in_view > 0 and in_view_share(T, self._surface, self._surface_normals,
                                                       intrinsics) < fe.shape_min_in_view:
