@@ -110,4 +110,18 @@ def add_capture_keypoints(model: ObjectModel, views, settings, T_mesh_object: np
     return model
 
 
-__all__ = ["build_model_from_mesh", "add_capture_keypoints", "Symmetries"]
+def add_placed_keypoints(model: ObjectModel, objects, poses) -> ObjectModel:
+    """SIFT keypoints of capture views (``model.view_objects``: each in its own optical frame)
+    brought into the mesh frame by the views' object poses (mesh frame -> view; None: the
+    view is left out), e.g. from ``capture_alignment.place_views``."""
+    from ..transforms import apply_transform, invert_transform
+
+    placed = [(o, T) for o, T in zip(objects, poses) if T is not None]
+    xyz = [apply_transform(invert_transform(T), o.keypoints_xyz) for o, T in placed]
+    model.keypoints_xyz = (np.concatenate(xyz) if xyz else np.zeros((0, 3))).astype(np.float32)
+    model.descriptors = (np.concatenate([o.descriptors for o, _ in placed]) if placed
+                         else np.zeros((0, 128))).astype(np.float32)
+    return model
+
+
+__all__ = ["build_model_from_mesh", "add_capture_keypoints", "add_placed_keypoints", "Symmetries"]

@@ -395,41 +395,73 @@ def view_keypoints(view: CaptureView, mask: np.ndarray, settings: BuildSettings
     return xyz, desc[ok]
 
 
-def build_model(views: list[CaptureView], settings: BuildSettings = BuildSettings(), name: str = "",
-                register_view=None) -> ObjectModel:
-    """Merge one or more views of one capture into a model.
+@dataclass
+class RegisteredView:
+    """One capture view's object, brought into the capture frame (the first view's optical
+    frame); ``T_capture_view`` is None where the view could not be registered."""
+    mask: np.ndarray                     # (H, W) bool: the object's pixels
+    plane: tuple[np.ndarray, float] | None   # the table (n, d) removed, in the view's frame
+    keypoints_xyz: np.ndarray            # (K, 3) float64, capture frame
+    descriptors: np.ndarray              # (K, 128) float32
+    cloud: np.ndarray                    # (M, 3) float64 object points, capture frame
+    T_capture_view: np.ndarray | None
 
-    Views are brought into the first view's optical frame with their ground-truth object poses
-    when all have one, else with ``register_view(xyz, desc, model_xyz, model_desc) -> T`` (a
-    view -> capture transform, e.g. from matching plus ECC; required for several views without
-    ground truth).
-    """
+
+def view_objects(views: list[CaptureView], settings: BuildSettings = BuildSettings()):
+    """Each view's object in its own optical frame (``RegisteredView`` with
+    ``T_capture_view`` None): its mask, the table removed, SIFT keypoints and depth points."""
+    for view in views:
+        mask, plane = object_mask(view, settings)
+        xyz, desc = view_keypoints(view, mask, settings)
+        cloud, _ = depth_to_cloud(view.depth_m, view.intrinsics, mask, stride=2)
+        yield RegisteredView(mask, plane, xyz.astype(np.float64), desc, cloud.astype(np.float64), None)
+
+
+def register_views(views: list[CaptureView], settings: BuildSettings = BuildSettings(),
+                   register_view=None) -> list[RegisteredView]:
+    """Each view's object (mask, SIFT keypoints, depth points) in the first view's optical
+    frame: with the views' ground-truth object poses when all have one, else with
+    ``register_view(xyz, desc, model_xyz, model_desc, cloud, model_cloud) -> T`` (a view ->
+    capture transform, e.g. from matching plus ECC against the views registered so far, the
+    view's and their object points given to judge it by; required for several views without
+    ground truth)."""
     if not views:
         raise InputError("no views to build a model from")
     have_gt = all(v.T_camera_object is not None for v in views)
-    kp_xyz, kp_desc, clouds = [], [], []
-    plane0 = None
-    for i, view in enumerate(views):
-        mask, plane = object_mask(view, settings)
-        if i == 0:
-            plane0 = plane
-        xyz, desc = view_keypoints(view, mask, settings)
-        cloud, _ = depth_to_cloud(view.depth_m, view.intrinsics, mask, stride=2)
+    out: list[RegisteredView] = []
+    for i, (view, own) in enumerate(zip(views, view_objects(views, settings))):
+        mask, plane, xyz, desc, cloud = own.mask, own.plane, own.keypoints_xyz, own.descriptors, own.cloud
+        T_cap_view = None
         if i == 0:
             T_cap_view = np.eye(4)
         elif have_gt:
             T_cap_view = views[0].T_camera_object @ invert_transform(view.T_camera_object)
         elif register_view is not None:
-            if len(xyz) < 3:
-                continue
-            T_cap_view = register_view(xyz, desc, np.concatenate(kp_xyz), np.concatenate(kp_desc))
-            if T_cap_view is None:
-                continue
+            done = [r for r in out if r.T_capture_view is not None]
+            if len(xyz) >= 3:
+                T_cap_view = register_view(xyz, desc, np.concatenate([r.keypoints_xyz for r in done]),
+                                           np.concatenate([r.descriptors for r in done]), cloud,
+                                           np.concatenate([r.cloud for r in done]))
         else:
             raise InputError("several views without ground-truth poses need a view registration")
-        kp_xyz.append(apply_transform(T_cap_view, xyz.astype(np.float64)))
-        kp_desc.append(desc)
-        clouds.append(apply_transform(T_cap_view, cloud.astype(np.float64)))
+        if T_cap_view is None:
+            out.append(RegisteredView(mask, plane, np.zeros((0, 3)), np.zeros((0, 128), np.float32), np.zeros((0, 3)), None))
+            continue
+        out.append(RegisteredView(mask, plane, apply_transform(T_cap_view, xyz), desc,
+                                  apply_transform(T_cap_view, cloud), T_cap_view))
+    return out
+
+
+def build_model(views: list[CaptureView], settings: BuildSettings = BuildSettings(), name: str = "",
+                register_view=None) -> ObjectModel:
+    """Merge one or more views of one capture into a model: the views are brought into the
+    first view's optical frame (``register_views``), and the model axes are laid along the
+    object's box on the table."""
+    registered = [r for r in register_views(views, settings, register_view) if r.T_capture_view is not None]
+    plane0 = registered[0].plane
+    kp_xyz = [r.keypoints_xyz for r in registered]
+    kp_desc = [r.descriptors for r in registered]
+    clouds = [r.cloud for r in registered]
     keypoints = np.concatenate(kp_xyz) if kp_xyz else np.zeros((0, 3))
     descriptors = np.concatenate(kp_desc) if kp_desc else np.zeros((0, 128), np.float32)
     if len(keypoints) < settings.min_keypoints:
@@ -478,4 +510,4 @@ def build_model(views: list[CaptureView], settings: BuildSettings = BuildSetting
 
 
 __all__ = ["ObjectModel", "save_model", "load_model", "MODEL_SCHEMA_VERSION", "CaptureView", "BuildSettings",
-           "build_model", "object_mask", "view_keypoints", "model_name", "is_valid_name", "NAME_RULE"]
+           "build_model", "register_views", "view_objects", "RegisteredView", "object_mask", "view_keypoints", "model_name", "is_valid_name", "NAME_RULE"]

@@ -56,6 +56,10 @@ def add_arguments(parser) -> None:
                              "captures the model is built from keep the default)")
     parser.add_argument("--correspondences", default=None, choices=("auto", "sift", "shape", "both"),
                         help="override frontend.correspondences (shape/both: the model is built from the object's mesh plus the capture bags)")
+    parser.add_argument("--ignore-ground-truth", action="store_true",
+                        help="build the model as from a real capture, without the captures' object poses: views "
+                             "registered to each other by texture (shape/both: placed on the mesh by shape); the "
+                             "first view's ground truth relates the model's frame to the object's for scoring only")
 
 
 # Rotation (object frame) that turns the upright object's "up" axis (+z) into another.
@@ -129,8 +133,12 @@ def generate_benchmark_bag(path: Path, object_name=None, scenes: int = 6, frames
     return Path(path)
 
 
-def model_from_captures(captures) -> "object":
-    from ..rgbd.model import BuildSettings, build_model
+def model_from_captures(captures, ignore_ground_truth: bool = False) -> "object":
+    """What ``build-model`` makes of the capture bags; ``ignore_ground_truth``: as of a real
+    capture (views registered by texture), the first view's ground truth then giving the
+    model's object frame for scoring only."""
+    from ..rgbd.model import BuildSettings, CaptureView, build_model
+    from ..transforms import invert_transform
     from .build_model import register_view_with_ecc, views_from_bag
 
     views, description = [], None
@@ -138,25 +146,43 @@ def model_from_captures(captures) -> "object":
         more, desc = views_from_bag(bag, None, None)
         views += more
         description = description or desc
-    return build_model(views, BuildSettings(), name=(description or {}).get("name", ""),
-                       register_view=register_view_with_ecc)
+    if not ignore_ground_truth:
+        return build_model(views, BuildSettings(), name=(description or {}).get("name", ""),
+                           register_view=register_view_with_ecc)
+    if views[0].T_camera_object is None:
+        raise InputError("--ignore-ground-truth scores the model against the captures' ground truth; these capture "
+                         "bags have none")
+    model = build_model([CaptureView(v.rgb, v.depth_m, v.intrinsics) for v in views], BuildSettings(),
+                        name=(description or {}).get("name", ""), register_view=register_view_with_ecc)
+    model.T_object_model = invert_transform(views[0].T_camera_object) @ model.T_capture_model
+    return model
 
 
-def model_from_mesh_and_captures(object_name, captures) -> "object":
-    """Shape from the generated object's mesh, texture from the capture bags (their ground
-    truth is in the mesh frame): what ``build-model --mesh`` with capture bags makes."""
-    from ..rgbd.mesh_model import add_capture_keypoints, build_model_from_mesh
-    from ..rgbd.model import BuildSettings
+def model_from_mesh_and_captures(object_name, captures, ignore_ground_truth: bool = False) -> "object":
+    """Shape from the generated object's mesh, texture from the capture bags: what
+    ``build-model --mesh`` with capture bags makes (placed by their ground truth, which is in
+    the mesh frame, or with ``ignore_ground_truth`` by shape)."""
+    from ..meshes import sample_surface
+    from ..rgbd.capture_alignment import place_views
+    from ..rgbd.mesh_model import add_capture_keypoints, add_placed_keypoints, build_model_from_mesh
+    from ..rgbd.model import BuildSettings, view_objects
     from ..synthetic.objects import get_object, object_mesh
     from ..synthetic.scene import DEFAULT_OBJECT
     from .build_model import views_from_bag
 
     spec = get_object(object_name or DEFAULT_OBJECT)
-    model = build_model_from_mesh(object_mesh(spec), spec.name)
+    mesh = object_mesh(spec)
+    model = build_model_from_mesh(mesh, spec.name)
     views = []
     for bag in captures:
         views += views_from_bag(bag, None, None)[0]
-    return add_capture_keypoints(model, views, BuildSettings())
+    if not ignore_ground_truth:
+        return add_capture_keypoints(model, views, BuildSettings())
+    objects = list(view_objects(views, BuildSettings()))
+    placed = place_views(model, views, objects, sample_surface(mesh, model.shape_voxel / 4.0, seed=3))
+    print(f"captures placed by shape: the object found in {placed.found} of {len(views)} views; {placed.placed} "
+          f"placed, {placed.by_texture_alone} of them by their texture alone", file=sys.stderr)
+    return add_placed_keypoints(model, objects, placed.poses)
 
 
 def format_report(metrics: dict) -> str:
@@ -291,7 +317,7 @@ def run(args) -> int:
             models = []
             for obj in objects:
                 print(f"generating capture bags of {obj} and its model ...", file=sys.stderr)
-                models.append(model_from_captures(generate_capture_bags(tmp / obj, obj, args.seed)))
+                models.append(model_from_captures(generate_capture_bags(tmp / obj, obj, args.seed), args.ignore_ground_truth))
             return run_models(args, bags, models, config)
         if args.model and len(args.model) > 1:
             if not bags:
@@ -308,13 +334,15 @@ def run(args) -> int:
             if not captures:
                 print("generating capture bags (4 resting poses) ...", file=sys.stderr)
                 captures = generate_capture_bags(tmp, args.object, args.seed)
+            how = "without their ground truth" if args.ignore_ground_truth else "placed by their ground truth"
             if args.correspondences in ("shape", "both"):
-                model = model_from_mesh_and_captures(args.object, captures)
+                model = model_from_mesh_and_captures(args.object, captures, args.ignore_ground_truth)
                 print(f"model: the object's mesh and {model.num_keypoints} keypoints from {len(captures)} capture "
-                      f"bag(s) placed by their ground truth", file=sys.stderr)
+                      f"bag(s) {how}", file=sys.stderr)
             else:
-                model = model_from_captures(captures)
-                print(f"model: {model.num_keypoints} keypoints from {len(captures)} capture bag(s)", file=sys.stderr)
+                model = model_from_captures(captures, args.ignore_ground_truth)
+                print(f"model: {model.num_keypoints} keypoints from {len(captures)} capture bag(s) {how}",
+                      file=sys.stderr)
         total = ReplayResult()
         load = []
         for bag in bags:

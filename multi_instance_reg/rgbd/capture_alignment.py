@@ -1,0 +1,234 @@
+"""Capture views placed in a mesh's frame by shape: texture and shape in one model without
+ground truth.
+
+A model built from a CAD mesh has the mesh's frame; SIFT keypoints from capture views can join
+it only once each view's object pose in that frame is known. A synthetic capture has it as
+ground truth; a real one does not. Here the shape path itself finds the object in each view
+(the mesh model, ``frontend.correspondences: shape``): that pose is the view's, up to the
+mesh's symmetries, which shape cannot tell apart. The texture tells them apart: the first
+view (the one with the most keypoints) is placed as found, and every other view in the
+symmetric pose where its keypoints land on the same keypoints of the views placed before it
+(a match agrees within ``AGREE_M``; continuous symmetry: the turn most matches agree on,
+refined by least squares).
+A view is placed only when one symmetric pose has clearly the most agreeing matches. A view
+where the shape finds nothing is placed by its texture alone (ECC on its matches to the views
+placed so far, then fitted to the surface) when enough matches agree and its object points lie
+on the mesh; views the texture cannot decide are left out.
+
+Why not register the views to each other by their texture and place the whole capture once:
+that chain carries each view's registration error to the next (a can's curved label: 7-24
+deg) and the shape's per-view poses are better (0.1-1.8 deg on the same views).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ..errors import InputError
+from ..transforms import apply_transform, invert_transform
+from .model import CaptureView, ObjectModel, RegisteredView
+
+AGREE_M = 0.005             # a keypoint agrees with a placed one of its descriptor this close
+MIN_AGREEING = 8            # matches that must agree before a view is placed ...
+DECISIVE = 2.0              # ... and at least this many times the next-best symmetric pose's
+ON_SURFACE = 0.8            # a view placed by texture alone: share of its object points on the mesh
+
+
+@dataclass
+class CaptureAlignment:
+    poses: list                     # per view: object pose (mesh frame -> view optical frame), None = not placed
+    found: int                      # views where the shape path found the object
+    placed: int                     # views placed (the texture decided their symmetric pose)
+    by_texture_alone: int           # of those, views the shape did not find (placed by ECC on their matches)
+    agreeing: list                  # per view: matches that agreed with its placement (0: not placed)
+
+
+def view_pose_by_shape(registration, view: CaptureView, mask: np.ndarray, model: ObjectModel):
+    """The object's pose in one capture view (mesh frame -> view optical frame) by the shape
+    path, or None: of the instances found, the best supported one whose box centre projects
+    onto the object's pixels (the table and a wall hold none, but a false fit on them could)."""
+    result = registration.register_frame(view.rgb, view.depth_m, view.intrinsics)
+    K = view.intrinsics.K
+    h, w = mask.shape
+    best = None
+    for inst in result.instances:
+        c = apply_transform(inst.T, model.box_centre[None, :])[0]
+        if c[2] <= 0:
+            continue
+        u, v = int(round(K[0, 0] * c[0] / c[2] + K[0, 2])), int(round(K[1, 1] * c[1] / c[2] + K[1, 2]))
+        if 0 <= u < w and 0 <= v < h and mask[v, u] and (best is None or inst.inliers > best.inliers):
+            best = inst
+    return None if best is None else np.asarray(best.T, np.float64)
+
+
+def fit_to_surface(T_view_mesh: np.ndarray, cloud: np.ndarray, surface: np.ndarray, normals: np.ndarray,
+                   voxel: float, rounds: int = 20) -> np.ndarray:
+    """Point-to-plane ICP of a view's object points (view frame) onto the mesh's surface
+    samples (mesh frame): the shape path fits voxel samples a shape voxel apart, the view's
+    thousands of points settle the pose further (its capture keypoints sit on that
+    surface). Pairs beyond 2 voxels, then 1, are left out (table remnants at the mask's edge)."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(surface)
+    T = np.asarray(T_view_mesh, np.float64).copy()
+    for k in range(rounds):
+        q = apply_transform(invert_transform(T), cloud)          # the view's points in the mesh frame
+        dist, j = tree.query(q, k=1, distance_upper_bound=2.0 * voxel)
+        ok = dist < (2.0 if k < rounds // 2 else 1.0) * voxel
+        if ok.sum() < 30:
+            break
+        p, m, n = q[ok], surface[j[ok]], normals[j[ok]]
+        # Move the points by a small twist [w, v]: r = n . (p + w x p + v - m).
+        A = np.hstack([np.cross(p, n), n])
+        b = -np.einsum("ij,ij->i", n, p - m)
+        x, *_ = np.linalg.lstsq(A, b, rcond=None)
+        step = _twist(x[:3], x[3:])
+        T = T @ invert_transform(step)
+        if np.linalg.norm(x) < 1e-7:
+            break
+    return T
+
+
+def _twist(w: np.ndarray, v: np.ndarray) -> np.ndarray:
+    angle = float(np.linalg.norm(w))
+    T = np.eye(4)
+    if angle > 1e-12:
+        T = _turn(w, np.zeros(3), angle)
+    T[:3, 3] = v
+    return T
+
+
+def _turn(axis: np.ndarray, point: np.ndarray, angle: float) -> np.ndarray:
+    a = axis / np.linalg.norm(axis)
+    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    R = np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, point - R @ point
+    return T
+
+
+def symmetric_choice(x: np.ndarray, y: np.ndarray, model: ObjectModel) -> tuple[np.ndarray, int, int]:
+    """Which symmetry M (model frame) takes a view's keypoints ``x`` (placed as the shape found
+    them) onto their matches ``y`` among the keypoints placed before: (M, agreeing matches
+    with it, agreeing with the best other discrete symmetry)."""
+    sym = model.symmetries
+    candidates = [np.eye(4)] if sym is None else list(sym.discrete)
+    scored = []
+    for S in candidates:
+        xs = apply_transform(S, x)
+        M = S
+        if sym is not None and sym.axis is not None:
+            # Each match whose height and radius agree proposes a turn about the axis; the
+            # proposal most matches agree with wins, refined by least squares on those.
+            a, c = sym.axis / np.linalg.norm(sym.axis), sym.point
+            px, py = xs - c, y - c
+            hx, hy = px @ a, py @ a
+            rx, ry = px - np.outer(hx, a), py - np.outer(hy, a)
+            ok = (np.abs(hx - hy) < AGREE_M) & (np.abs(np.linalg.norm(rx, axis=1) - np.linalg.norm(ry, axis=1)) < AGREE_M)
+            if ok.sum() == 0:
+                scored.append((0, S))
+                continue
+            rx, ry = rx[ok], ry[ok]
+            ang = np.arctan2(np.cross(rx, ry) @ a, np.einsum("ij,ij->i", rx, ry))
+            cos, sin = np.cos(ang)[:, None], np.sin(ang)[:, None]
+            # (proposals, matches): distance of every match under every proposed turn.
+            turned = (cos[:, :, None] * rx[None] + sin[:, :, None] * np.cross(a, rx)[None])
+            support = np.linalg.norm(turned - ry[None], axis=2) < AGREE_M
+            members = support[int(np.argmax(support.sum(axis=1)))]
+            angle = float(np.arctan2(np.sum(np.cross(rx[members], ry[members]) @ a),
+                                     np.sum(np.einsum("ij,ij->i", rx[members], ry[members]))))
+            M = _turn(a, c, angle) @ S
+            xs = apply_transform(M, x)
+        scored.append((int(np.sum(np.linalg.norm(xs - y, axis=1) < AGREE_M)), M))
+    scored.sort(key=lambda s: -s[0])
+    second = scored[1][0] if len(scored) > 1 else 0
+    return scored[0][1], scored[0][0], second
+
+
+def texture_pose(obj: RegisteredView, s_idx: np.ndarray, target: np.ndarray, surface: np.ndarray,
+                 normals: np.ndarray, voxel: float) -> tuple[np.ndarray | None, int]:
+    """A view's pose (mesh frame -> view) from its keypoints' matches to the keypoints placed
+    so far (``target``, mesh frame), by ECC, then fitted to the surface: (pose, matches that
+    agree with it), or (None, 0). Judged as a shape-found view is, by its agreeing matches,
+    and only kept where most of its object points lie on the mesh surface."""
+    from ..core import ECC, ECCConfig
+
+    x = obj.keypoints_xyz[s_idx]
+    res = ECC(ECCConfig.metric()).register(x, target)
+    best, best_agree = None, 0
+    for T_mesh_view in res.transforms:
+        pose = fit_to_surface(invert_transform(np.asarray(T_mesh_view)), obj.cloud, surface, normals, voxel)
+        agree = int(np.sum(np.linalg.norm(apply_transform(invert_transform(pose), x) - target, axis=1) < AGREE_M))
+        if agree > best_agree:
+            best, best_agree = pose, agree
+    if best is None:
+        return None, 0
+    from scipy.spatial import cKDTree
+
+    dist, _ = cKDTree(surface).query(apply_transform(invert_transform(best), obj.cloud), k=1,
+                                     distance_upper_bound=2.0 * voxel)
+    return (best, best_agree) if np.mean(dist < 2.0 * voxel) >= ON_SURFACE else (None, 0)
+
+
+def place_views(model: ObjectModel, views: list[CaptureView], objects: list[RegisteredView],
+                surface: tuple[np.ndarray, np.ndarray] | None = None, config=None) -> CaptureAlignment:
+    """Each view's object pose in the mesh frame (see the module docstring). ``model``: the
+    mesh's (shape data, symmetries); ``objects``: each view's object in its own frame
+    (``model.view_objects``); ``surface``: (points, normals) of the mesh sampled densely
+    (default: the model's shape points, a shape voxel apart)."""
+    from .matching import DescriptorMatcher, prepare_descriptors
+    from .pipeline import InstanceRegistration, PipelineConfig
+
+    config = config or PipelineConfig()
+    config = replace(config, frontend=replace(config.frontend, correspondences="shape"))
+    registration = InstanceRegistration(model, config)
+    found = [view_pose_by_shape(registration, v, o.mask, model) if len(o.keypoints_xyz) else None
+             for v, o in zip(views, objects)]
+    points, normals = surface if surface is not None else (model.shape_points, model.shape_normals)
+    points, normals = np.asarray(points, np.float64), np.asarray(normals, np.float64)
+    found = [None if T is None else fit_to_surface(T, o.cloud, points, normals, model.shape_voxel)
+             for T, o in zip(found, objects)]
+    if not any(T is not None for T in found):
+        raise InputError(f"the object was not found by its shape in any of the {len(views)} capture view(s), so "
+                         f"their texture cannot be placed on the mesh; check that the mesh is this object's and its "
+                         f"--units, or give captures with ground-truth poses")
+    poses: list = [None] * len(views)
+    agreeing = [0] * len(views)
+    # Keypoints in the mesh frame as the shape placed them (before any symmetric choice).
+    as_found = [None if T is None else apply_transform(invert_transform(T), o.keypoints_xyz)
+                for T, o in zip(found, objects)]
+    first = max((k for k in range(len(views)) if found[k] is not None), key=lambda k: len(objects[k].keypoints_xyz))
+    poses[first] = found[first]
+    placed_xyz, placed_desc = [as_found[first]], [objects[first].descriptors]
+    progress = True
+    while progress:
+        progress = False
+        matcher = DescriptorMatcher(prepare_descriptors(np.concatenate(placed_desc)),
+                                    np.concatenate(placed_xyz).astype(np.float32), ratio=0.8, separation=0.01)
+        target = np.concatenate(placed_xyz)
+        for k in range(len(views)):
+            if poses[k] is not None:
+                continue
+            s_idx, m_idx, _ = matcher.match(prepare_descriptors(objects[k].descriptors))
+            if len(s_idx) < MIN_AGREEING:
+                continue
+            if found[k] is not None:
+                M, agree, second = symmetric_choice(as_found[k][s_idx], target[m_idx], model)
+                # Keypoints at M x: the view's pose is found @ M^-1.
+                pose = found[k] @ invert_transform(M) if agree >= DECISIVE * second else None
+            else:
+                # Not found by its shape (a can seen end-on, a face too small to vote): its
+                # texture against the views placed so far, settled on the surface.
+                pose, agree = texture_pose(objects[k], s_idx, target[m_idx], points, normals, model.shape_voxel)
+            if pose is not None and agree >= MIN_AGREEING:
+                poses[k], agreeing[k] = pose, agree
+                placed_xyz.append(apply_transform(invert_transform(pose), objects[k].keypoints_xyz))
+                placed_desc.append(objects[k].descriptors)
+                progress = True
+        # (Views placed in this round join the reference for the next.)
+    return CaptureAlignment(poses, sum(T is not None for T in found), sum(T is not None for T in poses),
+                            sum(P is not None and F is None for P, F in zip(poses, found)), agreeing)
+
+
+__all__ = ["CaptureAlignment", "fit_to_surface", "place_views", "symmetric_choice", "view_pose_by_shape"]
