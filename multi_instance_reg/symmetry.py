@@ -70,6 +70,11 @@ class Symmetries:
         return Symmetries(disc, axis, point)
 
 
+def turn_about(axis, point, angle: float) -> np.ndarray:
+    """4 x 4: the turn by ``angle`` (radians) about ``axis`` through ``point``."""
+    return _about(_rotation(axis, angle), np.asarray(point, np.float64))
+
+
 def closest_symmetric_pose(T_gt: np.ndarray, T_est: np.ndarray, sym: Symmetries | None) -> np.ndarray:
     """Among the poses T_gt @ S that look like T_gt, the one nearest to T_est (rotation first:
     the continuous turn is the one that minimises the rotation error, in closed form)."""

@@ -26,8 +26,10 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..errors import InputError
+from ..symmetry import turn_about
 from ..transforms import apply_transform, invert_transform
 from .model import CaptureView, ObjectModel, RegisteredView
+from .shape import apply_twist
 
 AGREE_M = 0.005             # a keypoint agrees with a placed one of its descriptor this close
 MIN_AGREEING = 8            # matches that must agree before a view is placed ...
@@ -83,28 +85,10 @@ def fit_to_surface(T_view_mesh: np.ndarray, cloud: np.ndarray, surface: np.ndarr
         A = np.hstack([np.cross(p, n), n])
         b = -np.einsum("ij,ij->i", n, p - m)
         x, *_ = np.linalg.lstsq(A, b, rcond=None)
-        step = _twist(x[:3], x[3:])
+        step = apply_twist(np.eye(4), x, np.zeros(3))          # mesh-frame points: p -> R p + v
         T = T @ invert_transform(step)
         if np.linalg.norm(x) < 1e-7:
             break
-    return T
-
-
-def _twist(w: np.ndarray, v: np.ndarray) -> np.ndarray:
-    angle = float(np.linalg.norm(w))
-    T = np.eye(4)
-    if angle > 1e-12:
-        T = _turn(w, np.zeros(3), angle)
-    T[:3, 3] = v
-    return T
-
-
-def _turn(axis: np.ndarray, point: np.ndarray, angle: float) -> np.ndarray:
-    a = axis / np.linalg.norm(axis)
-    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    R = np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, point - R @ point
     return T
 
 
@@ -138,7 +122,7 @@ def symmetric_choice(x: np.ndarray, y: np.ndarray, model: ObjectModel) -> tuple[
             members = support[int(np.argmax(support.sum(axis=1)))]
             angle = float(np.arctan2(np.sum(np.cross(rx[members], ry[members]) @ a),
                                      np.sum(np.einsum("ij,ij->i", rx[members], ry[members]))))
-            M = _turn(a, c, angle) @ S
+            M = turn_about(a, c, angle) @ S
             xs = apply_transform(M, x)
         scored.append((int(np.sum(np.linalg.norm(xs - y, axis=1) < AGREE_M)), M))
     scored.sort(key=lambda s: -s[0])
