@@ -287,6 +287,37 @@ def cylinder_mesh(diameter: float, height: float, segments: int = 64) -> Triangl
     return extruded_polygon_mesh(ring, height, cap)
 
 
+def polygon_triangles(outline: np.ndarray) -> np.ndarray:
+    """(n - 2, 3) counter-clockwise triangles covering a simple counter-clockwise polygon
+    (ear clipping: a fan from one vertex covers only polygons star-shaped about it, not a U
+    or a T profile)."""
+    pts = np.asarray(outline, np.float64)
+    left = list(range(len(pts)))
+    tris = []
+
+    def cross(a, b, c):
+        return (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
+
+    while len(left) > 3:
+        for k in range(len(left)):
+            i, j, m = left[k - 1], left[k], left[(k + 1) % len(left)]
+            a, b, c = pts[i], pts[j], pts[m]
+            if cross(a, b, c) <= 1e-15:                     # reflex or straight: no ear
+                continue
+            # An ear holds no other vertex (on its edges counts: a collinear vertex would
+            # leave a sliver crossing the outline).
+            if any(cross(a, b, pts[q]) >= 0 and cross(b, c, pts[q]) >= 0 and cross(c, a, pts[q]) >= 0
+                   for q in left if q not in (i, j, m)):
+                continue
+            tris.append((i, j, m))
+            del left[k]
+            break
+        else:
+            raise InputError("the outline is not a simple counter-clockwise polygon")
+    tris.append(tuple(left))
+    return np.array(tris, np.int64)
+
+
 def extruded_polygon_mesh(outline: np.ndarray, height: float, cap_triangles) -> TriangleMesh:
     """A prism: the counter-clockwise 2D ``outline`` (n, 2) in the xy plane extruded over
     z in [-height/2, height/2]; ``cap_triangles`` index the outline (counter-clockwise)."""
@@ -303,4 +334,4 @@ def extruded_polygon_mesh(outline: np.ndarray, height: float, cap_triangles) -> 
 
 
 __all__ = ["TriangleMesh", "load_mesh", "save_mesh", "sample_surface", "box_mesh", "cylinder_mesh",
-           "extruded_polygon_mesh", "MESH_SUFFIXES", "UNIT_SCALE"]
+           "extruded_polygon_mesh", "polygon_triangles", "MESH_SUFFIXES", "UNIT_SCALE"]

@@ -131,3 +131,62 @@ def test_untextured_offline_replay(tmp_path):
     # not met here (README: "Untextured objects"); a margin below.
     assert metrics["MHF1"] >= 0.65
     assert metrics["median_rte"] <= 0.01 and metrics["median_rre_deg"] <= 3.0
+
+
+@pytest.mark.parametrize("preset", ["channel", "stairs", "tee"])
+def test_profile_objects_mesh_matches_render_and_symmetry(preset):
+    """The catalogue's profile objects (session 12): the mesh a model is built from is the
+    surface the renderer draws from the object's boxes, at the ground-truth poses, and the
+    symmetries found from it are the object's (a half turn about z for the U channel and the
+    T, none for the steps)."""
+    import cv2
+    from scipy.spatial import cKDTree
+
+    from multi_instance_reg.synthetic.objects import get_object, object_mesh
+    from multi_instance_reg.synthetic.untextured import PRESETS, make_untextured_scene
+
+    spec = get_object(PRESETS[preset])
+    mesh = object_mesh(spec)
+    lo, hi = mesh.bounds
+    assert np.allclose(hi - lo, spec.dimensions_m, atol=1e-9)
+    # Closed and consistently wound: every edge used once each way, the volume the boxes' volume.
+    edges = np.concatenate([mesh.triangles[:, [0, 1]], mesh.triangles[:, [1, 2]], mesh.triangles[:, [2, 0]]])
+    assert len({tuple(e) for e in edges}) == len(edges) and {tuple(e[::-1]) for e in edges} == {tuple(e) for e in edges}
+    v = mesh.vertices[mesh.triangles]
+    volume = np.einsum("ij,ij->i", v[:, 0], np.cross(v[:, 1], v[:, 2])).sum() / 6
+    assert volume == pytest.approx(sum(np.prod(d) for _, d in spec.parts), rel=1e-9)
+    pts, normals = sample_surface(mesh, 0.001)
+    tree = cKDTree(pts)
+    on_mesh, in_front = [], []
+    for seed in (0, 1, 2):                       # both ways the object rests, several views
+        scene = make_untextured_scene(preset, 2, 0, 2, seed)
+        K = scene.intrinsics.K
+        for frame in scene.frames():
+            for label, T in enumerate(frame.poses):
+                # Each pixel drawn for the instance lies on the mesh ...
+                v_, u_ = np.nonzero(frame.instance_mask == label)
+                z = frame.depth_true_m[v_, u_]
+                cam = np.column_stack([(u_ - K[0, 2]) * z / K[0, 0], (v_ - K[1, 2]) * z / K[1, 1], z])
+                d, _ = tree.query((cam - T[:3, 3]) @ T[:3, :3])
+                on_mesh.append(d)
+                # ... and no mesh point facing the camera is in front of what was drawn there.
+                p = pts @ T[:3, :3].T + T[:3, 3]
+                facing = np.einsum("ij,ij->i", normals @ T[:3, :3].T, p) < 0
+                p = p[facing]
+                u = np.rint(K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2]).astype(int)
+                w = np.rint(K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]).astype(int)
+                ok = (u >= 0) & (u < frame.depth_true_m.shape[1]) & (w >= 0) & (w < frame.depth_true_m.shape[0])
+                # (the nearest depth of the 3 x 3 pixels around: a point at the silhouette's
+                # edge may round to the pixel beside it)
+                near = cv2.erode(np.where(frame.depth_true_m > 0, frame.depth_true_m, np.inf).astype(np.float32),
+                                 np.ones((3, 3), np.uint8))
+                in_front.append(p[ok, 2] < near[w[ok], u[ok]] - 0.003)
+    on_mesh, in_front = np.concatenate(on_mesh), np.concatenate(in_front)
+    assert len(on_mesh) > 2000 and np.quantile(on_mesh, 0.99) < 0.001
+    assert in_front.mean() < 0.01        # pixels at the silhouette's edge only
+    sym = detect_symmetries(*sample_surface(mesh, 0.0015)[:1], 0.00225)
+    if preset == "stairs":
+        assert sym.is_trivial
+    else:
+        assert sym.axis is None and len(sym.discrete) == 2
+        assert np.allclose(sym.discrete[1][:3, :3], np.diag([-1.0, -1.0, 1.0]), atol=1e-6)

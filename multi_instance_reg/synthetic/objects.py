@@ -42,7 +42,7 @@ class ObjectSpec:
     "-z") to the scikit-image picture its texture is cropped from; ``tint`` colours grey
     pictures; ``resting`` lists (object axis that points up, weight) for placing it on a table."""
     name: str
-    shape: str                                  # "box" | "cylinder" | "bracket" (see UNTEXTURED_OBJECTS)
+    shape: str                                  # "box" | "cylinder" | "bracket" | "profile" (see UNTEXTURED_OBJECTS)
     dimensions_m: tuple[float, float, float]    # box (dx, dy, dz); cylinder (d, d, h); bracket: its box
     faces: tuple[tuple[str, str], ...]
     resting: tuple[tuple[str, float], ...]
@@ -52,6 +52,9 @@ class ObjectSpec:
     # Boxes the object is made of, (centre, dimensions) in the object frame; a "bracket" is
     # drawn as these (the object frame stays at the centre of the whole object's box).
     parts: tuple = ()
+    # A "profile": its outline in the object's (x, z) plane, counter-clockwise, extruded over
+    # y in [-dy/2, dy/2]; ``parts`` are that outline cut into boxes (``profile_parts``).
+    profile: tuple = ()
 
     @property
     def radius(self) -> float:
@@ -140,6 +143,52 @@ def _bracket_parts(dims, thickness):
             ((-X / 2 + t / 2, 0.0, t / 2), (t, Y, Z - t)))
 
 
+def profile_parts(outline, length):
+    """Boxes, (centre, dimensions), that make up the rectilinear ``outline`` in (x, z)
+    extruded over ``length`` along y: the outline cut into strips between its vertices' x
+    values, each strip into the z intervals inside the outline, neighbouring strips with the
+    same intervals joined (fewer seams for the renderer)."""
+    pts = np.asarray(outline, np.float64)
+    xs = np.unique(pts[:, 0])
+    edges = [(pts[i], pts[(i + 1) % len(pts)]) for i in range(len(pts))]
+    horizontal = [(min(a[0], b[0]), max(a[0], b[0]), a[1]) for a, b in edges if a[1] == b[1]]
+    strips = []
+    for x0, x1 in zip(xs[:-1], xs[1:]):
+        xm = 0.5 * (x0 + x1)
+        zs = sorted(z for lo, hi, z in horizontal if lo < xm < hi)     # crossings: in, out, in, ...
+        spans = tuple(zip(zs[0::2], zs[1::2]))
+        if strips and strips[-1][2] == spans and strips[-1][1] == x0:
+            strips[-1] = (strips[-1][0], x1, spans)
+        else:
+            strips.append((x0, x1, spans))
+    return tuple(((0.5 * (x0 + x1), 0.0, 0.5 * (z0 + z1)), (x1 - x0, float(length), z1 - z0))
+                 for x0, x1, spans in strips for z0, z1 in spans)
+
+
+def _profile(name, dims, outline, resting, tint) -> ObjectSpec:
+    outline = tuple(tuple(float(v) for v in p) for p in outline)
+    return ObjectSpec(name, "profile", dims, _flat("box"), resting=resting, tint=tint,
+                      parts=profile_parts(outline, dims[1]), profile=outline)
+
+
+def _channel_outline(X, Z, t):
+    """A U open towards +z: a floor and two walls, all ``t`` thick."""
+    return ((-X / 2, -Z / 2), (X / 2, -Z / 2), (X / 2, Z / 2), (X / 2 - t, Z / 2), (X / 2 - t, -Z / 2 + t),
+            (-X / 2 + t, -Z / 2 + t), (-X / 2 + t, Z / 2), (-X / 2, Z / 2))
+
+
+def _stairs_outline(X, Z):
+    """Three steps, each a third of X long and a third of Z high, the highest at -x."""
+    return ((-X / 2, -Z / 2), (X / 2, -Z / 2), (X / 2, -Z / 6), (X / 6, -Z / 6), (X / 6, Z / 6), (-X / 6, Z / 6),
+            (-X / 6, Z / 2), (-X / 2, Z / 2))
+
+
+def _tee_outline(X, Z, t):
+    """A T: a flange ``t`` thick across the top, a web ``t`` thick down the middle."""
+    return ((-t / 2, -Z / 2), (t / 2, -Z / 2), (t / 2, Z / 2 - t), (X / 2, Z / 2 - t), (X / 2, Z / 2),
+            (-X / 2, Z / 2), (-X / 2, Z / 2 - t), (-t / 2, Z / 2 - t))
+
+
 BRACKET_THICKNESS_M = 0.012
 UNTEXTURED_OBJECTS: dict[str, ObjectSpec] = {spec.name: spec for spec in (
     # A plain brown shipping carton (stacked on pallets).
@@ -159,6 +208,17 @@ UNTEXTURED_OBJECTS: dict[str, ObjectSpec] = {spec.name: spec for spec in (
     ObjectSpec("wide_cylinder", "cylinder", (0.10, 0.10, 0.06), _flat("cylinder"),
                resting=(("+z", 1.0),), tint=(160, 160, 150)),
     ObjectSpec("pallet", "box", (1.20, 0.80, 0.144), _flat("box"), resting=(("+z", 1.0),), tint=(186, 160, 118)),
+    # Shapes the shape front end was not developed on (session 12), never distractors (so
+    # the scenes above stay as they were): a U channel (a half turn about z maps it onto
+    # itself), open side up or down.
+    _profile("channel", (0.10, 0.16, 0.05), _channel_outline(0.10, 0.05, 0.008),
+             resting=(("+z", 0.6), ("-z", 0.4)), tint=(112, 138, 104)),
+    # A block of three steps (no symmetry), on its base or on its end.
+    _profile("stairs", (0.12, 0.08, 0.06), _stairs_outline(0.12, 0.06),
+             resting=(("+z", 0.7), ("+y", 0.3)), tint=(172, 150, 118)),
+    # A T profile (a half turn about z), on its flange or on its end.
+    _profile("tee", (0.10, 0.12, 0.07), _tee_outline(0.10, 0.07, 0.010),
+             resting=(("-z", 0.7), ("+y", 0.3)), tint=(108, 114, 142)),
 )}
 
 
@@ -177,6 +237,14 @@ def object_mesh(spec: ObjectSpec):
         return cylinder_mesh(spec.dimensions_m[0], spec.dimensions_m[2])
     if spec.shape == "box":
         return box_mesh(*spec.dimensions_m)
+    if spec.shape == "profile":
+        from ..meshes import polygon_triangles
+
+        outline = np.asarray(spec.profile, np.float64)
+        mesh = extruded_polygon_mesh(outline, spec.dimensions_m[1], polygon_triangles(outline))
+        v = mesh.vertices               # extruded along z; a quarter turn about x, as below
+        mesh.vertices = np.column_stack([v[:, 0], -v[:, 2], v[:, 1]])
+        return mesh
     # bracket: the L outline in (x, z), counter-clockwise, extruded along y.
     X, Y, Z = spec.dimensions_m
     t = BRACKET_THICKNESS_M

@@ -7,6 +7,8 @@ Presets (``make_untextured_scene(preset, ...)``):
   With ``instances=0`` the pallet carries other plain boxes only (distractor-only frames).
 - ``cylinders`` / ``bracket``: grey cylinders or L-shaped brackets with plain distractors on a
   table, seen by the hand-held sweep of the tabletop scenes (0.5-1 m).
+- ``channel`` / ``stairs`` / ``tee``: a U channel, a block of three steps or a T profile,
+  the same way (objects nobody tuned the shape front end on).
 
 Every object is flat-coloured all over; the floor and table keep their texture (the
 shape front end never looks at colour). The objects' meshes come from
@@ -27,7 +29,16 @@ PRESETS = {
     "pallet": "carton",
     "cylinders": "grey_cylinder",
     "bracket": "bracket",
+    # Objects the shape front end was not developed on (session 12): on the table like the
+    # brackets, with the same distractors.
+    "channel": "channel",
+    "stairs": "stairs",
+    "tee": "tee",
 }
+# What ``mireg bench frames --untextured all`` runs (and ``make bench``): the three presets the
+# shape front end was developed on, so that its figures and time stay comparable across
+# sessions; the others are run by name.
+BENCH_ALL = ("pallet", "cylinders", "bracket")
 TABLE_DISTRACTORS = ("grey_block", "wide_cylinder", "grey_cylinder", "bracket")
 PALLET_DISTRACTORS = ("crate", "grey_block")
 PALLET_GRID = (3, 3)            # slots along the pallet's x and y per layer
@@ -167,5 +178,5 @@ def generate_untextured_bag(out_path, preset: str, instances: int = 8, distracto
     return summary
 
 
-__all__ = ["PRESETS", "make_untextured_scene", "generate_untextured_bag", "overhead_trajectory", "preset_object",
+__all__ = ["PRESETS", "BENCH_ALL", "make_untextured_scene", "generate_untextured_bag", "overhead_trajectory", "preset_object",
            "UNTEXTURED_OBJECTS"]

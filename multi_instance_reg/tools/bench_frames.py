@@ -26,6 +26,8 @@ INSTANCES_PER_SCENE = (4, 12, 6, 10, 8, 5, 11, 7, 9)
 
 
 def add_arguments(parser) -> None:
+    from ..synthetic.untextured import PRESETS
+    UNTEXTURED_CHOICES = tuple(PRESETS) + ("all",)
     parser.add_argument("bags", nargs="*", help="scene bags with ground truth (default: generate --scenes of them)")
     parser.add_argument("--model", default=None, action="append",
                         help="object model (.npz); default: built from --capture. Give it again for several models: "
@@ -47,9 +49,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--min-visibility", type=float, default=0.25,
                         help="instances less visible than this are not counted as present (default 0.25)")
     parser.add_argument("--json", default=None, help="also write the figures to this JSON file")
-    parser.add_argument("--untextured", default=None, choices=("pallet", "cylinders", "bracket", "all"),
+    parser.add_argument("--untextured", default=None, choices=UNTEXTURED_CHOICES,
                         help="benchmark the shape front end on untextured generated scenes instead "
-                             "(model from the object's mesh; also distractor-only scenes and the model build time)")
+                             "(model from the object's mesh; also distractor-only scenes and the model build time; "
+                             "all: pallet, cylinders and bracket)")
     parser.add_argument("--depth-noise-correlation", type=float, default=0.0, metavar="PX",
                         help="generated scene bags: depth noise shared by neighbouring pixels over about PX pixels, "
                              "as a stereo matcher's window makes it (default 0: independent per pixel; the "

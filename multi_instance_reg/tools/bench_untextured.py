@@ -1,6 +1,6 @@
 """``mireg bench frames --untextured PRESET``: the shape front end on untextured scenes.
 
-Per preset (pallet, cylinders, bracket; ``all`` = each in turn): the object's mesh is written
+Per preset (pallet, cylinders, bracket, channel, stairs, tee; ``all`` = the first three in turn): the object's mesh is written
 and timed into a model (``mireg build-model --mesh``), ``--scenes`` scenes of ``--frames``
 frames are generated (seeds seed+200, ...; 4 to 12 instances), plus as many distractor-only
 scenes (no instance). Printed: MHF1 (hits over the object's symmetries), median RTE/RRE,
@@ -43,11 +43,11 @@ def run_untextured(args, config) -> int:
     from ..meshes import load_mesh, save_mesh
     from ..rgbd.mesh_model import build_model_from_mesh
     from ..synthetic.objects import get_object, object_mesh
-    from ..synthetic.untextured import PRESETS
+    from ..synthetic.untextured import BENCH_ALL, PRESETS
     from .bench_frames import format_report
     from .offline import ReplayResult, metrics_dict, replay
 
-    presets = list(PRESETS) if args.untextured == "all" else [args.untextured]
+    presets = list(BENCH_ALL) if args.untextured == "all" else [args.untextured]
     if args.correspondences:
         config = replace(config, frontend=replace(config.frontend, correspondences=args.correspondences))
     results = {}

@@ -5,7 +5,7 @@
                       [--seed S] [--storage sqlite3|mcap] [--resolution 640x480|1280x720]
                       [--preview DIR]
     mireg synth capture -o OUT --object NAME [--seed S] [--views N] [...]
-    mireg synth untextured -o OUT --preset pallet|cylinders|bracket [--instances K] [--distractors D]
+    mireg synth untextured -o OUT --preset pallet|cylinders|bracket|channel|stairs|tee [--instances K] [--distractors D]
                       [--frames F] [--seed S] [--mesh FILE.ply|.stl|.obj [--units m|mm]]
     mireg synth mesh --object NAME -o FILE.ply|.stl|.obj [--units m|mm]
 """
@@ -76,7 +76,9 @@ def add_arguments(parser) -> None:
             f"{k}: {v}" for k, v in {"pallet": "cartons in one or two layers on a pallet, seen from above at 1.2-2 m "
                                                 "(--instances 0: other boxes only)",
                                       "cylinders": "grey cylinders and plain distractors on a table, 0.5-1 m",
-                                      "bracket": "L-shaped brackets and plain distractors on a table, 0.5-1 m"}.items()))
+                                      "bracket": "L-shaped brackets and plain distractors on a table, 0.5-1 m",
+                                      "channel, stairs, tee": "U channels, blocks of three steps or T profiles, "
+                                                              "the same way"}.items()))
     untextured.add_argument("-o", "--output", required=True, help="bag directory to create (must not exist)")
     untextured.add_argument("--preset", choices=tuple(PRESETS), required=True, help="which scene")
     untextured.add_argument("--instances", type=int, default=8, metavar="K", help="instances of the object, 0-20 (default 8)")
