@@ -132,3 +132,25 @@ def test_views_without_ground_truth_are_registered_where_ground_truth_puts_them(
     assert same.mean() > 0.9
     off = np.linalg.norm(a[same] - b[twin[same]], axis=1)
     assert np.mean(off < 0.01) > 0.95, np.percentile(off, [50, 90, 99])
+
+
+def test_a_capture_bag_without_poses_is_placed_by_shape_view_by_view(tmp_path, capture_bags):
+    """A real capture bag has no /ground_truth topics: with --mesh its frames are spread over
+    the bag by default (each view is placed on its own, no chain from the first) and placed by
+    shape."""
+    from multi_instance_reg.datasets.bag_writer import RealSenseBagWriter
+    from multi_instance_reg.datasets.rgbd_bag import RGBDBag
+
+    real = tmp_path / "real_capture"
+    with RGBDBag(capture_bags[0]) as bag, RealSenseBagWriter(real) as out:
+        for k, frame in enumerate(bag):
+            if k % 2 == 0:
+                depth_mm = np.rint(frame.depth_m * 1000.0).astype(np.uint16)
+                out.write_frame(frame.stamp_ns, frame.rgb, depth_mm, frame.intrinsics)     # no poses
+    spec = get_object(DEFAULT_OBJECT)
+    mesh_path = save_mesh(object_mesh(spec), tmp_path / "box.stl", "mm")
+    run = subprocess.run(MIREG + ["build-model", "--mesh", str(mesh_path), "--units", "mm", str(real),
+                                  "-o", str(tmp_path / "m.npz")], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    assert "placed by shape" in run.stderr and "of 4 view(s)" in run.stderr, run.stderr
+    assert load_model(tmp_path / "m.npz").num_keypoints > 200

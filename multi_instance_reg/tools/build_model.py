@@ -27,7 +27,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("-o", "--output", required=True, help="model file to write (.npz)")
     parser.add_argument("--frames", default=None,
                         help="frames of the bag to merge: indices '0,10,20' or a range 'start:stop:step' "
-                             "(default: up to 12 spread over the bag with ground truth, else the first)")
+                             "(default: up to 12 spread over the bag with ground truth or with --mesh, else the first)")
     parser.add_argument("--roi", default=None, help="x,y,w,h pixel box around the object (default: whole image)")
     parser.add_argument("--depth-range", nargs=2, type=float, metavar=("MIN", "MAX"), default=(0.1, 4.0),
                         help="metres: depth kept for the object (default 0.1 4.0)")
@@ -86,13 +86,17 @@ def parse_frames(text: str | None, n_frames: int, has_gt: bool) -> list[int]:
     return idx
 
 
-def views_from_bag(path, frames_text, topics) -> tuple[list, dict | None]:
+def views_from_bag(path, frames_text, topics, spread: bool | None = None) -> tuple[list, dict | None]:
+    """The bag's capture views: ``frames_text`` (``--frames``), else up to 12 spread over the
+    bag where the views are placed independently (``spread``; default: when the bag has ground
+    truth), else the first (views registered to each other by texture chain from it)."""
     from ..datasets.rgbd_bag import RGBDBag
     from ..rgbd.model import CaptureView
 
     kwargs = dict(zip(("colour_topic", "depth_topic", "info_topic"), topics)) if topics else {}
     with RGBDBag(path, **kwargs) as bag:
-        want = set(parse_frames(frames_text, bag.num_colour_messages, bag.has_ground_truth))
+        want = set(parse_frames(frames_text, bag.num_colour_messages,
+                                bag.has_ground_truth if spread is None else spread))
         views = []
         for i, frame in enumerate(bag):
             if i in want:
@@ -250,7 +254,8 @@ def run_mesh(args, out: Path) -> int:
     model = build_model_from_mesh(mesh, name, None if args.symmetry == "auto" else args.symmetry)
     views = []
     for bag in args.bag:
-        more, _ = views_from_bag(bag, args.frames, args.topics)
+        # Placed on the mesh view by view (by ground truth or by shape): spread frames by default.
+        more, _ = views_from_bag(bag, args.frames, args.topics, spread=True)
         views += more
     placed = ""
     if views:
