@@ -67,7 +67,7 @@ def test_the_capture_points_settle_the_placement_on_the_surface():
     seen = surface[(normals @ np.array([1.0, 1.0, 1.0])) > 0.5]
     cloud = apply_transform(true, seen) + np.random.default_rng(2).normal(scale=0.001, size=seen.shape)
     start = true @ make_transform(_rot([0.3, 1, 0.2], 3.0), [0.004, -0.003, 0.002])
-    T = fit_to_surface(start, cloud, surface, normals, voxel=0.0089)
+    T = fit_to_surface(start, cloud, cKDTree(surface), normals, voxel=0.0089)
     assert rotation_angle_deg(true[:3, :3].T @ T[:3, :3]) < 0.3
     assert np.linalg.norm(true[:3, 3] - T[:3, 3]) < 0.0007
 

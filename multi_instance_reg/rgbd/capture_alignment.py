@@ -24,11 +24,13 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ..errors import InputError
 from ..symmetry import turn_about
 from ..transforms import apply_transform, invert_transform
 from .model import CaptureView, ObjectModel, RegisteredView
+from .pipeline import project_points
 from .shape import apply_twist
 
 AGREE_M = 0.005             # a keypoint agrees with a placed one of its descriptor this close
@@ -40,10 +42,21 @@ ON_SURFACE = 0.8            # a view placed by texture alone: share of its objec
 @dataclass
 class CaptureAlignment:
     poses: list                     # per view: object pose (mesh frame -> view optical frame), None = not placed
-    found: int                      # views where the shape path found the object
-    placed: int                     # views placed (the texture decided their symmetric pose)
-    by_texture_alone: int           # of those, views the shape did not find (placed by ECC on their matches)
-    agreeing: list                  # per view: matches that agreed with its placement (0: not placed)
+    found_by_shape: list            # per view: the shape path found the object in it
+
+    @property
+    def found(self) -> int:
+        return sum(self.found_by_shape)
+
+    @property
+    def placed(self) -> int:
+        """Views placed (the texture decided their symmetric pose)."""
+        return sum(T is not None for T in self.poses)
+
+    @property
+    def by_texture_alone(self) -> int:
+        """Views placed that the shape did not find (by ECC on their matches)."""
+        return sum(T is not None and not f for T, f in zip(self.poses, self.found_by_shape))
 
 
 def view_pose_by_shape(registration, view: CaptureView, mask: np.ndarray, model: ObjectModel):
@@ -51,28 +64,24 @@ def view_pose_by_shape(registration, view: CaptureView, mask: np.ndarray, model:
     path, or None: of the instances found, the best supported one whose box centre projects
     onto the object's pixels (the table and a wall hold none, but a false fit on them could)."""
     result = registration.register_frame(view.rgb, view.depth_m, view.intrinsics)
-    K = view.intrinsics.K
     h, w = mask.shape
     best = None
     for inst in result.instances:
-        c = apply_transform(inst.T, model.box_centre[None, :])[0]
-        if c[2] <= 0:
-            continue
-        u, v = int(round(K[0, 0] * c[0] / c[2] + K[0, 2])), int(round(K[1, 1] * c[1] / c[2] + K[1, 2]))
-        if 0 <= u < w and 0 <= v < h and mask[v, u] and (best is None or inst.inliers > best.inliers):
+        c = apply_transform(inst.T, model.box_centre[None, :])
+        u, v = np.rint(project_points(c, view.intrinsics)[0]).astype(int)
+        if c[0, 2] > 0 and 0 <= u < w and 0 <= v < h and mask[v, u] and (best is None or inst.inliers > best.inliers):
             best = inst
     return None if best is None else np.asarray(best.T, np.float64)
 
 
-def fit_to_surface(T_view_mesh: np.ndarray, cloud: np.ndarray, surface: np.ndarray, normals: np.ndarray,
+def fit_to_surface(T_view_mesh: np.ndarray, cloud: np.ndarray, surface: cKDTree, normals: np.ndarray,
                    voxel: float, rounds: int = 20) -> np.ndarray:
     """Point-to-plane ICP of a view's object points (view frame) onto the mesh's surface
-    samples (mesh frame): the shape path fits voxel samples a shape voxel apart, the view's
-    thousands of points settle the pose further (its capture keypoints sit on that
-    surface). Pairs beyond 2 voxels, then 1, are left out (table remnants at the mask's edge)."""
-    from scipy.spatial import cKDTree
-
-    tree = cKDTree(surface)
+    samples (mesh frame; ``surface`` their k-d tree, built once for all views): the shape
+    path fits voxel samples a shape voxel apart, the view's thousands of points settle the
+    pose further (its capture keypoints sit on that surface). Pairs beyond 2 voxels, then 1,
+    are left out (table remnants at the mask's edge)."""
+    tree, points = surface, surface.data
     T = np.asarray(T_view_mesh, np.float64).copy()
     for k in range(rounds):
         q = apply_transform(invert_transform(T), cloud)          # the view's points in the mesh frame
@@ -80,7 +89,7 @@ def fit_to_surface(T_view_mesh: np.ndarray, cloud: np.ndarray, surface: np.ndarr
         ok = dist < (2.0 if k < rounds // 2 else 1.0) * voxel
         if ok.sum() < 30:
             break
-        p, m, n = q[ok], surface[j[ok]], normals[j[ok]]
+        p, m, n = q[ok], points[j[ok]], normals[j[ok]]
         # Move the points by a small twist [w, v]: r = n . (p + w x p + v - m).
         A = np.hstack([np.cross(p, n), n])
         b = -np.einsum("ij,ij->i", n, p - m)
@@ -130,7 +139,7 @@ def symmetric_choice(x: np.ndarray, y: np.ndarray, model: ObjectModel) -> tuple[
     return scored[0][1], scored[0][0], second
 
 
-def texture_pose(obj: RegisteredView, s_idx: np.ndarray, target: np.ndarray, surface: np.ndarray,
+def texture_pose(obj: RegisteredView, s_idx: np.ndarray, target: np.ndarray, surface: cKDTree,
                  normals: np.ndarray, voxel: float) -> tuple[np.ndarray | None, int]:
     """A view's pose (mesh frame -> view) from its keypoints' matches to the keypoints placed
     so far (``target``, mesh frame), by ECC, then fitted to the surface: (pose, matches that
@@ -148,10 +157,7 @@ def texture_pose(obj: RegisteredView, s_idx: np.ndarray, target: np.ndarray, sur
             best, best_agree = pose, agree
     if best is None:
         return None, 0
-    from scipy.spatial import cKDTree
-
-    dist, _ = cKDTree(surface).query(apply_transform(invert_transform(best), obj.cloud), k=1,
-                                     distance_upper_bound=2.0 * voxel)
+    dist, _ = surface.query(apply_transform(invert_transform(best), obj.cloud), k=1, distance_upper_bound=2.0 * voxel)
     return (best, best_agree) if np.mean(dist < 2.0 * voxel) >= ON_SURFACE else (None, 0)
 
 
@@ -170,15 +176,14 @@ def place_views(model: ObjectModel, views: list[CaptureView], objects: list[Regi
     found = [view_pose_by_shape(registration, v, o.mask, model) if len(o.keypoints_xyz) else None
              for v, o in zip(views, objects)]
     points, normals = surface if surface is not None else (model.shape_points, model.shape_normals)
-    points, normals = np.asarray(points, np.float64), np.asarray(normals, np.float64)
-    found = [None if T is None else fit_to_surface(T, o.cloud, points, normals, model.shape_voxel)
+    tree, normals = cKDTree(np.asarray(points, np.float64)), np.asarray(normals, np.float64)
+    found = [None if T is None else fit_to_surface(T, o.cloud, tree, normals, model.shape_voxel)
              for T, o in zip(found, objects)]
     if not any(T is not None for T in found):
         raise InputError(f"the object was not found by its shape in any of the {len(views)} capture view(s), so "
                          f"their texture cannot be placed on the mesh; check that the mesh is this object's and its "
                          f"--units, or give captures with ground-truth poses")
     poses: list = [None] * len(views)
-    agreeing = [0] * len(views)
     # Keypoints in the mesh frame as the shape placed them (before any symmetric choice).
     as_found = [None if T is None else apply_transform(invert_transform(T), o.keypoints_xyz)
                 for T, o in zip(found, objects)]
@@ -204,15 +209,30 @@ def place_views(model: ObjectModel, views: list[CaptureView], objects: list[Regi
             else:
                 # Not found by its shape (a can seen end-on, a face too small to vote): its
                 # texture against the views placed so far, settled on the surface.
-                pose, agree = texture_pose(objects[k], s_idx, target[m_idx], points, normals, model.shape_voxel)
+                pose, agree = texture_pose(objects[k], s_idx, target[m_idx], tree, normals, model.shape_voxel)
             if pose is not None and agree >= MIN_AGREEING:
-                poses[k], agreeing[k] = pose, agree
+                poses[k] = pose
                 placed_xyz.append(apply_transform(invert_transform(pose), objects[k].keypoints_xyz))
                 placed_desc.append(objects[k].descriptors)
                 progress = True
         # (Views placed in this round join the reference for the next.)
-    return CaptureAlignment(poses, sum(T is not None for T in found), sum(T is not None for T in poses),
-                            sum(P is not None and F is None for P, F in zip(poses, found)), agreeing)
+    return CaptureAlignment(poses, [T is not None for T in found])
 
 
-__all__ = ["CaptureAlignment", "fit_to_surface", "place_views", "symmetric_choice", "view_pose_by_shape"]
+def place_capture_keypoints(model: ObjectModel, mesh, views: list[CaptureView], settings) -> CaptureAlignment:
+    """The capture views' SIFT keypoints brought into the mesh model's frame by shape (what
+    ``build-model --mesh`` does with captures that have no ground truth): each view's object
+    (``model.view_objects``), its pose (``place_views``, the ICP onto the mesh sampled at a
+    quarter shape voxel), its keypoints added to ``model`` (``add_placed_keypoints``)."""
+    from ..meshes import sample_surface
+    from .mesh_model import add_placed_keypoints
+    from .model import view_objects
+
+    objects = list(view_objects(views, settings))
+    align = place_views(model, views, objects, sample_surface(mesh, model.shape_voxel / 4.0, seed=3))
+    add_placed_keypoints(model, objects, align.poses)
+    return align
+
+
+__all__ = ["CaptureAlignment", "fit_to_surface", "place_capture_keypoints", "place_views", "symmetric_choice",
+           "view_pose_by_shape"]

@@ -533,12 +533,13 @@ class ShapeFrontEnd:
 
     def pierces(self, T, cloud: FrameCloud, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> bool:
         """Whether the model at pose T reaches more than two voxels through the frame's
-        largest support plane (the table it would stand on) where the depth shows that plane:
-        its points there are hidden behind the table's surface, so the depth check counts
-        them as occluded, not as wrong (a bracket turned over, its upright plate sunk into the
-        table, its base plate on the true one's). Only where the plane is seen: the plane
-        extended without bound would also cut off objects standing lower beyond its edge (on
-        the floor beside a table, a lower shelf)."""
+        largest support plane (the table it would stand on) where that plane is there: its
+        points behind the table's surface are hidden, so the depth check counts them as
+        occluded, not as wrong (a bracket turned over, its upright plate sunk into the table,
+        its base plate on the true one's). "There": the depth on those points' rays stops at
+        the plane or before it; where it reaches past it, the plane ends before them (the plane
+        extended without bound would also cut off objects standing lower beyond its edge: on
+        the floor beside a table, on a lower shelf)."""
         if cloud.up is None or cloud.up_offset is None:
             return False
         up, offset = cloud.up, cloud.up_offset
@@ -570,13 +571,13 @@ class ShapeFrontEnd:
         fe = self.fe
         if n < fe.shape_min_visible or support < fe.shape_min_support or free > fe.shape_max_free:
             return None
-        if fe.shape_reject_through_support and self.pierces(T, cloud, depth_m, intrinsics):
+        # The outline's share is at least 0: without the evidence even at 0, no need to look.
+        if support - free < fe.shape_min_evidence:
             return None
         if fe.shape_min_in_view > 0 and in_view_share(T, self._surface, self._surface_normals,
                                                       intrinsics) < fe.shape_min_in_view:
             return None
-        # The outline's share is at least 0: without the evidence even at 0, no need to look.
-        if support - free < fe.shape_min_evidence:
+        if fe.shape_reject_through_support and self.pierces(T, cloud, depth_m, intrinsics):
             return None
         # A piece of a larger surface (a carton fitted onto a crate's top) agrees with the
         # depth wherever it covers: what tells is the same surface continuing just past

@@ -165,10 +165,9 @@ def model_from_mesh_and_captures(object_name, captures, ignore_ground_truth: boo
     """Shape from the generated object's mesh, texture from the capture bags: what
     ``build-model --mesh`` with capture bags makes (placed by their ground truth, which is in
     the mesh frame, or with ``ignore_ground_truth`` by shape)."""
-    from ..meshes import sample_surface
-    from ..rgbd.capture_alignment import place_views
-    from ..rgbd.mesh_model import add_capture_keypoints, add_placed_keypoints, build_model_from_mesh
-    from ..rgbd.model import BuildSettings, view_objects
+    from ..rgbd.capture_alignment import place_capture_keypoints
+    from ..rgbd.mesh_model import add_capture_keypoints, build_model_from_mesh
+    from ..rgbd.model import BuildSettings
     from ..synthetic.objects import get_object, object_mesh
     from ..synthetic.scene import DEFAULT_OBJECT
     from .build_model import views_from_bag
@@ -181,11 +180,10 @@ def model_from_mesh_and_captures(object_name, captures, ignore_ground_truth: boo
         views += views_from_bag(bag, None, None)[0]
     if not ignore_ground_truth:
         return add_capture_keypoints(model, views, BuildSettings())
-    objects = list(view_objects(views, BuildSettings()))
-    placed = place_views(model, views, objects, sample_surface(mesh, model.shape_voxel / 4.0, seed=3))
+    placed = place_capture_keypoints(model, mesh, views, BuildSettings())
     print(f"captures placed by shape: the object found in {placed.found} of {len(views)} views; {placed.placed} "
           f"placed, {placed.by_texture_alone} of them by their texture alone", file=sys.stderr)
-    return add_placed_keypoints(model, objects, placed.poses)
+    return model
 
 
 def format_report(metrics: dict) -> str:

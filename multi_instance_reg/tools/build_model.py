@@ -241,9 +241,9 @@ def run_mesh(args, out: Path) -> int:
     import time
 
     from ..meshes import load_mesh
-    from ..rgbd.capture_alignment import place_views
-    from ..rgbd.mesh_model import add_capture_keypoints, add_placed_keypoints, build_model_from_mesh
-    from ..rgbd.model import BuildSettings, model_name, save_model, view_objects
+    from ..rgbd.capture_alignment import place_capture_keypoints
+    from ..rgbd.mesh_model import add_capture_keypoints, build_model_from_mesh
+    from ..rgbd.model import BuildSettings, model_name, save_model
 
     if args.rgb or args.depth:
         raise InputError("give either --mesh (with capture bags, optionally) or --rgb/--depth PNG files, not both")
@@ -263,9 +263,7 @@ def run_mesh(args, out: Path) -> int:
         settings = BuildSettings(roi=parse_roi(args.roi), depth_range=(lo, hi))
         if args.ignore_ground_truth or not all(v.T_camera_object is not None for v in views):
             # Each view's pose from the mesh's shape, its symmetric pose from the texture.
-            objects = list(view_objects(views, settings))
-            align = place_views(model, views, objects)
-            add_placed_keypoints(model, objects, align.poses)
+            align = place_capture_keypoints(model, mesh, views, settings)
             placed = (f" (placed by shape: the object found in {align.found} of {len(views)} view(s); "
                       f"{align.placed} placed, {align.by_texture_alone} of them by their texture alone)")
             if align.placed < max(2, len(views) // 4):
