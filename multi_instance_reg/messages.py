@@ -47,8 +47,91 @@ def image_to_array(msg) -> np.ndarray:
     return arr.astype(dtype, copy=False) if itemsize > 1 else arr
 
 
+def is_compressed(msg) -> bool:
+    """A sensor_msgs/CompressedImage (``format`` and ``data``, no ``encoding``)?"""
+    return hasattr(msg, "format") and not hasattr(msg, "encoding")
+
+
+# compressed_depth_image_transport's payload starts with this header: the compression format
+# (int32 enum: 0 = PNG, or PNG of quantised inverse depth for 32FC1; 1 = RVL) and two float32
+# quantisation parameters (used for 32FC1 only).
+_COMPRESSED_DEPTH_HEADER = np.dtype([("format", "<i4"), ("quant_a", "<f4"), ("quant_b", "<f4")])
+
+
+def _byte_array(data) -> np.ndarray:
+    """A message's uint8[] field (bytes, array.array, numpy or list) as a flat uint8 array."""
+    try:
+        return np.frombuffer(data, np.uint8)
+    except TypeError:
+        return np.asarray(data, dtype=np.uint8).reshape(-1)
+
+
+def _imdecode(buf: np.ndarray, what: str, flags) -> np.ndarray:
+    import cv2
+
+    img = cv2.imdecode(buf, flags) if buf.size else None
+    if img is None:
+        raise InputError(f"{what}: the compressed data ({buf.size} bytes) does not decode as an image")
+    return img
+
+
+def compressed_colour_to_rgb(msg) -> np.ndarray:
+    """(H, W, 3) uint8 RGB from a sensor_msgs/CompressedImage of image_transport's
+    ``compressed`` plugin (format e.g. "rgb8; jpeg compressed bgr8", or just "jpeg"/"png")."""
+    import cv2
+
+    fmt = str(msg.format)
+    if "compresseddepth" in fmt.lower():
+        raise InputError(f"colour image is compressed depth ('{fmt}'); give the colour topic (…/compressed)")
+    img = _imdecode(_byte_array(msg.data), "colour image", cv2.IMREAD_UNCHANGED)
+    if img.dtype != np.uint8:
+        raise InputError(f"compressed colour image decodes to {img.dtype} ('{fmt}'); expected 8-bit colour")
+    # The plugin encodes colour as bgr8 ("... compressed bgr8"), which OpenCV decodes as stored;
+    # only "compressed rgb8" keeps red first.
+    red_first = fmt.replace(" ", "").lower().endswith("compressedrgb8")
+    if img.ndim == 2:
+        return np.repeat(img[:, :, None], 3, axis=2)
+    img = img[:, :, :3]
+    return np.ascontiguousarray(img if red_first else img[:, :, ::-1])
+
+
+def compressed_depth_to_metres(msg, depth_scale: float = 0.001) -> np.ndarray:
+    """(H, W) float32 metres from a sensor_msgs/CompressedImage of image_transport's
+    ``compressedDepth`` plugin with its PNG codec (format e.g. "16UC1; compressedDepth png")."""
+    import cv2
+
+    fmt = str(msg.format)
+    kind = fmt.split(";")[0].strip()
+    if "compresseddepth" not in fmt.lower():
+        raise InputError(f"depth image is compressed as '{fmt}', not compressedDepth; record the depth's "
+                         f"raw topic or its …/compressedDepth topic (lossy colour codecs ruin depth)")
+    if fmt.lower().rstrip().endswith("rvl"):
+        raise InputError(f"depth compressed with RVL ('{fmt}') is not supported; record the raw depth topic or set "
+                         f"the publisher's compressedDepth format to png")
+    data = _byte_array(msg.data)
+    if len(data) <= _COMPRESSED_DEPTH_HEADER.itemsize:
+        raise InputError(f"compressed depth image has only {len(data)} bytes ('{fmt}')")
+    head = data[:_COMPRESSED_DEPTH_HEADER.itemsize].copy().view(_COMPRESSED_DEPTH_HEADER)[0]
+    img = _imdecode(data[_COMPRESSED_DEPTH_HEADER.itemsize:], "compressed depth image", cv2.IMREAD_UNCHANGED)
+    if img.ndim != 2 or img.dtype != np.uint16:
+        raise InputError(f"compressed depth image decodes to {img.dtype} with shape {img.shape}; expected 16-bit, one channel")
+    if kind in ("16UC1", "mono16"):
+        return img.astype(np.float32) * np.float32(depth_scale)
+    if kind == "32FC1":
+        # Stored as quantised inverse depth: q = a / z + b, 0 where there was no measurement.
+        a, b = float(head["quant_a"]), float(head["quant_b"])
+        q = img.astype(np.float64)
+        depth = np.zeros(img.shape, np.float32)
+        ok = q > b
+        depth[ok] = (a / (q[ok] - b)).astype(np.float32)
+        return depth
+    raise InputError(f"compressed depth image has encoding '{kind}'; expected 16UC1 (mm) or 32FC1 (m)")
+
+
 def colour_to_rgb(msg) -> np.ndarray:
-    """(H, W, 3) uint8 RGB from any supported colour encoding."""
+    """(H, W, 3) uint8 RGB from any supported colour encoding, raw or compressed."""
+    if is_compressed(msg):
+        return compressed_colour_to_rgb(msg)
     arr = image_to_array(msg)
     enc = msg.encoding
     if enc not in COLOUR_ENCODINGS:
@@ -61,7 +144,10 @@ def colour_to_rgb(msg) -> np.ndarray:
 
 
 def depth_to_metres(msg, depth_scale: float = 0.001) -> np.ndarray:
-    """(H, W) float32 metres; 0 where there is no measurement (0, NaN or inf)."""
+    """(H, W) float32 metres; 0 where there is no measurement (0, NaN or inf). Raw images, or
+    compressedDepth ones (PNG)."""
+    if is_compressed(msg):
+        return compressed_depth_to_metres(msg, depth_scale)
     arr = image_to_array(msg)
     enc = msg.encoding
     if enc not in DEPTH_ENCODINGS:
@@ -88,6 +174,30 @@ def array_to_image_fields(arr: np.ndarray, encoding: str) -> dict:
         raise InputError(f"array of shape {arr.shape} does not fit encoding {encoding}")
     return {"height": h, "width": w, "encoding": encoding, "is_bigendian": 0,
             "step": w * channels * arr.itemsize, "data": arr.reshape(-1).view(np.uint8)}
+
+
+def compressed_colour_fields(rgb: np.ndarray, jpeg_quality: int = 90) -> dict:
+    """The fields of a sensor_msgs/CompressedImage (without header) holding (H, W, 3) uint8 RGB
+    as image_transport's ``compressed`` plugin publishes it: JPEG of the bgr8 image."""
+    import cv2
+
+    ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(rgb[:, :, ::-1]), [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)])
+    if not ok:
+        raise InputError(f"cannot JPEG-encode a colour image of shape {rgb.shape}")
+    return {"format": "rgb8; jpeg compressed bgr8", "data": buf.reshape(-1)}
+
+
+def compressed_depth_fields(depth_mm: np.ndarray) -> dict:
+    """The fields of a sensor_msgs/CompressedImage (without header) holding (H, W) uint16
+    millimetres as the ``compressedDepth`` plugin publishes 16UC1 with its PNG codec: its
+    12-byte header (format 0, no quantisation), then the PNG (lossless)."""
+    import cv2
+
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(depth_mm, dtype=np.uint16))
+    if not ok:
+        raise InputError(f"cannot PNG-encode a depth image of shape {depth_mm.shape}")
+    head = np.zeros(1, _COMPRESSED_DEPTH_HEADER).view(np.uint8)
+    return {"format": "16UC1; compressedDepth png", "data": np.concatenate([head, buf.reshape(-1)])}
 
 
 @dataclass(frozen=True)

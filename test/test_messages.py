@@ -125,3 +125,83 @@ def test_uncalibrated_camera_info_is_refused():
     info = SimpleNamespace(k=[0.0] * 9, d=[], width=640, height=480, distortion_model="")
     with pytest.raises(InputError, match="invalid K"):
         camera_info_to_intrinsics(info)
+
+
+# ---- compressed images (image_transport's compressed and compressedDepth) ------------------
+SMOOTH = np.dstack([np.tile(np.linspace(20, 230, 64, dtype=np.uint8), (48, 1)),
+                    np.tile(np.linspace(200, 40, 48, dtype=np.uint8)[:, None], (1, 64)),
+                    np.full((48, 64), 90, np.uint8)])
+
+
+def compressed_msg(format, data):
+    return SimpleNamespace(format=format, data=data)
+
+
+def test_compressed_colour_jpeg_round_trip_keeps_red_first():
+    from multi_instance_reg.messages import compressed_colour_fields
+
+    fields = compressed_colour_fields(SMOOTH)
+    assert fields["format"] == "rgb8; jpeg compressed bgr8"
+    out = colour_to_rgb(compressed_msg(**fields))
+    assert out.shape == SMOOTH.shape and out.dtype == np.uint8
+    assert np.abs(out.astype(int) - SMOOTH).max() <= 8     # JPEG is lossy...
+    assert np.abs(out[:, :, ::-1].astype(int) - SMOOTH).mean() > 30    # ... and not channel-swapped
+
+
+@pytest.mark.parametrize("fmt, store, expect", [
+    ("bgr8; png compressed bgr8", lambda c: c[:, :, ::-1], lambda c: c),    # what the plugin writes
+    ("png", lambda c: c[:, :, ::-1], lambda c: c),                          # older publishers
+    ("rgb8; png compressed rgb8", lambda c: c, lambda c: c),                # stored red first
+    ("mono8; png compressed mono8", lambda c: c[:, :, 0], lambda c: np.repeat(c[:, :, :1], 3, axis=2)),
+])
+def test_compressed_colour_png_is_exact(fmt, store, expect):
+    import cv2
+
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(store(SMOOTH)))
+    np.testing.assert_array_equal(colour_to_rgb(compressed_msg(fmt, buf.tobytes())), expect(SMOOTH))
+
+
+def test_compressed_depth_16uc1_png_is_lossless_from_any_byte_container():
+    import array
+
+    from multi_instance_reg.messages import compressed_depth_fields
+
+    depth_mm = RNG.integers(0, 9000, (48, 64)).astype(np.uint16)
+    fields = compressed_depth_fields(depth_mm)
+    assert fields["format"] == "16UC1; compressedDepth png"
+    for data in (fields["data"], bytes(fields["data"]), array.array("B", bytes(fields["data"]))):
+        np.testing.assert_array_equal(depth_to_metres(compressed_msg(fields["format"], data)),
+                                      depth_mm.astype(np.float32) * np.float32(0.001))
+
+
+def test_compressed_depth_32fc1_is_quantised_inverse_depth():
+    import cv2
+
+    a, b = 100.0, 10.0               # q = a / z + b, q = 0 for no measurement
+    depth = np.array([[0.5, 1.0, 0.0], [2.0, 4.0, 10.0]])
+    q = np.where(depth > 0, np.round(a / np.where(depth > 0, depth, 1) + b), 0).astype(np.uint16)
+    header = np.array([(0, a, b)], dtype=[("f", "<i4"), ("a", "<f4"), ("b", "<f4")]).tobytes()
+    ok, png = cv2.imencode(".png", q)
+    out = depth_to_metres(compressed_msg("32FC1; compressedDepth png", header + png.tobytes()))
+    np.testing.assert_allclose(out, depth, rtol=1e-6)
+    assert out[0, 2] == 0.0
+
+
+@pytest.mark.parametrize("fmt, data, words", [
+    ("16UC1; compressedDepth rvl", b"\0" * 40, "RVL"),
+    ("16UC1; compressedDepth png", b"\0" * 12 + b"not a png", "does not decode"),
+    ("16UC1; compressedDepth png", b"\0" * 8, "only 8 bytes"),
+    ("rgb8; jpeg compressed bgr8", b"\xff\xd8" + b"\0" * 30, "not compressedDepth"),
+])
+def test_bad_compressed_depth_is_an_input_error_naming_it(fmt, data, words):
+    with pytest.raises(InputError, match=words):
+        depth_to_metres(compressed_msg(fmt, data))
+
+
+def test_bad_compressed_colour_is_an_input_error_naming_it():
+    from multi_instance_reg.messages import compressed_depth_fields
+
+    with pytest.raises(InputError, match="does not decode"):
+        colour_to_rgb(compressed_msg("jpeg", b"\xff\xd8 truncated"))
+    with pytest.raises(InputError, match="compressed depth"):
+        colour_to_rgb(compressed_msg(**compressed_depth_fields(np.zeros((4, 4), np.uint16))))

@@ -185,6 +185,43 @@ def test_malformed_images_and_missing_camera_info_are_skipped_and_counted(model,
     assert "skipping a malformed frame" in out
 
 
+def test_compressed_image_transport_is_subscribed_decoded_and_bad_data_counted(model):
+    """``image_transport:=compressed``: the node takes image_transport's compressed topics
+    (colour JPEG, depth PNG), finds the poster as from raw images, and counts undecodable data."""
+    from geometry_msgs.msg import PoseArray
+    from sensor_msgs.msg import CompressedImage
+    from std_msgs.msg import String
+
+    from multi_instance_reg.messages import compressed_colour_fields, compressed_depth_fields
+
+    with live_node(56, model, UNTRACKED, "image_transport:=compressed") as live:
+        node, probe = live.proc, live.probe
+        poses = probe.subscribe(PoseArray, "/instances/poses")
+        stats = probe.subscribe(String, "/instance_registration/stats")
+        camera = CameraPublisher(probe)
+        camera.colour = probe.publisher(CompressedImage, "/camera/camera/color/image_raw/compressed")
+        camera.depth = probe.publisher(CompressedImage, "/camera/camera/aligned_depth_to_color/image_raw/compressedDepth")
+        assert camera.wait_for_subscribers(proc=node), stop(node)
+        rgb, depth, K = poster_frame()
+
+        def compressed(fields):
+            return CompressedImage(format=fields["format"], data=fields["data"].tobytes())
+
+        for _ in range(3):
+            camera.send(rgb, depth, K, colour_msg=compressed(compressed_colour_fields(rgb)),
+                        depth_msg=compressed(compressed_depth_fields(depth)))
+            wait_until(lambda: len(poses) == _ + 1, 15, proc=node)
+        assert len(poses) == 3, stop(node)
+        for _, msg in poses:
+            (p,) = msg.poses
+            assert np.allclose([p.position.x, p.position.y, p.position.z], [0, 0, POSTER_Z], atol=0.01)
+        camera.send(rgb, depth, K, colour_msg=CompressedImage(format="jpeg", data=b"\xff\xd8 cut short"),
+                    depth_msg=compressed(compressed_depth_fields(depth)))
+        assert wait_until(lambda: last_stats(stats).get("bad") == 1, 15, proc=node), stop(node)
+        assert node.poll() is None and len(poses) == 3
+    assert "image_raw/compressed" in live.out and "does not decode" in live.out
+
+
 def test_two_pipeline_processes_publish_in_order(model):
     from geometry_msgs.msg import PoseArray
 

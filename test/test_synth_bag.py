@@ -148,6 +148,32 @@ def test_correlated_depth_noise_is_recorded_in_the_bag(tmp_path, capsys):
     assert "depth_noise_correlation_px" not in default.description()       # default bags as they were
 
 
+def test_compressed_image_transport_holds_the_same_frames(tmp_path, capsys):
+    """`--image-transport compressed`: image_transport's topics and types, depth exact (PNG),
+    colour within JPEG's loss; the reader finds them without being told the topics."""
+    from multi_instance_reg.datasets.rgbd_bag import RGBDBag
+
+    args = ["synth", "scene", "--instances", "2", "--distractors", "1", "--frames", "2", "--seed", "3"]
+    assert cli.main([*args, "-o", str(tmp_path / "raw")]) == 0
+    assert cli.main([*args, "-o", str(tmp_path / "cmp"), "--image-transport", "compressed"]) == 0
+    with AnyReader([tmp_path / "cmp"], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
+        types = {c.topic: c.msgtype for c in reader.connections}
+    images = {bw.TOPIC_COLOUR + "/compressed", bw.TOPIC_DEPTH + "/compressedDepth"}
+    assert {t: m for t, m in types.items() if t in images} == dict.fromkeys(images, "sensor_msgs/msg/CompressedImage")
+    assert bw.TOPIC_COLOUR not in types and bw.TOPIC_DEPTH not in types
+    with RGBDBag(tmp_path / "raw") as raw, RGBDBag(tmp_path / "cmp") as cmp:
+        pairs = list(zip(raw, cmp))
+        assert cmp.skipped.count == 0
+    assert len(pairs) == 2
+    for a, b in pairs:
+        assert a.stamp_ns == b.stamp_ns and np.array_equal(a.gt_poses, b.gt_poses)
+        np.testing.assert_array_equal(a.depth_m, b.depth_m)
+        err = np.abs(a.rgb.astype(int) - b.rgb)
+        assert err.mean() < 3 and np.percentile(err, 99) < 30, (err.mean(), np.percentile(err, 99))
+    with pytest.raises(ValueError, match="image transport"):
+        bw.RealSenseBagWriter(tmp_path / "t", transport="theora")
+
+
 def test_writer_rejects_bad_arrays(tmp_path):
     from multi_instance_reg.synthetic.sensor import d455_intrinsics
     with bw.RealSenseBagWriter(tmp_path / "w") as bag:

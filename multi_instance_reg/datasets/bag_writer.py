@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..messages import CameraIntrinsics, array_to_image_fields
+from ..messages import CameraIntrinsics, array_to_image_fields, compressed_colour_fields, compressed_depth_fields
 from ..transforms import matrix_to_pose
 
 TOPIC_COLOUR = "/camera/camera/color/image_raw"
@@ -29,6 +29,10 @@ TOPIC_GT_OBJECT = "/ground_truth/object"
 TOPIC_GT_VISIBILITY = "/ground_truth/visibility"
 COLOUR_FRAME_ID = "camera_color_optical_frame"
 STORAGES = ("sqlite3", "mcap")
+# image_transport's names: "raw" sensor_msgs/Image on the topic itself; "compressed" colour as
+# JPEG on <topic>/compressed and depth as PNG on <topic>/compressedDepth (sensor_msgs/CompressedImage),
+# what a bag recorded from realsense-ros with its compressed topics holds.
+TRANSPORTS = ("raw", "compressed")
 CUSTOM_DATA_OBJECT_KEY = "multi_instance_reg.object"
 
 
@@ -51,12 +55,15 @@ class RealSenseBagWriter:
     must not exist yet (rosbag2 never overwrites); missing parent folders are created.
     """
 
-    def __init__(self, path, storage: str = "sqlite3"):
+    def __init__(self, path, storage: str = "sqlite3", transport: str = "raw"):
         from rosbags.rosbag2 import StoragePlugin, Writer
         from rosbags.typesys import Stores, get_typestore
 
         if storage not in STORAGES:
             raise InputError(f"storage '{storage}' is not supported; use one of: {', '.join(STORAGES)}")
+        if transport not in TRANSPORTS:
+            raise InputError(f"image transport '{transport}' is not supported; use one of: {', '.join(TRANSPORTS)}")
+        self.transport = transport
         self.path = Path(path)
         if self.path.exists():
             raise InputError(f"output '{self.path}' already exists; rosbag2 does not overwrite, "
@@ -123,8 +130,8 @@ class RealSenseBagWriter:
     def write_frame(self, stamp_ns: int, rgb: np.ndarray, depth_mm: np.ndarray,
                     intrinsics: CameraIntrinsics, poses: np.ndarray | None = None,
                     visibility: np.ndarray | None = None) -> None:
-        """One RGB-D frame at ``stamp_ns``: colour (rgb8), aligned depth (16UC1 mm), both
-        camera_infos, and, when given, ground-truth poses ((K, 4, 4) object -> colour optical
+        """One RGB-D frame at ``stamp_ns``: colour (rgb8), aligned depth (16UC1 mm) (each
+        compressed with ``transport`` "compressed"), both camera_infos, and, when given, ground-truth poses ((K, 4, 4) object -> colour optical
         frame, metres) and per-instance visibility."""
         T = self._types
         rgb = np.asarray(rgb)
@@ -135,10 +142,17 @@ class RealSenseBagWriter:
             raise InputError(f"depth must be HxW uint16 millimetres matching colour {rgb.shape[:2]}, "
                              f"got {depth_mm.shape} {depth_mm.dtype}")
         header = self._header(stamp_ns)
-        Image = T["sensor_msgs/msg/Image"]
-        self._write(TOPIC_COLOUR, Image(header=header, **array_to_image_fields(rgb, "rgb8")), stamp_ns)
+        if self.transport == "compressed":
+            Compressed = T["sensor_msgs/msg/CompressedImage"]
+            colour = (TOPIC_COLOUR + "/compressed", Compressed(header=header, **compressed_colour_fields(rgb)))
+            depth = (TOPIC_DEPTH + "/compressedDepth", Compressed(header=header, **compressed_depth_fields(depth_mm)))
+        else:
+            Image = T["sensor_msgs/msg/Image"]
+            colour = (TOPIC_COLOUR, Image(header=header, **array_to_image_fields(rgb, "rgb8")))
+            depth = (TOPIC_DEPTH, Image(header=header, **array_to_image_fields(depth_mm, "16UC1")))
+        self._write(*colour, stamp_ns)
         self._write(TOPIC_COLOUR_INFO, self._camera_info(header, intrinsics), stamp_ns)
-        self._write(TOPIC_DEPTH, Image(header=header, **array_to_image_fields(depth_mm, "16UC1")), stamp_ns)
+        self._write(*depth, stamp_ns)
         self._write(TOPIC_DEPTH_INFO, self._camera_info(header, intrinsics), stamp_ns)
         if poses is not None:
             P = T["geometry_msgs/msg/Pose"]

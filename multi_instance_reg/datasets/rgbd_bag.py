@@ -4,6 +4,9 @@ Reads rosbag2 directories and bare .db3 / .mcap files (and ROS 1 .bag) with rosb
 AnyReader. Colour and depth are paired by header stamp (within ``max_dt_ns``), each frame
 gets the latest camera_info, and, when the bag has ``/ground_truth/poses``, the ground-truth
 poses of the same stamp. Frames that cannot be decoded are skipped and counted, never raised.
+Images may be raw (sensor_msgs/Image) or compressed (image_transport's ``compressed`` colour and
+``compressedDepth`` PNG depth); a bag without the raw topics is read from ``<topic>/compressed``
+and ``<topic>/compressedDepth``.
 """
 from __future__ import annotations
 
@@ -88,6 +91,11 @@ class RGBDBag:
         self.skipped = SkipCounter()
         self._reader = _open_reader(self.path)
         topics = self._reader.topics
+        # A bag recorded with image_transport's compressed topics only: read those.
+        if colour_topic not in topics and colour_topic + "/compressed" in topics:
+            self.colour_topic = colour_topic = colour_topic + "/compressed"
+        if depth_topic not in topics and depth_topic + "/compressedDepth" in topics:
+            self.depth_topic = depth_topic = depth_topic + "/compressedDepth"
         missing = [t for t in (colour_topic, depth_topic, info_topic) if t not in topics]
         if missing:
             present = ", ".join(sorted(topics)) or "none"

@@ -80,6 +80,16 @@ CAMERA_INFO_TOPIC = "camera/camera/color/camera_info"
 LATENCY_WINDOW = 300  # frames kept for the latency percentiles
 
 
+def image_subscriptions(transport: str):
+    """(message type, colour topic, depth topic) for ``image_transport``: image_transport's
+    names, <topic>/compressed for colour and <topic>/compressedDepth for depth."""
+    if transport == "compressed":
+        from sensor_msgs.msg import CompressedImage
+
+        return CompressedImage, COLOUR_TOPIC + "/compressed", DEPTH_TOPIC + "/compressedDepth"
+    return Image, COLOUR_TOPIC, DEPTH_TOPIC
+
+
 @dataclass
 class FrameCounters:
     colour_received: int = 0
@@ -180,8 +190,9 @@ class InstanceRegistrationNode(Node):
                                   for name in self._objects}
         self._pub_detections = DetectionPublisher.create(self, pub_qos, list(self._objects.values()))
         self._pub_stats = self.create_publisher(String, "~/stats", pub_qos)
-        self.create_subscription(Image, COLOUR_TOPIC, lambda m: self._on_image(0, m), sub_qos)
-        self.create_subscription(Image, DEPTH_TOPIC, lambda m: self._on_image(1, m), sub_qos)
+        image_type, colour_topic, depth_topic = image_subscriptions(self.settings.image_transport)
+        self.create_subscription(image_type, colour_topic, lambda m: self._on_image(0, m), sub_qos)
+        self.create_subscription(image_type, depth_topic, lambda m: self._on_image(1, m), sub_qos)
         self.create_subscription(CameraInfo, CAMERA_INFO_TOPIC, self._on_camera_info, sub_qos)
         self.create_timer(0.25, self._maybe_report)
 
@@ -193,7 +204,7 @@ class InstanceRegistrationNode(Node):
             worker.start()
         self.get_logger().info(
             f"ready: models {', '.join(f'{m.name} ({f})' for m, f in zip(self.models, self.model_files))}, listening on "
-            f"{self.resolve_topic_name(COLOUR_TOPIC)} + {self.resolve_topic_name(DEPTH_TOPIC)} "
+            f"{self.resolve_topic_name(colour_topic)} + {self.resolve_topic_name(depth_topic)} "
             f"({self.settings.qos_reliability}); tracking {'on' if self._tracker else 'off'}")
 
     # ---- parameters -------------------------------------------------------------------

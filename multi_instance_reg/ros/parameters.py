@@ -35,6 +35,10 @@ class NodeSettings:
     sync_slop_s: float = param(0.02, "largest stamp difference between a colour and a depth image that still pair up (s)", 0.0, 1.0)
     qos_reliability: str = param("reliable", "subscription reliability (read-only); best_effort loses large frames over Fast DDS",
                                  choices=("reliable", "best_effort"))
+    image_transport: str = param("raw", "how the images arrive (read-only): raw (sensor_msgs/Image on the colour and depth "
+                                        "topics) or compressed (sensor_msgs/CompressedImage on <colour topic>/compressed, JPEG or "
+                                        "PNG, and <depth topic>/compressedDepth, PNG, as image_transport publishes them)",
+                                 choices=("raw", "compressed"))
     qos_depth: int = param(10, "subscription and publisher queue depth (read-only)", 1, 1000)
     pipeline_processes: int = param(1, "pipeline processes taking frames in turn (read-only); a second one shortens the wait "
                                        "for a busy pipeline when a core is free for it", 1, 8)
@@ -49,7 +53,7 @@ class NodeSettings:
 
 
 # Fixed for the node's lifetime: they shape subscriptions or the loaded model.
-READ_ONLY = frozenset({"model_path", "qos_reliability", "qos_depth", "pipeline_processes", "detector_niceness",
+READ_ONLY = frozenset({"model_path", "qos_reliability", "image_transport", "qos_depth", "pipeline_processes", "detector_niceness",
                        "tracking.enabled", "tracking.catch_up_frames"})
 
 

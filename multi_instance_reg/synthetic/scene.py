@@ -887,8 +887,9 @@ class BagSummary:
 
 
 def write_scene_bag(scene: SyntheticScene, out_path, storage: str = "sqlite3", preview_dir=None,
-                    preview_frames=None) -> BagSummary:
-    """Render every frame of ``scene`` into a new rosbag2 at ``out_path``."""
+                    preview_frames=None, transport: str = "raw") -> BagSummary:
+    """Render every frame of ``scene`` into a new rosbag2 at ``out_path``, its images raw or,
+    with ``transport`` "compressed", as image_transport's compressed topics."""
     from ..datasets.bag_writer import RealSenseBagWriter
     from .preview import write_preview
 
@@ -898,7 +899,7 @@ def write_scene_bag(scene: SyntheticScene, out_path, storage: str = "sqlite3", p
     if preview_dir is not None:
         Path(preview_dir).mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    with RealSenseBagWriter(out_path, storage=storage) as bag:
+    with RealSenseBagWriter(out_path, storage=storage, transport=transport) as bag:
         bag.write_object_description(scene.stamp_ns(0), scene.description())
         for frame in scene.frames():
             bag.write_frame(frame.stamp_ns, frame.rgb, frame.depth_mm, scene.intrinsics,
@@ -911,17 +912,19 @@ def write_scene_bag(scene: SyntheticScene, out_path, storage: str = "sqlite3", p
 def generate_scene_bag(out_path, object_name: str | list[str] = DEFAULT_OBJECT, instances: int = 6,
                        distractors: int = 3, frames: int = 60, seed: int = 0, storage: str = "sqlite3",
                        resolution: str = "640x480", preview_dir=None, motion: str = "sweep",
-                       occluder: bool = False, depth_noise_correlation_px: float = 0.0) -> BagSummary:
+                       occluder: bool = False, depth_noise_correlation_px: float = 0.0,
+                       transport: str = "raw") -> BagSummary:
     """Make a tabletop scene (see ``make_tabletop_scene``) and write it as a rosbag2."""
     scene = make_tabletop_scene(object_name, instances, distractors, frames, seed, resolution,
                                 motion=motion, occluder=occluder)
     scene.set_depth_noise_correlation(depth_noise_correlation_px)
-    return write_scene_bag(scene, out_path, storage, preview_dir)
+    return write_scene_bag(scene, out_path, storage, preview_dir, transport=transport)
 
 
 def generate_capture_bag(out_path, object_name: str = DEFAULT_OBJECT, seed: int = 0, views: int = 10,
-                         storage: str = "sqlite3", resolution: str = "640x480", preview_dir=None) -> BagSummary:
+                         storage: str = "sqlite3", resolution: str = "640x480", preview_dir=None,
+                         transport: str = "raw") -> BagSummary:
     """Make a capture sequence (see ``make_capture_scene``) and write it as a rosbag2."""
     scene = make_capture_scene(object_name, seed, views, resolution)
     return write_scene_bag(scene, out_path, storage, preview_dir,
-                           preview_frames=list(range(min(views, 4))))
+                           preview_frames=list(range(min(views, 4))), transport=transport)

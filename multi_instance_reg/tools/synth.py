@@ -2,8 +2,8 @@
 
     mireg synth scene -o OUT [--object NAME [--object NAME2 ...]] [--instances K] [--distractors D] [--frames F]
                       [--motion sweep|static|pan] [--occluder]
-                      [--seed S] [--storage sqlite3|mcap] [--resolution 640x480|1280x720]
-                      [--preview DIR]
+                      [--seed S] [--storage sqlite3|mcap] [--image-transport raw|compressed]
+                      [--resolution 640x480|1280x720] [--preview DIR]
     mireg synth capture -o OUT --object NAME [--seed S] [--views N] [...]
     mireg synth untextured -o OUT --preset pallet|cylinders|bracket|channel|stairs|tee [--instances K] [--distractors D]
                       [--frames F] [--seed S] [--mesh FILE.ply|.stl|.obj [--units m|mm]]
@@ -15,6 +15,7 @@ HELP = "make synthetic D455 tabletop bags with ground truth (scene, capture, unt
 
 
 def add_arguments(parser) -> None:
+    from ..datasets.bag_writer import TRANSPORTS
     from ..synthetic.objects import DEFAULT_OBJECT, OBJECTS, UNTEXTURED_OBJECTS
     from ..synthetic.scene import MOTIONS, PAN_SECONDS
     from ..synthetic.sensor import RESOLUTIONS
@@ -23,6 +24,11 @@ def add_arguments(parser) -> None:
     sub = parser.add_subparsers(dest="synth_command", metavar="{scene,capture,untextured,mesh}", required=True)
     objects = ", ".join(f"{name} ({spec.shape} {'x'.join(f'{d:g}' for d in spec.dimensions_m)} m)"
                         for name, spec in OBJECTS.items())
+
+    def image_transport(p):
+        p.add_argument("--image-transport", choices=TRANSPORTS, default="raw",
+                       help="raw: sensor_msgs/Image on the realsense-ros topics (default); compressed: as image_transport's "
+                            "compressed topics, colour JPEG on .../image_raw/compressed, depth PNG on .../image_raw/compressedDepth")
 
     def common(p, object_required: bool):
         p.add_argument("-o", "--output", required=True, help="bag directory to create (must not exist)")
@@ -34,6 +40,7 @@ def add_arguments(parser) -> None:
                                 f"again for a mixed scene (K of each, ground truth naming each instance's object): {objects}")
         p.add_argument("--seed", type=int, default=0, help="random seed; the same seed gives the same bag (default 0)")
         p.add_argument("--storage", choices=("sqlite3", "mcap"), default="sqlite3", help="rosbag2 storage (default sqlite3)")
+        image_transport(p)
         p.add_argument("--resolution", choices=RESOLUTIONS, default="640x480", help="colour/depth size (default 640x480)")
         p.add_argument("--preview", metavar="DIR", default=None,
                        help="also write PNGs of a few frames: colour, colourised depth, ground-truth boxes")
@@ -86,6 +93,7 @@ def add_arguments(parser) -> None:
     untextured.add_argument("--frames", type=int, default=30, metavar="F", help="frames at 30 Hz (default 30)")
     untextured.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     untextured.add_argument("--storage", choices=("sqlite3", "mcap"), default="sqlite3", help="rosbag2 storage (default sqlite3)")
+    image_transport(untextured)
     untextured.add_argument("--resolution", choices=RESOLUTIONS, default="640x480", help="colour/depth size (default 640x480)")
     untextured.add_argument("--preview", metavar="DIR", default=None, help="also write PNGs of a few frames")
     depth_noise(untextured)
@@ -120,7 +128,7 @@ def run(args) -> int:
 
         summary = generate_untextured_bag(args.output, args.preset, args.instances, args.distractors, args.frames,
                                           args.seed, args.storage, args.resolution, args.preview, args.mesh, args.units,
-                                          args.depth_noise_correlation)
+                                          args.depth_noise_correlation, args.image_transport)
         print(f"mireg synth untextured: {summary.line()}" + (f"; mesh {args.mesh}" if args.mesh else ""))
         return 0
     if args.synth_command == "scene":
@@ -130,9 +138,11 @@ def run(args) -> int:
                                      distractors=args.distractors, frames=args.frames, seed=args.seed,
                                      storage=args.storage, resolution=args.resolution, preview_dir=args.preview,
                                      motion=args.motion, occluder=args.occluder,
-                                     depth_noise_correlation_px=args.depth_noise_correlation)
+                                     depth_noise_correlation_px=args.depth_noise_correlation,
+                                     transport=args.image_transport)
     else:
         summary = generate_capture_bag(args.output, object_name=args.object, seed=args.seed, views=args.views,
-                                       storage=args.storage, resolution=args.resolution, preview_dir=args.preview)
+                                       storage=args.storage, resolution=args.resolution, preview_dir=args.preview,
+                                       transport=args.image_transport)
     print(f"mireg synth {args.synth_command}: {summary.line()}")
     return 0
