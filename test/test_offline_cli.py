@@ -159,6 +159,9 @@ def test_missing_topics_are_named(object_model, tmp_path):
     bag = write_bag(tmp_path / "other", [(rgb, "rgb8", depth, "16UC1")], ("/a/rgb", "/a/depth", "/a/info"))
     res = cli("offline", bag, "--model", object_model, "-o", tmp_path / "out")
     one_line_error(res, "offline", COLOUR, "topics present: /a/depth, /a/info, /a/rgb")
+    # A topic of another type given as an image (here the camera_info) is named, not a traceback.
+    res = cli("offline", bag, "--model", object_model, "-o", tmp_path / "out", "--topics", "/a/rgb", "/a/info", "/a/info")
+    one_line_error(res, "offline", "topic /a/info holds sensor_msgs/msg/CameraInfo, not sensor_msgs/msg/Image or")
 
 
 def test_unknown_encoding_fails_clearly(object_model, tmp_path):

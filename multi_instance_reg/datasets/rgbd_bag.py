@@ -27,6 +27,7 @@ DEPTH_TOPIC = "/camera/camera/aligned_depth_to_color/image_raw"
 INFO_TOPIC = "/camera/camera/color/camera_info"
 GT_POSES_TOPIC = "/ground_truth/poses"
 GT_OBJECT_TOPIC = "/ground_truth/object"
+IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 GT_VISIBILITY_TOPIC = "/ground_truth/visibility"   # std_msgs/Float32MultiArray: visible fraction per instance
 
 
@@ -102,6 +103,12 @@ class RGBDBag:
             self._reader.close()
             raise InputError(f"bag {self.path} has no topic {', '.join(missing)}; topics present: {present} "
                              f"(choose others with --topics COLOUR DEPTH INFO)")
+        for topic, types in ((colour_topic, IMAGE_TYPES), (depth_topic, IMAGE_TYPES),
+                             (info_topic, ("sensor_msgs/msg/CameraInfo",))):
+            if topics[topic].msgtype not in types:
+                self._reader.close()
+                raise InputError(f"bag {self.path}: topic {topic} holds {topics[topic].msgtype}, not {' or '.join(types)} "
+                                 f"(choose others with --topics COLOUR DEPTH INFO)")
         self.has_ground_truth = gt_topic in topics
         self.has_visibility = self.has_ground_truth and GT_VISIBILITY_TOPIC in topics
         self.num_colour_messages = int(topics[colour_topic].msgcount)
