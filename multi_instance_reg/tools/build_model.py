@@ -43,7 +43,8 @@ def add_arguments(parser) -> None:
                              "are registered to each other by their texture (and, with --mesh, placed on the mesh by "
                              "shape); by default ground truth is used when every view has it")
     parser.add_argument("--topics", nargs=3, metavar=("COLOUR", "DEPTH", "INFO"), default=None,
-                        help="colour, aligned depth and camera_info topics (default: realsense-ros names)")
+                        help="colour, aligned depth and camera_info topics, raw or compressed (default: realsense-ros names; "
+                             "their /compressed and /compressedDepth topics when the raw ones are absent)")
     mesh = parser.add_argument_group("from a CAD mesh (shape; texture too when capture bags are given)")
     mesh.add_argument("--mesh", default=None, help="triangle mesh of the object: .ply, .stl or .obj; the model frame is the mesh's")
     mesh.add_argument("--units", choices=("m", "mm"), default="m", help="units of the mesh's coordinates (default m)")

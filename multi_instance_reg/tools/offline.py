@@ -42,7 +42,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("-o", "--output", required=True, help="output directory")
     parser.add_argument("--params", default=None, help="the node's parameter YAML (frontend.* and ecc.* are used)")
     parser.add_argument("--topics", nargs=3, metavar=("COLOUR", "DEPTH", "INFO"), default=None,
-                        help="colour, aligned depth and camera_info topics (default: realsense-ros names)")
+                        help="colour, aligned depth and camera_info topics, raw or compressed (default: realsense-ros names; "
+                             "their /compressed and /compressedDepth topics when the raw ones are absent)")
     parser.add_argument("--max-rre-deg", type=float, default=10.0, help="hit: rotation error below this (default 10 deg)")
     parser.add_argument("--max-rte", type=float, default=0.02, help="hit: translation error below this (default 0.02 m)")
     parser.add_argument("--min-visibility", type=float, default=0.25,
