@@ -467,7 +467,9 @@ class InstanceTracker:
                   and stamp_ns > tr.history[-2][0]]
         shared = self._shared_motion(movers, stamp_ns) if c.camera_motion else None
         # Unknown without the shared motion: then taken as moving (no rest_frames averaging).
-        self._camera_moving = shared is None or self._camera_moves(shared * self._frame_dt)
+        # Not judged at all where nothing uses it.
+        self._camera_moving = (shared is None or c.smoothing <= 0 or c.rest_frames <= 1
+                               or self._camera_moves(shared * self._frame_dt))
         alive = []
         for tr in self.tracks:
             T_prev, prev_stamp = (tr.history[-2][1], tr.history[-2][0]) if len(tr.history) >= 2 else (None, None)
