@@ -41,6 +41,7 @@ from .icp import ProjectiveICP
 
 TENTATIVE, CONFIRMED, COASTING = "tentative", "confirmed", "coasting"
 DETECTION, TRACKING = "detection", "tracking"
+RECENT = 0.25                    # weight of the latest residual in the output filter's running mean (about 4 frames)
 HISTORY = 90                     # poses kept per track, to fuse detections of older frames
 
 
@@ -57,7 +58,9 @@ class TrackerConfig:
     duplicate_distance: float = param(0.015, "m: two tracks whose positions come closer than this follow one object: the younger ends", 0.0, 1.0)
     camera_motion: bool = param(True, "predict every track by one motion shared by all (the camera's: objects rest and the camera moves), corrected on each frame by one ICP of all confirmed and coasting tracks together against the depth (where that is refused or no such track is in view: the median rotation, then the median translation of the steps of the tracks the depth or a detection saw), plus the track's own residual velocity; an occluded (coasting) track follows the shared motion. Off: each track's own constant velocity, an occluded one follows the nearest seen track")
     velocity_decay: float = param(0.5, "share of a track's own velocity (with camera_motion: what the shared motion does not explain) kept per frame the track is updated by the depth alone (no detection): a velocity the depth does not confirm (a box sliding along the table plane it shares with its neighbours) dies out instead of carrying the track away from a resting object; 1 = constant velocity", 0.0, 1.0)
-    smoothing: float = param(0.0, "pose smoothing, 0 = off (the published pose is the measured one) to 0.95 (heavy): the published pose is a constant-velocity (alpha-beta) filter of the measured one with gain 1 - smoothing, so a resting object's pose settles and a steadily moving one does not lag; a measurement further than icp_max_step / icp_max_step_deg from the filter restarts it", 0.0, 0.95)
+    smoothing: float = param(0.0, "pose smoothing, 0 = off (the published pose is the measured one) to 0.95 (heavy): the published pose is a constant-velocity (alpha-beta) filter of the measured one with gain 1 - smoothing, so a resting object's pose settles and a steadily moving one does not lag (and, with a still camera, the running mean of a resting object's measured poses: rest_frames); a measurement further than icp_max_step / icp_max_step_deg from the filter restarts it", 0.0, 0.95)
+    rest_frames: int = param(30, "with smoothing on, while the camera is judged still (needs camera_motion): a track whose measured pose stays near its published one is averaged over up to this many frames, so that the published pose of a resting object converges: it is the running mean of the measured poses (gain 1 / n on its n-th frame at rest, down to 1 / rest_frames), held still in the camera. A measurement rest_sigmas times further from it than usual, a run of them off to one side, or a moving camera brings back the plain filter (gain 1 - smoothing), so a moving object is followed as before. 0 or 1 = off", 0, 100000)
+    rest_sigmas: float = param(3.0, "see rest_frames: how many times its usual (RMS) distance from the published pose, in rotation or position, one measurement, or the running mean of the last few, must be for the track to count as moving", 1.0, 100.0)
     detection_gain: float = param(0.3, "with smoothing on: share of an agreeing detection's correction (within icp_max_step and, in orientation, icp_max_step_deg times its spread of a confirmed track, no symmetric flip) that moves a resting track in the steady state, for a detection of detection_gain_inliers inliers (a Kalman gain: the first detections of a track are averaged, weaker ones pull less, stronger ones more); the ICP then re-fits what the depth constrains, so this filters only what it does not (a box seen from its top: its yaw and where it lies on the table), which a detection would otherwise reset with its own noise on every frame. 1 = reset; unused with smoothing 0 (the track is then the measured pose)", 0.01, 1.0)
     detection_gain_inliers: int = param(100, "inliers of the detection that detection_gain refers to; a detection's pose variance is taken as inversely proportional to its inliers", 1, 100000)
     publish_tentative: bool = param(False, "also publish tracks not yet confirmed (state tentative)")
@@ -109,6 +112,10 @@ class Track:
     detected_since_output: bool = True
     velocity: np.ndarray = field(default_factory=lambda: np.zeros(6))   # twist per second (rotvec, translation)
     out_velocity: np.ndarray = field(default_factory=lambda: np.zeros(6))  # of T_out: rotvec about its origin, translation; per second
+    out_count: float = 0.0                    # measurements the published pose averages (rest_frames)
+    out_spread: np.ndarray | None = None      # mean square distance (rad^2, m^2) of the measurements from the published pose
+    out_mean: np.ndarray | None = None        # running mean of the measurements' residuals from the published pose (RECENT)
+    T_out_before: np.ndarray | None = None    # T_out on the frame before, before this frame's prediction
     history: deque = field(default_factory=lambda: deque(maxlen=HISTORY))   # (stamp_ns, T)
     flip_votes: list = field(default_factory=list)                      # recent disagreeing orientations
     T_before_jump: np.ndarray | None = None   # the track's own pose when a detection moved it further than icp_max_step on this frame
@@ -189,6 +196,9 @@ class InstanceTracker:
         self.camera_velocity = np.zeros(6)   # shared motion per second (relative_twist form), camera_motion on
         self.camera_correction: np.ndarray | None = None   # this frame's correction of the predicted camera motion
         self._frame_dt = 0.0                 # s since the frame before
+        self._camera_step = self._camera_square = self._camera_change = None   # _camera_moves: the last shared step, recent mean squares of the steps and of their changes
+        self._camera_moving = True
+        self._camera_still = 0                # frames the camera has been judged still in a row
         # Rotations (model frame) under which the object looks the same; identity first.
         self.symmetries = [np.eye(3)] + [np.asarray(S, dtype=np.float64)[:3, :3] for S in (symmetries or [])]
         self.set_config(config or TrackerConfig())
@@ -223,6 +233,7 @@ class InstanceTracker:
             dt = (stamp_ns - tr.stamp_ns) * 1e-9
             if dt > 0:
                 tr.T = apply_twist(apply_twist(tr.T, shared, dt), tr.velocity, dt)
+                tr.T_out_before = tr.T_out
                 tr.T_out = local_step(tr.T_out, tr.out_velocity * dt)   # the filter's own velocity
                 tr.stamp_ns = stamp_ns
             tr.history.append((stamp_ns, tr.T.copy()))
@@ -455,6 +466,10 @@ class InstanceTracker:
         movers = [tr for tr in self.tracks if seen[tr.track_id] and len(tr.history) >= 2 and tr.track_id not in jumped
                   and stamp_ns > tr.history[-2][0]]
         shared = self._shared_motion(movers, stamp_ns) if c.camera_motion else None
+        # Unknown without the shared motion: then taken as moving (no rest_frames averaging).
+        # Not judged at all where nothing uses it.
+        self._camera_moving = (shared is None or c.smoothing <= 0 or c.rest_frames <= 1
+                               or self._camera_moves(shared * self._frame_dt))
         alive = []
         for tr in self.tracks:
             T_prev, prev_stamp = (tr.history[-2][1], tr.history[-2][0]) if len(tr.history) >= 2 else (None, None)
@@ -509,7 +524,16 @@ class InstanceTracker:
                     tr.velocity = near.velocity.copy()
                 elif T_prev is not None:
                     tr.T, tr.velocity = T_prev.copy(), np.zeros(6)
-                tr.T_out, tr.out_velocity = tr.T.copy(), np.zeros(6)
+                if c.smoothing > 0 and c.rest_frames > 1 and T_prev is not None and tr.T_out_before is not None:
+                    # Keep what the published pose has averaged rather than take the track's
+                    # pose, as noisy as its last measurement (and maybe what the depth lost it
+                    # over): held where the camera is still (the shared motion is then noise,
+                    # which would add up over the occlusion), else moved as the track was.
+                    tr.T_out = (proper_pose(tr.T @ invert_transform(T_prev) @ tr.T_out_before) if self._camera_moving
+                                else tr.T_out_before.copy())
+                else:
+                    tr.T_out = tr.T.copy()
+                tr.out_velocity = np.zeros(6)
             if c.max_undetected_s > 0 and (stamp_ns - tr.last_detected_ns) * 1e-9 > c.max_undetected_s:
                 self.ended += 1
                 continue
@@ -517,6 +541,30 @@ class InstanceTracker:
             tr.pulled = 0.0
             alive.append(tr)
         self.tracks = self._without_duplicates(alive)
+
+    def _camera_moves(self, step: np.ndarray) -> bool:
+        """Whether the camera moves, judged from this frame's shared motion ``step`` (a
+        twist) and the recent ones: a still camera's steps are noise, each as unlike the one
+        before as it is large (their mean squares equal, that of the changes counted half);
+        a moving camera's are alike from frame to frame, their RMS more than twice their
+        changes'. A pose held still in the camera (rest_frames) would fall behind it. Scale
+        free, so no noise level to set; the hand-held development sweeps and pans reverse
+        direction within a few frames, where a test of the steps' mean against their spread
+        took them for still."""
+        if self._camera_step is None:
+            self._camera_step, self._camera_square, self._camera_change = step, step * step, None
+            return True
+        change = (step - self._camera_step) ** 2 / 2.0
+        self._camera_step = step
+        self._camera_square = (1.0 - RECENT) * self._camera_square + RECENT * step * step
+        self._camera_change = change if self._camera_change is None else (
+            (1.0 - RECENT) * self._camera_change + RECENT * change)
+        moves = bool(self._camera_square[:3].sum() > 4.0 * self._camera_change[:3].sum()
+                     or self._camera_square[3:].sum() > 4.0 * self._camera_change[3:].sum())
+        # Still only once it has been still for the frames those means span (and moving
+        # until they span any).
+        self._camera_still = 0 if moves else self._camera_still + 1
+        return self._camera_still < 1.0 / RECENT
 
     def _shared_motion(self, movers: list[Track], stamp_ns: int) -> np.ndarray:
         """The motion (per second) shared by the tracks seen on this frame and the one before:
@@ -562,10 +610,50 @@ class InstanceTracker:
             v = tr.velocity + (self.camera_velocity if c.camera_motion else 0.0)   # own + shared (first order)
             omega, tau = v[:3], v[3:]
             tr.out_velocity = np.concatenate([omega, np.cross(omega, tr.T[:3, 3]) + tau])
+            tr.out_count, tr.out_spread, tr.out_mean = 1.0, None, None
+            return
+        if c.rest_frames > 1 and self._rest_count(tr, residual) > 1.0 / alpha:
+            # At rest: the published pose is the running mean of the measurements, held
+            # still in the camera (a velocity estimated from their noise would drift it).
+            tr.T_out = proper_pose(local_step(tr.T_out, residual / tr.out_count))
+            tr.out_velocity = np.zeros(6)
             return
         beta = kalata_beta(alpha)
         tr.T_out = proper_pose(local_step(tr.T_out, alpha * residual))
         tr.out_velocity = tr.out_velocity + (beta / dt) * residual
+
+    def _rest_count(self, tr: Track, residual: np.ndarray) -> float:
+        """How many measurements the published pose averages on this frame (rest_frames):
+        one more, up to rest_frames, while the camera is still and the measurements stay
+        near the published pose (a resting object: the published pose becomes their running
+        mean), else 1 / (1 - smoothing) (motion: followed as by the plain alpha-beta
+        filter). Motion of the object: one measurement further than rest_sigmas times its
+        usual distance, or the recent ones (a short running mean) off to one side by
+        rest_sigmas times that mean's usual size (a slow motion that a pose at rest would
+        fall behind). Usual: running mean squares of this track's own, so no noise level
+        to set, and the correlation of the measured poses (the pull's) is in them."""
+        c = self.config
+        n_fast = 1.0 / (1.0 - c.smoothing)
+        if self._camera_moving:
+            # What the measurements usually do while the camera moves is no measure of their
+            # noise at rest: start afresh once it stops.
+            tr.out_count, tr.out_spread, tr.out_mean = n_fast, None, None
+            return n_fast
+        d2 = np.array([residual[:3] @ residual[:3], residual[3:] @ residual[3:]])
+        tr.out_mean = residual.copy() if tr.out_mean is None else (1.0 - RECENT) * tr.out_mean + RECENT * residual
+        m2 = np.array([tr.out_mean[:3] @ tr.out_mean[:3], tr.out_mean[3:] @ tr.out_mean[3:]])
+        moving = (tr.out_spread is not None and (
+            np.any(d2 > c.rest_sigmas ** 2 * tr.out_spread[:2]) or np.any(m2 > c.rest_sigmas ** 2 * tr.out_spread[2:])))
+        if moving or tr.out_count < n_fast:
+            tr.out_count = n_fast
+        else:
+            tr.out_count = min(tr.out_count + 1.0, float(c.rest_frames))
+        # The usual distance, over about the frames the pose averages; slowly while moving,
+        # where the distances are the motion's.
+        w = 1.0 / (c.rest_frames if moving else max(tr.out_count, n_fast))
+        both = np.concatenate([d2, m2])
+        tr.out_spread = both if tr.out_spread is None else (1.0 - w) * tr.out_spread + w * both
+        return tr.out_count
 
     def _without_duplicates(self, tracks: list[Track]) -> list[Track]:
         """Two tracks on one object (e.g. a detection born next to a coasting track that then
