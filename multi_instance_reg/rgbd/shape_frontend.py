@@ -561,14 +561,15 @@ class ShapeFrontEnd:
             return False
         planes = cloud.planes if self.fe.shape_pierce_every_plane and cloud.planes else ((cloud.up, cloud.up_offset),)
         pts = self._surface @ T[:3, :3].T + T[:3, 3]
-        return any(self._pierces_plane(pts, up, offset, depth_m, intrinsics) for up, offset in planes)
+        # Heights above every plane at once: most planes have no point below them.
+        deep = pts @ np.stack([up for up, _ in planes]).T + np.array([offset for _, offset in planes]) \
+            < -PIERCE_VOXELS * self.voxel
+        return any(self._pierces_plane(pts[deep[:, k]], up, offset, depth_m, intrinsics)
+                   for k, (up, offset) in enumerate(planes) if deep[:, k].any())
 
-    def _pierces_plane(self, pts, up, offset, depth_m, intrinsics) -> bool:
+    def _pierces_plane(self, below, up, offset, depth_m, intrinsics) -> bool:
         """``pierces`` for one plane (``up`` towards the camera, up . p + offset = 0 on it);
-        ``pts`` the model's surface at the pose, camera frame."""
-        below = pts[pts @ up + offset < -PIERCE_VOXELS * self.voxel]
-        if len(below) == 0:
-            return False
+        ``below`` the model's surface points (camera frame) more than ``PIERCE_VOXELS`` below it."""
         K = intrinsics.K
         h, w = depth_m.shape
         z = np.maximum(below[:, 2], 1e-6)
