@@ -756,3 +756,88 @@ def test_an_object_beyond_the_tables_edge_and_lower_does_not_reach_through_it():
     assert np.mean(heights < -2 * shape.voxel) > 0.3                      # the plane without bound would cut it
     assert not shape.pierces(on_floor, cloud, depth, intr)
     assert shape.refine_one(on_floor, cloud, depth, intr) is not None
+
+
+def test_a_carton_sunk_through_the_pallets_top_is_rejected_though_the_floor_is_the_largest_plane():
+    """Floor, a pallet top 0.144 m above it and a tray 8 cm tall on the pallet. A carton whose
+    top face lies in the tray's top reaches 7 cm through the pallet's top, where the tray on
+    it is seen; the depth check passes it (its hidden body is behind the tray's top), and
+    the largest plane, the floor, does not cut it. Every support plane does; a carton
+    standing on the pallet beside the tray reaches through none."""
+    from dataclasses import replace
+    from multi_instance_reg.rgbd.pipeline import PipelineConfig
+    from multi_instance_reg.rgbd.shape import depth_support
+    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.synthetic.objects import get_object, object_mesh
+    from multi_instance_reg.synthetic.scene import look_at
+    from multi_instance_reg.transforms import invert_transform
+
+    intr = CameraIntrinsics(K=np.array([[200.0, 0, 160], [0, 200.0, 120], [0, 0, 1]]), width=320, height=240)
+    cam = look_at(np.array([0.1, 0.0, 1.5]), np.array([-0.15, 0.0, 0.0]))     # camera -> world, floor z = 0
+    K = intr.K
+    v, u = np.mgrid[0:intr.height, 0:intr.width]
+    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u, float)], -1) @ cam[:3, :3].T
+
+    def level(height, half_x, half_y, cx=0.0):
+        """Depth of the horizontal plane at ``height`` on each ray, and where it is inside the box."""
+        t = (height - cam[2, 3]) / rays[..., 2]
+        x, y = cam[0, 3] + t * rays[..., 0], cam[1, 3] + t * rays[..., 1]
+        return t, (np.abs(x - cx) <= half_x) & (np.abs(y) <= half_y)
+
+    floor, _ = level(0.0, 9.0, 9.0)
+    pallet, on_pallet = level(0.144, 0.6, 0.4)
+    tray, on_tray = level(0.224, 0.2, 0.15, cx=-0.2)
+    depth = np.where(on_tray, tray, np.where(on_pallet, pallet, floor)).astype(np.float32)
+    mesh = object_mesh(get_object("carton"))                                 # 0.30 x 0.20 x 0.15, centred
+    half_h = float(mesh.vertices[:, 2].max())
+    sunk = invert_transform(cam) @ make_transform(np.eye(3), [-0.2, 0.0, 0.224 - half_h])
+    standing = invert_transform(cam) @ make_transform(np.eye(3), [0.3, 0.0, 0.144 + half_h])
+    model = build_model_from_mesh(mesh, "carton")
+    for every in (True, False):
+        shape = ShapeFrontEnd(model, replace(PipelineConfig().frontend, shape_pierce_every_plane=every))
+        cloud = shape.frame_cloud(depth, intr, None)
+        assert abs(cloud.up_offset - 1.5) < 0.01                            # the largest plane: the floor
+        assert len(cloud.planes) == 2 and sorted(round(o, 2) for _, o in cloud.planes) == [1.36, 1.5]
+        support, free, _ = depth_support(sunk, shape._surface, shape._surface_normals, depth, intr,
+                                         shape.tolerance_at(sunk))
+        assert support > 0.95 and free == 0.0
+        assert shape.pierces(sunk, cloud, depth, intr) == every
+        assert not shape.pierces(standing, cloud, depth, intr)
+
+
+def test_noise_agreement_tells_a_cylinder_from_a_square_bar_it_fits_in():
+    """A lying cylinder (6 cm across) and a square bar whose faces touch it, an edge towards
+    the camera, both 0.45 m away. Moved 5 mm towards the bar's edge, the cylinder's side
+    agrees with the bar everywhere within the 8 mm tolerance (support 1.0), but within the
+    depth noise (2 mm) only where it nears the faces; on itself, everywhere."""
+    from multi_instance_reg.rgbd.shape import depth_support, noise_agreement
+
+    K = _intrinsics()
+    r, length, zc = 0.03, 0.10, 0.45
+    xs = np.arange(-length / 2, length / 2 + 1e-9, 0.004)
+    X, A = np.meshgrid(xs, np.arange(0, 2 * np.pi, 0.004 / r))
+    side = np.stack([r * np.cos(A).ravel(), r * np.sin(A).ravel(), X.ravel()], 1)    # the model's axis: z
+    normals = np.stack([np.cos(A).ravel(), np.sin(A).ravel(), np.zeros(A.size)], 1)
+
+    def at(z):
+        """The cylinder lying along the camera's x axis, its axis z metres away."""
+        return make_transform(np.array([[0.0, 0, 1], [1, 0, 0], [0, 1, 0]]), [0.0, 0.0, z])
+
+    v, u = np.mgrid[0:240, 0:320]
+    dx, dy = (u - K.K[0, 2]) / K.K[0, 0], (v - K.K[1, 2]) / K.K[1, 1]
+    a = dy ** 2 + 1
+    disc = zc ** 2 - a * (zc ** 2 - r ** 2)
+    t = (zc - np.sqrt(np.maximum(disc, 0))) / a
+    cylinder = np.where((disc >= 0) & (np.abs(t * dx) <= length / 2), t, 0.8).astype(np.float32)
+    # The bar: two faces at 45 deg to the line of sight, r from the axis, meeting in an edge
+    # r sqrt(2) in front of it; 16 cm long, so it goes on past the cylinder's ends.
+    t = np.maximum((zc - r * np.sqrt(2)) / (1 + dy), (zc - r * np.sqrt(2)) / (1 - dy))
+    bar = np.where((np.abs(t * dy) <= r * np.sqrt(2)) & (np.abs(t * dx) <= 0.08), t, 0.8).astype(np.float32)
+
+    own = noise_agreement(at(zc), side, normals, cylinder, K, 0.008, 0.002)
+    support, free, n = depth_support(at(zc - 0.005), side, normals, bar, K, 0.008)
+    fitted = noise_agreement(at(zc - 0.005), side, normals, bar, K, 0.008, 0.002)
+    assert n > 300 and support == 1.0 and free == 0.0
+    assert own == 1.0 and fitted < 0.35
+    # Nothing agrees: nothing to judge.
+    assert noise_agreement(at(zc), side, normals, np.zeros_like(bar), K, 0.008, 0.002) == 1.0

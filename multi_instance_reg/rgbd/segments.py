@@ -27,13 +27,15 @@ from .lifting import depth_to_cloud, fit_dominant_plane
 
 def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.ndarray, max_area: float,
                  thresh: float, noise_per_m2: float, max_planes: int = 4, min_share: float = 0.03,
-                 stride: int = 2, ground: list | None = None) -> np.ndarray:
+                 stride: int = 2, ground: list | None = None, planes: list | None = None) -> np.ndarray:
     """(H, W) bool: valid pixels that lie on a large piece of a dominant plane (support
     surfaces). A plane point is within ``thresh`` + 3 sigma(z) of it, sigma(z) =
     ``noise_per_m2`` z^2 (stereo depth noise grows with the square of the distance); a piece
     is large when its area exceeds ``max_area`` (m^2). ``ground``, a list, receives the
     unit normal (towards the camera) of the plane with the largest removed area: "up", if
-    the floor, pallet or table is in view; and its offset (up . p + offset = 0 on it)."""
+    the floor, pallet or table is in view; and its offset (up . p + offset = 0 on it).
+    ``planes``, a list, receives (normal, offset) alike for every plane a large piece of
+    which was removed (the floor and the pallet's top on it, a table and a wall)."""
     h, w = depth_m.shape
     pts, pix = depth_to_cloud(depth_m, intrinsics, valid, stride=stride)
     pts = pts.astype(np.float64)
@@ -65,6 +67,8 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
         count, labels = cv2.connectedComponents(img, connectivity=8)
         removed_area = _remove_large_pieces(pts, on, labels, rows, cols, stride, K[0, 0] * K[1, 1], n, max_area,
                                             count, pix, out)
+        if planes is not None and removed_area > 0:
+            planes.append((np.asarray(n, np.float64) * (1.0 if d > 0 else -1.0), abs(float(d))))
         if ground is not None and removed_area > best_area:
             best_area = removed_area
             # The camera's side, and the offset: up . p + offset = 0 on the plane.

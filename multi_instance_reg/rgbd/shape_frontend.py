@@ -28,7 +28,7 @@ from .verify import facing_camera, in_view_share, outline_continuation, outline_
 from ..threads import shared_pool, submit_each
 from ..tracking.icp import align_projective
 from .shape import (PointGrid, ShapeMatcher, apply_twist, depth_support, describe, icp_point_to_plane, is_convex,
-                    scene_cloud, surface_normals, voxel_downsample)
+                    noise_agreement, scene_cloud, surface_normals, voxel_downsample)
 
 
 # ICP pairs a model point with a scene point at most this many voxels away.
@@ -60,6 +60,7 @@ class FrameCloud:
     poses: np.ndarray | None = None       # (K, 4, 4) pose hypotheses clustered from the votes, ppf only
     up: np.ndarray | None = None          # (3,) the largest support plane's normal, towards the camera, ppf only
     up_offset: float | None = None        # that plane: up . p + up_offset = 0 on it
+    planes: tuple = ()                    # every support plane with a large piece removed: (normal, offset)
     grid: PointGrid | None = None         # the points and normals for ICP's nearest-point search
     patches: Faces | None = None          # the segments' flat patches shaped as a model face (ppf, shape_faces)
     patch_fits: np.ndarray | None = None  # (J, F) bool: patch j has model face f's outline
@@ -134,7 +135,9 @@ class ShapeFrontEnd:
         shape path's kernels (support planes, normals, votes, ICP, depth and outline checks)
         compile on their first call, seconds on a new checkout's first frame otherwise. The
         model's camera-facing surface at an oblique pose, each sample drawn as a square of
-        its voxel's footprint, nearest first. Returns the depth, its intrinsics and the pose drawn."""
+        its voxel's footprint in its tangent plane (not at one depth: the steps of a tilted
+        face, a few mm, would be no depth a sensor gives), nearest first. Returns the depth,
+        its intrinsics and the pose drawn."""
         f, w, h = 120.0, 160, 120
         z = max(1.6 * f * self.diameter / w, self.fe.depth_min + self.diameter)
         c, s = np.cos(0.5), np.sin(0.5)
@@ -142,12 +145,21 @@ class ShapeFrontEnd:
         T[:3, :3] = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]]) @ np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
         T[:3, 3] = [0.0, 0.0, z]
         depth = np.full((h, w), np.float32(z + self.diameter))       # the wall behind it
-        p = self._visible_surface(T)
+        p = self._surface @ T[:3, :3].T + T[:3, 3]
+        n = self._surface_normals @ T[:3, :3].T
+        facing = facing_camera(p, n)
+        p, n = p[facing], n[facing]
         u = np.rint(f * p[:, 0] / p[:, 2] + w / 2).astype(int)
         v = np.rint(f * p[:, 1] / p[:, 2] + h / 2).astype(int)
         r = int(np.ceil(f * self.voxel / z / 2))
         for k in np.argsort(-p[:, 2]):                                # far first: the nearest stays
-            depth[max(v[k] - r, 0):max(v[k] + r + 1, 0), max(u[k] - r, 0):max(u[k] + r + 1, 0)] = p[k, 2]
+            rows = np.arange(max(v[k] - r, 0), max(min(v[k] + r + 1, h), 0))
+            cols = np.arange(max(u[k] - r, 0), max(min(u[k] + r + 1, w), 0))
+            if len(rows) == 0 or len(cols) == 0:
+                continue
+            # Each pixel's ray (x, y, 1) meets the sample's plane n . (ray t - p) = 0 at depth t.
+            den = n[k, 0] * (cols[None, :] - w / 2) / f + n[k, 1] * (rows[:, None] - h / 2) / f + n[k, 2]
+            depth[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1] = float(n[k] @ p[k]) / den
         K = np.array([[f, 0.0, w / 2], [0.0, f, h / 2], [0.0, 0.0, 1.0]])
         return depth, CameraIntrinsics(K, w, h), T
 
@@ -179,9 +191,9 @@ class ShapeFrontEnd:
         table), voxel-downsampled, with normals, cut into connected segments."""
         fe = self.fe
         valid = (depth_m >= fe.depth_min) & (depth_m <= fe.depth_max)
-        ground = []
+        ground, planes = [], []
         support = support_mask(depth_m, intrinsics, valid, fe.shape_support_area * self._max_face_area,
-                               fe.shape_plane_thresh, fe.shape_depth_noise, ground=ground)
+                               fe.shape_plane_thresh, fe.shape_depth_noise, ground=ground, planes=planes)
         pts, _ = depth_to_cloud(depth_m, intrinsics, valid & ~support, stride=2)
         pts = voxel_downsample(np.asarray(pts, np.float64), self.voxel)
         empty = FrameCloud(pts, np.zeros_like(pts), np.zeros(0, np.int64), np.zeros((0, 33), np.float32), None,
@@ -197,7 +209,7 @@ class ShapeFrontEnd:
         labels = segments.result()
         return FrameCloud(pts, normals, np.zeros(0, np.int64), np.zeros((0, 33), np.float32), tree, labels,
                           up=ground[0] if ground else None, up_offset=ground[1] if ground else None,
-                          grid=PointGrid(pts, normals, ICP_REACH * self.voxel))
+                          planes=tuple(planes), grid=PointGrid(pts, normals, ICP_REACH * self.voxel))
 
     def correspondences(self, cloud: FrameCloud, on_poses=None) -> tuple[np.ndarray, np.ndarray]:
         """(model points (N, 3), scene points (N, 3)). ppf: each reference point of a
@@ -539,14 +551,25 @@ class ShapeFrontEnd:
         its base plate on the true one's). "There": the depth on those points' rays stops at
         the plane or before it; where it reaches past it, the plane ends before them (the plane
         extended without bound would also cut off objects standing lower beyond its edge: on
-        the floor beside a table, on a lower shelf)."""
+        the floor beside a table, on a lower shelf).
+
+        With ``shape_pierce_every_plane``, every support plane a large piece of which the frame
+        shows is such a surface, not the largest alone: a carton whose top lay (tilted 2.5
+        deg) in a crate's top on a pallet reached 4 cm through the pallet's top, seen there
+        (the crate on it) though the floor is the largest plane."""
         if cloud.up is None or cloud.up_offset is None:
             return False
-        up, offset = cloud.up, cloud.up_offset
+        planes = cloud.planes if self.fe.shape_pierce_every_plane and cloud.planes else ((cloud.up, cloud.up_offset),)
         pts = self._surface @ T[:3, :3].T + T[:3, 3]
-        below = pts[pts @ up + offset < -PIERCE_VOXELS * self.voxel]
-        if len(below) == 0:
-            return False
+        # Heights above every plane at once: most planes have no point below them.
+        deep = pts @ np.stack([up for up, _ in planes]).T + np.array([offset for _, offset in planes]) \
+            < -PIERCE_VOXELS * self.voxel
+        return any(self._pierces_plane(pts[deep[:, k]], up, offset, depth_m, intrinsics)
+                   for k, (up, offset) in enumerate(planes) if deep[:, k].any())
+
+    def _pierces_plane(self, below, up, offset, depth_m, intrinsics) -> bool:
+        """``pierces`` for one plane (``up`` towards the camera, up . p + offset = 0 on it);
+        ``below`` the model's surface points (camera frame) more than ``PIERCE_VOXELS`` below it."""
         K = intrinsics.K
         h, w = depth_m.shape
         z = np.maximum(below[:, 2], 1e-6)
@@ -583,6 +606,12 @@ class ShapeFrontEnd:
         # depth wherever it covers: what tells is the same surface continuing just past
         # its outline, "same" meaning within the depth noise (3 sigma) at its distance.
         same = max(3.0 * fe.shape_depth_noise * float(T[2, 3]) ** 2, 0.002)
+        # The object's own surface is where the depth is up to the noise at most of its
+        # points, not only up to the tolerance's floor (another shape that passes near it).
+        if fe.shape_min_noise_agreement > 0 and noise_agreement(
+                T, self._surface, self._surface_normals, depth_m, intrinsics, self.tolerance_at(T),
+                same) < fe.shape_min_noise_agreement:
+            return None
         outline, _ = outline_continuation(T, self._surface, self._surface_normals, depth_m, intrinsics,
                                           self.voxel, same, up=cloud.up, explained=explained)
         evidence = support - free - 2.0 * outline
