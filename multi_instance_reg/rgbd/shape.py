@@ -525,34 +525,93 @@ def measured_at(T, mp, mn, i, depth, fx, fy, cx, cy):
 
 
 @numba.njit(cache=True, nogil=True)
-def _self_depth(T, mp, mn, fx, fy, cx, cy, u0, v0, u1, v1, radius):
-    """The model's own depth image at pose T over pixels [v0, v1] x [u0, u1]: each facing
-    sample a disc of ``radius`` in its tangent plane (its plane's depth along each pixel's
-    ray, where that ray meets the disc), the nearest per pixel; inf where no disc is."""
-    zbuf = np.full((v1 - v0 + 1, u1 - u0 + 1), np.inf)
+def _hidden_by_self(T, mp, mn, fx, fy, cx, cy, bu, bv, bz, nb, tolerance, radius):
+    """How many of the ``nb`` points behind the measurement (pixels bu, bv; depth bz) the
+    model's own surface at pose T covers nearer than bz - ``tolerance`` - ``radius``: each
+    facing sample a disc of ``radius`` in its tangent plane (its plane's depth along the
+    pixel's ray, where that ray meets the disc). Only those pixels are looked at, and only
+    the discs that reach them (samples bucketed by pixel): drawing every disc over the
+    behind points' box was nine tenths of the depth check of a non-convex model (a U
+    channel: 0.36 ms a call)."""
+    P = mp.shape[0]
+    su = np.empty(P, np.int64)
+    sv = np.empty(P, np.int64)
+    sr = np.empty(P, np.int64)
+    sp = np.empty((P, 7))
+    deepest = -np.inf
+    for k in range(nb):
+        deepest = max(deepest, bz[k] - tolerance - radius)
     r2 = radius * radius
-    for i in range(mp.shape[0]):
+    ns = 0
+    rmax = 0
+    for i in range(P):
         px, py, pz, nx, ny, nz = posed(T, mp, mn, i)
         nd = nx * px + ny * py + nz * pz
         if not (-nd > 0.2 * math.sqrt(px * px + py * py + pz * pz)) or not pz > radius + 0.05:
             continue
-        # The disc's pixels: within its radius seen at its nearest, from its rounded centre.
+        # A disc's depths lie within its radius of its centre's: one no nearer than every
+        # behind point's limit hides none of them.
+        if pz - 2.0 * radius >= deepest:
+            continue
         r = int(math.ceil(radius * fx / (pz - radius) + 0.5))
-        uc, vc = int(round(fx * px / pz + cx)), int(round(fy * py / pz + cy))
-        for v in range(max(vc - r, v0), min(vc + r, v1) + 1):
-            dy = (v - cy) / fy
-            for u in range(max(uc - r, u0), min(uc + r, u1) + 1):
-                dx = (u - cx) / fx
-                den = nx * dx + ny * dy + nz
-                if abs(den) < 1e-9:
-                    continue
-                z = nd / den              # the ray (dx, dy, 1) z meets the sample's plane
-                if not z > 0:
-                    continue
-                ex, ey, ez = dx * z - px, dy * z - py, z - pz
-                if ex * ex + ey * ey + ez * ez <= r2 and z < zbuf[v - v0, u - u0]:
-                    zbuf[v - v0, u - u0] = z
-    return zbuf
+        su[ns], sv[ns], sr[ns] = int(round(fx * px / pz + cx)), int(round(fy * py / pz + cy)), r
+        sp[ns, 0], sp[ns, 1], sp[ns, 2], sp[ns, 3], sp[ns, 4], sp[ns, 5], sp[ns, 6] = px, py, pz, nx, ny, nz, nd
+        rmax = max(rmax, r)
+        ns += 1
+    if ns == 0:
+        return 0
+    # The samples bucketed by their pixel in cells of rmax + 1 pixels (a counting sort): a
+    # disc that reaches a pixel has its centre in the pixel's cell or one of its eight
+    # neighbours.
+    c = rmax + 1
+    umin, vmin = su[:ns].min(), sv[:ns].min()
+    cw, ch = (su[:ns].max() - umin) // c + 1, (sv[:ns].max() - vmin) // c + 1
+    first = np.zeros(cw * ch + 1, np.int64)
+    for i in range(ns):
+        first[((sv[i] - vmin) // c) * cw + (su[i] - umin) // c + 1] += 1
+    for b in range(cw * ch):
+        first[b + 1] += first[b]
+    fill = first[:-1].copy()
+    order = np.empty(ns, np.int64)
+    for i in range(ns):
+        b = ((sv[i] - vmin) // c) * cw + (su[i] - umin) // c
+        order[fill[b]] = i
+        fill[b] += 1
+    hidden = 0
+    for k in range(nb):
+        u, v = bu[k], bv[k]
+        limit = bz[k] - tolerance - radius
+        dy = (v - cy) / fy
+        dx = (u - cx) / fx
+        # The pixel's cell (floor division: the pixel may lie left of or above every centre).
+        gu, gv = (u - umin) // c, (v - vmin) // c
+        found = False
+        for yv in range(max(gv - 1, 0), min(gv + 1, ch - 1) + 1):
+            if found:
+                break
+            for xu in range(max(gu - 1, 0), min(gu + 1, cw - 1) + 1):
+                if found:
+                    break
+                b = yv * cw + xu
+                for s in range(first[b], first[b + 1]):
+                    i = order[s]
+                    r = sr[i]
+                    if abs(v - sv[i]) > r or abs(u - su[i]) > r:
+                        continue
+                    px, py, pz, nx, ny, nz, nd = sp[i, 0], sp[i, 1], sp[i, 2], sp[i, 3], sp[i, 4], sp[i, 5], sp[i, 6]
+                    den = nx * dx + ny * dy + nz
+                    if abs(den) < 1e-9:
+                        continue
+                    z = nd / den              # the ray (dx, dy, 1) z meets the sample's plane
+                    if not z > 0:
+                        continue
+                    ex, ey, ez = dx * z - px, dy * z - py, z - pz
+                    if ex * ex + ey * ey + ez * ez <= r2 and z < limit:
+                        found = True
+                        break
+        if found:
+            hidden += 1
+    return hidden
 
 
 @numba.njit(cache=True, nogil=True)
@@ -583,11 +642,8 @@ def _depth_support(T, mp, mn, depth, fx, fy, cx, cy, tolerance, self_hiding, occ
             bu[nb], bv[nb], bz[nb] = round(fx * px / pz + cx), round(fy * py / pz + cy), pz
             nb += 1
     if nb > 0:
-        u0, v0 = bu[:nb].min(), bv[:nb].min()
-        own = _self_depth(T, mp, mn, fx, fy, cx, cy, u0, v0, bu[:nb].max(), bv[:nb].max(), self_hiding)
-        for k in range(nb):
-            if own[bv[k] - v0, bu[k] - u0] < bz[k] - tolerance - self_hiding:
-                m -= 1              # behind the model's own nearer surface: not in view at this pose
+        # Behind the model's own nearer surface: not in view at this pose.
+        m -= _hidden_by_self(T, mp, mn, fx, fy, cx, cy, bu, bv, bz, nb, tolerance, self_hiding)
     if m == 0:
         return 0.0, 1.0, 0
     return agree / m, free / m, m
