@@ -842,11 +842,12 @@ def test_noise_agreement_tells_a_cylinder_from_a_square_bar_it_fits_in():
     assert noise_agreement(at(zc), side, normals, np.zeros_like(bar), K, 0.008, 0.002) == 1.0
 
 
-def test_two_small_segments_larger_together_are_paired_both_ways():
+def test_two_small_segments_larger_together_are_paired_once():
     """A standing bracket seen from above: its base plate, and past a depth step its
     upright's top edge, which touches a second bracket's (one segment across both). Each is
-    within the object's reach, both together are not: paired anyway, each way (the joined
-    vote takes of the other only its points within reach); a segment elsewhere is not."""
+    within the object's reach, both together are not: paired anyway, once, the one with more
+    points first (the joined vote takes of the other only its points within reach of it); a
+    segment elsewhere is not."""
     from multi_instance_reg.rgbd.segments import pairs_across_steps
 
     g = np.arange(0.0, 1.0, 0.1)
@@ -859,7 +860,12 @@ def test_two_small_segments_larger_together_are_paired_both_ways():
     from scipy.spatial.distance import pdist
     assert pdist(plate).max() < reach and pdist(edge).max() < reach < pdist(np.concatenate([plate, edge])).max()
     pairs = pairs_across_steps(points, labels, reach, 0.02)
-    assert sorted(pairs) == [(0, 1), (1, 0)]
+    assert pairs == [(0, 1)]
+    # The same with the edge holding more points than the plate: the edge first.
+    dense_edge = np.repeat(edge, 3, axis=0)
+    points = np.concatenate([plate, dense_edge, far])
+    labels = np.repeat([0, 1, 2], [len(plate), len(dense_edge), len(far)])
+    assert pairs_across_steps(points, labels, reach, 0.02) == [(1, 0)]
 
 
 def test_densest_pose_clusters_are_seeded_at_the_mode_not_at_the_strongest_vote():
