@@ -256,7 +256,6 @@ def test_outline_continuation_ignores_a_neighbour_past_a_gap_and_what_lies_below
     assert below > 0.1 and with_up < 0.02
 
 
-
 def test_outline_shift_moves_a_face_onto_the_patch_its_outline_bounds():
     from multi_instance_reg.rgbd.verify import outline_shift
 
@@ -841,3 +840,49 @@ def test_noise_agreement_tells_a_cylinder_from_a_square_bar_it_fits_in():
     assert own == 1.0 and fitted < 0.35
     # Nothing agrees: nothing to judge.
     assert noise_agreement(at(zc), side, normals, np.zeros_like(bar), K, 0.008, 0.002) == 1.0
+
+
+def test_two_small_segments_larger_together_are_paired_once():
+    """A standing bracket seen from above: its base plate, and past a depth step its
+    upright's top edge, which touches a second bracket's (one segment across both). Each is
+    within the object's reach, both together are not: paired anyway, once, the one with more
+    points first (the joined vote takes of the other only its points within reach of it); a
+    segment elsewhere is not."""
+    from multi_instance_reg.rgbd.segments import pairs_across_steps
+
+    g = np.arange(0.0, 1.0, 0.1)
+    plate = np.array([[x, y, 0.60] for x in 0.09 * g for y in 0.06 * g])              # a: 9 x 6 cm
+    edge = np.array([[0.075 + 0.01 * x, y, 0.53] for x in g for y in -0.07 + 0.14 * g])  # b: 1 x 14 cm
+    far = np.array([[0.5 + 0.3 * x, 0.3 * y, 0.60] for x in g for y in g])            # c: 30 cm, elsewhere
+    points = np.concatenate([plate, edge, far])
+    labels = np.repeat([0, 1, 2], [len(plate), len(edge), len(far)])
+    reach = 0.15
+    from scipy.spatial.distance import pdist
+    assert pdist(plate).max() < reach and pdist(edge).max() < reach < pdist(np.concatenate([plate, edge])).max()
+    pairs = pairs_across_steps(points, labels, reach, 0.02)
+    assert pairs == [(0, 1)]
+    # The same with the edge holding more points than the plate: the edge first.
+    dense_edge = np.repeat(edge, 3, axis=0)
+    points = np.concatenate([plate, dense_edge, far])
+    labels = np.repeat([0, 1, 2], [len(plate), len(dense_edge), len(far)])
+    assert pairs_across_steps(points, labels, reach, 0.02) == [(1, 0)]
+
+
+def test_densest_pose_clusters_are_seeded_at_the_mode_not_at_the_strongest_vote():
+    """References spread about the right pose (a plate's votes, blurred in its plane) with
+    the strongest of them 22 deg off: strongest first, that one seeds the cluster and is
+    the hypothesis; densest first, the pose most of them agree with is."""
+    from multi_instance_reg.rgbd.ppf import cluster_poses
+
+    def yaw(deg, x=0.0):
+        a = np.radians(deg)
+        return make_transform(np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]]),
+                              [x, 0.0, 0.5])
+
+    poses = np.stack([yaw(22.0)] + [yaw(d, 0.001 * d) for d in (-4, -2, 0, 2, 4)] + [yaw(170.0, 0.05)])
+    weights = np.array([1.0, 0.5, 0.5, 0.5, 0.5, 0.5, 0.9])
+    strongest = cluster_poses(poses, weights, 24.0, 0.015, 1, min_members=1)
+    assert rotation_angle_deg(strongest[0][:3, :3]) > 20.0
+    densest = cluster_poses(poses, weights, 24.0, 0.015, 2, min_members=1, densest=True)
+    assert rotation_angle_deg(densest[0][:3, :3]) < 3.0
+    assert rotation_angle_deg(densest[1][:3, :3]) > 160.0        # the lone pose: its own cluster, second

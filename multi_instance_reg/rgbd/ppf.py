@@ -320,16 +320,25 @@ class PPFModel:
 
 
 def cluster_poses(poses: np.ndarray, weights: np.ndarray, max_angle_deg: float, max_shift: float,
-                  max_clusters: int, min_members: int = 2, indices: bool = False) -> np.ndarray:
+                  max_clusters: int, min_members: int = 2, indices: bool = False, densest: bool = False) -> np.ndarray:
     """Pose hypotheses straight from the references' votes (Drost et al.'s pose clustering):
     greedily, strongest reference first, a pose joins the first cluster whose seed it is
     within ``max_angle_deg`` and ``max_shift`` of; clusters ranked by their summed weight.
     Returns the seeds of the best ``max_clusters`` clusters of at least ``min_members``
     (K, 4, 4), or with ``indices`` their indices in ``poses`` (K,). ``poses`` should be
-    canonical over the symmetries (``canonical_poses``)."""
+    canonical over the symmetries (``canonical_poses``). ``densest``: the poses taken in the
+    order of the summed weight of the poses within those bounds of each (its own included),
+    not of their own weight: where the references spread about the right pose (a flat
+    plate's votes, blurred in its plane), the strongest one may lie at the cluster's edge,
+    25 deg off, and the seed is the hypothesis."""
     if len(poses) == 0:
         return np.zeros(0, np.int64) if indices else np.zeros((0, 4, 4))
-    order = np.argsort(-np.asarray(weights), kind="stable")
+    rank = np.asarray(weights, np.float64)
+    if densest:
+        rank = _pose_density(np.ascontiguousarray(poses[:, :3, :3], np.float64),
+                             np.ascontiguousarray(poses[:, :3, 3], np.float64), rank, float(max_shift),
+                             math.cos(math.radians(max_angle_deg)))
+    order = np.argsort(-rank, kind="stable")
     R = poses[order, :3, :3]
     t = poses[order, :3, 3]
     w = np.asarray(weights, np.float64)[order]
@@ -342,6 +351,26 @@ def cluster_poses(poses: np.ndarray, weights: np.ndarray, max_angle_deg: float, 
     if indices:
         return chosen
     return poses[chosen] if best else np.zeros((0, 4, 4))
+
+
+@numba.njit(cache=True)
+def _pose_density(R, t, w, max_shift, cos_max):
+    """(N,): per pose, the summed weight ``w`` of the poses (itself included) within
+    ``max_shift`` and an angle of arccos(``cos_max``) of it."""
+    n = len(t)
+    out = np.zeros(n)
+    for i in range(n):
+        for j in range(n):
+            dx, dy, dz = t[j, 0] - t[i, 0], t[j, 1] - t[i, 1], t[j, 2] - t[i, 2]
+            if not math.sqrt(dx * dx + dy * dy + dz * dz) < max_shift:
+                continue
+            tr = 0.0
+            for a in range(3):
+                for b in range(3):
+                    tr += R[i, a, b] * R[j, a, b]
+            if (tr - 1.0) / 2.0 >= cos_max:
+                out[i] += w[j]
+    return out
 
 
 @numba.njit(cache=True)

@@ -171,6 +171,12 @@ def pairs_across_steps(points: np.ndarray, labels: np.ndarray, reach: float, lin
         if a in small and b in small:
             if _within(points[(labels == a) | (labels == b)], reach):
                 out.append((a, b))
+            else:
+                # Each small, together larger than the object: one of them joins the
+                # object's other part with a neighbour (two brackets' uprights touching), as
+                # a larger b does; the one with more points anchors the pair.
+                na, nb = int(np.sum(labels == a)), int(np.sum(labels == b))
+                out.append((a, b) if na >= nb else (b, a))
         elif a in small:
             out.append((a, b))
         elif b in small:

@@ -294,8 +294,11 @@ class ShapeFrontEnd:
         for k in range(len(groups)):
             mine = which == k
             if mine.sum() >= 2:
+                # Seeded by the densest pose: a pair's references are few (40-60), and those
+                # on a flat plate spread about the right pose; the strongest was 25-30 deg
+                # off on standing brackets seen from above, which ICP does not turn back.
                 out.append(cluster_poses(poses[mine], share[mine], 360.0 / ANGLE_STEPS, 0.1 * self.diameter,
-                                         fe.shape_joined_clusters))
+                                         fe.shape_joined_clusters, densest=True))
         return np.concatenate(out) if out else np.zeros((0, 4, 4))
 
     def refine_and_check(self, transforms, cloud: FrameCloud, depth_m: np.ndarray,
