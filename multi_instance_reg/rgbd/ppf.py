@@ -361,16 +361,23 @@ def _pose_density(R, t, w, max_shift, cos_max):
     out = np.zeros(n)
     for i in range(n):
         for j in range(n):
-            dx, dy, dz = t[j, 0] - t[i, 0], t[j, 1] - t[i, 1], t[j, 2] - t[i, 2]
-            if not math.sqrt(dx * dx + dy * dy + dz * dz) < max_shift:
-                continue
-            tr = 0.0
-            for a in range(3):
-                for b in range(3):
-                    tr += R[i, a, b] * R[j, a, b]
-            if (tr - 1.0) / 2.0 >= cos_max:
+            if _poses_near(R, t, i, j, max_shift, cos_max):
                 out[i] += w[j]
     return out
+
+
+@numba.njit(cache=True)
+def _poses_near(R, t, i, j, max_shift, cos_max):
+    """Poses i and j within ``max_shift`` and an angle of arccos(``cos_max``)."""
+    dx, dy, dz = t[j, 0] - t[i, 0], t[j, 1] - t[i, 1], t[j, 2] - t[i, 2]
+    if not math.sqrt(dx * dx + dy * dy + dz * dz) < max_shift:
+        return False
+    # trace(Ri^T Rj) = 1 + 2 cos(angle).
+    tr = 0.0
+    for a in range(3):
+        for b in range(3):
+            tr += R[i, a, b] * R[j, a, b]
+    return (tr - 1.0) / 2.0 >= cos_max
 
 
 @numba.njit(cache=True)
@@ -386,17 +393,7 @@ def _greedy_pose_labels(R, t, max_shift, cos_max):
         if label[i] >= 0:
             continue
         for j in range(n):
-            if label[j] >= 0:
-                continue
-            dx, dy, dz = t[j, 0] - t[i, 0], t[j, 1] - t[i, 1], t[j, 2] - t[i, 2]
-            if not math.sqrt(dx * dx + dy * dy + dz * dz) < max_shift:
-                continue
-            # trace(Ri^T Rj) = 1 + 2 cos(angle).
-            tr = 0.0
-            for a in range(3):
-                for b in range(3):
-                    tr += R[i, a, b] * R[j, a, b]
-            if (tr - 1.0) / 2.0 >= cos_max:
+            if label[j] < 0 and _poses_near(R, t, i, j, max_shift, cos_max):
                 label[j] = k
         seeds[k] = i
         k += 1
