@@ -66,10 +66,11 @@ def _byte_array(data) -> np.ndarray:
         return np.asarray(data, dtype=np.uint8).reshape(-1)
 
 
-def _imdecode(buf: np.ndarray, what: str, flags) -> np.ndarray:
+def _imdecode(buf: np.ndarray, what: str) -> np.ndarray:
+    """The image encoded in ``buf`` as stored (bit depth and channels kept)."""
     import cv2
 
-    img = cv2.imdecode(buf, flags) if buf.size else None
+    img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
     if img is None:
         raise InputError(f"{what}: the compressed data ({buf.size} bytes) does not decode as an image")
     return img
@@ -78,12 +79,10 @@ def _imdecode(buf: np.ndarray, what: str, flags) -> np.ndarray:
 def compressed_colour_to_rgb(msg) -> np.ndarray:
     """(H, W, 3) uint8 RGB from a sensor_msgs/CompressedImage of image_transport's
     ``compressed`` plugin (format e.g. "rgb8; jpeg compressed bgr8", or just "jpeg"/"png")."""
-    import cv2
-
     fmt = str(msg.format)
     if "compresseddepth" in fmt.lower():
         raise InputError(f"colour image is compressed depth ('{fmt}'); give the colour topic (…/compressed)")
-    img = _imdecode(_byte_array(msg.data), "colour image", cv2.IMREAD_UNCHANGED)
+    img = _imdecode(_byte_array(msg.data), "colour image")
     if img.dtype != np.uint8:
         raise InputError(f"compressed colour image decodes to {img.dtype} ('{fmt}'); expected 8-bit colour")
     # The plugin encodes colour as bgr8 ("... compressed bgr8"), which OpenCV decodes as stored;
@@ -98,8 +97,6 @@ def compressed_colour_to_rgb(msg) -> np.ndarray:
 def compressed_depth_to_metres(msg, depth_scale: float = 0.001) -> np.ndarray:
     """(H, W) float32 metres from a sensor_msgs/CompressedImage of image_transport's
     ``compressedDepth`` plugin with its PNG codec (format e.g. "16UC1; compressedDepth png")."""
-    import cv2
-
     fmt = str(msg.format)
     kind = fmt.split(";")[0].strip()
     if "compresseddepth" not in fmt.lower():
@@ -112,7 +109,7 @@ def compressed_depth_to_metres(msg, depth_scale: float = 0.001) -> np.ndarray:
     if len(data) <= _COMPRESSED_DEPTH_HEADER.itemsize:
         raise InputError(f"compressed depth image has only {len(data)} bytes ('{fmt}')")
     head = data[:_COMPRESSED_DEPTH_HEADER.itemsize].copy().view(_COMPRESSED_DEPTH_HEADER)[0]
-    img = _imdecode(data[_COMPRESSED_DEPTH_HEADER.itemsize:], "compressed depth image", cv2.IMREAD_UNCHANGED)
+    img = _imdecode(data[_COMPRESSED_DEPTH_HEADER.itemsize:], "compressed depth image")
     if img.ndim != 2 or img.dtype != np.uint16:
         raise InputError(f"compressed depth image decodes to {img.dtype} with shape {img.shape}; expected 16-bit, one channel")
     if kind in ("16UC1", "mono16"):

@@ -118,10 +118,13 @@ class ShapeFrontEnd:
         at 0.88 support and 0.1 "free")."""
         return max(self.depth_tolerance, 3.0 * self.fe.shape_depth_noise * float(T[2, 3]) ** 2)
 
-    def _visible_surface(self, T: np.ndarray) -> np.ndarray:
-        """The model's surface samples at pose T (camera frame) that face the camera."""
+    def _visible_surface(self, T: np.ndarray, normals: bool = False):
+        """The model's surface samples at pose T (camera frame) that face the camera; with
+        ``normals``, (samples, their normals)."""
         p = self._surface @ T[:3, :3].T + T[:3, 3]
-        return p[facing_camera(p, self._surface_normals @ T[:3, :3].T)]
+        n = self._surface_normals @ T[:3, :3].T
+        facing = facing_camera(p, n)
+        return (p[facing], n[facing]) if normals else p[facing]
 
     def surface_normals_at(self, points: np.ndarray) -> np.ndarray:
         """(N, 3) the outward normal of the model surface nearest each model-frame point."""
@@ -145,10 +148,7 @@ class ShapeFrontEnd:
         T[:3, :3] = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]]) @ np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
         T[:3, 3] = [0.0, 0.0, z]
         depth = np.full((h, w), np.float32(z + self.diameter))       # the wall behind it
-        p = self._surface @ T[:3, :3].T + T[:3, 3]
-        n = self._surface_normals @ T[:3, :3].T
-        facing = facing_camera(p, n)
-        p, n = p[facing], n[facing]
+        p, n = self._visible_surface(T, normals=True)
         u = np.rint(f * p[:, 0] / p[:, 2] + w / 2).astype(int)
         v = np.rint(f * p[:, 1] / p[:, 2] + h / 2).astype(int)
         r = int(np.ceil(f * self.voxel / z / 2))
