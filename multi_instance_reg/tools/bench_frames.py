@@ -133,6 +133,7 @@ def generate_benchmark_bag(path: Path, object_name=None, scenes: int = 6, frames
             if k == 0:
                 bag.write_object_description(stamp, scene.description())
             for frame in scene.frames():
+                bag.write_accel_samples(stamp, *scene.accel_samples(frame.index))
                 bag.write_frame(stamp, frame.rgb, frame.depth_mm, scene.intrinsics, poses=frame.poses,
                                 visibility=frame.visibility)
                 stamp += frame_period_ns

@@ -33,6 +33,7 @@ def generate_untextured_bag(path: Path, preset: str, scenes: int, frames: int, s
             if k == 0:
                 bag.write_object_description(stamp, scene.description())
             for frame in scene.frames():
+                bag.write_accel_samples(stamp, *scene.accel_samples(frame.index))
                 bag.write_frame(stamp, frame.rgb, frame.depth_mm, scene.intrinsics, poses=frame.poses,
                                 visibility=frame.visibility)
                 stamp += 33_333_333
