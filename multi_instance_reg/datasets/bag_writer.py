@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..gravity import ACCEL_FRAME_ID, ACCEL_TOPIC
+from ..gravity import ACCEL_FRAME_ID, ACCEL_TOPIC, IMU_TOPIC
 from ..messages import CameraIntrinsics, array_to_image_fields, compressed_colour_fields, compressed_depth_fields
 from ..transforms import matrix_to_pose
 
@@ -97,7 +97,7 @@ class RealSenseBagWriter:
         conn = self._connections.get(topic)
         if conn is None:
             conn = self._writer.add_connection(topic, msgtype, typestore=self.typestore,
-                                               offered_qos_profiles=[_qos(latched, topic == ACCEL_TOPIC)])
+                                               offered_qos_profiles=[_qos(latched, topic in (ACCEL_TOPIC, IMU_TOPIC))])
             self._connections[topic] = conn
         return conn
 
@@ -130,11 +130,12 @@ class RealSenseBagWriter:
         self._write(TOPIC_GT_OBJECT, self._types["std_msgs/msg/String"](data=text), stamp_ns, latched=True)
         self._writer.set_custom_data(CUSTOM_DATA_OBJECT_KEY, text)
 
-    def write_accel_samples(self, stamp_ns: int, offsets_ns: np.ndarray, accel: np.ndarray) -> None:
+    def write_accel_samples(self, stamp_ns: int, offsets_ns: np.ndarray, accel: np.ndarray,
+                            topic: str = ACCEL_TOPIC) -> None:
         """Accelerometer samples as realsense-ros publishes them (``enable_accel:=true``):
         sensor_msgs/Imu on /camera/camera/accel/sample in camera_accel_optical_frame, only
         linear_acceleration filled in (orientation_covariance[0] = -1: no orientation), each
-        at ``stamp_ns + offsets_ns[i]``."""
+        at ``stamp_ns + offsets_ns[i]``. ``topic``: another, e.g. the united IMU topic."""
         T = self._types
         V = T["geometry_msgs/msg/Vector3"]
         no_orientation = np.zeros(9)
@@ -148,7 +149,7 @@ class RealSenseBagWriter:
                 angular_velocity_covariance=np.zeros(9),
                 linear_acceleration=V(x=float(a[0]), y=float(a[1]), z=float(a[2])),
                 linear_acceleration_covariance=np.diag([0.01, 0.01, 0.01]).reshape(-1))
-            self._write(ACCEL_TOPIC, msg, stamp)
+            self._write(topic, msg, stamp)
 
     def write_frame(self, stamp_ns: int, rgb: np.ndarray, depth_mm: np.ndarray,
                     intrinsics: CameraIntrinsics, poses: np.ndarray | None = None,

@@ -828,7 +828,8 @@ class SyntheticScene:
         bias = np.clip(np.random.default_rng([self.seed, 41]).normal(0.0, ACCEL_BIAS_M_S2, 3),
                        -3 * ACCEL_BIAS_M_S2, 3 * ACCEL_BIAS_M_S2)
         noise = np.random.default_rng([self.seed, index, 43]).normal(0.0, ACCEL_NOISE_M_S2, (len(k), 3))
-        offsets = np.round((times - t1) * 1e9).astype(np.int64)
+        # Each rounded as the frame stamps are: in a scene's own bag the samples fall on an exact 5 ms grid.
+        offsets = np.round(times * 1e9).astype(np.int64) - int(round(t1 * 1e9))
         return offsets, force + bias + noise
 
     def _path_acceleration(self) -> np.ndarray:
