@@ -24,8 +24,8 @@ IMU_TYPE = "sensor_msgs/msg/Imu"
 STANDARD_GRAVITY = 9.80665
 # Samples averaged before each frame: 0.1 s (10-20 samples at the D455's 100-200 Hz) keeps the
 # white noise to a few hundredths of a degree, and lags a hand-held camera's tilt (~10 deg/s)
-# by half a degree; what hand motion adds (~0.5 m/s^2, 3 deg) stays, well inside the 20 deg
-# the front end allows (``shape_gravity_tolerance_deg``).
+# by half a degree; what the hand's motion adds (0.5-2 m/s^2: 3-12 deg) stays, inside the 20
+# deg the front end allows (``shape_gravity_tolerance_deg``), which takes a plane's own normal.
 WINDOW_NS = 100_000_000
 # A mean further than this from 1 g is no gravity reading (the camera swung or knocked).
 MAX_MAGNITUDE_ERROR = 0.25
