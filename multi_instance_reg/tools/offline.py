@@ -476,7 +476,7 @@ def run(args) -> int:
     if result.skipped:
         line += f", {result.skipped} skipped ({result.skip_reasons})"
     if result.gravity_frames:
-        line += f" ({result.gravity_frames} with gravity from the IMU)"
+        line += f", {result.gravity_frames} of them with gravity from the IMU"
     if result.scores:
         metrics = metrics_dict(result, args.max_rre_deg, args.max_rte, args.min_visibility)
         (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
