@@ -297,3 +297,59 @@ def test_a_reliable_30hz_camera_loses_no_frame_and_the_newest_is_always_processe
         counts = last_stats(stats)
     assert counts["colour_received"] == 60 and counts["depth_received"] == 60, counts
     assert counts["processed"] + counts["dropped"] == 60 and counts["unmatched"] == 0, counts
+
+
+def test_gravity_from_the_accelerometer_goes_with_each_frame_and_its_absence_is_no_error(model):
+    """realsense-ros' accel/sample (sensor_msgs/Imu): the samples of the 0.1 s before a frame's
+    stamp give it the direction of gravity (counted in ~/stats); without samples, with stale
+    ones (another clock) or with ``gravity_source`` none a frame goes without, and is processed."""
+    from builtin_interfaces.msg import Time
+    from geometry_msgs.msg import PoseArray
+    from sensor_msgs.msg import Imu
+    from std_msgs.msg import String
+
+    with live_node(87, model, UNTRACKED) as live:
+        node, probe = live.proc, live.probe
+        poses = probe.subscribe(PoseArray, "/instances/poses")
+        stats = probe.subscribe(String, "/instance_registration/stats")
+        accel = probe.publisher(Imu, "/camera/camera/accel/sample", depth=100)
+        camera = CameraPublisher(probe)
+        assert camera.wait_for_subscribers(proc=node), stop(node)
+        assert wait_until(lambda: accel.get_subscription_count() > 0, 30, proc=node), stop(node)
+        rgb, depth, K = poster_frame()
+
+        def samples(start_ns):
+            """40 samples 5 ms apart from ``start_ns``: a level camera at rest (y points down)."""
+            for k in range(40):
+                ns = start_ns + k * 5_000_000
+                msg = Imu()
+                msg.header.stamp = Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+                msg.header.frame_id = "camera_accel_optical_frame"
+                msg.linear_acceleration.y = -9.81
+                accel.publish(msg)
+
+        def frame(expected_with_gravity):
+            n = len(poses)
+            camera.send(rgb, depth, K)
+            assert wait_until(lambda: len(poses) > n, 15, proc=node), stop(node)
+            assert len(poses[-1][1].poses) == 1
+            assert wait_until(lambda: last_stats(stats).get("processed") == n + 1, 15, proc=node), stop(node)
+            assert last_stats(stats)["with_gravity"] == expected_with_gravity, json.dumps(last_stats(stats))
+
+        frame(0)                                      # no IMU at all: as before
+        samples(time.time_ns() + 100_000_000)         # the frame will be stamped ~0.25 s from now
+        time.sleep(0.25)
+        frame(1)
+        assert last_stats(stats)["accel_received"] >= 20          # best effort: a burst may lose a few
+        samples(time.time_ns() - 10_000_000_000)      # on another clock: stale for the frame
+        time.sleep(0.25)
+        frame(1)
+        (result,) = set_parameters(probe, {"gravity_source": "none"})
+        assert result.successful
+        samples(time.time_ns() + 100_000_000)
+        time.sleep(0.25)
+        frame(1)                                      # asked not to use it
+        (result,) = set_parameters(probe, {"gravity_source": "compass"})
+        assert not result.successful and "gravity_source" in result.reason
+        assert last_stats(stats)["failed"] == 0 and node.poll() is None
+    assert "none within 0.1 s before a frame's stamp" in live.out

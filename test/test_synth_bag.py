@@ -25,6 +25,7 @@ TYPES = {
     bw.TOPIC_GT_POSES: "geometry_msgs/msg/PoseArray",
     bw.TOPIC_GT_OBJECT: "std_msgs/msg/String",
     bw.TOPIC_GT_VISIBILITY: "std_msgs/msg/Float32MultiArray",
+    bw.ACCEL_TOPIC: "sensor_msgs/msg/Imu",
 }
 SCENE = dict(object_name="can", instances=3, distractors=2, frames=4, seed=21)
 
@@ -51,9 +52,20 @@ def bag(request, tmp_path_factory):
 
 def test_topics_types_encodings_frame_ids_and_stamps(bag):
     n = SCENE["frames"]
-    for topic in TYPES:
+    for topic in set(TYPES) - {bw.ACCEL_TOPIC}:
         assert len(bag[topic]) == (1 if topic == bw.TOPIC_GT_OBJECT else n), topic
     expected = [START_STAMP_NS + round(i * 1e9 / FRAME_RATE_HZ) for i in range(n)]
+    # The accelerometer at 200 Hz from a frame interval before the first frame to the last,
+    # in its own optical frame, about 1 g.
+    accel = bag[bw.ACCEL_TOPIC]
+    assert len(accel) == round(n * 200 / FRAME_RATE_HZ)
+    assert expected[0] - 1e9 / FRAME_RATE_HZ < accel[0][0] and accel[-1][0] <= expected[-1]
+    assert all(t2 - t1 == 5_000_000 for (t1, _, _), (t2, _, _) in zip(accel, accel[1:]))
+    for t, _, msg in accel:
+        assert msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec == t
+        assert msg.header.frame_id == "camera_accel_optical_frame" and msg.orientation_covariance[0] == -1
+        a = msg.linear_acceleration
+        assert abs(np.linalg.norm([a.x, a.y, a.z]) - 9.81) < 1.0
     for topic in (bw.TOPIC_COLOUR, bw.TOPIC_COLOUR_INFO, bw.TOPIC_DEPTH, bw.TOPIC_DEPTH_INFO, bw.TOPIC_GT_POSES):
         for (t, _, msg), stamp in zip(bag[topic], expected):
             assert t == stamp

@@ -3,6 +3,7 @@ publishes them: topics, message types, encodings, frame ids, identical stamps pe
 
     with RealSenseBagWriter("out/scene", storage="sqlite3") as bag:
         bag.write_object_description(stamp_ns, {"name": ..., "shape": ..., ...})
+        bag.write_accel_samples(stamp_ns, offsets_ns, accel)     # the IMU's samples before the frame
         bag.write_frame(stamp_ns, rgb, depth_mm, intrinsics, poses=T_cam_obj, visibility=v)
 
 Uses ``rosbags`` (pure Python, no ROS install): rosbag2 format version 9, sqlite3 or mcap.
@@ -15,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..gravity import ACCEL_FRAME_ID, ACCEL_TOPIC, IMU_TOPIC
 from ..messages import CameraIntrinsics, array_to_image_fields, compressed_colour_fields, compressed_depth_fields
 from ..transforms import matrix_to_pose
 
@@ -36,13 +38,14 @@ TRANSPORTS = ("raw", "compressed")
 CUSTOM_DATA_OBJECT_KEY = "multi_instance_reg.object"
 
 
-def _qos(transient_local: bool = False):
-    """realsense-ros offers reliable, keep-last 10; the object description is latched."""
+def _qos(transient_local: bool = False, sensor_data: bool = False):
+    """realsense-ros offers reliable, keep-last 10 (its IMU topics best effort, keep-last 5:
+    "SENSOR_DATA"); the object description is latched."""
     from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 
     zero = QosTime(0, 0)
-    return Qos(history=QosHistory.KEEP_LAST, depth=1 if transient_local else 10,
-               reliability=QosReliability.RELIABLE,
+    return Qos(history=QosHistory.KEEP_LAST, depth=1 if transient_local else 5 if sensor_data else 10,
+               reliability=QosReliability.BEST_EFFORT if sensor_data else QosReliability.RELIABLE,
                durability=QosDurability.TRANSIENT_LOCAL if transient_local else QosDurability.VOLATILE,
                deadline=zero, lifespan=zero, liveliness=QosLiveliness.AUTOMATIC,
                liveliness_lease_duration=zero, avoid_ros_namespace_conventions=False)
@@ -94,7 +97,7 @@ class RealSenseBagWriter:
         conn = self._connections.get(topic)
         if conn is None:
             conn = self._writer.add_connection(topic, msgtype, typestore=self.typestore,
-                                               offered_qos_profiles=[_qos(latched)])
+                                               offered_qos_profiles=[_qos(latched, topic in (ACCEL_TOPIC, IMU_TOPIC))])
             self._connections[topic] = conn
         return conn
 
@@ -126,6 +129,27 @@ class RealSenseBagWriter:
         text = json.dumps(description, sort_keys=True)
         self._write(TOPIC_GT_OBJECT, self._types["std_msgs/msg/String"](data=text), stamp_ns, latched=True)
         self._writer.set_custom_data(CUSTOM_DATA_OBJECT_KEY, text)
+
+    def write_accel_samples(self, stamp_ns: int, offsets_ns: np.ndarray, accel: np.ndarray,
+                            topic: str = ACCEL_TOPIC) -> None:
+        """Accelerometer samples as realsense-ros publishes them (``enable_accel:=true``):
+        sensor_msgs/Imu on /camera/camera/accel/sample in camera_accel_optical_frame, only
+        linear_acceleration filled in (orientation_covariance[0] = -1: no orientation), each
+        at ``stamp_ns + offsets_ns[i]``. ``topic``: another, e.g. the united IMU topic."""
+        T = self._types
+        V = T["geometry_msgs/msg/Vector3"]
+        no_orientation = np.zeros(9)
+        no_orientation[0] = -1.0
+        for off, a in zip(np.asarray(offsets_ns, np.int64), np.asarray(accel, np.float64).reshape(-1, 3)):
+            stamp = int(stamp_ns) + int(off)
+            msg = T["sensor_msgs/msg/Imu"](
+                header=self._header(stamp, ACCEL_FRAME_ID),
+                orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=0.0),
+                orientation_covariance=no_orientation, angular_velocity=V(x=0.0, y=0.0, z=0.0),
+                angular_velocity_covariance=np.zeros(9),
+                linear_acceleration=V(x=float(a[0]), y=float(a[1]), z=float(a[2])),
+                linear_acceleration_covariance=np.diag([0.01, 0.01, 0.01]).reshape(-1))
+            self._write(topic, msg, stamp)
 
     def write_frame(self, stamp_ns: int, rgb: np.ndarray, depth_mm: np.ndarray,
                     intrinsics: CameraIntrinsics, poses: np.ndarray | None = None,

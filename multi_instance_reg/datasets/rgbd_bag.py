@@ -6,7 +6,9 @@ gets the latest camera_info, and, when the bag has ``/ground_truth/poses``, the 
 poses of the same stamp. Frames that cannot be decoded are skipped and counted, never raised.
 Images may be raw (sensor_msgs/Image) or compressed (image_transport's ``compressed`` colour and
 ``compressedDepth`` PNG depth); a bag without the raw topics is read from ``<topic>/compressed``
-and ``<topic>/compressedDepth``.
+and ``<topic>/compressedDepth``. When the bag holds the camera's accelerometer (realsense-ros'
+``/camera/camera/accel/sample``, else its united ``/camera/camera/imu``), each frame carries the
+direction of gravity from the samples just before its stamp (``multi_instance_reg.gravity``).
 """
 from __future__ import annotations
 
@@ -19,6 +21,7 @@ from typing import Iterator
 import numpy as np
 
 from ..errors import InputError
+from ..gravity import ACCEL_TOPIC, IMU_TOPIC, IMU_TYPE, AccelWindow, imu_accel
 from ..messages import CameraIntrinsics, camera_info_to_intrinsics, colour_to_rgb, depth_to_metres
 from ..transforms import pose_to_matrix
 
@@ -40,6 +43,7 @@ class RGBDFrame:
     intrinsics: CameraIntrinsics
     gt_poses: np.ndarray | None = None   # (K, 4, 4) object frame -> optical frame, or None without ground truth
     gt_visibility: np.ndarray | None = None   # (K,) visible fraction of each instance, when the bag has it
+    gravity: np.ndarray | None = None    # (3,) unit "up" in the optical frame from the accelerometer, None without
 
 
 @dataclass
@@ -84,7 +88,9 @@ class RGBDBag:
 
     def __init__(self, path, colour_topic: str = COLOUR_TOPIC, depth_topic: str = DEPTH_TOPIC,
                  info_topic: str = INFO_TOPIC, gt_topic: str = GT_POSES_TOPIC, max_dt_ns: int = 5_000_000,
-                 max_pending: int = 30):
+                 max_pending: int = 30, accel_topic: str | None = ACCEL_TOPIC):
+        """``accel_topic``: the accelerometer's sensor_msgs/Imu topic (the default falls back to
+        the united IMU topic when only that is recorded); None: frames without gravity."""
         self.path = Path(path)
         self.colour_topic, self.depth_topic, self.info_topic, self.gt_topic = colour_topic, depth_topic, info_topic, gt_topic
         self.max_dt_ns = int(max_dt_ns)
@@ -109,6 +115,9 @@ class RGBDBag:
                 self._reader.close()
                 raise InputError(f"bag {self.path}: topic {topic} holds {topics[topic].msgtype}, not {' or '.join(types)} "
                                  f"(choose others with --topics COLOUR DEPTH INFO)")
+        if accel_topic == ACCEL_TOPIC and accel_topic not in topics and IMU_TOPIC in topics:
+            accel_topic = IMU_TOPIC
+        self.accel_topic = accel_topic if accel_topic in topics and topics[accel_topic].msgtype == IMU_TYPE else None
         self.has_ground_truth = gt_topic in topics
         self.has_visibility = self.has_ground_truth and GT_VISIBILITY_TOPIC in topics
         self.num_colour_messages = int(topics[colour_topic].msgcount)
@@ -139,6 +148,9 @@ class RGBDBag:
             wanted.add(self.gt_topic)
         if self.has_visibility:
             wanted.add(GT_VISIBILITY_TOPIC)
+        if self.accel_topic is not None:
+            wanted.add(self.accel_topic)
+        accel = AccelWindow()
         conns = [c for c in reader.connections if c.topic in wanted]
         colour_q: deque = deque()   # (stamp, message)
         depth_q: deque = deque()
@@ -171,7 +183,8 @@ class RGBDBag:
                 if state["info"] is None:
                     self.skipped.add("no camera_info before the image")
                     continue
-                frame = self._make_frame(tc, c, d, state["info"], gt.pop(tc, None), visibility.pop(tc, None))
+                frame = self._make_frame(tc, c, d, state["info"], gt.pop(tc, None), visibility.pop(tc, None),
+                                         accel.up_at(tc) if self.accel_topic is not None else None)
                 for table in (gt, visibility):
                     for old in [s for s in table if s < tc]:
                         del table[old]
@@ -197,6 +210,9 @@ class RGBDBag:
                 yield from emit_ready(flush=False)
                 continue
             stamp = _stamp_ns(msg)
+            if conn.topic == self.accel_topic:
+                accel.add(stamp, imu_accel(msg))
+                continue
             if conn.topic == self.colour_topic:
                 colour_q.append((stamp, msg))
             elif conn.topic == self.depth_topic:
@@ -213,7 +229,8 @@ class RGBDBag:
         for _ in depth_q:
             self.skipped.add("depth image without colour")
 
-    def _make_frame(self, stamp, colour_msg, depth_msg, info, gt_poses, gt_visibility) -> RGBDFrame | None:
+    def _make_frame(self, stamp, colour_msg, depth_msg, info, gt_poses, gt_visibility, gravity=None
+                    ) -> RGBDFrame | None:
         try:
             rgb = colour_to_rgb(colour_msg)
             depth = depth_to_metres(depth_msg)
@@ -222,7 +239,7 @@ class RGBDBag:
             return None
         if gt_visibility is not None and (gt_poses is None or len(gt_visibility) != len(gt_poses)):
             gt_visibility = None
-        return RGBDFrame(stamp, str(colour_msg.header.frame_id), rgb, depth, info, gt_poses, gt_visibility)
+        return RGBDFrame(stamp, str(colour_msg.header.frame_id), rgb, depth, info, gt_poses, gt_visibility, gravity)
 
 
 def read_rgbd_frames(path, colour_topic: str = COLOUR_TOPIC, depth_topic: str = DEPTH_TOPIC,

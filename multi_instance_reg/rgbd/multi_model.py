@@ -94,8 +94,10 @@ class MultiModelRegistration:
         if shaped and shaped[0] is not self.pipelines[0]:
             shaped[0].warm_up()
 
-    def register_frame(self, rgb: np.ndarray, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> FrameResult:
-        """Every instance of every model in one frame; see the module's docstring."""
+    def register_frame(self, rgb: np.ndarray, depth_m: np.ndarray, intrinsics: CameraIntrinsics,
+                       gravity: np.ndarray | None = None) -> FrameResult:
+        """Every instance of every model in one frame; see the module's docstring. ``gravity``:
+        see ``InstanceRegistration.register_frame``."""
         check_frame(rgb, depth_m, intrinsics)
         t = {s: 0.0 for s in STAGES}
         t0 = time.perf_counter()
@@ -121,7 +123,7 @@ class MultiModelRegistration:
                 per_model[k] = self.pipelines[k].solve(keypoints, *matches)
         for k, pipeline in enumerate(self.pipelines):
             if k not in per_model:
-                per_model[k] = pipeline.register_frame(rgb, depth_m, intrinsics)
+                per_model[k] = pipeline.register_frame(rgb, depth_m, intrinsics, gravity)
                 n_kp = max(n_kp, per_model[k].num_keypoints)
         for k, res in per_model.items():
             for stage, ms in res.timings_ms.items():

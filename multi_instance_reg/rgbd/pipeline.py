@@ -121,6 +121,7 @@ class FrontEndConfig:
     shape_pierce_every_plane: bool = param(True, "shape ppf, with shape_reject_through_support: the model may reach through none of the support planes a large piece of which the frame shows (the floor and a pallet's top on it, a table and a wall), not only the largest: a carton fitted (tilted 2.5 deg) onto a crate's top on a pallet reached 4 cm through the pallet's top, where the crate on it is seen", None, None)
     shape_min_noise_agreement: float = param(0.5, "shape: of the model points that agree with the depth (within the depth tolerance, whose floor of shape_depth_tolerance or 0.8 voxel is many sigma near the camera), at least this share must agree within the depth noise (3 sigma at the object's distance, at least 2 mm): the object's surface is where the depth is, not a shape that passes near it (a cylinder's side laid over a block's top and front: 0.35; true cylinders and brackets of seeds 0 / 5: 0.59-1.0); 0 = off", 0.0, 1.0)
     shape_min_visible: int = param(20, "shape: an instance needs at least this many model points visible in the image with valid depth", 3, 100000)
+    shape_gravity_tolerance_deg: float = param(20.0, "shape ppf, when the frame comes with the direction of gravity (the camera's accelerometer, or TF): the support \"below\" the objects (the outline check leaves out what lies no higher than an object's lowest point; shape_reject_through_support without every plane) is the largest removed plane whose normal is within this of up, not a larger wall; none within it: the largest, as without gravity. 20 deg: a hand-held camera's accelerometer averaged over 0.1 s is 2-5 deg off (bias, the hand's motion), up to ~14 deg on a sharp turn of the synthetic sweep; level supports lie within a degree or two, walls 70-90 deg off. Pallet seed 269: false positives on distractor-only frames 3 -> 0; seeds 0 / 5 / 283 / 293 / 301 / 307 of pallet, cylinders and bracket unchanged", 1.0, 60.0)
 
 
 def rgbd_ecc_config() -> ECCConfig:
@@ -296,13 +297,18 @@ class InstanceRegistration:
             depth, intrinsics, _ = self._shape.warm_up_frame()
             self._register_frame_shape(depth, intrinsics)
 
-    def register_frame(self, rgb: np.ndarray, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> FrameResult:
-        """rgb (H, W, 3) uint8, depth_m (H, W) float metres (0 = invalid), aligned to colour."""
+    def register_frame(self, rgb: np.ndarray, depth_m: np.ndarray, intrinsics: CameraIntrinsics,
+                       gravity: np.ndarray | None = None) -> FrameResult:
+        """rgb (H, W, 3) uint8, depth_m (H, W) float metres (0 = invalid), aligned to colour.
+        ``gravity``: "up" in the colour optical frame (any length; the accelerometer's mean
+        reading at rest), or None when not known; the shape path takes the support below the
+        objects along it (``shape_gravity_tolerance_deg``)."""
         check_frame(rgb, depth_m, intrinsics)
+        gravity = unit_up(gravity)
         if self.correspondences == "shape":
-            return self._register_frame_shape(depth_m, intrinsics)
+            return self._register_frame_shape(depth_m, intrinsics, gravity=gravity)
         if self.correspondences == "both":
-            return self._register_frame_both(rgb, depth_m, intrinsics)
+            return self._register_frame_both(rgb, depth_m, intrinsics, gravity)
         return self._register_frame_sift(rgb, depth_m, intrinsics)
 
     def _register_frame_sift(self, rgb, depth_m, intrinsics) -> FrameResult:
@@ -438,7 +444,7 @@ class InstanceRegistration:
         labels = np.concatenate([labels] + added_l)
         return out, scene_idx, model_idx, labels
 
-    def _register_frame_shape(self, depth_m, intrinsics, search=None) -> FrameResult:
+    def _register_frame_shape(self, depth_m, intrinsics, search=None, gravity=None) -> FrameResult:
         """Shape correspondences -> ECC -> per instance ICP and a depth check -> no two
         instances in one place (which also reports a symmetric object once: its symmetric
         fits fill the same box)."""
@@ -450,7 +456,7 @@ class InstanceRegistration:
             search = self._search_mask(depth_m, intrinsics)      # ppf finds its own region
         t3 = time.perf_counter()
         t["lifting"] = (t3 - t0) * 1e3
-        cloud = self._shape.frame_cloud(depth_m, intrinsics, None if search is None else search > 0)
+        cloud = self._shape.frame_cloud(depth_m, intrinsics, None if search is None else search > 0, gravity)
         t4 = time.perf_counter()
         # The vote clusters' poses do not depend on ECC: they are refined on the other core
         # while the correspondences are made and ECC runs (those an ECC transform turns
@@ -529,7 +535,7 @@ class InstanceRegistration:
                 kept.append(k)
         return [checked[k] for k in kept]
 
-    def _register_frame_both(self, rgb, depth_m, intrinsics) -> FrameResult:
+    def _register_frame_both(self, rgb, depth_m, intrinsics, gravity=None) -> FrameResult:
         """Texture and shape, each through its own ECC; every SIFT instance is kept as the
         SIFT path finds it, and a shape instance is added where no SIFT instance is. (Joining
         the two correspondence sets before one ECC and judging every instance by the depth
@@ -537,7 +543,7 @@ class InstanceRegistration:
         against 0.98 for SIFT alone.)"""
         fe = self.config.frontend
         textured = self._register_frame_sift(rgb, depth_m, intrinsics)
-        shaped = self._register_frame_shape(depth_m, intrinsics)
+        shaped = self._register_frame_shape(depth_m, intrinsics, gravity=gravity)
         transforms = [i.T for i in textured.instances] + [i.T for i in shaped.instances]
         overlap = box_overlaps(self.model, transforms, self._box_grid)
         kept = list(range(len(textured.instances)))
@@ -602,6 +608,16 @@ class InstanceRegistration:
         instances = [Instance(i, transforms[k], int((labels == i).sum()), float(scores[i]), self.model.name)
                      for i, k in enumerate(kept)]
         return instances, labels
+
+
+def unit_up(gravity) -> np.ndarray | None:
+    """A frame's gravity "up" as a unit (3,) float64 vector, or None (not known)."""
+    if gravity is None:
+        return None
+    g = np.asarray(gravity, np.float64)
+    if g.shape != (3,) or not np.all(np.isfinite(g)) or float(np.linalg.norm(g)) < 1e-9:
+        raise InputError(f"gravity must be a finite, non-zero 3-vector in the camera's optical frame, got {gravity!r}")
+    return g / np.linalg.norm(g)
 
 
 def project_points(xyz: np.ndarray, intrinsics: CameraIntrinsics) -> np.ndarray:

@@ -27,7 +27,8 @@ from .lifting import depth_to_cloud, fit_dominant_plane
 
 def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.ndarray, max_area: float,
                  thresh: float, noise_per_m2: float, max_planes: int = 4, min_share: float = 0.03,
-                 stride: int = 2, ground: list | None = None, planes: list | None = None) -> np.ndarray:
+                 stride: int = 2, ground: list | None = None, planes: list | None = None,
+                 up: np.ndarray | None = None, up_tolerance_deg: float = 20.0) -> np.ndarray:
     """(H, W) bool: valid pixels that lie on a large piece of a dominant plane (support
     surfaces). A plane point is within ``thresh`` + 3 sigma(z) of it, sigma(z) =
     ``noise_per_m2`` z^2 (stereo depth noise grows with the square of the distance); a piece
@@ -35,7 +36,12 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
     unit normal (towards the camera) of the plane with the largest removed area: "up", if
     the floor, pallet or table is in view; and its offset (up . p + offset = 0 on it).
     ``planes``, a list, receives (normal, offset) alike for every plane a large piece of
-    which was removed (the floor and the pallet's top on it, a table and a wall)."""
+    which was removed (the floor and the pallet's top on it, a table and a wall).
+
+    ``up`` (unit, camera frame: the direction of gravity's reaction, from an IMU or TF): then
+    ``ground`` is the plane with the largest removed area among those whose normal lies within
+    ``up_tolerance_deg`` of it (what objects stand on, not a wall that happens to be larger);
+    when there is none, the largest as without it."""
     h, w = depth_m.shape
     pts, pix = depth_to_cloud(depth_m, intrinsics, valid, stride=stride)
     pts = pts.astype(np.float64)
@@ -51,6 +57,8 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
     alive = np.ones(len(pts), bool)
     total = len(pts)
     best_area = 0.0
+    level_area, level = 0.0, None
+    min_cos = np.cos(np.radians(up_tolerance_deg)) if up is not None else 0.0
     for k in range(max_planes):
         cand = np.flatnonzero(alive)
         if len(cand) < min_share * total or len(cand) < 50:
@@ -73,7 +81,13 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
             best_area = removed_area
             # The camera's side, and the offset: up . p + offset = 0 on the plane.
             ground[:] = [np.asarray(n, np.float64) * (1.0 if d > 0 else -1.0), abs(float(d))]
+        if ground is not None and up is not None and removed_area > level_area:
+            normal = np.asarray(n, np.float64) * (1.0 if d > 0 else -1.0)
+            if float(normal @ up) >= min_cos:
+                level_area, level = removed_area, [normal, abs(float(d))]
         alive &= ~on
+    if level is not None:
+        ground[:] = level
     if stride > 1:
         # Fill the pixels between the sampled ones.
         out = cv2.dilate(out.astype(np.uint8), np.ones((stride, stride), np.uint8),

@@ -3,6 +3,7 @@ refinement and depth check of the poses ECC finds from them. No ROS, no colour.
 
     shape = ShapeFrontEnd(model, frontend_config)
     cloud = shape.frame_cloud(depth_m, intrinsics, search_mask)    # search-region points, normals, FPFH
+                                                                    # (gravity=up: which support is "below")
     src, tgt = shape.correspondences(cloud)                         # model points -> scene points
     ... ECC on (src, tgt) (with ``shape.ecc_config(base)``) ...
     kept = shape.refine_and_check(transforms, cloud, depth_m, intrinsics)   # [(T, support, agreeing points, evidence)]
@@ -58,7 +59,8 @@ class FrameCloud:
     tree: cKDTree | None
     segments: np.ndarray | None = None    # (M,) segment label per point (-1: none), ppf only
     poses: np.ndarray | None = None       # (K, 4, 4) pose hypotheses clustered from the votes, ppf only
-    up: np.ndarray | None = None          # (3,) the largest support plane's normal, towards the camera, ppf only
+    up: np.ndarray | None = None          # (3,) the support plane's normal (the largest, or the largest level
+                                          # one given gravity), towards the camera, ppf only
     up_offset: float | None = None        # that plane: up . p + up_offset = 0 on it
     planes: tuple = ()                    # every support plane with a large piece removed: (normal, offset)
     grid: PointGrid | None = None         # the points and normals for ICP's nearest-point search
@@ -170,11 +172,13 @@ class ShapeFrontEnd:
                        sampling_tolerance=max(base.sampling_tolerance, 0.6 * self.voxel),
                        spatial_sigma=1.2 * self.diameter, sampling="consistency")
 
-    def frame_cloud(self, depth_m: np.ndarray, intrinsics: CameraIntrinsics, search: np.ndarray) -> FrameCloud:
+    def frame_cloud(self, depth_m: np.ndarray, intrinsics: CameraIntrinsics, search: np.ndarray,
+                    gravity: np.ndarray | None = None) -> FrameCloud:
         """The frame's points where objects can be. ``search``: the pipeline's search region
-        (fpfh); ppf builds its own from the depth in range (``segment_cloud``)."""
+        (fpfh); ppf builds its own from the depth in range (``segment_cloud``). ``gravity``:
+        see ``segment_cloud``."""
         if self.features == "ppf":
-            return self.segment_cloud(depth_m, intrinsics)
+            return self.segment_cloud(depth_m, intrinsics, gravity)
         # Every second pixel is plenty: the voxel is several pixel footprints wide.
         pts = scene_cloud(depth_m, intrinsics, search, self.voxel, stride=2)
         if len(pts) > self.fe.shape_max_points:
@@ -186,14 +190,19 @@ class ShapeFrontEnd:
         return FrameCloud(pts, normals, salient, desc[salient], cKDTree(pts),
                           grid=PointGrid(pts, normals, ICP_REACH * self.voxel))
 
-    def segment_cloud(self, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> FrameCloud:
+    def segment_cloud(self, depth_m: np.ndarray, intrinsics: CameraIntrinsics,
+                      gravity: np.ndarray | None = None) -> FrameCloud:
         """Depth in range, minus the large pieces of dominant planes (floor, pallet top,
-        table), voxel-downsampled, with normals, cut into connected segments."""
+        table), voxel-downsampled, with normals, cut into connected segments. ``gravity``
+        (unit "up", camera frame; None: not known): the support "below" the objects
+        (``cloud.up``) is the largest removed plane within ``shape_gravity_tolerance_deg`` of
+        it, not a larger wall (``support_mask``)."""
         fe = self.fe
         valid = (depth_m >= fe.depth_min) & (depth_m <= fe.depth_max)
         ground, planes = [], []
         support = support_mask(depth_m, intrinsics, valid, fe.shape_support_area * self._max_face_area,
-                               fe.shape_plane_thresh, fe.shape_depth_noise, ground=ground, planes=planes)
+                               fe.shape_plane_thresh, fe.shape_depth_noise, ground=ground, planes=planes,
+                               up=gravity, up_tolerance_deg=fe.shape_gravity_tolerance_deg)
         pts, _ = depth_to_cloud(depth_m, intrinsics, valid & ~support, stride=2)
         pts = voxel_downsample(np.asarray(pts, np.float64), self.voxel)
         empty = FrameCloud(pts, np.zeros_like(pts), np.zeros(0, np.int64), np.zeros((0, 33), np.float32), None,
@@ -548,7 +557,8 @@ class ShapeFrontEnd:
 
     def pierces(self, T, cloud: FrameCloud, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> bool:
         """Whether the model at pose T reaches more than two voxels through the frame's
-        largest support plane (the table it would stand on) where that plane is there: its
+        support plane ``cloud.up`` (the table it would stand on: the largest, or the largest
+        level one given gravity) where that plane is there: its
         points behind the table's surface are hidden, so the depth check counts them as
         occluded, not as wrong (a bracket turned over, its upright plate sunk into the table,
         its base plate on the true one's). "There": the depth on those points' rays stops at

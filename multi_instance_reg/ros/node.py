@@ -1,7 +1,9 @@
 """``instance_registration_node``: every instance's pose from a live RGB-D stream.
 
 Subscribes to colour, aligned depth and camera_info (realsense-ros names by default; remap
-to change), pairs colour and depth by header stamp and publishes:
+to change), pairs colour and depth by header stamp, takes the direction of gravity per frame
+from the camera's accelerometer when it is published (``camera/camera/accel/sample``,
+``gravity_source``), and publishes:
 
 - ``instances/poses`` (geometry_msgs/PoseArray): model frame in the camera optical frame,
   every object's instances, by object (the models' order), then by track_id (tracking off: by
@@ -55,12 +57,13 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import CameraInfo, Image
+from sensor_msgs.msg import CameraInfo, Image, Imu
 from geometry_msgs.msg import PoseArray
 from std_msgs.msg import String
 from visualization_msgs.msg import MarkerArray
 
 from ..errors import InputError
+from ..gravity import AccelWindow, imu_accel
 from ..messages import array_to_image_fields, camera_info_to_intrinsics, colour_to_rgb, depth_to_metres
 from ..params import param_specs, with_overrides
 from . import conversions
@@ -77,6 +80,7 @@ NODE_NAME = "instance_registration"
 COLOUR_TOPIC = "camera/camera/color/image_raw"
 DEPTH_TOPIC = "camera/camera/aligned_depth_to_color/image_raw"
 CAMERA_INFO_TOPIC = "camera/camera/color/camera_info"
+ACCEL_TOPIC = "camera/camera/accel/sample"   # realsense-ros' accelerometer (best effort: sensor data QoS)
 LATENCY_WINDOW = 300  # frames kept for the latency percentiles
 
 
@@ -102,6 +106,8 @@ class FrameCounters:
     failed: int = 0           # pipeline raised on a frame, skipped
     detected: int = 0         # frames the detector (the full pipeline) ran on
     model_swaps: int = 0      # run-time changes of the models, done
+    accel_received: int = 0   # accelerometer samples
+    with_gravity: int = 0     # frames given the direction of gravity (the rest go without)
 
 
 @dataclass
@@ -120,6 +126,7 @@ class _Frame:
     rgb: np.ndarray
     depth: np.ndarray
     intrinsics: object
+    gravity: np.ndarray | None = None
 
 
 class InstanceRegistrationNode(Node):
@@ -194,6 +201,11 @@ class InstanceRegistrationNode(Node):
         self.create_subscription(image_type, colour_topic, lambda m: self._on_image(0, m), sub_qos)
         self.create_subscription(image_type, depth_topic, lambda m: self._on_image(1, m), sub_qos)
         self.create_subscription(CameraInfo, CAMERA_INFO_TOPIC, self._on_camera_info, sub_qos)
+        self._accel = AccelWindow()
+        self._accel_lock = threading.Lock()
+        self._accel_subscription = None
+        self._gravity_warned = False
+        self._subscribe_accel()
         self.create_timer(0.25, self._maybe_report)
 
         self._workers = [threading.Thread(target=self._work, args=(k,), name=f"pipeline{k}", daemon=True)
@@ -249,6 +261,7 @@ class InstanceRegistrationNode(Node):
         if node_changes:
             self.settings = node_settings({**asdict(self.settings), **node_changes})
             self._sync.set_slop(int(self.settings.sync_slop_s * 1e9))
+            self._subscribe_accel()
         if "model_paths" in node_changes and self._pending_models is not None:
             # The new detector process takes seconds to start: the old one serves meanwhile.
             pending, self._pending_models = self._pending_models, None
@@ -306,6 +319,39 @@ class InstanceRegistrationNode(Node):
             self._have_intrinsics.set()
         except InputError as exc:
             self.get_logger().warn(f"ignoring camera_info: {exc}", throttle_duration_sec=5.0)
+
+    def _subscribe_accel(self) -> None:
+        """With ``gravity_source`` imu, listen to the accelerometer (once; "none" later only
+        stops using it)."""
+        if self.settings.gravity_source == "imu" and self._accel_subscription is None:
+            # realsense-ros publishes its IMU topics best effort ("SENSOR_DATA"); a best-effort
+            # reader also meets a reliable writer (a bag played back). Deeper than sensor data's
+            # 5: at 200 Hz a callback held up by an image for 25 ms would lose samples.
+            qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50, reliability=ReliabilityPolicy.BEST_EFFORT)
+            self._accel_subscription = self.create_subscription(Imu, ACCEL_TOPIC, self._on_accel, qos)
+
+    def _on_accel(self, msg: Imu) -> None:
+        with self._accel_lock:
+            self._accel.add(stamp_to_ns(msg.header.stamp), imu_accel(msg))
+        self._count("accel_received")
+
+    def _gravity(self, stamp_ns: int):
+        """The frame's "up" from the accelerometer samples of the 0.1 s before its stamp, or None
+        (``gravity_source`` none, no samples, stale ones, or not about 1 g): the pipeline then
+        goes without, never fails for it."""
+        if self.settings.gravity_source != "imu":
+            return None
+        with self._accel_lock:
+            up, received = self._accel.up_at(stamp_ns), self._accel.received
+        if up is not None:
+            self._count("with_gravity")
+        elif received and not self._gravity_warned:
+            self._gravity_warned = True
+            self.get_logger().warn(
+                f"accelerometer samples arrive on {self.resolve_topic_name(ACCEL_TOPIC)} but none within 0.1 s "
+                "before a frame's stamp (another clock? stopped?) or not about 1 g: frames go without gravity "
+                "until they do")
+        return up
 
     def _on_image(self, stream: int, msg: Image) -> None:
         now = time.monotonic()
@@ -370,14 +416,14 @@ class InstanceRegistrationNode(Node):
             return None
         return rgb, depth, intrinsics
 
-    def _register(self, index: int, rgb, depth, intrinsics):
+    def _register(self, index: int, rgb, depth, intrinsics, gravity=None):
         """The detector's FrameResult, or None when it failed on this frame (counted)."""
         from .worker import PipelineClosed
 
         try:
             while True:
                 try:
-                    result = self._pipelines[index].register(rgb, depth, intrinsics, self.config)
+                    result = self._pipelines[index].register(rgb, depth, intrinsics, self.config, gravity)
                     break
                 except PipelineClosed:   # the models were swapped meanwhile: the new process takes it
                     if self._slot.closed:   # ... unless the node is shutting down
@@ -399,7 +445,7 @@ class InstanceRegistrationNode(Node):
         if frame is None:
             return
         rgb, depth, intrinsics = frame
-        result = self._register(index, rgb, depth, intrinsics)
+        result = self._register(index, rgb, depth, intrinsics, self._gravity(stamp_to_ns(pair.colour.header.stamp)))
         if result is None:
             return
         timings = {k: round(float(v), 2) for k, v in result.timings_ms.items()}
@@ -416,14 +462,14 @@ class InstanceRegistrationNode(Node):
         t0 = time.perf_counter()
         tracks = self._tracker.step(stamp_to_ns(pair.colour.header.stamp), depth, intrinsics)
         tracking_ms = round((time.perf_counter() - t0) * 1e3, 2)
-        self._slot.put(_Frame(pair, rgb, depth, intrinsics))
+        self._slot.put(_Frame(pair, rgb, depth, intrinsics, self._gravity(stamp_to_ns(pair.colour.header.stamp))))
         if self._publish(pair, tracks, timings_ms={"tracking": tracking_ms, "total": tracking_ms},
                          detection=self._last_detection, tracker=self._tracker.counts()):
             self._publish_debug_image(rgb, None, intrinsics, pair.colour.header, tracks)
 
     def _detect(self, frame: _Frame, index: int) -> None:
         """Tracking on: full detection on a tracked frame, fed back to the tracker for it."""
-        result = self._register(index, frame.rgb, frame.depth, frame.intrinsics)
+        result = self._register(index, frame.rgb, frame.depth, frame.intrinsics, frame.gravity)
         if result is None:
             return
         stamp = stamp_to_ns(frame.pair.colour.header.stamp)

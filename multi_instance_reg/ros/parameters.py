@@ -48,6 +48,13 @@ class NodeSettings:
     publish_debug_image: bool = param(False, "draw and publish the debug image on every frame even with no subscriber "
                                              "(it is drawn whenever someone subscribes)")
     stats_log_period_s: float = param(5.0, "how often frame counts and latency are logged and published on ~/stats (s)", 0.1, 3600.0)
+    gravity_source: str = param("imu", "where each frame's direction of gravity comes from (the shape path takes the support "
+                                       "below the objects along it, frontend.shape_gravity_tolerance_deg): imu = the camera's "
+                                       "accelerometer on camera/camera/accel/sample (realsense-ros enable_accel:=true; remap it to "
+                                       "camera/camera/imu for unite_imu_method), its samples of the 0.1 s before each frame "
+                                       "averaged; while none arrive (or they are stale, or far from 1 g) a frame goes without, as "
+                                       "with none: the largest support plane counts as below",
+                                choices=("imu", "none"))
     detector_niceness: int = param(10, "niceness added to the pipeline (detector) processes while tracking is on (read-only), "
                                        "so that the tracking of every camera frame wins the CPU over full detections", 0, 19)
 

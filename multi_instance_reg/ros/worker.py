@@ -41,12 +41,12 @@ def _serve(conn, models, config, niceness: int = 0) -> None:
             return
         if job is None:
             return
-        rgb, depth, intrinsics, new_config = job
+        rgb, depth, intrinsics, new_config, gravity = job
         try:
             if new_config != pipeline.config:
                 pipeline = MultiModelRegistration(models, new_config)
                 pipeline.warm_up()
-            conn.send(("ok", pipeline.register_frame(rgb, depth, intrinsics)))
+            conn.send(("ok", pipeline.register_frame(rgb, depth, intrinsics, gravity)))
         except InputError as exc:
             conn.send(("input_error", str(exc)))
         except Exception as exc:  # a bug on one frame must not end the stream
@@ -54,7 +54,7 @@ def _serve(conn, models, config, niceness: int = 0) -> None:
 
 
 class PipelineProcess:
-    """``register(rgb, depth_m, intrinsics, config) -> FrameResult`` of every model, run in a child
+    """``register(rgb, depth_m, intrinsics, config, gravity=None) -> FrameResult`` of every model, run in a child
     process. Raises InputError for a frame the pipeline refuses, RuntimeError when the pipeline
     failed (the child is restarted if it died) and PipelineClosed once ``close`` was called."""
 
@@ -110,12 +110,12 @@ class PipelineProcess:
     def pid(self) -> int:
         return self._proc.pid
 
-    def register(self, rgb, depth_m, intrinsics, config):
+    def register(self, rgb, depth_m, intrinsics, config, gravity=None):
         with self._lock:
             if self._closed:
                 raise PipelineClosed("the pipeline process was closed")
             try:
-                self._conn.send((rgb, depth_m, intrinsics, config))
+                self._conn.send((rgb, depth_m, intrinsics, config, gravity))
                 status, payload = self._conn.recv()
             except (EOFError, BrokenPipeError, ConnectionResetError):
                 code = self._proc.exitcode

@@ -61,6 +61,16 @@ TABLE_HALF_X = 1.6
 TABLE_FRONT_Y = -2.4
 MIN_CAMERA_CLEARANCE_M = 0.32    # camera to any object surface (the depth minimum is 0.3 m)
 MOTIONS = ("sweep", "static", "pan")
+# The accelerometer (sensor_msgs/Imu on realsense-ros' accel/sample topic): a D455 samples it
+# at 100 or 200 Hz (63 / 250 on units made before mid 2022). 200 Hz: 6-7 messages of ~330
+# bytes per frame, nothing beside a frame's 1.5 MB of images.
+ACCEL_RATE_HZ = 200.0
+GRAVITY_M_S2 = 9.80665
+# White noise per axis per sample (BMI085 datasheet: 160 ug/sqrt(Hz), 0.014 m/s^2 at 200 Hz;
+# measured D4xx streams show a few hundredths) and a constant bias per axis per recording
+# (zero-g offset +-20 mg typical after calibration; uncalibrated units read up to 0.5 m/s^2 off).
+ACCEL_NOISE_M_S2 = 0.03
+ACCEL_BIAS_M_S2 = 0.15
 
 
 # ----------------------------------------------------------------------------------------------
@@ -792,6 +802,48 @@ class SyntheticScene:
         for i in range(self.num_frames):
             yield self.render_frame(i)
 
+    def accel_samples(self, index: int, rate_hz: float = ACCEL_RATE_HZ) -> tuple[np.ndarray, np.ndarray]:
+        """The accelerometer samples between frame ``index - 1`` and frame ``index`` (for the
+        first frame, the frame interval before it): (offsets from the frame's stamp, ns, <= 0;
+        (N, 3) m/s^2 in the optical frame). Each is the specific force a still or moving
+        camera feels: world up x 9.81 plus the camera path's acceleration (second differences
+        of the frame positions, linear between frames; a capture's views are still ones),
+        turned into the optical frame (between frames, the two frames' readings blended), plus
+        a bias per recording and white noise, each from streams of their own (the images do not
+        change). The reading's axes are those of the colour optical frame, as librealsense
+        gives a D455's IMU samples up to a fraction of a degree."""
+        period = 1.0 / FRAME_RATE_HZ
+        t1 = index * period
+        k = np.arange(int(np.floor((t1 - period) * rate_hz + 1e-9)) + 1, int(np.floor(t1 * rate_hz + 1e-9)) + 1)
+        times = k / rate_hz
+        s = (times - (t1 - period)) / period                 # 0 at the previous frame, 1 at this one
+        prev = max(index - 1, 0)
+        acc = self._path_acceleration()
+        lift = np.array([0.0, 0.0, GRAVITY_M_S2])
+        f_prev = self.camera_poses[prev][:3, :3].T @ (acc[prev] + lift)
+        f_this = self.camera_poses[index][:3, :3].T @ (acc[index] + lift)
+        if self.kind != "scene":
+            f_prev = f_this                                  # views, not a path: still at each
+        force = (1.0 - s)[:, None] * f_prev + s[:, None] * f_this
+        bias = np.clip(np.random.default_rng([self.seed, 41]).normal(0.0, ACCEL_BIAS_M_S2, 3),
+                       -3 * ACCEL_BIAS_M_S2, 3 * ACCEL_BIAS_M_S2)
+        noise = np.random.default_rng([self.seed, index, 43]).normal(0.0, ACCEL_NOISE_M_S2, (len(k), 3))
+        # Each rounded as the frame stamps are: in a scene's own bag the samples fall on an exact 5 ms grid.
+        offsets = np.round(times * 1e9).astype(np.int64) - int(round(t1 * 1e9))
+        return offsets, force + bias + noise
+
+    def _path_acceleration(self) -> np.ndarray:
+        """(frames, 3) world acceleration of the camera at each frame (m/s^2): second
+        differences of its positions at 30 Hz (the ends take their neighbour's); zero for a
+        capture's separate views or fewer than three frames."""
+        n = self.num_frames
+        acc = np.zeros((n, 3))
+        if self.kind == "scene" and n >= 3:
+            p = np.array([P[:3, 3] for P in self.camera_poses])
+            acc[1:-1] = (p[2:] - 2.0 * p[1:-1] + p[:-2]) * FRAME_RATE_HZ ** 2
+            acc[0], acc[-1] = acc[1], acc[-2]
+        return acc
+
 
 def _check_common(object_name: str, seed: int, resolution: str) -> ObjectSpec:
     spec = get_object(object_name)
@@ -887,9 +939,10 @@ class BagSummary:
 
 
 def write_scene_bag(scene: SyntheticScene, out_path, storage: str = "sqlite3", preview_dir=None,
-                    preview_frames=None, transport: str = "raw") -> BagSummary:
+                    preview_frames=None, transport: str = "raw", imu: bool = True) -> BagSummary:
     """Render every frame of ``scene`` into a new rosbag2 at ``out_path``, its images raw or,
-    with ``transport`` "compressed", as image_transport's compressed topics."""
+    with ``transport`` "compressed", as image_transport's compressed topics; with ``imu``,
+    the accelerometer's samples before each frame (``SyntheticScene.accel_samples``)."""
     from ..datasets.bag_writer import RealSenseBagWriter
     from .preview import write_preview
 
@@ -902,6 +955,8 @@ def write_scene_bag(scene: SyntheticScene, out_path, storage: str = "sqlite3", p
     with RealSenseBagWriter(out_path, storage=storage, transport=transport) as bag:
         bag.write_object_description(scene.stamp_ns(0), scene.description())
         for frame in scene.frames():
+            if imu:
+                bag.write_accel_samples(frame.stamp_ns, *scene.accel_samples(frame.index))
             bag.write_frame(frame.stamp_ns, frame.rgb, frame.depth_mm, scene.intrinsics,
                             poses=frame.poses, visibility=frame.visibility)
             if preview_dir is not None and frame.index in preview_frames:
@@ -913,18 +968,18 @@ def generate_scene_bag(out_path, object_name: str | list[str] = DEFAULT_OBJECT, 
                        distractors: int = 3, frames: int = 60, seed: int = 0, storage: str = "sqlite3",
                        resolution: str = "640x480", preview_dir=None, motion: str = "sweep",
                        occluder: bool = False, depth_noise_correlation_px: float = 0.0,
-                       transport: str = "raw") -> BagSummary:
+                       transport: str = "raw", imu: bool = True) -> BagSummary:
     """Make a tabletop scene (see ``make_tabletop_scene``) and write it as a rosbag2."""
     scene = make_tabletop_scene(object_name, instances, distractors, frames, seed, resolution,
                                 motion=motion, occluder=occluder)
     scene.set_depth_noise_correlation(depth_noise_correlation_px)
-    return write_scene_bag(scene, out_path, storage, preview_dir, transport=transport)
+    return write_scene_bag(scene, out_path, storage, preview_dir, transport=transport, imu=imu)
 
 
 def generate_capture_bag(out_path, object_name: str = DEFAULT_OBJECT, seed: int = 0, views: int = 10,
                          storage: str = "sqlite3", resolution: str = "640x480", preview_dir=None,
-                         transport: str = "raw") -> BagSummary:
+                         transport: str = "raw", imu: bool = True) -> BagSummary:
     """Make a capture sequence (see ``make_capture_scene``) and write it as a rosbag2."""
     scene = make_capture_scene(object_name, seed, views, resolution)
     return write_scene_bag(scene, out_path, storage, preview_dir,
-                           preview_frames=list(range(min(views, 4))), transport=transport)
+                           preview_frames=list(range(min(views, 4))), transport=transport, imu=imu)

@@ -63,6 +63,9 @@ def add_arguments(parser) -> None:
                         help="build the model as from a real capture, without the captures' object poses: views "
                              "registered to each other by texture (shape/both: placed on the mesh by shape); the "
                              "first view's ground truth relates the model's frame to the object's for scoring only")
+    parser.add_argument("--no-gravity", action="store_true",
+                        help="ignore the accelerometer the bags carry (the direction of gravity per frame): as "
+                             "before it existed, for A/B; with given BAGs without it, the same anyway")
 
 
 # Rotation (object frame) that turns the upright object's "up" axis (+z) into another.
@@ -130,6 +133,7 @@ def generate_benchmark_bag(path: Path, object_name=None, scenes: int = 6, frames
             if k == 0:
                 bag.write_object_description(stamp, scene.description())
             for frame in scene.frames():
+                bag.write_accel_samples(stamp, *scene.accel_samples(frame.index))
                 bag.write_frame(stamp, frame.rgb, frame.depth_mm, scene.intrinsics, poses=frame.poses,
                                 visibility=frame.visibility)
                 stamp += frame_period_ns
@@ -267,7 +271,7 @@ def side_by_side_latency(bags, models, config, repeats: int = 3) -> dict:
                     pair = (("one", one), ("all", every))
                     for key, reg in (pair if r % 2 == 0 else pair[::-1]):
                         t0 = time.perf_counter()
-                        reg.register_frame(f.rgb, f.depth_m, f.intrinsics)
+                        reg.register_frame(f.rgb, f.depth_m, f.intrinsics, f.gravity)
                         runs[key].append((time.perf_counter() - t0) * 1e3)
                 for key in times:
                     times[key].append(float(np.median(runs[key])))
@@ -282,7 +286,7 @@ def _replay_all(args, bags, models, config):
     total = ReplayResult()
     for bag in bags:
         r = replay(bag, models, config, None, args.max_rre_deg, args.max_rte, progress=sys.stderr.isatty(),
-                   min_visibility=args.min_visibility)
+                   min_visibility=args.min_visibility, gravity=not args.no_gravity)
         for name in ("frames", "timings", "cpu_ms", "scores", "present", "found", "hits"):
             getattr(total, name).extend(getattr(r, name))
         for name, scores in r.object_scores.items():
@@ -348,7 +352,7 @@ def run(args) -> int:
         load = []
         for bag in bags:
             r = replay(bag, model, config, None, args.max_rre_deg, args.max_rte, progress=sys.stderr.isatty(),
-                       min_visibility=args.min_visibility)
+                       min_visibility=args.min_visibility, gravity=not args.no_gravity)
             for name in ("frames", "timings", "cpu_ms", "scores", "present", "found", "hits"):
                 getattr(total, name).extend(getattr(r, name))
             total.skipped += r.skipped

@@ -33,6 +33,7 @@ def generate_untextured_bag(path: Path, preset: str, scenes: int, frames: int, s
             if k == 0:
                 bag.write_object_description(stamp, scene.description())
             for frame in scene.frames():
+                bag.write_accel_samples(stamp, *scene.accel_samples(frame.index))
                 bag.write_frame(stamp, frame.rgb, frame.depth_mm, scene.intrinsics, poses=frame.poses,
                                 visibility=frame.visibility)
                 stamp += 33_333_333
@@ -66,20 +67,24 @@ def run_untextured(args, config) -> int:
                                           depth_noise_correlation_px=noise)
             empty = generate_untextured_bag(tmp / "empty", preset, args.scenes, args.frames, args.seed + 50, instances=0,
                                             depth_noise_correlation_px=noise)
+            gravity = not args.no_gravity
             r = replay(bag, model, config, None, args.max_rre_deg, args.max_rte, progress=sys.stderr.isatty(),
-                       min_visibility=args.min_visibility)
-            r_empty = replay(empty, model, config, None, args.max_rre_deg, args.max_rte, progress=sys.stderr.isatty())
+                       min_visibility=args.min_visibility, gravity=gravity)
+            r_empty = replay(empty, model, config, None, args.max_rre_deg, args.max_rte, progress=sys.stderr.isatty(),
+                             gravity=gravity)
         metrics = metrics_dict(r, args.max_rre_deg, args.max_rte, args.min_visibility)
         metrics["load_average"] = float(__import__("os").getloadavg()[0])
         fp = int(sum(r_empty.found))
         metrics.update(model_build_s=build_s, distractor_frames=len(r_empty.frames), distractor_false_positives=fp,
+                       gravity_frames=r.gravity_frames + r_empty.gravity_frames,
                        preset=preset, symmetries=model.symmetries.describe() if model.symmetries else "none")
         results[preset] = metrics
         print(f"== untextured {preset} ({name}; symmetries: {metrics['symmetries']}; "
               f"correspondences: {config.frontend.correspondences}; seed {args.seed})")
         print(format_report(metrics))
         print(f"distractor-only frames: {len(r_empty.frames)}, instances reported there (false positives): {fp}; "
-              f"model from a mesh of {len(load_mesh_vertices(name))} vertices built in {build_s:.2f} s")
+              f"model from a mesh of {len(load_mesh_vertices(name))} vertices built in {build_s:.2f} s; "
+              f"gravity from the IMU on {metrics['gravity_frames']} of {len(r.frames) + len(r_empty.frames)} frames")
     if args.json:
         import json
         Path(args.json).write_text(json.dumps(results, indent=2))

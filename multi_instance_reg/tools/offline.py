@@ -56,6 +56,9 @@ def add_arguments(parser) -> None:
                         help="run the detector on every N-th frame only and the tracker's depth update on every frame, "
                              "as the live node does when detection is slower than the camera (default 1: every frame)")
     parser.add_argument("--overlays", type=int, default=4, help="overlay pictures to write with ground truth (default 4)")
+    parser.add_argument("--no-gravity", action="store_true",
+                        help="ignore the camera's accelerometer (/camera/camera/accel/sample or /camera/camera/imu) even "
+                             "when the bag has it: every frame without the direction of gravity, as before (A/B)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -135,6 +138,7 @@ class ReplayResult:
     skipped: int = 0
     skip_reasons: str = ""
     has_ground_truth: bool = False
+    gravity_frames: int = 0                                   # frames given the direction of gravity (IMU)
 
     def latency_summary(self) -> dict:
         out = {}
@@ -229,14 +233,16 @@ def count_confusions(models, gt_poses, owners, visibility, min_visibility, publi
 
 def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_rte: float = 0.02,
            max_frames: int = 0, on_frame=None, progress: bool = True, min_visibility: float = 0.0,
-           tracker_config=None, detect_every: int = 1) -> ReplayResult:
+           tracker_config=None, detect_every: int = 1, gravity: bool = True) -> ReplayResult:
     """Run every frame of a bag through MultiModelRegistration (``model``: one ObjectModel or
     a list of them) and, with a ``tracker_config``, through one InstanceTracker per object
     (detector on every ``detect_every``-th frame, the trackers' depth update on every frame).
     ``on_frame(index, frame, instances)`` is called with what is published for each
     processed frame (pictures are drawn there). Ground truth is scored per object (an
-    instance's object from the bag's /ground_truth/object) and over all objects."""
+    instance's object from the bag's /ground_truth/object) and over all objects. ``gravity``:
+    give each frame the direction of gravity from the bag's accelerometer, when it has one."""
     from ..datasets.rgbd_bag import RGBDBag
+    from ..gravity import ACCEL_TOPIC
     from ..metrics import IdentityScore, combine_scores
     from ..rgbd.model import ObjectModel
     from ..rgbd.multi_model import MultiModelRegistration
@@ -258,7 +264,7 @@ def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_
     out.object_scores = {m.name: [] for m in models}
     out.object_identity = {m.name: IdentityScore() for m in models} if trackers is not None else None
     skip_reasons: dict[str, int] = {}
-    with RGBDBag(bag_path, **kwargs) as bag:
+    with RGBDBag(bag_path, accel_topic=ACCEL_TOPIC if gravity else None, **kwargs) as bag:
         out.has_ground_truth = bag.has_ground_truth
         total = bag.num_colour_messages if not max_frames else min(max_frames, bag.num_colour_messages)
         bar = Progress(total, progress)
@@ -270,7 +276,8 @@ def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_
                 detect = trackers is None or index % detect_every == 0
                 try:
                     check_frame(frame.rgb, frame.depth_m, frame.intrinsics)
-                    result = reg.register_frame(frame.rgb, frame.depth_m, frame.intrinsics) if detect else None
+                    result = reg.register_frame(frame.rgb, frame.depth_m, frame.intrinsics,
+                                                frame.gravity) if detect else None
                 except InputError as exc:
                     skip_reasons[str(exc)] = skip_reasons.get(str(exc), 0) + 1
                     out.skipped += 1
@@ -294,6 +301,7 @@ def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_
                 out.timings.append(timings)
                 out.cpu_ms.append((time.process_time() - cpu0) * 1e3)
                 out.found.append(len(published))
+                out.gravity_frames += frame.gravity is not None
                 if frame.gt_poses is not None:
                     owners = ground_truth_owners(models, bag.instance_objects(len(frame.gt_poses)))
                     scores, detection_scores, hit_estimates = [], [], set()
@@ -461,12 +469,14 @@ def run(args) -> int:
     result = replay(args.bag, models, config, args.topics, args.max_rre_deg, args.max_rte, args.max_frames,
                     on_frame=on_frame, progress=not args.quiet, min_visibility=args.min_visibility,
                     tracker_config=None if args.no_tracking else load_tracker_config(args.params),
-                    detect_every=args.detect_every)
+                    detect_every=args.detect_every, gravity=not args.no_gravity)
     (out_dir / "poses.json").write_text(json.dumps({"frames": result.frames}))
     lat = result.latency_summary()["total"]
     line = f"{len(result.frames)} frames, latency p50 {lat['p50']:.1f} ms p95 {lat['p95']:.1f} ms"
     if result.skipped:
         line += f", {result.skipped} skipped ({result.skip_reasons})"
+    if result.gravity_frames:
+        line += f", {result.gravity_frames} of them with gravity from the IMU"
     if result.scores:
         metrics = metrics_dict(result, args.max_rre_deg, args.max_rte, args.min_visibility)
         (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))

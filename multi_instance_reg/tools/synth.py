@@ -41,9 +41,15 @@ def add_arguments(parser) -> None:
         p.add_argument("--seed", type=int, default=0, help="random seed; the same seed gives the same bag (default 0)")
         p.add_argument("--storage", choices=("sqlite3", "mcap"), default="sqlite3", help="rosbag2 storage (default sqlite3)")
         image_transport(p)
+        no_imu(p)
         p.add_argument("--resolution", choices=RESOLUTIONS, default="640x480", help="colour/depth size (default 640x480)")
         p.add_argument("--preview", metavar="DIR", default=None,
                        help="also write PNGs of a few frames: colour, colourised depth, ground-truth boxes")
+
+    def no_imu(p):
+        p.add_argument("--no-imu", action="store_true",
+                       help="leave out the accelerometer (default: sensor_msgs/Imu at 200 Hz on /camera/camera/accel/sample, "
+                            "as realsense-ros with enable_accel:=true: gravity and the camera's motion, with noise and bias)")
 
     def depth_noise(p):
         p.add_argument("--depth-noise-correlation", type=float, default=0.0, metavar="PX",
@@ -94,6 +100,7 @@ def add_arguments(parser) -> None:
     untextured.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     untextured.add_argument("--storage", choices=("sqlite3", "mcap"), default="sqlite3", help="rosbag2 storage (default sqlite3)")
     image_transport(untextured)
+    no_imu(untextured)
     untextured.add_argument("--resolution", choices=RESOLUTIONS, default="640x480", help="colour/depth size (default 640x480)")
     untextured.add_argument("--preview", metavar="DIR", default=None, help="also write PNGs of a few frames")
     depth_noise(untextured)
@@ -128,7 +135,7 @@ def run(args) -> int:
 
         summary = generate_untextured_bag(args.output, args.preset, args.instances, args.distractors, args.frames,
                                           args.seed, args.storage, args.resolution, args.preview, args.mesh, args.units,
-                                          args.depth_noise_correlation, args.image_transport)
+                                          args.depth_noise_correlation, args.image_transport, imu=not args.no_imu)
         print(f"mireg synth untextured: {summary.line()}" + (f"; mesh {args.mesh}" if args.mesh else ""))
         return 0
     if args.synth_command == "scene":
@@ -139,10 +146,10 @@ def run(args) -> int:
                                      storage=args.storage, resolution=args.resolution, preview_dir=args.preview,
                                      motion=args.motion, occluder=args.occluder,
                                      depth_noise_correlation_px=args.depth_noise_correlation,
-                                     transport=args.image_transport)
+                                     transport=args.image_transport, imu=not args.no_imu)
     else:
         summary = generate_capture_bag(args.output, object_name=args.object, seed=args.seed, views=args.views,
                                        storage=args.storage, resolution=args.resolution, preview_dir=args.preview,
-                                       transport=args.image_transport)
+                                       transport=args.image_transport, imu=not args.no_imu)
     print(f"mireg synth {args.synth_command}: {summary.line()}")
     return 0
