@@ -286,7 +286,11 @@ class ShapeFrontEnd:
         if not out:
             return np.zeros((0, 4, 4))
         out = np.concatenate(out)
-        return out[~_within(out, taken, angle, shift)]
+        out = out[~_within(out, taken, angle, shift)]
+        # One of each group the refinement would take as one pose (two segments of one
+        # bracket, its upright and base plate, vote the same): the rest would be refined
+        # ahead of ECC for nothing.
+        return out[np.sort(self.distinct(out))] if len(out) > 1 else out
 
     def joined_poses(self, cloud: FrameCloud) -> np.ndarray:
         """(K, 4, 4) pose hypotheses from segments voted together in pairs: for a non-convex
@@ -465,33 +469,35 @@ class ShapeFrontEnd:
             score, support, free, n = fit(T2)
             if score > support0 - free0:
                 second = self._judge(T2, support, free, n, cloud, depth_m, intrinsics)
-            if second is None and fe.shape_turned_starts > 0:
-                # Still overhanging: ICP may sit in a local minimum a turn away (a standing
-                # bracket seen from above, 4-12 deg off in its base plate's plane). Started
-                # again from the pose turned both ways about each of the model's axes
-                # through its visible surface's centre; the start the depth agrees with best
-                # is judged when it beats the pose the refinement left.
-                best = max((fit(T3) + (T3,) for T3 in self._turned_starts(T, fe.shape_turned_starts, cloud, depth_m,
-                                                                               intrinsics)), key=lambda c: c[0])
+            if second is None and fe.shape_turned_starts > 0 and support0 >= fe.shape_min_support:
+                # Still overhanging, though the depth confirms it: ICP may sit in a local
+                # minimum a turn away (a standing bracket seen from above, 4-12 deg off in its
+                # base plate's plane). Started again from the pose turned both ways about each
+                # of the model's axes through its visible surface's centre; the start the
+                # depth agrees with best is judged when it beats the pose the refinement left.
+                best = self._turned_start(T, fe.shape_turned_starts, fit, cloud, depth_m, intrinsics)
                 if best[0] > max(score, support0 - free0):
                     second = self._judge(best[4], best[1], best[2], best[3], cloud, depth_m, intrinsics)
         return kept, T, support0, second
 
-    def _turned_starts(self, T, degrees: float, cloud: FrameCloud, depth_m, intrinsics):
+    def _turned_start(self, T, degrees: float, fit, cloud: FrameCloud, depth_m, intrinsics):
         """Pose T turned by +-``degrees`` about each of the model's axes (camera frame,
-        through the centre of its surface facing the camera), each ICP'd as in ``_refine``."""
+        through the centre of its surface facing the camera), each given ``_refine``'s first
+        ICP rounds; the one ``fit`` ranks best gets the rest. Returns ``fit``'s tuple and the
+        pose. (All rounds for every start cost the bracket's frame 20 ms of refinement.)"""
         p = self._visible_surface(T)
         centre = p.mean(axis=0) if len(p) else T[:3, 3].copy()
         first = min(3, self.fe.shape_icp_iterations)
-        out = []
+        starts = []
         for k in range(3):
             for sign in (1.0, -1.0):
                 twist = np.zeros(6)
                 twist[:3] = sign * np.radians(degrees) * T[:3, k]
                 T3 = self._icp(apply_twist(T, twist, centre), cloud, depth_m, intrinsics, ICP_REACH * self.voxel, first)
-                out.append(self._icp(T3, cloud, depth_m, intrinsics, 1.5 * self.voxel,
-                                     self.fe.shape_icp_iterations - first))
-        return out
+                starts.append(fit(T3) + (T3,))
+        best = max(starts, key=lambda c: c[0])
+        T3 = self._icp(best[4], cloud, depth_m, intrinsics, 1.5 * self.voxel, self.fe.shape_icp_iterations - first)
+        return max([best, fit(T3) + (T3,)], key=lambda c: c[0])
 
     def instance_pixels(self, transforms, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> np.ndarray:
         """(H, W) uint8: 1 where the depth image shows one of these instances (a visible
