@@ -886,3 +886,70 @@ def test_densest_pose_clusters_are_seeded_at_the_mode_not_at_the_strongest_vote(
     densest = cluster_poses(poses, weights, 24.0, 0.015, 2, min_members=1, densest=True)
     assert rotation_angle_deg(densest[0][:3, :3]) < 3.0
     assert rotation_angle_deg(densest[1][:3, :3]) > 160.0        # the lone pose: its own cluster, second
+
+
+def test_each_segment_keeps_its_own_best_pose_clusters():
+    """A large segment's many references fill the frame's best clusters; a small segment's
+    one agreeing pair ranks below them all. Its own best cluster is still a hypothesis
+    (``segment_poses``), and a segment's cluster the frame already has is not repeated."""
+    from dataclasses import replace
+    from multi_instance_reg.rgbd.pipeline import PipelineConfig
+    from multi_instance_reg.rgbd.ppf import ANGLE_BINS, cluster_poses
+    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+
+    shape = ShapeFrontEnd(build_model_from_mesh(box_mesh(0.12, 0.06, 0.08), "block"),
+                          replace(PipelineConfig().frontend, shape_segment_clusters=1))
+    # Segment 0: four poses 0.3 m apart, each voted by five references; segment 1: one pose,
+    # two references of lower share.
+    big = [make_transform(np.eye(3), [0.3 * k, 0.0, 1.0]) for k in range(4) for _ in range(5)]
+    small = [make_transform(np.eye(3), [0.0, 0.5, 1.0])] * 2
+    poses = np.stack(big + small)
+    share = np.concatenate([np.ones(20), [0.5, 0.5]])
+    labels = np.array([0] * 20 + [1, 1])
+    taken = cluster_poses(poses, share, 360.0 / ANGLE_BINS, 0.1 * shape.diameter, 3)
+    assert not any(np.allclose(T[:3, 3], small[0][:3, 3]) for T in taken)
+    added = shape.segment_poses(poses, share, labels, taken)
+    assert len(added) == 1 and np.allclose(added[0][:3, 3], small[0][:3, 3])
+    assert len(shape.segment_poses(poses, share, labels, cluster_poses(
+        poses, share, 360.0 / ANGLE_BINS, 0.1 * shape.diameter, 5))) == 0
+
+
+def test_a_bracket_pose_a_turn_away_from_icps_basin_is_started_again_turned(monkeypatch):
+    """A bracket pose 10 deg off about one of the model's axes, where neither ICP moves it
+    (stubbed: each returns its start unless within 2 deg of the true pose, then the true
+    pose): rejected, and its second look by projective ICP gets nowhere. Started again turned
+    both ways about each model axis, one start lies in the basin and is kept (``second``);
+    with ``shape_turned_starts`` 0 nothing is."""
+    from dataclasses import replace
+    from multi_instance_reg.rgbd import shape_frontend as sf
+    from multi_instance_reg.rgbd.pipeline import PipelineConfig
+    from multi_instance_reg.rgbd.shape import apply_twist
+    from multi_instance_reg.synthetic.objects import get_object, object_mesh
+    from multi_instance_reg.synthetic.scene import look_at
+    from multi_instance_reg.transforms import invert_transform
+
+    intr = CameraIntrinsics(K=np.array([[380.0, 0, 160], [0, 380.0, 120], [0, 0, 1]]), width=320, height=240)
+    T = invert_transform(look_at(np.array([0.3, -0.3, 0.4]), np.zeros(3)))
+    mesh = object_mesh(get_object("bracket"))
+    dense, _ = sample_surface(mesh, 0.001)
+    depth = _depth_of(dense, T, intr)
+    depth = np.where(depth > 0, depth, np.float32(T[2, 3] + 0.3))
+
+    def basin(T0, *a, **k):
+        near = rotation_angle_deg(T0[:3, :3].T @ T[:3, :3]) < 2.0 and np.linalg.norm(T0[:3, 3] - T[:3, 3]) < 0.01
+        return T.copy() if near else np.array(T0)
+
+    monkeypatch.setattr(sf, "align_projective", lambda T0, *a, **k: np.array(basin(T0)).T)
+    for degrees in (10.0, 0.0):
+        shape = sf.ShapeFrontEnd(build_model_from_mesh(mesh, "bracket"),
+                                 replace(PipelineConfig().frontend, shape_turned_starts=degrees))
+        monkeypatch.setattr(shape, "_icp", basin)
+        centre = shape._visible_surface(T).mean(axis=0)
+        off = apply_twist(T, np.concatenate([np.radians(10.0) * T[:3, 0], np.zeros(3)]), centre)
+        cloud = shape.frame_cloud(depth, intr, None)
+        second = []
+        assert shape.refine_and_check([off], cloud, depth, intr, second=second) == []
+        if degrees:
+            assert len(second) == 1 and rotation_angle_deg(second[0][0][:3, :3].T @ T[:3, :3]) < 0.5
+        else:
+            assert second == []
