@@ -467,11 +467,12 @@ def _place_by_texture(objects: list, register_view) -> dict:
     """View index -> view -> frame transform, for the views that could be placed, registered
     to each other by texture without depending on the order they came in (best first):
     start from the view sharing the most matches with the others; then, again and again,
-    register every pending view against all views placed so far and place the surest one
-    (a sure registration, ``SURE_SCORE``, before any other; then the most inliers, weighed
-    by the score), so that an ambiguous view waits until more of the object is there to
-    decide it. Last, every view is registered once against all the others (their poses as
-    they were) and takes that pose where it is sure: what drifted while few views were
+    register every pending view against all views placed so far and place, of those whose
+    registration is sure (``SURE_SCORE``), the one with the most inliers weighed by the score,
+    so that an ambiguous view waits until more of the object is there to decide it. A view
+    never registered surely is left out: placed anyway, a turned one drew other views onto
+    its turn (the synthetic snack box from 16 views: 4 ended turned against the other 10).
+    Last, every view is registered once against all the others (their poses as they were) and takes that pose where it is sure: what drifted while few views were
     placed is pulled back. The frame is the first placed view's in the given order."""
     from ..transforms import apply_transform, invert_transform
 
@@ -490,7 +491,7 @@ def _place_by_texture(objects: list, register_view) -> dict:
                 np.concatenate([apply_transform(T[j], objects[j].cloud) for j in idx]))
 
     def rank(r):
-        return (r.score >= SURE_SCORE, r.inliers * r.score)
+        return r.inliers * r.score
 
     cache = {}
     while True:
@@ -503,7 +504,8 @@ def _place_by_texture(objects: list, register_view) -> dict:
             if i not in cache:
                 o = objects[i]
                 cache[i] = register_view(o.keypoints_xyz, o.descriptors, kp, desc, o.cloud, cloud)
-            if cache[i] is not None and (best is None or rank(cache[i]) > rank(cache[best])):
+            r = cache[i]
+            if r is not None and r.score >= SURE_SCORE and (best is None or rank(r) > rank(cache[best])):
                 best = i
         if best is None:
             break
