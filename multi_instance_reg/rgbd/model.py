@@ -64,8 +64,10 @@ class ObjectModel:
     shape_voxel: float = 0.0
     box_centre: np.ndarray = field(default_factory=lambda: np.zeros(3))
     symmetries: "Symmetries | None" = None
-    # Not stored: how many views a build without ground truth placed (None: all, by their poses).
+    # Not stored: how many views a build without ground truth placed (None: all, by their poses),
+    # and which view's optical frame is the capture frame (the first placed).
     views_placed: int | None = None
+    capture_view: int = 0
 
     @property
     def num_keypoints(self) -> int:
@@ -618,6 +620,7 @@ def build_model(views: list[CaptureView], settings: BuildSettings = BuildSetting
         T_object_model=T_object_model,
         name=name,
         views_placed=None if all(v.T_camera_object is not None for v in views) else len(registered),
+        capture_view=first,
     )
 
 

@@ -247,7 +247,9 @@ def run(args) -> int:
     model = build_model(views, settings, name=name, register_view=register_view_with_ecc)
     save_model(model, out)
     placed = (f"{model.views_placed} of {len(views)} view(s) (registered by texture; {len(views) - model.views_placed} "
-              f"left out: none registered surely)" if model.views_placed is not None else f"{len(views)} view(s)")
+              f"left out: not registered surely" + (f"; the capture frame is view {model.capture_view}'s, the first placed"
+                                                      if model.capture_view else "") + ")"
+              if model.views_placed is not None else f"{len(views)} view(s)")
     print(f"model {out} ('{model.name}'): {model.num_keypoints} keypoints from {placed}, {len(model.points_xyz)} cloud points, "
           f"extent {np.round(model.extent, 3).tolist()} m" + (", with T_object_model" if model.T_object_model is not None else ""),
           file=sys.stderr)
