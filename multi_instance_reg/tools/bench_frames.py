@@ -161,7 +161,8 @@ def model_from_captures(captures, ignore_ground_truth: bool = False) -> "object"
                          "bags have none")
     model = build_model([CaptureView(v.rgb, v.depth_m, v.intrinsics) for v in views], BuildSettings(),
                         name=(description or {}).get("name", ""), register_view=register_view_with_ecc)
-    model.T_object_model = invert_transform(views[0].T_camera_object) @ model.T_capture_model
+    # The capture frame is the first placed view's (the first view's unless it was left out).
+    model.T_object_model = invert_transform(views[model.capture_view].T_camera_object) @ model.T_capture_model
     return model
 
 

@@ -147,41 +147,57 @@ def views_from_png(rgb_path, depth_path, intrinsics_text, depth_scale) -> list:
 
 OVERLAP_DISTANCE_M = 0.004      # a view's object point meets the capture's where one lies this close
 OVERLAP_SAMPLE = 3000
+_AGAINST: dict = {}     # the placed views of the last call (the very arrays), their matcher and tree
 
 
 def register_view_with_ecc(xyz, desc, model_xyz, model_desc, cloud=None, model_cloud=None):
-    """View -> capture transform of a view without ground truth: match its keypoints to the
-    model built so far; of ECC's instances, the one whose object points (``cloud``) land best
-    on the capture's (``model_cloud``), ties to the most inliers (None if ECC finds none).
+    """View -> capture registration of a view without ground truth (``ViewRegistration``, or
+    None if ECC finds no instance): match its keypoints to the views registered so far; of
+    ECC's instances, the one whose object points (``cloud``) land best on theirs
+    (``model_cloud``), ties to the most inliers.
     Why not simply the most inliers: a print repeated on two faces (a wrapper's front and
     back) matches both, and a view turned onto the wrong face by 180 deg puts its keypoints
     2-3 cm from where they are and misleads every view registered after it (synthetic snack
     box, 32 views without ground truth: 8 turned, the model then found 105 of 205 instances
-    against 200)."""
+    against 200). The instance's ECC score and inlier count go back with it, so that
+    ``register_views`` can place the surest views first."""
     from scipy.spatial import cKDTree
 
     from ..core import ECC, ECCConfig
     from ..rgbd.matching import DescriptorMatcher, prepare_descriptors
+    from ..rgbd.model import ViewRegistration
     from ..transforms import apply_transform
 
-    matcher = DescriptorMatcher(prepare_descriptors(model_desc), model_xyz, ratio=0.8, separation=0.01)
+    # register_views tries every pending view against the same placed views: the matcher and the
+    # tree over them are built once for all of those calls (most of the cost otherwise).
+    if not (_AGAINST.get("arrays") is not None and all(a is b for a, b in zip(_AGAINST["arrays"],
+                                                                            (model_xyz, model_desc, model_cloud)))):
+        _AGAINST.update(arrays=(model_xyz, model_desc, model_cloud),
+                        matcher=DescriptorMatcher(prepare_descriptors(model_desc), model_xyz, ratio=0.8, separation=0.01),
+                        tree=cKDTree(model_cloud) if model_cloud is not None and len(model_cloud) else None)
+    matcher = _AGAINST["matcher"]
     s_idx, m_idx, _ = matcher.match(prepare_descriptors(desc))
     if len(s_idx) < 6:
         return None
     res = ECC(ECCConfig.metric()).register(xyz[s_idx].astype(np.float64), model_xyz[m_idx].astype(np.float64))
     if len(res.transforms) == 0:
         return None
-    if cloud is None or model_cloud is None or len(cloud) == 0 or len(model_cloud) == 0 or len(res.transforms) == 1:
-        return np.asarray(res.transforms[0])
+
+    def chosen(m, overlap=float("nan")):
+        return ViewRegistration(np.asarray(res.transforms[m]), int(res.inlier_counts[m]), float(res.scores[m]), overlap)
+
+    if cloud is None or model_cloud is None or len(cloud) == 0 or len(model_cloud) == 0:
+        return chosen(0)
     pts = cloud[np.random.default_rng(0).permutation(len(cloud))[:OVERLAP_SAMPLE]]
-    tree = cKDTree(model_cloud)
+    tree = _AGAINST["tree"]
     best, best_key = None, None
     for m, T in enumerate(res.transforms):
         d, _ = tree.query(apply_transform(np.asarray(T), pts), k=1, distance_upper_bound=2 * OVERLAP_DISTANCE_M)
+        overlap = float(np.mean(d < OVERLAP_DISTANCE_M))
         # Overlap in steps of 5 %: within that, the most inliers (ECC's order) wins.
-        key = (round(20 * float(np.mean(d < OVERLAP_DISTANCE_M))), -m)
+        key = (round(20 * overlap), -m)
         if best_key is None or key > best_key:
-            best, best_key = np.asarray(T), key
+            best, best_key = chosen(m, overlap), key
     return best
 
 
@@ -230,7 +246,11 @@ def run(args) -> int:
     check_name(name)
     model = build_model(views, settings, name=name, register_view=register_view_with_ecc)
     save_model(model, out)
-    print(f"model {out} ('{model.name}'): {model.num_keypoints} keypoints from {len(views)} view(s), {len(model.points_xyz)} cloud points, "
+    placed = (f"{model.views_placed} of {len(views)} view(s) (registered by texture; {len(views) - model.views_placed} "
+              f"left out: not registered surely" + (f"; the capture frame is view {model.capture_view}'s, the first placed"
+                                                      if model.capture_view else "") + ")"
+              if model.views_placed is not None else f"{len(views)} view(s)")
+    print(f"model {out} ('{model.name}'): {model.num_keypoints} keypoints from {placed}, {len(model.points_xyz)} cloud points, "
           f"extent {np.round(model.extent, 3).tolist()} m" + (", with T_object_model" if model.T_object_model is not None else ""),
           file=sys.stderr)
     return 0
