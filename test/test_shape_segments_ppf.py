@@ -1,5 +1,6 @@
 """The pieces of the PPF shape front end: support planes cut by piece size, connected
 segments, oriented model surface, point-pair voting and its correspondences, damped ICP."""
+import cv2
 import numpy as np
 import pytest
 
@@ -32,17 +33,70 @@ def test_support_mask_removes_floor_keeps_small_coplanar_tops():
 
 def test_support_mask_keeps_a_thin_plate_on_the_table_and_says_which_way_is_up():
     """A 12 mm plate lying on a table at 0.7 m: within plane_thresh (1 cm) + 3 sigma of the
-    table, it would be removed with it; at the shape path's 4 mm it stays."""
+    table, point by point (``window`` 1), it would be removed with it; at the shape path's
+    4 mm it stays."""
     depth = np.full((240, 320), 0.7, np.float32)             # a table facing the camera
     depth[100:140, 100:180] = 0.688                           # the plate's top, 12 mm above it
     valid = depth > 0
     ground = []
-    loose = support_mask(depth, _intrinsics(), valid, max_area=0.05, thresh=0.01, noise_per_m2=0.002)
+    loose = support_mask(depth, _intrinsics(), valid, max_area=0.05, thresh=0.01, noise_per_m2=0.002, window=1)
     tight = support_mask(depth, _intrinsics(), valid, max_area=0.05, thresh=0.004, noise_per_m2=0.002, ground=ground)
     assert loose[105:135, 105:175].all()                     # taken for the table
     assert not tight[105:135, 105:175].any() and tight[200:, :].all()
     assert len(ground) == 2 and ground[0] @ [0.0, 0.0, -1.0] > 0.99   # the table's normal, towards the camera
     assert abs(ground[1] - 0.7) < 0.002                      # and its offset: up . p + 0.7 = 0 on it
+
+
+def _tilted_table(z0: float, sigma_per_m2: float, noise, raised: float = 0.0) -> np.ndarray:
+    """Depth of a table seen 40 deg from straight on (depth z0 at the image centre), with a
+    160 x 80 mm plate ``raised`` above it in the middle, plus noise (unit-variance field
+    ``noise``) of sigma = sigma_per_m2 z^2."""
+    K = _intrinsics().K
+    v, u = np.mgrid[0:240, 0:320].astype(np.float64)
+    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=-1)
+    t = np.radians(40.0)
+    n = np.array([0.0, -np.sin(t), -np.cos(t)])                # the table's normal, towards the camera
+    d = z0 * np.cos(t)                                          # n . p + d = 0 on it
+    depth = -d / (rays @ n)
+    if raised > 0:
+        p = rays * depth[..., None]
+        centre = np.array([0.0, 0.0, z0])
+        across = np.array([1.0, 0.0, 0.0])
+        along = np.cross(n, across)
+        plate = (np.abs((p - centre) @ across) < 0.08) & (np.abs((p - centre) @ along) < 0.04)
+        depth = np.where(plate, -(d - raised) / (rays @ n), depth)
+    return (depth + sigma_per_m2 * depth ** 2 * noise).astype(np.float32), plate if raised > 0 else None
+
+
+def test_support_mask_keeps_a_plate_raised_less_than_the_band():
+    """An 8 mm plate (a tray's floor, a lid) on a table at 1 m, depth noise sigma 2 mm: the
+    band (4 mm + 3 sigma, 10 mm) takes most of it for the table; the mean height of a window
+    of its points does not."""
+    noise = np.random.default_rng(3).standard_normal((240, 320))
+    depth, plate = _tilted_table(1.0, 0.002, noise, raised=0.008)
+    valid = depth > 0
+    inner = cv2.erode(plate.astype(np.uint8), np.ones((13, 13), np.uint8)) > 0
+    table = cv2.dilate(plate.astype(np.uint8), np.ones((13, 13), np.uint8)) == 0
+    per_point = support_mask(depth, _intrinsics(), valid, max_area=0.1, thresh=0.004, noise_per_m2=0.002, window=1)
+    mask = support_mask(depth, _intrinsics(), valid, max_area=0.1, thresh=0.004, noise_per_m2=0.002)
+    assert per_point[inner].mean() > 0.8                     # the plate went with the table
+    assert mask[inner].mean() < 0.02                         # now it stays
+    assert mask[table].mean() > 0.99 and per_point[table].mean() > 0.99
+    # Larger than any face of the object (0.0128 m^2 against 0.005): a support, as the table.
+    board = support_mask(depth, _intrinsics(), valid, max_area=0.005, thresh=0.004, noise_per_m2=0.002)
+    assert board[inner].mean() > 0.8                        # (the rest: points above the band)
+
+
+def test_support_mask_takes_no_table_for_raised_where_the_noise_is_smooth():
+    """Stereo depth noise shared by neighbouring pixels (smooth over 3 px) at 2 m (sigma 8 mm):
+    a window's mean scatters nearly as much as a point, which the plane's own scatter says;
+    the whole table stays a table."""
+    from multi_instance_reg.synthetic.sensor import correlated_randn
+
+    depth, _ = _tilted_table(2.0, 0.002, correlated_randn((240, 320), 5, 3.0))
+    valid = depth > 0
+    mask = support_mask(depth, _intrinsics(), valid, max_area=0.1, thresh=0.004, noise_per_m2=0.002)
+    assert mask[valid].mean() > 0.99
 
 
 def test_connected_segments_split_and_drop_small():

@@ -6,7 +6,9 @@ size. So each dominant plane (RANSAC, repeatedly: floor, pallet top, table, wall
 its connected pieces in the image, and only the pieces larger than any face of the object
 (``max_area``) are removed - carton tops that lie in one plane across a pallet stay, each a
 piece of its own. Points are removed where they are on the plane (within the depth noise),
-not behind it: a lower layer seen past a gap is still searched.
+not behind it: a lower layer seen past a gap is still searched; nor where the points about
+them lie a few mm above it on average (a tray's floor, a plate: within the noise of one point,
+not of their mean).
 
 The remaining points, voxel-downsampled, are split into connected segments (neighbours within
 ``link`` metres): each object, or a few touching ones, then forms one segment, and shape
@@ -28,14 +30,18 @@ from .lifting import depth_to_cloud, fit_dominant_plane
 def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.ndarray, max_area: float,
                  thresh: float, noise_per_m2: float, max_planes: int = 4, min_share: float = 0.03,
                  stride: int = 2, ground: list | None = None, planes: list | None = None,
-                 up: np.ndarray | None = None, up_tolerance_deg: float = 20.0) -> np.ndarray:
+                 up: np.ndarray | None = None, up_tolerance_deg: float = 20.0, window: int = 5) -> np.ndarray:
     """(H, W) bool: valid pixels that lie on a large piece of a dominant plane (support
     surfaces). A plane point is within ``thresh`` + 3 sigma(z) of it, sigma(z) =
     ``noise_per_m2`` z^2 (stereo depth noise grows with the square of the distance); a piece
-    is large when its area exceeds ``max_area`` (m^2). ``ground``, a list, receives the
-    unit normal (towards the camera) of the plane with the largest removed area: "up", if
-    the floor, pallet or table is in view; and its offset (up . p + offset = 0 on it).
-    ``planes``, a list, receives (normal, offset) alike for every plane a large piece of
+    is large when its area exceeds ``max_area`` (m^2). A point in that band is still not on
+    the plane when the mean height of the band points in the ``window`` x ``window`` sampled
+    pixels about it is off the plane by more than ``thresh`` + 3 sigma of such means (measured
+    on the plane; ``_leave_raised``): a surface a few mm above the table (a tray's floor, a
+    plate, a lid) stays, the table's noise averaged out; ``window`` 1: point by point.
+    ``ground``, a list, receives the unit normal (towards the camera) of the plane with the
+    largest removed area: "up", if the floor, pallet or table is in view; and its offset
+    (up . p + offset = 0 on it). ``planes``, a list, receives (normal, offset) alike for every plane a large piece of
     which was removed (the floor and the pallet's top on it, a table and a wall).
 
     ``up`` (unit, camera frame: the direction of gravity's reaction, from an IMU or TF): then
@@ -69,12 +75,24 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
             break
         n, d, _ = plane
         img = np.zeros((hs, ws), np.uint8)
-        on = _on_plane(pts, alive, tol, n, d, rows, cols, img)
+        height = np.zeros((hs, ws), np.float32)
+        on = _on_plane(pts, alive, tol, n, d, rows, cols, img, height)
         if on.sum() < min_share * total:
             break
+        band = on.copy()
+        if window > 1:
+            _leave_raised(pts, on, img, height, rows, cols, thresh, window)
         count, labels = cv2.connectedComponents(img, connectivity=8)
         removed_area = _remove_large_pieces(pts, on, labels, rows, cols, stride, K[0, 0] * K[1, 1], n, max_area,
                                             count, pix, out)
+        raised = band & ~on
+        if raised.any():
+            # A raised surface larger than any face of the object supports too (a board on
+            # the table), as a piece of the plane would.
+            img[:] = 0
+            img[rows[raised], cols[raised]] = 1
+            count, labels = cv2.connectedComponents(img, connectivity=8)
+            _remove_large_pieces(pts, raised, labels, rows, cols, stride, K[0, 0] * K[1, 1], n, max_area, count, pix, out)
         if planes is not None and removed_area > 0:
             planes.append((np.asarray(n, np.float64) * (1.0 if d > 0 else -1.0), abs(float(d))))
         if ground is not None and removed_area > best_area:
@@ -85,7 +103,10 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
             normal = np.asarray(n, np.float64) * (1.0 if d > 0 else -1.0)
             if float(normal @ up) >= min_cos:
                 level_area, level = removed_area, [normal, abs(float(d))]
-        alive &= ~on
+        # The raised points too: the next plane is then sought among the same points as
+        # without them (one found among them by chance was the tops of touching channels, a
+        # piece larger than three faces, removed with every channel in it).
+        alive &= ~band
     if level is not None:
         ground[:] = level
     if stride > 1:
@@ -96,15 +117,71 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
 
 
 @numba.njit(cache=True, nogil=True)
-def _on_plane(pts, alive, tol, n, d, rows, cols, img):
+def _on_plane(pts, alive, tol, n, d, rows, cols, img, height):
     # The per-point steps of support_mask compiled (each a pass over ~77,000 points; as
-    # numpy arrays they took half its time). The points on the plane, marked in img too.
+    # numpy arrays they took half its time). The points on the plane, marked in img too,
+    # their signed heights above it in ``height``.
     on = np.zeros(pts.shape[0], np.bool_)
     for i in range(pts.shape[0]):
-        on[i] = alive[i] and abs(pts[i, 0] * n[0] + pts[i, 1] * n[1] + pts[i, 2] * n[2] + d) < tol[i]
+        h = pts[i, 0] * n[0] + pts[i, 1] * n[1] + pts[i, 2] * n[2] + d
+        on[i] = alive[i] and abs(h) < tol[i]
         if on[i]:
             img[rows[i], cols[i]] = 1
+            height[rows[i], cols[i]] = h
     return on
+
+
+def _leave_raised(pts, on, img, height, rows, cols, thresh, window):
+    """Unmarks (in ``on`` and ``img``) the band points of a surface raised a few mm above
+    the plane (a tray's floor, a plate, a lid): where the mean height of the band points in
+    the ``window`` x ``window`` cells about them (``height``, sampled grid) is more than
+    ``thresh`` + 3 sigma of such a mean off the plane. Sigma is measured on the plane, from
+    the differences of means a window apart: 1 / sqrt(count) of a point's noise if it is
+    independent, nearly all of it if neighbouring pixels share it (a stereo matcher's
+    window); a smooth error of the plane's fit cancels in them."""
+    box = (window, window)
+    count = cv2.boxFilter(img.astype(np.float32), -1, box, normalize=False, borderType=cv2.BORDER_CONSTANT)
+    total = cv2.boxFilter(height, -1, box, normalize=False, borderType=cv2.BORDER_CONSTANT)
+    diffs = _window_differences(pts, on, rows, cols, img, total, count, window)
+    if len(diffs) < 100:
+        return
+    spread = 1.4826 * float(np.median(diffs)) / np.sqrt(2.0)
+    _unmark_raised(pts, on, rows, cols, img, total, count, thresh, 3.0 * spread, window)
+
+
+@numba.njit(cache=True, nogil=True)
+def _window_differences(pts, on, rows, cols, img, total, count, window):
+    # |mean - mean a window to the right| and below, over z^2, at every third band point
+    # (plenty for a median) whose window and the other are at least half band.
+    h, w = img.shape
+    full = 0.5 * window * window
+    out = np.empty(2 * (pts.shape[0] // 3 + 1))
+    k = 0
+    for i in range(0, pts.shape[0], 3):
+        r, c = rows[i], cols[i]
+        if not on[i] or count[r, c] < full:
+            continue
+        m = total[r, c] / count[r, c]
+        z2 = pts[i, 2] * pts[i, 2]
+        if c + window < w and img[r, c + window] > 0 and count[r, c + window] >= full:
+            out[k] = abs(m - total[r, c + window] / count[r, c + window]) / z2
+            k += 1
+        if r + window < h and img[r + window, c] > 0 and count[r + window, c] >= full:
+            out[k] = abs(m - total[r + window, c] / count[r + window, c]) / z2
+            k += 1
+    return out[:k]
+
+
+@numba.njit(cache=True, nogil=True)
+def _unmark_raised(pts, on, rows, cols, img, total, count, thresh, sigmas, window):
+    # A window of fewer band points (at the plane's edge) averages less noise away.
+    for i in range(pts.shape[0]):
+        if on[i]:
+            r, c = rows[i], cols[i]
+            z = pts[i, 2]
+            if abs(total[r, c]) / count[r, c] > thresh + sigmas * z * z * window / np.sqrt(count[r, c]):
+                on[i] = False
+                img[r, c] = 0
 
 
 @numba.njit(cache=True, nogil=True)
