@@ -93,16 +93,15 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
             img[rows[raised], cols[raised]] = 1
             count, labels = cv2.connectedComponents(img, connectivity=8)
             _remove_large_pieces(pts, raised, labels, rows, cols, stride, K[0, 0] * K[1, 1], n, max_area, count, pix, out)
+        # The normal on the camera's side, and the offset: normal . p + offset = 0 on the plane.
+        normal, offset = np.asarray(n, np.float64) * (1.0 if d > 0 else -1.0), abs(float(d))
         if planes is not None and removed_area > 0:
-            planes.append((np.asarray(n, np.float64) * (1.0 if d > 0 else -1.0), abs(float(d))))
+            planes.append((normal, offset))
         if ground is not None and removed_area > best_area:
             best_area = removed_area
-            # The camera's side, and the offset: up . p + offset = 0 on the plane.
-            ground[:] = [np.asarray(n, np.float64) * (1.0 if d > 0 else -1.0), abs(float(d))]
-        if ground is not None and up is not None and removed_area > level_area:
-            normal = np.asarray(n, np.float64) * (1.0 if d > 0 else -1.0)
-            if float(normal @ up) >= min_cos:
-                level_area, level = removed_area, [normal, abs(float(d))]
+            ground[:] = [normal, offset]
+        if ground is not None and up is not None and removed_area > level_area and float(normal @ up) >= min_cos:
+            level_area, level = removed_area, [normal, offset]
         # The raised points too: the next plane is then sought among the same points as
         # without them (one found among them by chance was the tops of touching channels, a
         # piece larger than three faces, removed with every channel in it).
