@@ -445,20 +445,31 @@ def _icp_grid(T0, mp, mn, use_normals, sp, sn, start, lo, dims, cell, first, ind
     H = np.empty((6, 6))
     g = np.empty(6)
     a = np.empty(6)
+    pos = np.empty((P, 3))
+    facing = np.ones(P, np.bool_)
     for it in range(iterations):
         m = 0
         seen = 0
+        # Every point posed and judged first, without branches (the compiler vectorises this
+        # loop; the pose's entries as scalars, which the stores cannot alias).
+        t00, t01, t02, t03 = T[0, 0], T[0, 1], T[0, 2], T[0, 3]
+        t10, t11, t12, t13 = T[1, 0], T[1, 1], T[1, 2], T[1, 3]
+        t20, t21, t22, t23 = T[2, 0], T[2, 1], T[2, 2], T[2, 3]
         for i in range(P):
-            px = T[0, 0] * mp[i, 0] + T[0, 1] * mp[i, 1] + T[0, 2] * mp[i, 2] + T[0, 3]
-            py = T[1, 0] * mp[i, 0] + T[1, 1] * mp[i, 1] + T[1, 2] * mp[i, 2] + T[1, 3]
-            pz = T[2, 0] * mp[i, 0] + T[2, 1] * mp[i, 1] + T[2, 2] * mp[i, 2] + T[2, 3]
+            px = t00 * mp[i, 0] + t01 * mp[i, 1] + t02 * mp[i, 2] + t03
+            py = t10 * mp[i, 0] + t11 * mp[i, 1] + t12 * mp[i, 2] + t13
+            pz = t20 * mp[i, 0] + t21 * mp[i, 1] + t22 * mp[i, 2] + t23
+            pos[i, 0], pos[i, 1], pos[i, 2] = px, py, pz
             if use_normals:
                 # Facing the camera by more than grazing (as in ``depth_support``).
-                nx = T[0, 0] * mn[i, 0] + T[0, 1] * mn[i, 1] + T[0, 2] * mn[i, 2]
-                ny = T[1, 0] * mn[i, 0] + T[1, 1] * mn[i, 1] + T[1, 2] * mn[i, 2]
-                nz = T[2, 0] * mn[i, 0] + T[2, 1] * mn[i, 1] + T[2, 2] * mn[i, 2]
-                if not (nx * px + ny * py + nz * pz < -0.2 * math.sqrt(px * px + py * py + pz * pz)):
-                    continue
+                nx = t00 * mn[i, 0] + t01 * mn[i, 1] + t02 * mn[i, 2]
+                ny = t10 * mn[i, 0] + t11 * mn[i, 1] + t12 * mn[i, 2]
+                nz = t20 * mn[i, 0] + t21 * mn[i, 1] + t22 * mn[i, 2]
+                facing[i] = nx * px + ny * py + nz * pz < -0.2 * math.sqrt(px * px + py * py + pz * pz)
+        for i in range(P):
+            if not facing[i]:
+                continue
+            px, py, pz = pos[i, 0], pos[i, 1], pos[i, 2]
             seen += 1
             # The nearest scene point within max_dist (``_listed_nearest``, written out here:
             # as a call it cost the kernel the time the lists save).
