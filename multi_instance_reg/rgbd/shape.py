@@ -277,8 +277,9 @@ class ShapeMatcher:
 class PointGrid:
     """Points sorted into cubic cells of side ``cell`` (a dense table of where each cell's
     points start), for the nearest point within ``cell`` of a query in compiled code (27
-    cells visited). Built once per frame; ICP asks it a few hundred queries per round, for
-    which a k-d tree's per-call overhead dominated."""
+    cells visited; ICP reads them from each cell's list of candidates, ``neighbour_lists``).
+    Built once per frame; ICP asks it a few hundred queries per round, for which a k-d
+    tree's per-call overhead dominated."""
 
     MAX_CELLS = 1 << 22     # cells are widened beyond this (a wide, deep scene; 32 MB table)
 
@@ -357,7 +358,7 @@ def _neighbour_lists(pts, start, dims):
     same nearest point: the cells ``_grid_nearest`` skips hold none nearer than its best."""
     D0, D1, D2 = dims[0], dims[1], dims[2]
     ncell = D0 * D1 * D2
-    occupied = np.empty(ncell, np.int64)
+    occupied = np.empty(min(ncell, pts.shape[0]), np.int64)     # no more cells hold points than there are points
     no = 0
     for c in range(ncell):
         if start[c + 1] > start[c]:
