@@ -22,6 +22,7 @@ image agrees with the model's visible surface (``depth_support``).
 from __future__ import annotations
 
 import math
+import threading
 
 import cv2
 import numba
@@ -276,8 +277,9 @@ class ShapeMatcher:
 class PointGrid:
     """Points sorted into cubic cells of side ``cell`` (a dense table of where each cell's
     points start), for the nearest point within ``cell`` of a query in compiled code (27
-    cells visited). Built once per frame; ICP asks it a few hundred queries per round, for
-    which a k-d tree's per-call overhead dominated."""
+    cells visited; ICP reads them from each cell's list of candidates, ``neighbour_lists``).
+    Built once per frame; ICP asks it a few hundred queries per round, for which a k-d
+    tree's per-call overhead dominated."""
 
     MAX_CELLS = 1 << 22     # cells are widened beyond this (a wide, deep scene; 32 MB table)
 
@@ -296,6 +298,16 @@ class PointGrid:
         self.start = np.searchsorted(keys[order], np.arange(int(np.prod(self.dims)) + 1))
         self.points = np.ascontiguousarray(pts[order])
         self.normals = np.ascontiguousarray(np.asarray(normals, np.float64).reshape(-1, 3)[order])
+        self._lists = None
+        self._lists_lock = threading.Lock()
+
+    def neighbour_lists(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Each cell's candidates (``_neighbour_lists``), built on first use (0.3-2 ms): a frame
+        whose hypotheses are all dropped before ICP does not pay for them. Thread-safe."""
+        with self._lists_lock:
+            if self._lists is None:
+                self._lists = _neighbour_lists(self.points, self.start, self.dims)
+            return self._lists
 
 
 @numba.njit(cache=True, nogil=True)
@@ -338,6 +350,74 @@ def _grid_nearest(x, y, z, pts, start, lo, dims, cell, max_dist):
 
 
 @numba.njit(cache=True, nogil=True)
+def _neighbour_lists(pts, start, dims):
+    """For every cell, the points of its 3 x 3 x 3 cells in the order ``_grid_nearest`` visits
+    them (its columns in that order, each from low z up, a cell's points as stored): (first
+    (cells + 1,), point index and its coordinates, one row per entry). A query then scans one
+    contiguous run instead of up to nine columns (ICP, 40 % less time a query), and keeps the
+    same nearest point: the cells ``_grid_nearest`` skips hold none nearer than its best."""
+    D0, D1, D2 = dims[0], dims[1], dims[2]
+    ncell = D0 * D1 * D2
+    occupied = np.empty(min(ncell, pts.shape[0]), np.int64)     # no more cells hold points than there are points
+    no = 0
+    for c in range(ncell):
+        if start[c + 1] > start[c]:
+            occupied[no] = c
+            no += 1
+    first = np.zeros(ncell + 1, np.int64)
+    for k in range(no):
+        c = occupied[k]
+        cx, cy, cz = c // (D1 * D2), (c // D2) % D1, c % D2
+        for tx in range(max(cx - 1, 0), min(cx + 1, D0 - 1) + 1):
+            for ty in range(max(cy - 1, 0), min(cy + 1, D1 - 1) + 1):
+                for tz in range(max(cz - 1, 0), min(cz + 1, D2 - 1) + 1):
+                    first[(tx * D1 + ty) * D2 + tz + 1] += start[c + 1] - start[c]
+    for c in range(ncell):
+        first[c + 1] += first[c]
+    index = np.empty(first[ncell], np.int64)
+    xyz = np.empty((first[ncell], 3))
+    fill = first[:ncell].copy()
+    # Appended offset by offset in the visiting order: cell t gets the points of t + offset.
+    for o in range(9):
+        dx = (0, -1, 1, 0, 0, -1, -1, 1, 1)[o]
+        dy = (0, 0, 0, -1, 1, -1, 1, -1, 1)[o]
+        for dz in range(-1, 2):
+            for k in range(no):
+                c = occupied[k]
+                tx, ty, tz = c // (D1 * D2) - dx, (c // D2) % D1 - dy, c % D2 - dz
+                if tx < 0 or ty < 0 or tz < 0 or tx >= D0 or ty >= D1 or tz >= D2:
+                    continue
+                t = (tx * D1 + ty) * D2 + tz
+                f = fill[t]
+                for j in range(start[c], start[c + 1]):
+                    index[f] = j
+                    xyz[f, 0], xyz[f, 1], xyz[f, 2] = pts[j, 0], pts[j, 1], pts[j, 2]
+                    f += 1
+                fill[t] = f
+    return first, index, xyz
+
+
+@numba.njit(cache=True, nogil=True)
+def _listed_nearest(x, y, z, first, index, xyz, pts, start, lo, dims, cell, max_dist):
+    """``_grid_nearest`` by the cell's list of candidates (``_neighbour_lists``); the same
+    answer (distances computed alike, candidates in the same order). A query outside the
+    grid's box has no list: searched as before."""
+    bx = int(math.floor((x - lo[0]) / cell))
+    by = int(math.floor((y - lo[1]) / cell))
+    bz = int(math.floor((z - lo[2]) / cell))
+    if bx < 0 or by < 0 or bz < 0 or bx >= dims[0] or by >= dims[1] or bz >= dims[2]:
+        return _grid_nearest(x, y, z, pts, start, lo, dims, cell, max_dist)
+    c = (bx * dims[1] + by) * dims[2] + bz
+    best, best_d2 = -1, max_dist * max_dist
+    for k in range(first[c], first[c + 1]):
+        ex, ey, ez = xyz[k, 0] - x, xyz[k, 1] - y, xyz[k, 2] - z
+        d2 = ex * ex + ey * ey + ez * ez
+        if d2 < best_d2:
+            best, best_d2 = k, d2
+    return index[best] if best >= 0 else -1
+
+
+@numba.njit(cache=True, nogil=True)
 def apply_twist(T, x, centre):
     """exp of the twist x = (omega, tau) about ``centre``, applied on the left of T (Rodrigues);
     the ICP step here and the tracker's (``tracking/icp.py``)."""
@@ -355,7 +435,7 @@ def apply_twist(T, x, centre):
 
 
 @numba.njit(cache=True, nogil=True)
-def _icp_grid(T0, mp, mn, use_normals, sp, sn, start, lo, dims, cell, max_dist, iterations):
+def _icp_grid(T0, mp, mn, use_normals, sp, sn, start, lo, dims, cell, first, index, xyz, max_dist, iterations):
     T = T0.copy()
     share = 0.0
     floor = 0.5 * max_dist
@@ -366,22 +446,48 @@ def _icp_grid(T0, mp, mn, use_normals, sp, sn, start, lo, dims, cell, max_dist, 
     H = np.empty((6, 6))
     g = np.empty(6)
     a = np.empty(6)
+    pos = np.empty((P, 3))
+    facing = np.ones(P, np.bool_)
     for it in range(iterations):
         m = 0
         seen = 0
+        # Every point posed and judged first, without branches (the compiler vectorises this
+        # loop; the pose's entries as scalars, which the stores cannot alias).
+        t00, t01, t02, t03 = T[0, 0], T[0, 1], T[0, 2], T[0, 3]
+        t10, t11, t12, t13 = T[1, 0], T[1, 1], T[1, 2], T[1, 3]
+        t20, t21, t22, t23 = T[2, 0], T[2, 1], T[2, 2], T[2, 3]
         for i in range(P):
-            px = T[0, 0] * mp[i, 0] + T[0, 1] * mp[i, 1] + T[0, 2] * mp[i, 2] + T[0, 3]
-            py = T[1, 0] * mp[i, 0] + T[1, 1] * mp[i, 1] + T[1, 2] * mp[i, 2] + T[1, 3]
-            pz = T[2, 0] * mp[i, 0] + T[2, 1] * mp[i, 1] + T[2, 2] * mp[i, 2] + T[2, 3]
+            px = t00 * mp[i, 0] + t01 * mp[i, 1] + t02 * mp[i, 2] + t03
+            py = t10 * mp[i, 0] + t11 * mp[i, 1] + t12 * mp[i, 2] + t13
+            pz = t20 * mp[i, 0] + t21 * mp[i, 1] + t22 * mp[i, 2] + t23
+            pos[i, 0], pos[i, 1], pos[i, 2] = px, py, pz
             if use_normals:
                 # Facing the camera by more than grazing (as in ``depth_support``).
-                nx = T[0, 0] * mn[i, 0] + T[0, 1] * mn[i, 1] + T[0, 2] * mn[i, 2]
-                ny = T[1, 0] * mn[i, 0] + T[1, 1] * mn[i, 1] + T[1, 2] * mn[i, 2]
-                nz = T[2, 0] * mn[i, 0] + T[2, 1] * mn[i, 1] + T[2, 2] * mn[i, 2]
-                if not (nx * px + ny * py + nz * pz < -0.2 * math.sqrt(px * px + py * py + pz * pz)):
-                    continue
+                nx = t00 * mn[i, 0] + t01 * mn[i, 1] + t02 * mn[i, 2]
+                ny = t10 * mn[i, 0] + t11 * mn[i, 1] + t12 * mn[i, 2]
+                nz = t20 * mn[i, 0] + t21 * mn[i, 1] + t22 * mn[i, 2]
+                facing[i] = nx * px + ny * py + nz * pz < -0.2 * math.sqrt(px * px + py * py + pz * pz)
+        for i in range(P):
+            if not facing[i]:
+                continue
+            px, py, pz = pos[i, 0], pos[i, 1], pos[i, 2]
             seen += 1
-            j = _grid_nearest(px, py, pz, sp, start, lo, dims, cell, max_dist)
+            # The nearest scene point within max_dist (``_listed_nearest``, written out here:
+            # as a call it cost the kernel the time the lists save).
+            bx = int(math.floor((px - lo[0]) / cell))
+            by = int(math.floor((py - lo[1]) / cell))
+            bz = int(math.floor((pz - lo[2]) / cell))
+            if bx < 0 or by < 0 or bz < 0 or bx >= dims[0] or by >= dims[1] or bz >= dims[2]:
+                j = _grid_nearest(px, py, pz, sp, start, lo, dims, cell, max_dist)
+            else:
+                c = (bx * dims[1] + by) * dims[2] + bz
+                best, best_d2 = -1, max_dist * max_dist
+                for k in range(first[c], first[c + 1]):
+                    ex, ey, ez = xyz[k, 0] - px, xyz[k, 1] - py, xyz[k, 2] - pz
+                    d2 = ex * ex + ey * ey + ez * ez
+                    if d2 < best_d2:
+                        best, best_d2 = k, d2
+                j = index[best] if best >= 0 else -1
             if j < 0:
                 continue
             src[m, 0], src[m, 1], src[m, 2] = px, py, pz
@@ -445,9 +551,10 @@ def icp_point_to_plane(T: np.ndarray, model_pts: np.ndarray, scene_grid: PointGr
     mp = np.ascontiguousarray(model_pts, np.float64)
     use_normals = model_normals is not None
     mn = np.ascontiguousarray(model_normals if use_normals else model_pts, np.float64)
+    first, index, xyz = scene_grid.neighbour_lists()
     T, share = _icp_grid(np.ascontiguousarray(T, np.float64), mp, mn, use_normals, scene_grid.points, scene_grid.normals,
-                         scene_grid.start, scene_grid.lo, scene_grid.dims, scene_grid.cell, float(max_dist),
-                         int(iterations))
+                         scene_grid.start, scene_grid.lo, scene_grid.dims, scene_grid.cell, first, index, xyz,
+                         float(max_dist), int(iterations))
     return T, float(share)
 
 
