@@ -24,7 +24,7 @@ from .model import ObjectModel
 from .lifting import depth_to_cloud
 from .ppf import ANGLE_BINS as ANGLE_STEPS, PPFModel, cluster_poses
 from .faces import Faces, frame_patches, matches, model_faces, nearest_face_pose, patch_poses
-from .segments import connected_segments, pairs_across_steps, support_mask
+from .segments import connected_segments, pairs_across_steps, support_mask, within_reach
 from .verify import facing_camera, in_view_share, outline_continuation, outline_shift
 from ..threads import shared_pool, submit_each
 from ..tracking.icp import align_projective
@@ -230,7 +230,8 @@ class ShapeFrontEnd:
             if cloud.segments is None or not np.any(cloud.segments >= 0):
                 return np.zeros((0, 3)), np.zeros((0, 3))
             s, m, poses, share = self._ppf.vote(cloud.points, cloud.normals, cloud.segments,
-                                                self.fe.shape_ref_step, self.fe.shape_max_partners)
+                                                self.fe.shape_ref_step, self.fe.shape_max_partners,
+                                                reach=self.partner_reach(cloud))
             poses = self._ppf.canonical_poses(poses)
             if self.fe.shape_pose_clusters > 0:
                 # The references' own poses, clustered: an instance whose references ECC
@@ -258,6 +259,25 @@ class ShapeFrontEnd:
             return src, cloud.points[s]
         s, m = self._matcher.match(cloud.descriptors)
         return self._model_pts[self._model_idx[m]], cloud.points[cloud.salient[s]]
+
+    def partner_reach(self, cloud: FrameCloud) -> np.ndarray | None:
+        """(M,) metres: how far from each point of the cloud, as a reference, its vote
+        partners may lie; None: the object's diameter everywhere. In a segment larger than the
+        object (two points farther apart than its diameter) ``shape_merged_reach`` of it:
+        touching instances form one segment (channels side by side, their tops flush), and
+        partners spread over the diameter lay mostly on the neighbours (open-side-down
+        channels merged in pairs or fours: 0-5 right references of 70-100 each; voted over
+        their own points alone, 10-60)."""
+        share = self.fe.shape_merged_reach
+        if share >= 1.0 or cloud.segments is None:
+            return None
+        reach = np.full(len(cloud.points), np.inf)
+        labels = cloud.segments
+        for label in np.unique(labels[labels >= 0]):
+            mine = labels == label
+            if not within_reach(cloud.points[mine], self.diameter):
+                reach[mine] = share * self.diameter
+        return reach if np.isfinite(reach).any() else None
 
     def face_poses(self, cloud: FrameCloud) -> np.ndarray:
         """(K, 4, 4) pose hypotheses from the segments' flat patches whose outline moments are
