@@ -251,7 +251,7 @@ class ShapeFrontEnd:
                                                                                   cloud.poses)])
                 if self._self_hiding > 0 and self.fe.shape_joined_clusters > 0:
                     cloud.poses = np.concatenate([cloud.poses, self.joined_poses(cloud)])
-                if self._self_hiding > 0 and self.fe.shape_segment_clusters > 0 and reach is not None:
+                if self._self_hiding > 0 and self.fe.shape_merged_clusters > 0 and reach is not None:
                     # Non-convex models: the segments of several objects voted over the whole
                     # diameter too, their best clusters added: a plate's pose is told by pairs
                     # reaching to the other plate, farther than ``partner_reach`` (touching
@@ -260,7 +260,8 @@ class ShapeFrontEnd:
                     s2, _, far, far_share = self._ppf.vote(cloud.points, cloud.normals, merged, self.fe.shape_ref_step,
                                                           self.fe.shape_max_partners)
                     cloud.poses = np.concatenate([cloud.poses, self.segment_poses(
-                        self._ppf.canonical_poses(far), far_share, merged[s2], cloud.poses)])
+                        self._ppf.canonical_poses(far), far_share, merged[s2], cloud.poses,
+                        self.fe.shape_merged_clusters)])
                 if self._faces is not None and len(self._faces):
                     # The face poses first; a vote cluster that one of them would be refined
                     # for (``distinct``) is left out: moved onto the same patch, it would be
@@ -316,14 +317,15 @@ class ShapeFrontEnd:
         keep = cluster_poses(poses, np.ones(len(poses)), 5.0, self.voxel, len(poses), min_members=1, indices=True)
         return poses[np.sort(keep)]
 
-    def segment_poses(self, poses: np.ndarray, share: np.ndarray, labels: np.ndarray, taken: np.ndarray) -> np.ndarray:
-        """(K, 4, 4) each segment's best ``shape_segment_clusters`` clusters of its own
+    def segment_poses(self, poses: np.ndarray, share: np.ndarray, labels: np.ndarray, taken: np.ndarray,
+                      k: int | None = None) -> np.ndarray:
+        """(K, 4, 4) each segment's best ``shape_segment_clusters`` (``k``) clusters of its own
         references' poses (``labels``: each reference's segment), those not already among
         ``taken`` (the frame-wide clusters). Ranked over the whole frame, an instance whose
         segment is small or whose references mostly vote wrong poses (a bracket's plate seen
         alone: blurred and turned-over votes) loses to the larger segments' second and third
         clusters: its right cluster ranked 33rd-96th of 50-130, yet 1st-3rd in its segment."""
-        k = self.fe.shape_segment_clusters
+        k = self.fe.shape_segment_clusters if k is None else k
         angle, shift = 360.0 / ANGLE_STEPS, 0.1 * self.diameter
         out = []
         for label in np.unique(labels[labels >= 0]):
