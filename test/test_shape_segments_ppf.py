@@ -1069,3 +1069,12 @@ def test_partner_reach_is_short_only_in_segments_larger_than_the_object():
     single = FrameCloud(alone, N[which == 0], np.zeros(0, np.int64), np.zeros((0, 33)), None,
                         np.zeros(len(alone), np.int64))
     assert shape.partner_reach(single) is None
+
+
+def test_central_radius_of_a_flat_patch_falls_back_to_every_point():
+    """Points in one plane have no convex hull in 3-D: the farthest points are then sought
+    among all of them (a square of side 0.2: about its centre, the corners 0.1 * sqrt(2) away)."""
+    from multi_instance_reg.rgbd.shape_frontend import central_radius
+
+    g = np.stack(np.meshgrid(np.linspace(0, 0.2, 21), np.linspace(0, 0.2, 21)), -1).reshape(-1, 2)
+    assert abs(central_radius(np.column_stack([g, np.zeros(len(g))])) - 0.1 * np.sqrt(2.0)) < 1e-9

@@ -50,8 +50,8 @@ PIERCE_MIN_POINTS = 3
 UNHELD_SHARE = 0.1
 # The segments of several objects are voted over the whole diameter too (non-convex models,
 # ``shape_merged_clusters``) with every this-many-th reference of the short-reach votes: the
-# same hits on channel seeds 5 / 9 / 311 and bracket 0 / 9 / 13 / 33 / 47 / 113 as with every
-# one (channel 307: one fewer), for ~30 ms less CPU a busy channel frame.
+# same hits on channel seeds 5 / 311 and bracket 0 / 9 / 13 / 33 / 47 / 113 as with every one
+# (channel 9 one more, 307 one fewer), for ~30 ms less CPU a busy channel frame.
 MERGED_REF_STRIDE = 2
 
 
@@ -807,13 +807,13 @@ def central_radius(points: np.ndarray) -> float:
     """The least, over the points, of the largest distance from one to any other: the radius
     of the smallest ball about one of them that holds them all. The farthest point from any
     point is a vertex of their convex hull."""
-    from scipy.spatial import ConvexHull
+    from scipy.spatial import ConvexHull, QhullError
     from scipy.spatial.distance import cdist
 
     points = np.asarray(points, np.float64)
     try:
         far = points[ConvexHull(points).vertices]
-    except Exception:           # flat or too few points: every point is a candidate
+    except QhullError:          # flat or too few points: every point is a candidate
         far = points
     return float(cdist(points, far).max(axis=1).min())
 
