@@ -1007,3 +1007,74 @@ def test_a_bracket_pose_a_turn_away_from_icps_basin_is_started_again_turned(monk
             assert len(second) == 1 and rotation_angle_deg(second[0][0][:3, :3].T @ T[:3, :3]) < 0.5
         else:
             assert second == []
+
+
+def test_central_radius_is_the_smallest_ball_about_a_surface_point_holding_the_box():
+    """A 0.3 x 0.2 x 0.15 box: about the middle of a largest face, the far corners lie
+    sqrt(0.15^2 + 0.1^2 + 0.15^2) away; about any other surface point, something lies farther."""
+    from multi_instance_reg.rgbd.shape_frontend import central_radius
+
+    pts, _ = sample_surface(box_mesh(0.3, 0.2, 0.15), 0.005, seed=0)
+    assert abs(central_radius(pts) - np.sqrt(0.15 ** 2 + 0.1 ** 2 + 0.15 ** 2)) < 0.006
+
+
+def _cartons_in_a_row(model, surface, normals, count=3):
+    """``count`` boxes side by side, their tops flush, seen tilted from above: (points,
+    normals, which box each point is of, the boxes' poses)."""
+    tilt = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(0.5), -np.sin(0.5)], [0.0, np.sin(0.5), np.cos(0.5)]])
+    top_up = np.diag([1.0, -1.0, -1.0])
+    poses = [make_transform(tilt @ top_up, tilt @ np.array([0.0, 0.2 * k, 0.0]) + [0.0, 0.0, 1.0]) for k in range(count)]
+    seen = [_visible(surface, normals, T, 0.001, seed=k) for k, T in enumerate(poses)]
+    which = np.concatenate([np.full(len(p), k) for k, (p, _) in enumerate(seen)])
+    return np.vstack([p for p, _ in seen]), np.vstack([n for _, n in seen]), which, poses
+
+
+def test_references_in_a_segment_of_touching_boxes_vote_right_more_often_within_the_central_reach():
+    """Touching boxes with flush tops are one segment: partners over the whole diameter lie
+    mostly on the neighbours; within the central radius mostly on the reference's own box."""
+    from multi_instance_reg.rgbd.shape_frontend import central_radius
+
+    model = _box_model()
+    surface, normals = oriented_downsample(model.shape_points.astype(np.float64), model.shape_normals,
+                                           model.shape_voxel)
+    ppf = PPFModel(surface, normals, float(np.linalg.norm(model.extent)), model.shape_voxel, model.symmetries,
+                   bucket_cap=50)
+    P, N, which, poses = _cartons_in_a_row(model, surface, normals)
+    right = {}
+    for name, reach in (("diameter", None), ("central", np.full(len(P), central_radius(surface)))):
+        s, _, found, _ = ppf.vote(P, N, np.zeros(len(P), np.int64), ref_step=1, max_partners=60, reach=reach)
+        ok = []
+        for k, Tp in zip(s, found):
+            G = closest_symmetric_pose(poses[which[k]], Tp, model.symmetries)
+            ok.append(np.linalg.norm(G[:3, 3] - Tp[:3, 3]) < 0.02 and rotation_angle_deg(G[:3, :3].T @ Tp[:3, :3]) < 10)
+        right[name] = float(np.mean(ok))
+    assert right["central"] > right["diameter"] + 0.05
+
+
+def test_partner_reach_is_short_only_in_segments_larger_than_the_object():
+    from multi_instance_reg.rgbd.pipeline import FrontEndConfig
+    from multi_instance_reg.rgbd.shape_frontend import FrameCloud, ShapeFrontEnd
+
+    model = _box_model()
+    shape = ShapeFrontEnd(model, FrontEndConfig())
+    surface, normals = shape._surface, shape._surface_normals
+    P, N, which, _ = _cartons_in_a_row(model, surface, normals)
+    alone = P[which == 0] + [1.0, 0.0, 0.0]          # a box of its own, far to the side
+    pts = np.vstack([P, alone])
+    labels = np.concatenate([np.zeros(len(P), np.int64), np.ones(len(alone), np.int64)])
+    cloud = FrameCloud(pts, np.vstack([N, N[which == 0]]), np.zeros(0, np.int64), np.zeros((0, 33)), None, labels)
+    reach = shape.partner_reach(cloud)
+    assert np.allclose(reach[labels == 0], shape.central_reach) and np.all(np.isinf(reach[labels == 1]))
+    assert 0.5 * shape.diameter < shape.central_reach < 0.65 * shape.diameter
+    single = FrameCloud(alone, N[which == 0], np.zeros(0, np.int64), np.zeros((0, 33)), None,
+                        np.zeros(len(alone), np.int64))
+    assert shape.partner_reach(single) is None
+
+
+def test_central_radius_of_a_flat_patch_falls_back_to_every_point():
+    """Points in one plane have no convex hull in 3-D: the farthest points are then sought
+    among all of them (a square of side 0.2: about its centre, the corners 0.1 * sqrt(2) away)."""
+    from multi_instance_reg.rgbd.shape_frontend import central_radius
+
+    g = np.stack(np.meshgrid(np.linspace(0, 0.2, 21), np.linspace(0, 0.2, 21)), -1).reshape(-1, 2)
+    assert abs(central_radius(np.column_stack([g, np.zeros(len(g))])) - 0.1 * np.sqrt(2.0)) < 1e-9

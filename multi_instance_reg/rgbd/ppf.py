@@ -111,9 +111,10 @@ def _model_pairs(p, n, d_step, a_step, n_dist):
 
 
 @numba.njit(cache=True, nogil=True)
-def _vote(p, n, refs, seg_start, seg_end, max_partners, bucket_start, entry_first, entry_alpha,
+def _vote(p, n, refs, seg_start, seg_end, reach, max_partners, bucket_start, entry_first, entry_alpha,
           n_model, d_step, a_step, n_dist):
-    """Per reference: (model point, turn bin, votes, partners) of the accumulator's peak."""
+    """Per reference: (model point, turn bin, votes, partners) of the accumulator's peak;
+    its partners within ``reach[r]`` of it."""
     nr = refs.shape[0]
     out_m = np.full(nr, -1, np.int64)
     out_turn = np.zeros(nr, np.int64)
@@ -125,10 +126,10 @@ def _vote(p, n, refs, seg_start, seg_end, max_partners, bucket_start, entry_firs
     for r in range(nr):
         i = refs[r]
         lo, hi = seg_start[r], seg_end[r]
-        # Partners spread evenly over the segment's points within the object's reach (a
-        # segment may join several touching objects: spread over all of it, most partners
-        # would lie on the others).
-        reach2 = (n_dist * d_step) ** 2
+        # Partners spread evenly over the segment's points within the reach (the object's
+        # diameter, or less; a segment may join several touching objects: spread over all of
+        # it, most partners would lie on the others).
+        reach2 = reach[r] ** 2
         in_reach = 0
         for j in range(lo, hi):
             dx = p[j, 0] - p[i, 0]
@@ -223,7 +224,8 @@ class PPFModel:
         self._alpha = np.ascontiguousarray(self._alpha)
         self.pairs = int(len(keys))
 
-    def vote(self, points: np.ndarray, normals: np.ndarray, labels: np.ndarray, ref_step: int, max_partners: int):
+    def vote(self, points: np.ndarray, normals: np.ndarray, labels: np.ndarray, ref_step: int, max_partners: int,
+             reach: np.ndarray | None = None):
         """Peaks for reference points of the labelled segments (label >= 0), every
         ``ref_step``-th point of the segments laid end to end. Returns (scene index (R,),
         model index (R,), pose (R, 4, 4) model -> camera, votes / partners (R,))."""
@@ -234,7 +236,7 @@ class PPFModel:
         seg_lo = np.concatenate([[0], bounds]).astype(np.int64)
         seg_hi = np.concatenate([bounds, [len(lab)]]).astype(np.int64)
         refs = np.arange(0, len(order), max(int(ref_step), 1))
-        return self._peaks(points, normals, order, refs, seg_lo, seg_hi, max_partners)[:4]
+        return self._peaks(points, normals, order, refs, seg_lo, seg_hi, max_partners, reach)[:4]
 
     def vote_groups(self, points: np.ndarray, normals: np.ndarray, groups: list, ref_step: int, max_partners: int):
         """``vote`` over groups of point indices (a point may be in several), each group's
@@ -249,7 +251,7 @@ class PPFModel:
             if len(groups) else np.zeros(0, np.int64)
         return self._peaks(points, normals, order, refs.astype(np.int64), seg_lo, seg_hi, max_partners)
 
-    def _peaks(self, points, normals, order, refs, seg_lo, seg_hi, max_partners):
+    def _peaks(self, points, normals, order, refs, seg_lo, seg_hi, max_partners, reach=None):
         """The references ``refs`` (positions in ``order``, the scene indices of segments laid
         end to end from ``seg_lo`` to ``seg_hi``) voted with partners of their own segment."""
         if len(order) < 2 or len(refs) == 0:
@@ -258,9 +260,13 @@ class PPFModel:
         n = np.ascontiguousarray(normals[order], np.float64)
         seg = np.searchsorted(seg_hi, refs, side="right")
         lo, hi = seg_lo[seg], seg_hi[seg]
+        # Each reference's partners within the object's diameter, or within ``reach`` (per
+        # scene point) when that is less.
+        full = self.n_dist * self.d_step
+        radius = np.full(len(refs), full) if reach is None else np.minimum(np.asarray(reach, np.float64)[order[refs]], full)
         # Each reference votes on its own: the references in two halves on two cores (the
         # kernel releases the GIL; the same peaks as in one call).
-        parts = map_in_chunks(lambda rows: _vote(p, n, refs[rows], lo[rows], hi[rows], int(max_partners), self._start,
+        parts = map_in_chunks(lambda rows: _vote(p, n, refs[rows], lo[rows], hi[rows], radius[rows], int(max_partners), self._start,
                                                  self._first, self._alpha, len(self.points), self.d_step, self.a_step,
                                                  self.n_dist), np.arange(len(refs)), min_chunk=64)
         m, turn, votes, partners = (np.concatenate(column) for column in zip(*parts))

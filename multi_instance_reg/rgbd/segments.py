@@ -238,7 +238,7 @@ def pairs_across_steps(points: np.ndarray, labels: np.ndarray, reach: float, lin
     # Segments small enough to be (part of) one object; their points' image directions.
     small = []
     for s in ids:
-        if _within(points[labels == s], reach):
+        if within_reach(points[labels == s], reach):
             small.append(s)
     if len(small) < 1:
         return []
@@ -259,7 +259,7 @@ def pairs_across_steps(points: np.ndarray, labels: np.ndarray, reach: float, lin
     out = []
     for a, b in sorted({(min(x, y), max(x, y)) for x, y in zip(lab[i].tolist(), lab[j].tolist())}):
         if a in small and b in small:
-            if _within(points[(labels == a) | (labels == b)], reach):
+            if within_reach(points[(labels == a) | (labels == b)], reach):
                 out.append((a, b))
             else:
                 # Each small, together larger than the object: one of them joins the
@@ -274,7 +274,7 @@ def pairs_across_steps(points: np.ndarray, labels: np.ndarray, reach: float, lin
     return out
 
 
-def _within(p: np.ndarray, reach: float) -> bool:
+def within_reach(p: np.ndarray, reach: float) -> bool:
     """No two of the points farther apart than ``reach``. The box's diagonal bounds the
     farthest pair from above and its longest side from below; only between them are the
     pairs measured."""
@@ -290,4 +290,4 @@ def _within(p: np.ndarray, reach: float) -> bool:
     return bool(pdist(p).max() <= reach)
 
 
-__all__ = ["support_mask", "connected_segments", "pairs_across_steps"]
+__all__ = ["support_mask", "connected_segments", "pairs_across_steps", "within_reach"]
