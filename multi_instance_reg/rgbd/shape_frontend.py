@@ -46,6 +46,8 @@ PIERCE_VOXELS = 2.0
 # ... where the depth does not reach past the plane on the rays of at least this share of them.
 PIERCE_SHARE = 0.3
 PIERCE_MIN_POINTS = 3
+# Rejected poses this close (degrees; and half a voxel) are one pose for ``judge_pairs``.
+SAME_POSE_DEG = 3.0
 # A direction holds ICP when at least this share of the visible normals' weight lies along it.
 UNHELD_SHARE = 0.1
 
@@ -581,23 +583,112 @@ class ShapeFrontEnd:
         return self._judge(T, support, free, n, cloud, depth_m, intrinsics,
                            explained=occluders if fe.shape_outline_by_instances else None)
 
+    def judge_pairs(self, rejected, overlap: np.ndarray, limit: float, cloud: FrameCloud, depth_m: np.ndarray,
+                    intrinsics: CameraIntrinsics, occluders: np.ndarray, found) -> list[tuple[int, int, tuple, tuple]]:
+        """Rejected poses judged two at a time: each of a pair judged again (``judge_behind``)
+        with the other taken as found besides ``found`` (``occluders`` their pixels). Two
+        brackets that hide each other or lie flush, neither found, each fail alone for what
+        the other explains (seed 5: a bracket at support 1.0 whose outline band runs onto
+        its flush neighbour, the neighbour at 0.74 for what the first hides); judged with
+        the other, both pass. Only pairs whose boxes overlap by at most ``limit`` (``overlap``:
+        ``box_overlaps`` of the rejected poses) and whose pixels meet (``_band_ring``).
+        Returns (i, j, i's result, j's result) for every pair that passes both ways,
+        the strongest first."""
+        if len(rejected) < 2:
+            return []
+        # Poses refined to the same place from several hypotheses: one of each.
+        same = sorted(cluster_poses(np.stack([np.asarray(T, np.float64) for T in rejected]),
+                                    -np.arange(len(rejected), dtype=np.float64), SAME_POSE_DEG, 0.5 * self.voxel,
+                                    len(rejected), min_members=1, indices=True))
+        # Only those that can pass with some of their points hidden: enough support when
+        # every point behind the depth is taken as hidden, and no more free space than when
+        # none is (hiding points only raises the free share).
+        every = np.ones(depth_m.shape, np.uint8)
+        fe = self.fe
+
+        def may_pass(T):
+            args = (T, self._surface, self._surface_normals, depth_m, intrinsics, self.tolerance_at(T),
+                    self._self_hiding)
+            support, _, _ = depth_support(*args, every)
+            if support < fe.shape_min_support:
+                return False
+            return depth_support(*args)[1] <= fe.shape_max_free
+
+        same = [i for i in same if may_pass(rejected[i])]
+        # Each pose's image rectangle (its visible surface's, grown by the outline band's
+        # reach): most pairs lie apart in the image and are not looked at further.
+        K = intrinsics.K
+        rects = {}
+        for i in same:
+            p = self._visible_surface(rejected[i])
+            if len(p) == 0:
+                continue
+            u, v = K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2], K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]
+            r = 1.5 * self.voxel * K[0, 0] / float(p[:, 2].min()) + 1.0
+            rects[i] = (v.min() - r, v.max() + r, u.min() - r, u.max() + r)
+        pixels = {}
+
+        def pixels_of(i):
+            if i not in pixels:
+                pixels[i] = self.instance_pixels([rejected[i]], depth_m, intrinsics)
+            return pixels[i]
+
+        rings = {}
+
+        def ring_of(i):
+            if i not in rings:
+                rings[i] = self._band_ring(rejected[i], depth_m.shape, intrinsics)
+            return rings[i]
+
+        candidates = []
+        for a, i in enumerate(same):
+            for j in same[a + 1:]:
+                if i not in rects or j not in rects or overlap[i, j] > limit or overlap[j, i] > limit:
+                    continue
+                ri, rj = rects[i], rects[j]
+                if ri[0] > rj[1] or rj[0] > ri[1] or ri[2] > rj[3] or rj[2] > ri[3]:
+                    continue
+                if pixels_of(j)[ring_of(i)].any() or pixels_of(i)[ring_of(j)].any():
+                    candidates.append((i, j))
+        for i, j in candidates:
+            pixels_of(i), pixels_of(j)
+
+        def both(pair):
+            i, j = pair
+            ri = self.judge_behind(rejected[i], cloud, depth_m, intrinsics, np.maximum(occluders, pixels[j]),
+                                   list(found) + [rejected[j]])
+            if ri is None:
+                return None
+            rj = self.judge_behind(rejected[j], cloud, depth_m, intrinsics, np.maximum(occluders, pixels[i]),
+                                   list(found) + [rejected[i]])
+            return None if rj is None else (i, j, ri, rj)
+
+        # Two at a time in the shared thread pool (as the refinement).
+        passed = [r for r in (task.result() for task in submit_each(both, candidates)) if r is not None]
+        return sorted(passed, key=lambda r: -(r[2][3] + r[3][3]))
+
     def _band_meets(self, T, pixels: np.ndarray, intrinsics: CameraIntrinsics) -> bool:
         """Whether any of ``pixels`` lies a voxel and a half (the outline band's outer edge)
         from the model's visible surface at pose T, in one of eight directions: a cheap test
         before the outline is looked at again."""
+        rows, cols = self._band_ring(T, pixels.shape, intrinsics)
+        return bool(pixels[rows, cols].any())
+
+    def _band_ring(self, T, shape, intrinsics: CameraIntrinsics) -> tuple[np.ndarray, np.ndarray]:
+        """(rows, cols) inside an image of ``shape``: ``_band_meets``' pixels, a voxel and a
+        half from the model's visible surface at pose T in each of eight directions."""
         p = self._visible_surface(T)
         if len(p) == 0:
-            return False
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
         K = intrinsics.K
         u, v = K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2], K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]
         r = 1.5 * self.voxel * K[0, 0] / p[:, 2]
-        h, w = pixels.shape
-        for a in np.arange(8) * np.pi / 4:
-            uu, vv = np.round(u + r * np.cos(a)).astype(np.int64), np.round(v + r * np.sin(a)).astype(np.int64)
-            ok = (uu >= 0) & (uu < w) & (vv >= 0) & (vv < h)
-            if pixels[vv[ok], uu[ok]].any():
-                return True
-        return False
+        a = np.arange(8) * np.pi / 4
+        uu = np.round(u[None, :] + r[None, :] * np.cos(a)[:, None]).astype(np.int64).ravel()
+        vv = np.round(v[None, :] + r[None, :] * np.sin(a)[:, None]).astype(np.int64).ravel()
+        h, w = shape
+        ok = (uu >= 0) & (uu < w) & (vv >= 0) & (vv < h)
+        return vv[ok], uu[ok]
 
     def _unheld(self, T):
         """(3, 3) projection onto the directions in which the visible surface's normals do not
