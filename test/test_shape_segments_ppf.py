@@ -634,7 +634,11 @@ def test_two_rejected_poses_are_judged_as_a_pair_each_with_the_other_found():
     none = np.zeros(depth.shape, np.uint8)
     assert shape.judge_behind(back, cloud, depth, intr, none, []) is None      # alone: what is hidden counts
     poses = [back, front]
-    pairs = shape.judge_pairs(poses, box_overlaps(model, poses, grid), 0.3, cloud, depth, intr, none, [])
+    overlap = box_overlaps(model, poses, grid)
+    assert shape.judge_pairs(poses, overlap, 0.3, cloud, depth, intr, none, []) == []   # convex: not judged so
+    # Judged as a non-convex model's poses are (a box never hides itself: the same checks).
+    shape._self_hiding = 0.75 * shape.voxel
+    pairs = shape.judge_pairs(poses, overlap, 0.3, cloud, depth, intr, none, [])
     assert [(i, j) for i, j, _, _ in pairs] == [(0, 1)]
     assert pairs[0][2][1] > 0.95 and np.allclose(pairs[0][2][0], back)
     # A pose sunk into the front box is hidden by the front box, not by the other pose.
