@@ -532,6 +532,8 @@ class InstanceRegistration:
         """``chosen`` and the rejected poses accepted two at a time (``ShapeFrontEnd.judge_pairs``:
         each passes with the other taken as found), a pair only when neither overlaps an
         instance kept or a pose accepted before it; the strongest pairs first."""
+        if not self._shape.judges_pairs:
+            return chosen
         found = [c[0] for c in chosen]
         limit = self.config.frontend.max_overlap
         overlap = box_overlaps(self.model, found + list(rejected), self._box_grid)

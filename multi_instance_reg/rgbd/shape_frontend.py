@@ -119,6 +119,11 @@ class ShapeFrontEnd:
         """Metres: a model point agrees with the depth image within this."""
         return max(self.fe.shape_depth_tolerance, 0.8 * self.voxel)
 
+    @property
+    def judges_pairs(self) -> bool:
+        """Whether ``judge_pairs`` judges anything (non-convex models; see there)."""
+        return self._self_hiding > 0
+
     def tolerance_at(self, T: np.ndarray) -> float:
         """Metres: agreement with the depth image for an instance at pose T, within the depth
         noise at its distance (3 sigma; 2.4 cm at 2 m, where a fixed 1.2 cm left true cartons
@@ -604,7 +609,7 @@ class ShapeFrontEnd:
         ``box_overlaps`` of the rejected poses) and whose pixels meet (``_band_ring``).
         Returns (i, j, i's result, j's result) for every pair that passes both ways,
         the strongest first; none for a convex model (below)."""
-        if len(rejected) < 2 or self._self_hiding == 0:
+        if len(rejected) < 2 or not self.judges_pairs:
             # Non-convex models only: on pallet seed 9's distractor-only frames two
             # carton-sized boxes, one flush against the other and hiding part of it, passed
             # as a pair exactly as two true brackets do (support 0.99 and outline 0.15 -> 0.0;
