@@ -607,6 +607,71 @@ def test_a_box_half_hidden_by_an_instance_found_is_judged_by_what_is_in_view():
     assert shape.judge_behind(inside, cloud, depth, intr, occluders, [front]) is None
 
 
+def _front_and_back_boxes():
+    from multi_instance_reg.rgbd.pipeline import PipelineConfig
+    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+
+    solid = box_mesh(0.08, 0.07, 0.05)
+    model = build_model_from_mesh(solid, "block")
+    shape = ShapeFrontEnd(model, PipelineConfig().frontend)
+    intr = CameraIntrinsics(K=np.array([[380.0, 0, 160], [0, 380.0, 120], [0, 0, 1]]), width=320, height=240)
+    turn = np.array([[1.0, 0, 0], [0, -0.8, -0.6], [0, 0.6, -0.8]])     # top and a side towards the camera
+    front = make_transform(turn, [0.0, 0.0, 0.6])
+    back = make_transform(turn, [0.06, 0.0, 0.7])                     # its left part behind the front box
+    dense, _ = sample_surface(solid, 0.001)
+    depth = np.maximum(_depth_of(dense, front, intr), 0)
+    behind = _depth_of(dense, back, intr)
+    depth = np.where((depth == 0) | ((behind > 0) & (behind < depth)), behind, depth)
+    return model, shape, intr, front, back, depth
+
+
+def test_two_rejected_poses_are_judged_as_a_pair_each_with_the_other_found():
+    from multi_instance_reg.rgbd.pipeline import box_grid, box_overlaps
+
+    model, shape, intr, front, back, depth = _front_and_back_boxes()
+    cloud = shape.frame_cloud(depth, intr, None)
+    grid = box_grid(model.extent) + np.asarray(model.box_centre, np.float64)
+    none = np.zeros(depth.shape, np.uint8)
+    assert shape.judge_behind(back, cloud, depth, intr, none, []) is None      # alone: what is hidden counts
+    poses = [back, front]
+    overlap = box_overlaps(model, poses, grid)
+    assert shape.judge_pairs(poses, overlap, 0.3, cloud, depth, intr, none, []) == []   # convex: not judged so
+    # Judged as a non-convex model's poses are (a box never hides itself: the same checks).
+    shape._self_hiding = 0.75 * shape.voxel
+    pairs = shape.judge_pairs(poses, overlap, 0.3, cloud, depth, intr, none, [])
+    assert [(i, j) for i, j, _, _ in pairs] == [(0, 1)]
+    assert pairs[0][2][1] > 0.95 and np.allclose(pairs[0][2][0], back)
+    # A pose sunk into the front box is hidden by the front box, not by the other pose.
+    sunk = front @ make_transform(np.eye(3), [0.0, 0.0, 0.02])
+    poses = [back, sunk]
+    assert shape.judge_pairs(poses, box_overlaps(model, poses, grid), 0.3, cloud, depth, intr, none, []) == []
+
+
+def test_a_pose_behind_a_nearer_surface_is_judged_by_what_is_in_view_where_the_depth_steps_in_front(monkeypatch):
+    import multi_instance_reg.rgbd.shape_frontend as shape_frontend
+
+    model, shape, intr, front, back, depth = _front_and_back_boxes()
+    cloud = shape.frame_cloud(depth, intr, None)
+    # The front box not found (a distractor): the back one passes with what it hides left out.
+    again = shape.judge_hidden(back, cloud, depth, intr, None)
+    assert again is not None and np.allclose(again[0], back) and again[1] > 0.95
+    assert shape.judge_hidden(back, cloud, depth, intr, None, [front]) is not None   # nothing of it in that box
+    # A box sunk 1 cm into the front one (rendered so): its hidden part goes on into the front
+    # box's surface, no step in front of it.
+    solid = box_mesh(0.08, 0.07, 0.05)
+    dense, _ = sample_surface(solid, 0.001)
+    sunk = make_transform(front[:3, :3], [0.06, 0.0, 0.61])
+    depth = np.maximum(_depth_of(dense, front, intr), 0)
+    other = _depth_of(dense, sunk, intr)
+    depth = np.where((depth == 0) | ((other > 0) & (other < depth)), other, depth)
+    cloud = shape.frame_cloud(depth, intr, None)
+    assert shape.judge_hidden(sunk, cloud, depth, intr, None) is None
+    monkeypatch.setattr(shape_frontend, "HIDDEN_STEP", 0.0)
+    assert shape.judge_hidden(sunk, cloud, depth, intr, None) is not None
+    # ... and with the front box found, its points inside that box count against it anyway.
+    assert shape.judge_hidden(sunk, cloud, depth, intr, None, [front]) is None
+
+
 def test_a_bracket_split_by_a_depth_step_is_voted_as_one_pair_of_segments():
     """Seen from behind, a bracket's upright plate and its base plate past the depth step
     form two segments; each alone votes hardly a right pose, the pair voted together does."""

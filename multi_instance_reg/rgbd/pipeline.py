@@ -117,6 +117,8 @@ class FrontEndConfig:
     shape_min_segment: int = param(15, "shape ppf: segments with fewer voxel points are ignored", 3, 100000)
     shape_hidden_by_instances: bool = param(True, "shape: a pose rejected for too little support is judged again with its model points hidden behind the instances found in the frame left out (not those inside a found instance's box; at least shape_min_in_view of its points must remain), and added where no instance is. Untextured MHF1 seed 0 / 5 (tuned), 9 / 13 / 33 (held out), with the bracket's self-hiding before: bracket 0.815 -> 0.827 / 0.752 -> 0.752 / 0.742 -> 0.797 / 0.780 -> 0.780, 33: 0.805 (main 0.762); cylinders 0.985 -> 0.993 / 0.922 -> 0.964 / 0.900 -> 0.932 / 0.948 -> 0.996 / 0.964 -> 0.987; pallet 0.913 -> 0.919 / 0.920 -> 0.930 / same / same / same; false positives on distractor-only frames unchanged. Judging every rejected pose again, not only those short of support: bracket 0.850 / 0.805 on seeds 0 / 9, cylinders 0.996 / 0.959, but pallet latency p50 +8-13 ms", None, None)
     shape_joined_clusters: int = param(1, "shape ppf, non-convex models only (an L bracket; boxes and cylinders show one connected surface): two segments side by side in the image across a depth step, that one object could span, also vote together, and their best this-many pose clusters are checked as hypotheses (not given to ECC); 0 = off. Bracket MHF1 seed 0 / 5 (tuned): 0.827 -> 0.890 / 0.752 -> 0.811 alone, 0.866 -> 0.925 / 0.773 -> 0.833 with shape_outline_by_instances; both, seeds 0 / 5 / held-out 9 / 13 / 33 / 41 / 47: 0.827 / 0.752 / 0.797 / 0.780 / 0.805 / 0.805 / 0.729 -> 0.925 / 0.833 / 0.852 / 0.849 / 0.923 / 0.839 / 0.811", 0, 100)
+    shape_rejected_pairs: bool = param(True, "shape (with shape_hidden_by_instances), non-convex models only (on pallet seed 9's distractor-only frames two carton-sized boxes, one flush against and partly hiding the other, passed as a pair just as two true brackets do): poses still rejected after that are judged again two at a time, each with the other taken as found besides the instances found (its pixels hide the other's points and leave its outline band); a pair is added when both pass and neither overlaps an instance kept. Two instances hiding each other or lying flush, neither found alone (bracket seed 5: one at support 1.0 whose outline runs onto its flush neighbour, the neighbour at 0.74 for what the first hides)", None, None)
+    shape_hidden_by_any: bool = param(True, "shape (with shape_hidden_by_instances): poses still rejected after that (and shape_rejected_pairs) are judged again with every point behind a nearer measured surface left out, whatever it is, when the depth steps clearly in front of them where they go out of sight (the hidden points next to the agreeing ones at least 2 tolerances behind the depth, median), and added where no instance is. Instances behind a distractor (bracket seeds 13 / 151: support 0.65-0.79 at the ground-truth pose, nothing else wrong); a pose sunk into a distractor goes on into its surface instead (9-13 mm there against 23-113 mm)", None, None)
     shape_outline_by_instances: bool = param(True, "shape (with shape_hidden_by_instances): a pose rejected by the free-space or outline check is judged again too, its outline band's pixels on the instances found left out (a neighbour flush with it continues its face there: no larger surface), and added where no instance is. MHF1 seed 0 / 5 with the bracket's joined votes: bracket 0.890 -> 0.925 / 0.811 -> 0.833, cylinders 0.993 -> 0.996 / same, pallet 0.919 -> 0.927 / same; false positives on distractor-only frames unchanged", None, None)
     shape_faces: bool = param(True, "shape ppf, convex models with a face that has a long axis (a box; not a cylinder): the segments' flat patches whose outline (second moments) is that of a model face (a carton's top seen whole) give pose hypotheses, and a hypothesis near such a patch is moved onto it before ICP (a face seen alone holds ICP in its plane nowhere, and its point pairs differ only in their distance; rgbd/faces.py). Pallet hits seeds 0 / 5 / 9 / 13 / 33 / 41: 75 / 76 / 74 / 72 / 63 / 77 -> 83 / 82 / 84 / 84 / 79 / 83 (with the selection by evidence: 83 / 83 / 84 / 84 / 81 / 83); cylinders and bracket unchanged", None, None)
     shape_second_look: bool = param(True, "shape, non-convex models only (an L bracket): a refined pose rejected while overhanging space seen empty (free >= 0.02, support and support - free >= 0.6) is aligned again by projective point-to-plane ICP (each model point with the depth pixel on its ray: no pairs across the two plates where they meet, which left nearest-point ICP 4-6 deg off), judged again when the depth agrees better, and added where no instance is. Bracket MHF1, with shape_reject_through_support off, seeds 5 / 9 / 13 (tuned), 0, 113 / 127 / 139 (held out), 151 / 157 / 163 (fresh): 0.833 / 0.852 / 0.849 / 0.925 / 0.824 / 0.932 / 0.913 / 0.714 / 0.808 / 0.882 -> 0.829 / 0.885 / 0.867 / 0.946 / 0.862 / 0.944 / 0.913 / 0.764 / 0.832 / 0.887", None, None)
@@ -517,12 +519,59 @@ class InstanceRegistration:
                           if c is not None]
                 if behind:
                     chosen = self._one_per_box(chosen + behind, first=len(chosen))
+        if fe.shape_hidden_by_instances and fe.shape_rejected_pairs and len(rejected) >= 2:
+            chosen = self._accept_pairs(chosen, rejected, cloud, depth_m, intrinsics)
+        if fe.shape_hidden_by_instances and fe.shape_hidden_by_any and rejected:
+            chosen = self._accept_hidden(chosen, rejected, cloud, depth_m, intrinsics)
         instances = [Instance(i, c[0], c[2], float(c[1]), self.model.name) for i, c in enumerate(chosen)]
         labels, _ = assign_nearest(src, tgt, [c[0] for c in chosen], self._shape_ecc.config.inlier_thresh)
         t["refinement"] = (time.perf_counter() - t6) * 1e3
         t["total"] = (time.perf_counter() - t0) * 1e3
         uv = project_points(tgt, intrinsics)
         return FrameResult(instances, t, uv, src.astype(np.float32), tgt.astype(np.float32), labels, 0)
+
+    def _accept_pairs(self, chosen, rejected, cloud, depth_m, intrinsics) -> list:
+        """``chosen`` and the rejected poses accepted two at a time (``ShapeFrontEnd.judge_pairs``:
+        each passes with the other taken as found), a pair only when neither overlaps an
+        instance kept or a pose accepted before it; the strongest pairs first."""
+        if not self._shape.judges_pairs:
+            return chosen
+        found = [c[0] for c in chosen]
+        limit = self.config.frontend.max_overlap
+        overlap = box_overlaps(self.model, found + list(rejected), self._box_grid)
+        n = len(found)
+        free = [k for k in range(len(rejected))
+                if not (np.any(overlap[n + k, :n] > limit) or np.any(overlap[:n, n + k] > limit))]
+        if len(free) < 2:
+            return chosen
+        sub = overlap[np.ix_([n + k for k in free], [n + k for k in free])]
+        occluders = self._shape.instance_pixels(found, depth_m, intrinsics)
+        pairs = self._shape.judge_pairs([rejected[k] for k in free], sub, limit, cloud, depth_m, intrinsics,
+                                        occluders, found)
+        taken: set[int] = set()
+        for i, j, ri, rj in pairs:
+            if any(sub[i, k] > limit or sub[k, i] > limit or sub[j, k] > limit or sub[k, j] > limit for k in taken):
+                continue
+            taken |= {i, j}
+            chosen = chosen + [ri, rj]
+        return chosen
+
+    def _accept_hidden(self, chosen, rejected, cloud, depth_m, intrinsics) -> list:
+        """``chosen`` and the rejected poses that pass with whatever lies in front of them
+        taken as hiding them (``ShapeFrontEnd.judge_hidden``), added where no instance is."""
+        found = [c[0] for c in chosen]
+        limit = self.config.frontend.max_overlap
+        overlap = box_overlaps(self.model, found + list(rejected), self._box_grid)
+        n = len(found)
+        free = [T for k, T in enumerate(rejected)
+                if not (np.any(overlap[n + k, :n] > limit) or np.any(overlap[:n, n + k] > limit))]
+        if not free:
+            return chosen
+        explained = self._shape.instance_pixels(found, depth_m, intrinsics) if found else None
+        hidden = [c for c in map_each(lambda T: self._shape.judge_hidden(T, cloud, depth_m, intrinsics, explained,
+                                                                                  found),
+                                      free) if c is not None]
+        return self._one_per_box(chosen + hidden, first=len(chosen)) if hidden else chosen
 
     def _one_per_box(self, checked, first: int = 0) -> list:
         """No two instances in one box: of the checked poses (T, support, agreeing points,
