@@ -579,19 +579,7 @@ def test_depth_support_leaves_out_what_a_bracket_hides_of_itself():
 
 
 def test_a_box_half_hidden_by_an_instance_found_is_judged_by_what_is_in_view():
-    from multi_instance_reg.rgbd.pipeline import PipelineConfig
-    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
-
-    solid = box_mesh(0.08, 0.07, 0.05)
-    shape = ShapeFrontEnd(build_model_from_mesh(solid, "block"), PipelineConfig().frontend)
-    intr = CameraIntrinsics(K=np.array([[380.0, 0, 160], [0, 380.0, 120], [0, 0, 1]]), width=320, height=240)
-    turn = np.array([[1.0, 0, 0], [0, -0.8, -0.6], [0, 0.6, -0.8]])     # top and a side towards the camera
-    front = make_transform(turn, [0.0, 0.0, 0.6])
-    back = make_transform(turn, [0.06, 0.0, 0.7])                     # its left part behind the front box
-    dense, _ = sample_surface(solid, 0.001)
-    depth = np.maximum(_depth_of(dense, front, intr), 0)
-    behind = _depth_of(dense, back, intr)
-    depth = np.where((depth == 0) | ((behind > 0) & (behind < depth)), behind, depth)
+    _, shape, intr, front, back, depth = _front_and_back_boxes()
     cloud = shape.frame_cloud(depth, intr, None)
     assert shape.refine_one(front, cloud, depth, intr) is not None
     assert shape.refine_one(back, cloud, depth, intr) is None          # its hidden part counted against it
