@@ -505,12 +505,7 @@ class InstanceRegistration:
             # hide of them, or by the outline, where a found one is flush with them: judged
             # again with those points and pixels left out, added where no instance is.
             found = [c[0] for c in chosen]
-            # Those overlapping an instance's box are dropped by the selection below whatever
-            # the judging says: not judged (the same results, for less time).
-            overlap = box_overlaps(self.model, found + rejected, self._box_grid)
-            limit = fe.max_overlap
-            rejected = [T for k, T in enumerate(rejected, start=len(found))
-                        if not (np.any(overlap[k, :len(found)] > limit) or np.any(overlap[:len(found), k] > limit))]
+            rejected = [rejected[k] for k in self._clear_of(found, rejected)[1]]
             if rejected:
                 occluders = self._shape.instance_pixels(found, depth_m, intrinsics)
                 # Each on its own, two at a time in the shared thread pool (as the refinement).
@@ -538,12 +533,10 @@ class InstanceRegistration:
             return chosen
         found = [c[0] for c in chosen]
         limit = self.config.frontend.max_overlap
-        overlap = box_overlaps(self.model, found + list(rejected), self._box_grid)
-        n = len(found)
-        free = [k for k in range(len(rejected))
-                if not (np.any(overlap[n + k, :n] > limit) or np.any(overlap[:n, n + k] > limit))]
+        overlap, free = self._clear_of(found, rejected)
         if len(free) < 2:
             return chosen
+        n = len(found)
         sub = overlap[np.ix_([n + k for k in free], [n + k for k in free])]
         occluders = self._shape.instance_pixels(found, depth_m, intrinsics)
         pairs = self._shape.judge_pairs([rejected[k] for k in free], sub, limit, cloud, depth_m, intrinsics,
@@ -560,11 +553,7 @@ class InstanceRegistration:
         """``chosen`` and the rejected poses that pass with whatever lies in front of them
         taken as hiding them (``ShapeFrontEnd.judge_hidden``), added where no instance is."""
         found = [c[0] for c in chosen]
-        limit = self.config.frontend.max_overlap
-        overlap = box_overlaps(self.model, found + list(rejected), self._box_grid)
-        n = len(found)
-        free = [T for k, T in enumerate(rejected)
-                if not (np.any(overlap[n + k, :n] > limit) or np.any(overlap[:n, n + k] > limit))]
+        free = [rejected[k] for k in self._clear_of(found, rejected)[1]]
         if not free:
             return chosen
         explained = self._shape.instance_pixels(found, depth_m, intrinsics) if found else None
@@ -572,6 +561,17 @@ class InstanceRegistration:
                                                                                   found),
                                       free) if c is not None]
         return self._one_per_box(chosen + hidden, first=len(chosen)) if hidden else chosen
+
+    def _clear_of(self, found, rejected) -> tuple[np.ndarray, list[int]]:
+        """``box_overlaps`` of ``found`` followed by ``rejected``, and the indices of the
+        rejected poses whose box overlaps no found one's beyond ``max_overlap``: the others
+        are dropped by the selection whatever a judging says, so they are not judged."""
+        limit = self.config.frontend.max_overlap
+        overlap = box_overlaps(self.model, list(found) + list(rejected), self._box_grid)
+        n = len(found)
+        free = [k for k in range(len(rejected))
+                if not (np.any(overlap[n + k, :n] > limit) or np.any(overlap[:n, n + k] > limit))]
+        return overlap, free
 
     def _one_per_box(self, checked, first: int = 0) -> list:
         """No two instances in one box: of the checked poses (T, support, agreeing points,

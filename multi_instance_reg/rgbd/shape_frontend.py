@@ -25,7 +25,7 @@ from .lifting import depth_to_cloud
 from .ppf import ANGLE_BINS as ANGLE_STEPS, PPFModel, cluster_poses
 from .faces import Faces, frame_patches, matches, model_faces, nearest_face_pose, patch_poses
 from .segments import connected_segments, pairs_across_steps, support_mask, within_reach
-from .verify import facing_camera, in_view_share, outline_continuation, outline_shift
+from .verify import facing_camera, image_pixels, in_view_share, outline_continuation, outline_shift
 from ..threads import shared_pool, submit_each
 from ..tracking.icp import align_projective
 from .shape import (PointGrid, ShapeMatcher, apply_twist, depth_support, describe, icp_point_to_plane, is_convex,
@@ -574,14 +574,11 @@ class ShapeFrontEnd:
     def instance_pixels(self, transforms, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> np.ndarray:
         """(H, W) uint8: 1 where the depth image shows one of these instances (a visible
         model point within the depth tolerance there, drawn over its voxel's footprint)."""
-        h, w = depth_m.shape
-        out = np.zeros((h, w), np.uint8)
+        out = np.zeros(depth_m.shape, np.uint8)
         K = intrinsics.K
         for T in transforms:
             p = self._visible_surface(T)
-            u = np.round(K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2]).astype(np.int64)
-            v = np.round(K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]).astype(np.int64)
-            inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+            u, v, inside = image_pixels(p, intrinsics, depth_m.shape)
             p, u, v = p[inside], u[inside], v[inside]
             on = np.abs(depth_m[v, u] - p[:, 2]) < self.tolerance_at(T)
             out[v[on], u[on]] = 1
@@ -612,35 +609,33 @@ class ShapeFrontEnd:
             if not self.fe.shape_outline_by_instances or not self._band_meets(T, occluders, intrinsics):
                 return None
             return self._judge(T, support, free, n, cloud, depth_m, intrinsics, explained=occluders)
-        back = self._inside_found(T, found, depth_m, intrinsics, occluders, tol_T)
-        if back:
-            support, free, n = support * n / (n + back), free * n / (n + back), n + back
+        support, free, n = self._inside_found(T, found, depth_m, intrinsics, occluders, tol_T, support, free, n)
         if n < fe.shape_min_in_view * n_all:
             return None
         return self._judge(T, support, free, n, cloud, depth_m, intrinsics,
                            explained=occluders if fe.shape_outline_by_instances else None)
 
-    def _inside_found(self, T, found, depth_m, intrinsics, occluders, tol) -> int:
-        """How many of the model's visible points at pose T, taken as hidden (behind the depth
-        by more than ``tol`` where ``occluders`` is set), lie inside a found instance's box:
-        not behind it, so back into the judged ones (neither agreeing nor free)."""
+    def _inside_found(self, T, found, depth_m, intrinsics, occluders, tol, support, free, n) -> tuple:
+        """(support, free, n) with the model's visible points at pose T that were taken as
+        hidden (behind the depth by more than ``tol`` where ``occluders`` is set) but lie
+        inside a found instance's box counted back into the judged ones (neither agreeing
+        nor free): a pose sunk into a found instance is not behind it."""
         if not len(found):
-            return 0
+            return support, free, n
         centre, half = np.asarray(self.model.box_centre, np.float64), 0.5 * np.asarray(self.model.extent, np.float64)
         p = self._visible_surface(T)
         inside = np.zeros(len(p), bool)
         for F in found:
             inside |= np.all(np.abs((p - F[:3, 3]) @ F[:3, :3] - centre) <= half, axis=1)
         if not inside.any():
-            return 0
-        K = intrinsics.K
+            return support, free, n
         q = p[inside]
-        u = np.round(K[0, 0] * q[:, 0] / q[:, 2] + K[0, 2]).astype(np.int64)
-        v = np.round(K[1, 1] * q[:, 1] / q[:, 2] + K[1, 2]).astype(np.int64)
-        h, w = depth_m.shape
-        ok = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        u, v, ok = image_pixels(q, intrinsics, depth_m.shape)
         d = depth_m[v[ok], u[ok]]
-        return int(np.sum((d > 0) & (d < q[ok, 2] - tol) & (occluders[v[ok], u[ok]] > 0)))
+        back = int(np.sum((d > 0) & (d < q[ok, 2] - tol) & (occluders[v[ok], u[ok]] > 0)))
+        if not back:
+            return support, free, n
+        return support * n / (n + back), free * n / (n + back), n + back
 
     def judge_pairs(self, rejected, overlap: np.ndarray, limit: float, cloud: FrameCloud, depth_m: np.ndarray,
                     intrinsics: CameraIntrinsics, occluders: np.ndarray, found) -> list[tuple[int, int, tuple, tuple]]:
@@ -713,8 +708,10 @@ class ShapeFrontEnd:
                     continue
                 if pixels_of(j)[ring_of(i)].any() or pixels_of(i)[ring_of(j)].any():
                     candidates.append((i, j))
+        # Every candidate's pixels computed here: the pool's threads below only read them.
         for i, j in candidates:
-            pixels_of(i), pixels_of(j)
+            pixels_of(i)
+            pixels_of(j)
 
         def supported(a, b, hiding):
             # ``judge_behind``'s first test, alone: the full judging (the outline) only for
@@ -761,17 +758,11 @@ class ShapeFrontEnd:
             return None
         _, _, n_all = depth_support(*args)
         # As in ``judge_behind``: what lies inside a found instance's box is not behind it.
-        back = self._inside_found(T, found, depth_m, intrinsics, every, tol)
-        if back:
-            support, free, n = support * n / (n + back), free * n / (n + back), n + back
+        support, free, n = self._inside_found(T, found, depth_m, intrinsics, every, tol, support, free, n)
         if n >= n_all or n < fe.shape_min_in_view * n_all:
             return None
         p = self._visible_surface(T)
-        K = intrinsics.K
-        h, w = depth_m.shape
-        u = np.round(K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2]).astype(np.int64)
-        v = np.round(K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]).astype(np.int64)
-        inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        u, v, inside = image_pixels(p, intrinsics, depth_m.shape)
         d = np.zeros(len(p))
         d[inside] = depth_m[v[inside], u[inside]]
         gap = p[:, 2] - d

@@ -169,6 +169,16 @@ def _facing(p, n):
     return out
 
 
+def image_pixels(p: np.ndarray, intrinsics: CameraIntrinsics, shape) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(u, v, inside): each camera-frame point's nearest pixel (column, row) and whether it
+    lies in an image of ``shape`` (rows, columns)."""
+    K = intrinsics.K
+    u = np.round(K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2]).astype(np.int64)
+    v = np.round(K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]).astype(np.int64)
+    h, w = shape
+    return u, v, (u >= 0) & (u < w) & (v >= 0) & (v < h)
+
+
 def in_view_share(T: np.ndarray, model_pts: np.ndarray, model_normals: np.ndarray,
                   intrinsics: CameraIntrinsics) -> float:
     """Share of the model's surface facing the camera at pose T that projects inside the
@@ -395,11 +405,7 @@ def texture_agreement(T: np.ndarray, keypoints: np.ndarray, keypoint_normals: np
     nrm = keypoint_normals @ best[:3, :3].T
     facing = facing_camera(p, nrm)
     p = p[facing]
-    K = intrinsics.K
-    u = np.round(K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2]).astype(np.int64)
-    v = np.round(K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]).astype(np.int64)
-    h, w = depth_m.shape
-    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    u, v, inside = image_pixels(p, intrinsics, depth_m.shape)
     shown = np.abs(depth_m[v[inside], u[inside]] - p[inside, 2]) < tolerance
     return best, agree, int(shown.sum())
 
@@ -457,4 +463,4 @@ def _free_space_share(T, mp, mn, depth, fx, fy, cx, cy, pivot, tolerance, slope)
     return free / m, m
 
 
-__all__ = ["outline_continuation", "outline_shift", "texture_agreement", "surface_samples", "free_space_share"]
+__all__ = ["image_pixels", "outline_continuation", "outline_shift", "texture_agreement", "surface_samples", "free_space_share"]
