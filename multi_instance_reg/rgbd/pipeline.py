@@ -119,6 +119,7 @@ class FrontEndConfig:
     shape_joined_clusters: int = param(1, "shape ppf, non-convex models only (an L bracket; boxes and cylinders show one connected surface): two segments side by side in the image across a depth step, that one object could span, also vote together, and their best this-many pose clusters are checked as hypotheses (not given to ECC); 0 = off. Bracket MHF1 seed 0 / 5 (tuned): 0.827 -> 0.890 / 0.752 -> 0.811 alone, 0.866 -> 0.925 / 0.773 -> 0.833 with shape_outline_by_instances; both, seeds 0 / 5 / held-out 9 / 13 / 33 / 41 / 47: 0.827 / 0.752 / 0.797 / 0.780 / 0.805 / 0.805 / 0.729 -> 0.925 / 0.833 / 0.852 / 0.849 / 0.923 / 0.839 / 0.811", 0, 100)
     shape_rejected_pairs: bool = param(True, "shape (with shape_hidden_by_instances), non-convex models only (on pallet seed 9's distractor-only frames two carton-sized boxes, one flush against and partly hiding the other, passed as a pair just as two true brackets do): poses still rejected after that are judged again two at a time, each with the other taken as found besides the instances found (its pixels hide the other's points and leave its outline band); a pair is added when both pass and neither overlaps an instance kept. Two instances hiding each other or lying flush, neither found alone (bracket seed 5: one at support 1.0 whose outline runs onto its flush neighbour, the neighbour at 0.74 for what the first hides)", None, None)
     shape_hidden_by_any: bool = param(True, "shape (with shape_hidden_by_instances): poses still rejected after that (and shape_rejected_pairs) are judged again with every point behind a nearer measured surface left out, whatever it is, when the depth steps clearly in front of them where they go out of sight (in the depth image: at the hidden points next to the agreeing ones the depth at least 2 tolerances nearer than at those, median), and added where no instance is. Instances behind a distractor (bracket seeds 13 / 151: support 0.65-0.79 at the ground-truth pose, nothing else wrong); where a pose is sunk into a distractor its surface goes on smoothly instead (9-15 mm there against 23-113 mm)", None, None)
+    shape_residual_votes: bool = param(True, "shape ppf, non-convex models only: after the acceptance passes, the segments the instances found touch are voted again without those instances' points (cut into connected segments anew), and each new segment's best shape_segment_clusters clusters are refined and judged (also with the instances found hiding them), added where no instance is. A bracket in one segment with its neighbours pairs its references with their points: missed brackets that pass every check at their true pose had 0-3 right references of 40-60 in the frame's votes, 11-32 voted over their own points alone (bracket seed 157)", None, None)
     shape_outline_by_instances: bool = param(True, "shape (with shape_hidden_by_instances): a pose rejected by the free-space or outline check is judged again too, its outline band's pixels on the instances found left out (a neighbour flush with it continues its face there: no larger surface), and added where no instance is. MHF1 seed 0 / 5 with the bracket's joined votes: bracket 0.890 -> 0.925 / 0.811 -> 0.833, cylinders 0.993 -> 0.996 / same, pallet 0.919 -> 0.927 / same; false positives on distractor-only frames unchanged", None, None)
     shape_faces: bool = param(True, "shape ppf, convex models with a face that has a long axis (a box; not a cylinder): the segments' flat patches whose outline (second moments) is that of a model face (a carton's top seen whole) give pose hypotheses, and a hypothesis near such a patch is moved onto it before ICP (a face seen alone holds ICP in its plane nowhere, and its point pairs differ only in their distance; rgbd/faces.py). Pallet hits seeds 0 / 5 / 9 / 13 / 33 / 41: 75 / 76 / 74 / 72 / 63 / 77 -> 83 / 82 / 84 / 84 / 79 / 83 (with the selection by evidence: 83 / 83 / 84 / 84 / 81 / 83); cylinders and bracket unchanged", None, None)
     shape_second_look: bool = param(True, "shape, non-convex models only (an L bracket): a refined pose rejected while overhanging space seen empty (free >= 0.02, support and support - free >= 0.6) is aligned again by projective point-to-plane ICP (each model point with the depth pixel on its ray: no pairs across the two plates where they meet, which left nearest-point ICP 4-6 deg off), judged again when the depth agrees better, and added where no instance is. Bracket MHF1, with shape_reject_through_support off, seeds 5 / 9 / 13 (tuned), 0, 113 / 127 / 139 (held out), 151 / 157 / 163 (fresh): 0.833 / 0.852 / 0.849 / 0.925 / 0.824 / 0.932 / 0.913 / 0.714 / 0.808 / 0.882 -> 0.829 / 0.885 / 0.867 / 0.946 / 0.862 / 0.944 / 0.913 / 0.764 / 0.832 / 0.887", None, None)
@@ -518,6 +519,8 @@ class InstanceRegistration:
             chosen = self._accept_pairs(chosen, rejected, cloud, depth_m, intrinsics)
         if fe.shape_hidden_by_instances and fe.shape_hidden_by_any and rejected:
             chosen = self._accept_hidden(chosen, rejected, cloud, depth_m, intrinsics)
+        if fe.shape_residual_votes and self._shape.non_convex and chosen:
+            chosen = self._accept_residual(chosen, hypotheses, cloud, depth_m, intrinsics)
         instances = [Instance(i, c[0], c[2], float(c[1]), self.model.name) for i, c in enumerate(chosen)]
         labels, _ = assign_nearest(src, tgt, [c[0] for c in chosen], self._shape_ecc.config.inlier_thresh)
         t["refinement"] = (time.perf_counter() - t6) * 1e3
@@ -561,6 +564,32 @@ class InstanceRegistration:
                                                                                   found),
                                       free) if c is not None]
         return self._one_per_box(chosen + hidden, first=len(chosen)) if hidden else chosen
+
+    def _accept_residual(self, chosen, hypotheses, cloud, depth_m, intrinsics) -> list:
+        """``chosen`` and the poses voted again over what the instances found leave of their
+        segments (``ShapeFrontEnd.residual_poses``), refined and judged as the first
+        hypotheses, then with the instances found hiding them (``judge_behind``); added
+        where no instance is."""
+        found = [c[0] for c in chosen]
+        poses = self._shape.residual_poses(cloud, found, hypotheses)
+        if not len(poses):
+            return chosen
+        rejected, second = [], []
+        checked = self._shape.refine_and_check(list(poses), cloud, depth_m, intrinsics, rejected=rejected,
+                                               second=second)
+        if checked or second:
+            chosen = self._one_per_box(chosen + checked + second, first=len(chosen))
+            found = [c[0] for c in chosen]
+        if self.config.frontend.shape_hidden_by_instances and rejected:
+            rejected = [rejected[k] for k in self._clear_of(found, rejected)[1]]
+            if rejected:
+                occluders = self._shape.instance_pixels(found, depth_m, intrinsics)
+                behind = [c for c in map_each(lambda T: self._shape.judge_behind(T, cloud, depth_m, intrinsics,
+                                                                                 occluders, found), rejected)
+                          if c is not None]
+                if behind:
+                    chosen = self._one_per_box(chosen + behind, first=len(chosen))
+        return chosen
 
     def _clear_of(self, found, rejected) -> tuple[np.ndarray, list[int]]:
         """``box_overlaps`` of ``found`` followed by ``rejected``, and the indices of the

@@ -58,6 +58,9 @@ UNHELD_SHARE = 0.1
 # same hits on channel seeds 5 / 311 and bracket 0 / 9 / 13 / 33 / 47 / 113 as with every one
 # (channel 9 one more, 307 one fewer), for ~30 ms less CPU a busy channel frame.
 MERGED_REF_STRIDE = 2
+# ``residual_poses``: a frame point within this many voxels of a found instance's surface is
+# that instance's, and left out of the votes again.
+RESIDUAL_VOXELS = 1.5
 
 
 @dataclass
@@ -128,6 +131,11 @@ class ShapeFrontEnd:
     def depth_tolerance(self) -> float:
         """Metres: a model point agrees with the depth image within this."""
         return max(self.fe.shape_depth_tolerance, 0.8 * self.voxel)
+
+    @property
+    def non_convex(self) -> bool:
+        """Whether the model hides parts of itself (an L bracket; ``_self_hiding``)."""
+        return self._self_hiding > 0
 
     @property
     def judges_pairs(self) -> bool:
@@ -392,6 +400,45 @@ class ShapeFrontEnd:
                 out.append(cluster_poses(poses[mine], share[mine], 360.0 / ANGLE_STEPS, 0.1 * self.diameter,
                                          fe.shape_joined_clusters, densest=True))
         return np.concatenate(out) if out else np.zeros((0, 4, 4))
+
+    def residual_poses(self, cloud: FrameCloud, found, taken) -> np.ndarray:
+        """(K, 4, 4) hypotheses voted again over what the instances ``found`` leave of the
+        segments they touch: their points (within ``RESIDUAL_VOXELS`` of a found pose's
+        surface) taken out, the rest cut into connected segments again, each one's best
+        ``shape_segment_clusters`` clusters of its references' poses (those not among
+        ``taken``, the hypotheses already refined). A bracket in a segment with its
+        neighbours pairs its references with their points: missed brackets that pass every
+        check at their true pose had 0-3 right references of 40-60 in the frame's votes,
+        11-32 voted over their own points alone (seed 157)."""
+        empty = np.zeros((0, 4, 4))
+        if cloud.segments is None or not len(found) or cloud.tree is None:
+            return empty
+        surfaces = np.concatenate([self._surface @ np.asarray(T)[:3, :3].T + np.asarray(T)[:3, 3] for T in found])
+        d, _ = cKDTree(surfaces).query(cloud.points, distance_upper_bound=RESIDUAL_VOXELS * self.voxel)
+        explained = np.isfinite(d)
+        labels = cloud.segments
+        touched = np.unique(labels[explained & (labels >= 0)])
+        rest = np.flatnonzero(~explained & np.isin(labels, touched))
+        fe = self.fe
+        if len(rest) < fe.shape_min_segment:
+            return empty
+        sub = connected_segments(cloud.points[rest], fe.shape_segment_link * self.voxel, fe.shape_min_segment)
+        new = np.full(len(cloud.points), -1, np.int64)
+        new[rest] = sub
+        if not np.any(new >= 0):
+            return empty
+        reach = None
+        if fe.shape_merged_reach:
+            reach = np.full(len(cloud.points), np.inf)
+            for label in np.unique(sub[sub >= 0]):
+                mine = new == label
+                if not within_reach(cloud.points[mine], self.diameter):
+                    reach[mine] = self.central_reach
+        s, _, poses, share = self._ppf.vote(cloud.points, cloud.normals, new, fe.shape_ref_step,
+                                            fe.shape_max_partners, reach=reach)
+        if len(poses) < 2:
+            return empty
+        return self.segment_poses(self._ppf.canonical_poses(poses), share, new[s], np.asarray(taken).reshape(-1, 4, 4))
 
     def refine_and_check(self, transforms, cloud: FrameCloud, depth_m: np.ndarray,
                          intrinsics: CameraIntrinsics, started: "Prefetch | None" = None, offset: int = 0,
