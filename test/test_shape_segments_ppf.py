@@ -1131,3 +1131,47 @@ def test_central_radius_of_a_flat_patch_falls_back_to_every_point():
 
     g = np.stack(np.meshgrid(np.linspace(0, 0.2, 21), np.linspace(0, 0.2, 21)), -1).reshape(-1, 2)
     assert abs(central_radius(np.column_stack([g, np.zeros(len(g))])) - 0.1 * np.sqrt(2.0)) < 1e-9
+
+
+def test_the_segments_an_instance_found_touches_are_voted_again_without_its_points():
+    """Two brackets side by side are one segment; with the first found, what it leaves of
+    the segment is voted again (``residual_poses``) and gives the second its pose. Nothing
+    found: nothing voted again."""
+    from multi_instance_reg.rgbd.pipeline import PipelineConfig
+    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.synthetic.objects import get_object, object_mesh
+    from multi_instance_reg.synthetic.scene import look_at
+    from multi_instance_reg.transforms import invert_transform
+
+    mesh = object_mesh(get_object("bracket"))
+    shape = ShapeFrontEnd(build_model_from_mesh(mesh, "bracket"), PipelineConfig().frontend)
+    assert shape.non_convex
+    intr = CameraIntrinsics(K=np.array([[380.0, 0, 160], [0, 380.0, 120], [0, 0, 1]]), width=320, height=240)
+    T1 = invert_transform(look_at(np.array([0.35, -0.25, 0.4]), np.zeros(3)))
+    T2 = T1 @ make_transform(rotation_z(90.0), [0.02, 0.09, 0.0])
+    dense, _ = sample_surface(mesh, 0.001)
+    first, second = _depth_of(dense, T1, intr), _depth_of(dense, T2, intr)
+    depth = np.where((first > 0) & ((second == 0) | (first < second)), first, second)
+    cloud = shape.frame_cloud(depth, intr, None)
+
+    def on(T):
+        surf = shape._surface @ T[:3, :3].T + T[:3, 3]
+        return np.min(np.linalg.norm(cloud.points[:, None] - surf[None], axis=2), axis=1) < shape.voxel
+
+    def right(P, deg=15.0, metres=0.03):
+        return rotation_angle_deg(P[:3, :3].T @ T2[:3, :3]) < deg and np.linalg.norm(P[:3, 3] - T2[:3, 3]) < metres
+
+    ids = np.unique(cloud.segments[on(T1) | on(T2)])
+    assert len(ids) == 1 and ids[0] >= 0                        # one segment holds both
+    assert len(shape.residual_poses(cloud, [], np.zeros((0, 4, 4)))) == 0
+    again = shape.residual_poses(cloud, [T1], np.zeros((0, 4, 4)))
+    assert 1 <= len(again) and any(right(P) for P in again)
+    refined = [shape.refine_one(P, cloud, depth, intr) for P in again]
+    assert any(r is not None and right(r[0], 2.0, 0.005) for r in refined)
+    # A hypothesis already refined is not given again.
+    assert not any(right(P) for P in shape.residual_poses(cloud, [T1], np.stack([T2])))
+
+
+def rotation_z(degrees):
+    a = np.radians(degrees)
+    return np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
