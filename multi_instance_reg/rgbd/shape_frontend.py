@@ -720,45 +720,7 @@ class ShapeFrontEnd:
             return depth_support(*args)[1] <= fe.shape_max_free
 
         same = [i for i in same if may_pass(rejected[i])]
-        # Each pose's image rectangle (its visible surface's, grown by the outline band's
-        # reach): most pairs lie apart in the image and are not looked at further.
-        K = intrinsics.K
-        rects = {}
-        for i in same:
-            p = self._visible_surface(rejected[i])
-            if len(p) == 0:
-                continue
-            u, v = K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2], K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]
-            r = 1.5 * self.voxel * K[0, 0] / float(p[:, 2].min()) + 1.0
-            rects[i] = (v.min() - r, v.max() + r, u.min() - r, u.max() + r)
-        pixels = {}
-
-        def pixels_of(i):
-            if i not in pixels:
-                pixels[i] = self.instance_pixels([rejected[i]], depth_m, intrinsics)
-            return pixels[i]
-
-        rings = {}
-
-        def ring_of(i):
-            if i not in rings:
-                rings[i] = self._band_ring(rejected[i], depth_m.shape, intrinsics)
-            return rings[i]
-
-        candidates = []
-        for a, i in enumerate(same):
-            for j in same[a + 1:]:
-                if i not in rects or j not in rects or overlap[i, j] > limit or overlap[j, i] > limit:
-                    continue
-                ri, rj = rects[i], rects[j]
-                if ri[0] > rj[1] or rj[0] > ri[1] or ri[2] > rj[3] or rj[2] > ri[3]:
-                    continue
-                if pixels_of(j)[ring_of(i)].any() or pixels_of(i)[ring_of(j)].any():
-                    candidates.append((i, j))
-        # Every candidate's pixels computed here: the pool's threads below only read them.
-        for i, j in candidates:
-            pixels_of(i)
-            pixels_of(j)
+        candidates, pixels = self._meeting(rejected, same, overlap, limit, depth_m, intrinsics)
 
         def supported(a, b, hiding):
             # ``judge_behind``'s first test, alone: the full judging (the outline) only for
@@ -784,6 +746,113 @@ class ShapeFrontEnd:
         # Two at a time in the shared thread pool (as the refinement).
         passed = [r for r in (task.result() for task in submit_each(both, candidates)) if r is not None]
         return sorted(passed, key=lambda r: -(r[2][3] + r[3][3]))
+
+    def _meeting(self, rejected, idx, overlap: np.ndarray, limit: float, depth_m: np.ndarray,
+                 intrinsics: CameraIntrinsics) -> tuple[list[tuple[int, int]], dict]:
+        """The pairs (i, j) of the rejected poses ``idx`` whose boxes overlap by at most
+        ``limit`` and whose pixels meet (one's ``instance_pixels`` on the other's
+        ``_band_ring``), and those pixels of each pose in a pair (index -> image)."""
+        K = intrinsics.K
+        # Each pose's image rectangle (its visible surface's, grown by the outline band's
+        # reach): most pairs lie apart in the image and are not looked at further.
+        rects = {}
+        for i in idx:
+            p = self._visible_surface(rejected[i])
+            if len(p) == 0:
+                continue
+            u, v = K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2], K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]
+            r = 1.5 * self.voxel * K[0, 0] / float(p[:, 2].min()) + 1.0
+            rects[i] = (v.min() - r, v.max() + r, u.min() - r, u.max() + r)
+        pixels = {}
+
+        def pixels_of(i):
+            if i not in pixels:
+                pixels[i] = self.instance_pixels([rejected[i]], depth_m, intrinsics)
+            return pixels[i]
+
+        rings = {}
+
+        def ring_of(i):
+            if i not in rings:
+                rings[i] = self._band_ring(rejected[i], depth_m.shape, intrinsics)
+            return rings[i]
+
+        candidates = []
+        for a, i in enumerate(idx):
+            for j in idx[a + 1:]:
+                if i not in rects or j not in rects or overlap[i, j] > limit or overlap[j, i] > limit:
+                    continue
+                ri, rj = rects[i], rects[j]
+                if ri[0] > rj[1] or rj[0] > ri[1] or ri[2] > rj[3] or rj[2] > ri[3]:
+                    continue
+                if pixels_of(j)[ring_of(i)].any() or pixels_of(i)[ring_of(j)].any():
+                    candidates.append((i, j))
+        # Every candidate's pixels computed here: threads that judge them only read them.
+        for i, j in candidates:
+            pixels_of(i)
+            pixels_of(j)
+        return candidates, pixels
+
+    def judge_groups(self, rejected, overlap: np.ndarray, limit: float, cloud: FrameCloud, depth_m: np.ndarray,
+                     intrinsics: CameraIntrinsics, occluders: np.ndarray, found) -> list[tuple]:
+        """Rejected poses judged in groups of three or more that meet one another (a row of
+        touching instances, flush tops: channel seed 307 frame 9, three side by side, the
+        middle one rejected unless both neighbours are taken as found, each neighbour
+        unless the middle one is; pairs, ``judge_pairs``, cannot pass them). Of each place one
+        pose (the best supported where several overlap); each group (poses joined through
+        meeting pairs, ``_meeting``) judged with ``judge_behind``, each member with every
+        other taken as found besides ``found``; those that fail leave the group and the rest
+        are judged again, until all pass (returned: their results) or fewer than three are
+        left. Non-convex models only, as the pairs."""
+        if len(rejected) < 3 or not self.judges_pairs:
+            return []
+        fe = self.fe
+        every = np.ones(depth_m.shape, np.uint8)
+        score = {}
+        for i in range(len(rejected)):
+            T = rejected[i]
+            args = (T, self._surface, self._surface_normals, depth_m, intrinsics, self.tolerance_at(T),
+                    self._self_hiding)
+            hidden, _, _ = depth_support(*args, every)
+            support, free, _ = depth_support(*args)
+            # As the pairs': only those that can pass with some of their points hidden.
+            if hidden >= fe.shape_min_support and free <= fe.shape_max_free:
+                score[i] = support - free
+        kept = []
+        for i in sorted(score, key=lambda i: -score[i]):
+            if all(overlap[i, j] <= limit and overlap[j, i] <= limit for j in kept):
+                kept.append(i)
+        if len(kept) < 3:
+            return []
+        candidates, pixels = self._meeting(rejected, sorted(kept), overlap, limit, depth_m, intrinsics)
+        # Groups: the connected pieces of the meeting pairs.
+        group = {i: i for i in kept}
+
+        def root(i):
+            while group[i] != i:
+                group[i] = group[group[i]]
+                i = group[i]
+            return i
+
+        for i, j in candidates:
+            group[root(i)] = root(j)
+        members = {}
+        for i in kept:
+            members.setdefault(root(i), []).append(i)
+        out = []
+        for idx in members.values():
+            while len(idx) >= 3:
+                def judge(a, idx=idx):
+                    others = [b for b in idx if b != a]
+                    hide = np.maximum.reduce([occluders] + [pixels[b] for b in others])
+                    return self.judge_behind(rejected[a], cloud, depth_m, intrinsics, hide,
+                                             list(found) + [rejected[b] for b in others])
+                results = [task.result() for task in submit_each(judge, idx)]
+                if all(r is not None for r in results):
+                    out.extend(results)
+                    break
+                idx = [a for a, r in zip(idx, results) if r is not None]
+        return out
 
     def judge_hidden(self, T, cloud: FrameCloud, depth_m: np.ndarray, intrinsics: CameraIntrinsics,
                      explained: np.ndarray | None, found=()) -> tuple | None:
