@@ -35,7 +35,7 @@ from .model import ObjectModel
 from .guided import GuidedMatcher, guide_instances
 from .shape_frontend import ShapeFrontEnd, resolve_correspondences
 from .verify import free_space_share, surface_samples, texture_agreement
-from ..threads import limit_blas_threads, map_each
+from ..threads import limit_blas_threads, map_each, submit_each
 
 STAGES = ("sift", "matching", "lifting", "ecc", "refinement", "total")
 
@@ -466,19 +466,27 @@ class InstanceRegistration:
         t["lifting"] = (t3 - t0) * 1e3
         cloud = self._shape.frame_cloud(depth_m, intrinsics, None if search is None else search > 0, gravity)
         t4 = time.perf_counter()
-        # The vote clusters' poses do not depend on ECC: they are refined on the other core
-        # while the correspondences are made and ECC runs (those an ECC transform turns
-        # out to duplicate are not used).
-        started = []
+        # ECC does not need the vote clusters' poses (ppf): it runs in the shared pool as
+        # soon as the correspondences are made, while those poses are made (whose single-
+        # threaded steps left the other core idle); the poses do not depend on ECC either:
+        # they are refined on the other core until ECC is done (those an ECC transform turns
+        # out to duplicate are not used). "matching" then holds the pose clusters too, and
+        # "ecc" the wait for ECC after them.
+        started, solving = [], []
+
+        def start_ecc(s, g):
+            if len(s) >= 3:
+                solving.extend(submit_each(lambda pair: self._shape_ecc.register(*pair), [(s, g)]))
+
         src, tgt = self._shape.correspondences(cloud, on_poses=lambda: started.append(
-            self._shape.start_refining(list(cloud.poses), cloud, depth_m, intrinsics)))
+            self._shape.start_refining(list(cloud.poses), cloud, depth_m, intrinsics)), on_matches=start_ecc)
         started = started[0] if started else None
         t5 = time.perf_counter()
         t["shape"] = (t4 - t3) * 1e3
         t["matching"] = (t5 - t4) * 1e3
         hypotheses = [] if cloud.poses is None else list(cloud.poses)
         if len(src) >= 3:
-            reg = self._shape_ecc.register(src, tgt)
+            reg = solving[0].result() if solving else self._shape_ecc.register(src, tgt)
             hypotheses = [np.asarray(T, np.float64) for T in reg.transforms] + hypotheses
         offset = len(hypotheses) - (0 if cloud.poses is None else len(cloud.poses))
         t6 = time.perf_counter()

@@ -248,12 +248,13 @@ class ShapeFrontEnd:
                           up=ground[0] if ground else None, up_offset=ground[1] if ground else None,
                           planes=tuple(planes), grid=PointGrid(pts, normals, ICP_REACH * self.voxel))
 
-    def correspondences(self, cloud: FrameCloud, on_poses=None) -> tuple[np.ndarray, np.ndarray]:
+    def correspondences(self, cloud: FrameCloud, on_poses=None, on_matches=None) -> tuple[np.ndarray, np.ndarray]:
         """(model points (N, 3), scene points (N, 3)). ppf: each reference point of a
         segment with the model point its pair votes choose (over the symmetries); fpfh: each
         salient scene point with its ``shape_neighbours`` nearest model descriptors.
-        ``on_poses()`` is called as soon as ``cloud.poses`` (ppf) is set, before the
-        correspondences are made (to start their refinement)."""
+        ``on_poses()`` is called as soon as ``cloud.poses`` (ppf) is set (to start their
+        refinement); ``on_matches(src, tgt)`` (ppf) as soon as the correspondences are made,
+        before the vote clusters' poses, which they do not depend on (to start ECC on them)."""
         if self.features == "ppf":
             if cloud.segments is None or not np.any(cloud.segments >= 0):
                 return np.zeros((0, 3)), np.zeros((0, 3))
@@ -261,6 +262,10 @@ class ShapeFrontEnd:
             s, m, poses, share = self._ppf.vote(cloud.points, cloud.normals, cloud.segments,
                                                 self.fe.shape_ref_step, self.fe.shape_max_partners, reach=reach)
             poses = self._ppf.canonical_poses(poses)
+            src, matched = self._ppf.correspondences(s, poses, cloud.points, canonical=True)
+            tgt = cloud.points[matched]
+            if on_matches is not None:
+                on_matches(src, tgt)
             if self.fe.shape_pose_clusters > 0:
                 # The references' own poses, clustered: an instance whose references ECC
                 # does not group (too few agree among the rest) still gets a hypothesis.
@@ -296,8 +301,7 @@ class ShapeFrontEnd:
                     cloud.poses = np.concatenate([faces, cloud.poses[~near]])
             if on_poses is not None:
                 on_poses()
-            src, s = self._ppf.correspondences(s, poses, cloud.points, canonical=True)
-            return src, cloud.points[s]
+            return src, tgt
         s, m = self._matcher.match(cloud.descriptors)
         return self._model_pts[self._model_idx[m]], cloud.points[cloud.salient[s]]
 
