@@ -1265,3 +1265,79 @@ def test_the_segments_an_instance_found_touches_are_voted_again_without_its_poin
 def rotation_z(degrees):
     a = np.radians(degrees)
     return np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+
+
+def _vote_reference(p, n, refs, lo, hi, reach, max_partners, bucket_start, entry_first, entry_alpha, n_model,
+                    d_step, a_step, n_dist):
+    """``ppf._vote`` written plainly: a dict accumulator per reference, the peak the
+    first-voted of the largest cells. Also returns the most votes one reference cast."""
+    import math
+
+    from multi_instance_reg.rgbd.ppf import TURN_BINS, _align_to_x, _feature
+
+    out, most = [], 0
+    for r, i in enumerate(refs):
+        d2 = ((p[lo[r]:hi[r]] - p[i]) ** 2).sum(axis=1)
+        step = max(1, int((d2 < reach[r] ** 2).sum()) // max_partners)
+        R = _align_to_x(n[i, 0], n[i, 1], n[i, 2])
+        acc, seen, partners, cast = {}, -1, 0, 0
+        for j in range(lo[r], hi[r]):
+            if j == i or d2[j - lo[r]] >= reach[r] ** 2:
+                continue
+            seen += 1
+            if seen % step:
+                continue
+            key, a_s = _feature(p, n, i, j, R, d_step, a_step, n_dist)
+            if key < 0:
+                continue
+            partners += 1
+            for e in range(bucket_start[key], bucket_start[key + 1]):
+                turn = a_s - entry_alpha[e]
+                turn = turn + 2.0 * math.pi if turn < 0 else turn
+                tb = int(turn / (2.0 * math.pi) * TURN_BINS)
+                cell = entry_first[e] * TURN_BINS + (0 if tb >= TURN_BINS else tb)
+                acc[cell] = acc.get(cell, 0.0) + 1.0      # dicts keep the order of first votes
+                cast += 1
+        best, cell = 0.0, -1
+        for c, v in acc.items():
+            if v > best:
+                best, cell = v, c
+        out.append((cell // TURN_BINS if cell >= 0 else -1, cell % TURN_BINS if cell >= 0 else 0, best, partners))
+        most = max(most, cast)
+    return out, most
+
+
+@pytest.mark.parametrize("layout", ["random", "plane"])
+def test_vote_kernel_gives_the_peaks_of_a_plain_accumulator(layout):
+    """Known answer for ``_vote``'s accumulator (every vote listed, repeats too): the same
+    peaks as a dict per reference. "plane": three coplanar model points and a flat scene,
+    whose every partner votes for all the model's pairs: a reference casts more votes than
+    the accumulator has cells, and the list of votes is grown."""
+    from multi_instance_reg.rgbd.ppf import TURN_BINS, _vote
+
+    rng = np.random.default_rng(4)
+    if layout == "random":
+        mp = rng.uniform(-0.05, 0.05, (300, 3))
+        mn = rng.normal(size=(300, 3))
+        sp = rng.uniform(-0.08, 0.08, (400, 3))
+        sn = rng.normal(size=(400, 3))
+    else:
+        mp = np.array([[0.0, 0.0, 0.0], [0.025, 0.0, 0.0], [0.0, 0.025, 0.0]])
+        mn = np.tile([0.0, 0.0, 1.0], (3, 1))
+        sp = np.column_stack([rng.uniform(-0.08, 0.08, (400, 2)), np.zeros(400)])
+        sn = np.tile([0.0, 0.0, 1.0], (400, 1))
+    mn = mn / np.linalg.norm(mn, axis=1, keepdims=True)
+    sn = sn / np.linalg.norm(sn, axis=1, keepdims=True)
+    model = PPFModel(mp, mn, 0.15, 0.01)
+    refs = np.arange(0, 400, 7, dtype=np.int64)
+    lo = np.where(refs < 200, 0, 200).astype(np.int64)
+    hi = lo + 200
+    reach = np.full(len(refs), 0.12)
+    args = (sp, sn, refs, lo, hi, reach, 150, model._start, model._first, model._alpha, len(model.points),
+            model.d_step, model.a_step, model.n_dist)
+    m, turn, votes, partners = _vote(*args)
+    expected, most = _vote_reference(*args)
+    assert [tuple(x) for x in zip(m.tolist(), turn.tolist(), votes.tolist(), partners.tolist())] == expected
+    assert (m >= 0).sum() > len(refs) // 2
+    if layout == "plane":
+        assert most > len(model.points) * TURN_BINS
