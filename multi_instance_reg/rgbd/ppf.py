@@ -310,13 +310,14 @@ class PPFModel:
             out = cand[np.arange(len(out)), best]
         return out
 
-    def correspondences(self, scene_idx, poses, points: np.ndarray, neighbours: int = 4, canonical: bool = False
-                        ) -> tuple[np.ndarray, np.ndarray]:
+    def correspondences(self, scene_idx, poses, points: np.ndarray, neighbours: int = 4, canonical: bool = False,
+                        tree=None) -> tuple[np.ndarray, np.ndarray]:
         """(model points (N, 3), scene indices (N,)): for each reference, itself and its
         ``neighbours`` nearest scene points spread over a few voxels, each with the model
         point its reference's (canonical) pose puts there. One reference thus gives a small
         rigid set; the references that agree on an instance's pose give one large consistent
-        set, which ECC finds among the rest."""
+        set, which ECC finds among the rest. ``tree``: a ``cKDTree(points)`` already built
+        (the frame cloud's)."""
         if len(scene_idx) == 0:
             return np.zeros((0, 3)), np.zeros(0, np.int64)
         if not canonical:
@@ -324,7 +325,10 @@ class PPFModel:
         from scipy.spatial import cKDTree
 
         k = 3 * neighbours + 1
-        _, nb = cKDTree(points).query(points[scene_idx], k=min(k, len(points)))
+        tree = cKDTree(points) if tree is None else tree
+        # On every core: the pool's workers wait for ECC, which waits for these (the
+        # queries are independent: the same neighbours on any number of threads).
+        _, nb = tree.query(points[scene_idx], k=min(k, len(points)), workers=-1)
         nb = np.atleast_2d(nb)[:, ::3][:, :neighbours + 1]       # itself first, then every third nearest
         tgt = points[nb]                                          # (R, K, 3)
         Tinv = np.linalg.inv(poses)

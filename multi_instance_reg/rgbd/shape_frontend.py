@@ -262,7 +262,7 @@ class ShapeFrontEnd:
             s, m, poses, share = self._ppf.vote(cloud.points, cloud.normals, cloud.segments,
                                                 self.fe.shape_ref_step, self.fe.shape_max_partners, reach=reach)
             poses = self._ppf.canonical_poses(poses)
-            src, matched = self._ppf.correspondences(s, poses, cloud.points, canonical=True)
+            src, matched = self._ppf.correspondences(s, poses, cloud.points, canonical=True, tree=cloud.tree)
             tgt = cloud.points[matched]
             if on_matches is not None:
                 on_matches(src, tgt)
