@@ -1341,3 +1341,33 @@ def test_vote_kernel_gives_the_peaks_of_a_plain_accumulator(layout):
     assert (m >= 0).sum() > len(refs) // 2
     if layout == "plane":
         assert most > len(model.points) * TURN_BINS
+
+
+@pytest.mark.parametrize("order", ["raster", "random"])
+def test_nearest_model_points_of_the_outline_checks_are_those_of_a_full_sort(order):
+    """Known answer for ``verify._nearest`` (grid cells scanned within the previous query's
+    bound): each query's k nearest as a full sort of the distances gives them, and a tie
+    flagged exactly where the (k+1)-th is as near as the k-th (coincident model points,
+    queries on a lattice)."""
+    from multi_instance_reg.rgbd.verify import _nearest
+
+    rng = np.random.default_rng(11)
+    p = rng.uniform(-0.05, 0.05, (300, 3))
+    p[:, 2] *= 0.1                                       # a flat-ish model, as a face seen alone
+    p = np.concatenate([p, p[:20]])                      # coincident samples: exact ties
+    u, v = np.meshgrid(np.linspace(-0.09, 0.09, 40), np.linspace(-0.09, 0.09, 30))
+    P = np.column_stack([u.ravel(), v.ravel(), np.full(u.size, 0.01)])
+    P = np.concatenate([P, p[:25] + 1e-4, p[300:305]])   # some on the model, some on a duplicate
+    if order == "random":
+        P = P[rng.permutation(len(P))]
+    k = 8
+    j, tied = _nearest(P, p, k)
+    d = ((P[:, None, :] - p[None]) ** 2).sum(axis=2)
+    ranked = np.sort(d, axis=1)
+    want_tied = ranked[:, k] <= ranked[:, k - 1] * (1.0 + 1e-12)
+    assert np.array_equal(tied, want_tied)
+    assert want_tied.any() and not want_tied.all()
+    for i in np.flatnonzero(~tied):
+        assert set(j[i].tolist()) == set(np.argsort(d[i], kind="stable")[:k].tolist())
+    # Tied rows still hold k points as near as the k nearest.
+    assert np.allclose(np.sort(np.take_along_axis(d, j, axis=1), axis=1)[tied], ranked[tied, :k])
