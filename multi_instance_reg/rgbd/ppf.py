@@ -162,19 +162,22 @@ def _vote(p, n, refs, seg_start, seg_end, reach, max_partners, bucket_start, ent
                 grown = np.empty(2 * (nt + b1 - b0), np.int64)
                 grown[:nt] = touched[:nt]
                 touched = grown
-            for e in range(b0, b1):
-                turn = a_s - entry_alpha[e]
+            # Every vote's cell listed, repeats too: the test "first vote in this cell?" was
+            # a branch the CPU mispredicted on most votes (a third of the time). The cells
+            # first (a loop that vectorises), then the votes.
+            cells = touched[nt:nt + b1 - b0]
+            alphas, firsts = entry_alpha[b0:b1], entry_first[b0:b1]
+            for e in range(b1 - b0):
+                turn = a_s - alphas[e]
                 if turn < 0:
                     turn += two_pi
                 tb = int(turn / two_pi * TURN_BINS)
                 if tb >= TURN_BINS:
                     tb = 0
-                cell = entry_first[e] * TURN_BINS + tb
-                # Every vote's cell listed, repeats too: the test "first vote in this cell?"
-                # was a branch the CPU mispredicted on most votes (a third of the time).
-                touched[nt] = cell
-                nt += 1
-                acc[cell] += 1.0
+                cells[e] = firsts[e] * TURN_BINS + tb
+            for e in range(b1 - b0):
+                acc[cells[e]] += 1.0
+            nt += b1 - b0
         # The peak, and the accumulator cleared for the next reference (touched cells only).
         # A cell's first listing sees its full count and clears it, its repeats see 0: the
         # same peak (the first-touched of the largest) as a list without repeats.
