@@ -373,7 +373,7 @@ def cluster_poses(poses: np.ndarray, weights: np.ndarray, max_angle_deg: float, 
     return poses[chosen] if best else np.zeros((0, 4, 4))
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _pose_density(R, t, w, max_shift, cos_max):
     """(N,): per pose, the summed weight ``w`` of the poses (itself included) within
     ``max_shift`` and an angle of arccos(``cos_max``) of it."""
@@ -386,7 +386,7 @@ def _pose_density(R, t, w, max_shift, cos_max):
     return out
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _poses_near(R, t, i, j, max_shift, cos_max):
     """Poses i and j within ``max_shift`` and an angle of arccos(``cos_max``)."""
     dx, dy, dz = t[j, 0] - t[i, 0], t[j, 1] - t[i, 1], t[j, 2] - t[i, 2]
@@ -400,7 +400,7 @@ def _poses_near(R, t, i, j, max_shift, cos_max):
     return (tr - 1.0) / 2.0 >= cos_max
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _greedy_pose_labels(R, t, max_shift, cos_max):
     """cluster_poses' greedy pass, compiled (it ran 20 ms a frame as numpy calls per seed):
     each pose in turn, if still unassigned, seeds a cluster of the unassigned poses within
@@ -443,7 +443,7 @@ def _canonical_turns(T: np.ndarray, sym: Symmetries) -> np.ndarray:
     return S
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _align_all(n):
     """(N, 3, 3): _align_to_x of each row of n (one call, not one per row: 2-3 ms a frame)."""
     out = np.empty((n.shape[0], 3, 3))

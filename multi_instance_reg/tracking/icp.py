@@ -62,7 +62,7 @@ def sample_model(points: np.ndarray, count: int, seed: int = 0) -> tuple[np.ndar
     return np.ascontiguousarray(pts), np.ascontiguousarray(normals)
 
 
-@numba.njit(cache=True, fastmath=True)
+@numba.njit(cache=True, fastmath=True, nogil=True)
 def _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, max_dist, centre, A, b):
     """One projective association pass; fills the normal equations A x = b of the twist
     x = (omega, tau), q -> q + omega x (q - centre) + tau (the rotation about the object's
@@ -130,7 +130,7 @@ def _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, max_dist, centre, A, b):
     return used, visible, sq, facing, inside, occluded
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _constrained_step(A, b, radius, damping, min_information):
     """The twist solving A x = b in the directions the depth constrains, 0 in the others.
 
@@ -165,7 +165,7 @@ def _constrained_step(A, b, radius, damping, min_information):
     return y
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _icp(T0, pts, nrm, depth, fx, fy, cx, cy, iterations, max_dist, inlier_dist, damping, min_information,
          centroid, radius):
     T = T0.copy()
