@@ -835,7 +835,9 @@ def test_a_standing_bracket_below_a_plane_of_its_own_base_plates_top_does_not_re
     plate's top flush with it), found as a support plane. The true pose's base plate lies
     below that plane by its thickness, but the rays onto it show the bracket's own top face
     in the plane, not a support in front of it (bracket seed 701 frame 4: 9 true poses of
-    10 rejected). A pose turned over, its upright plate sunk into the table, still is."""
+    10 rejected). A pose turned over, its upright plate sunk into the table, still is; so is
+    one sunk into the table (the plane it stands on), its base plate's top 4 mm under it:
+    nothing stands below the table, so its own face there is no object top."""
     from multi_instance_reg.rgbd.pipeline import PipelineConfig
     from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
     from multi_instance_reg.synthetic.objects import BRACKET_THICKNESS_M, get_object, object_mesh
@@ -847,8 +849,11 @@ def test_a_standing_bracket_below_a_plane_of_its_own_base_plates_top_does_not_re
     cam = look_at(np.array([0.3, 0.0, 0.4]), np.zeros(3))               # camera -> world, table z = 0
     T = invert_transform(cam) @ make_transform(np.eye(3), [0.0, 0.0, 0.04])      # base plate's underside on it
     over = invert_transform(cam) @ make_transform(np.diag([1.0, -1.0, -1.0]), [0.0, 0.0, -0.028])
+    sunk = invert_transform(cam) @ make_transform(np.eye(3), [-0.05, -0.17, 0.04 - BRACKET_THICKNESS_M - 0.004])
     dense, _ = sample_surface(mesh, 0.001)
     depth = _depth_of(dense, T, intr)
+    seen = _depth_of(dense, sunk, intr)
+    depth = np.where((seen > 0) & ((depth == 0) | (seen < depth)), seen, depth)
     K = intr.K
     v, u = np.mgrid[0:intr.height, 0:intr.width]
     rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u, float)], -1) @ cam[:3, :3].T
@@ -858,19 +863,20 @@ def test_a_standing_bracket_below_a_plane_of_its_own_base_plates_top_does_not_re
     top = BRACKET_THICKNESS_M + 0.004
     board = ((top - cam[2, 3]) / rays[..., 2]).astype(np.float32)
     x, y = cam[0, 3] + board * rays[..., 0], cam[1, 3] + board * rays[..., 1]
-    ground = np.where((np.abs(x) <= 0.15) & (np.abs(y) <= 0.12), board, table)
+    ground = np.where((np.abs(x) <= 0.15) & (np.abs(y) <= 0.1), board, table)
     depth = np.where((depth > 0) & (depth < ground), depth, ground)
     shape = ShapeFrontEnd(build_model_from_mesh(mesh, "bracket"), PipelineConfig().frontend)
     cloud = shape.frame_cloud(depth, intr, None)
     level = [(up, o) for up, o in cloud.planes if float(cam[:3, :3] @ up @ [0, 0, 1]) > 0.99]
     board_plane = [(up, o) for up, o in level if abs(o - (cam[2, 3] - top)) < 0.003]
-    assert len(board_plane) == 1
+    assert len(board_plane) == 1 and abs(cloud.up_offset - cam[2, 3]) < 0.003     # the table is the support
     up, offset = board_plane[0]
     pts = shape._surface @ T[:3, :3].T + T[:3, 3]
     below = pts[pts @ up + offset < -2 * shape.voxel]                      # its base plate, under the board's plane
     assert len(below) > 0 and shape._pierces_plane(below, up, offset, depth, intr)   # without its own face: through
     assert not shape.pierces(T, cloud, depth, intr)
     assert shape.pierces(over, cloud, depth, intr)
+    assert shape.pierces(sunk, cloud, depth, intr)
 
 
 def test_an_object_beyond_the_tables_edge_and_lower_does_not_reach_through_it():
