@@ -503,10 +503,14 @@ def test_refinement_in_the_thread_pool_gives_the_serial_results():
     hypotheses += [hypotheses[2].copy(), T.copy()]          # a duplicate, and the true pose
     order = shape.distinct(hypotheses)
     assert 2 < len(order) < len(hypotheses)                  # the duplicate is refined once
-    serial = [shape.refine_one(np.array(hypotheses[k]), cloud, depth, intr) for k in order]
-    serial = [r for r in serial if r is not None]
-    assert len(serial) >= 1
+    firsts = [shape.refine_one(np.array(hypotheses[k]), cloud, depth, intr) for k in order]
+    failed = [k for k, r in zip(order, firsts) if r is None]
+    assert len(firsts) > len(failed) >= 1
     for early in (None, 4):
+        # The groups whose first failed, tried again from their next (``_next_of_failed``).
+        again = [shape.refine_one(np.array(hypotheses[k]), cloud, depth, intr)
+                 for k in shape._next_of_failed(hypotheses, order, failed, early or 0)]
+        serial = [r for r in firsts + again if r is not None]
         started = None
         if early is not None:
             started = shape.start_refining(hypotheses[early:], cloud, depth, intr)
@@ -514,6 +518,30 @@ def test_refinement_in_the_thread_pool_gives_the_serial_results():
         assert len(pooled) == len(serial)
         for a, b in zip(pooled, serial):
             assert np.array_equal(a[0], b[0]) and a[1:] == b[1:]
+
+
+def test_a_group_whose_first_fails_is_tried_again_from_its_next_vote_pose():
+    """``distinct`` refines the first of each group of near-identical hypotheses; where that
+    one fails, ``_next_of_failed`` names the group's next one at or after ``offset`` (the vote
+    poses, after ECC's), one a group; groups whose first passed, and ECC's own duplicates
+    before ``offset``, are not tried again."""
+    from multi_instance_reg.rgbd.pipeline import FrontEndConfig
+    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.symmetry import _rotation
+
+    shape = ShapeFrontEnd(_box_model(), FrontEndConfig())
+    A = make_transform(np.eye(3), [0.0, 0.0, 1.5])
+    B = make_transform(_rotation(np.array([0.0, 1.0, 0.0]), np.radians(90.0)), [0.3, 0.0, 1.5])
+    near = make_transform(_rotation(np.array([1.0, 0.0, 0.0]), np.radians(5.0)), [0.002, 0.0, 0.0])
+    # ECC: A, B, A again; votes (offset 3): B, A, A, B.
+    hypotheses = [A, B, A @ near, B @ near, A @ near @ near, A, B]
+    order = shape.distinct(hypotheses)
+    assert sorted(order) == [0, 1]
+    assert shape._next_of_failed(hypotheses, order, [0], 3) == [4]
+    assert shape._next_of_failed(hypotheses, order, [0, 1], 3) == [3, 4]
+    assert shape._next_of_failed(hypotheses, order, [1], 3) == [3]
+    assert shape._next_of_failed(hypotheses, order, [], 3) == []
+    assert shape._next_of_failed(hypotheses, order, [0], 7) == []
 
 
 def test_thread_pool_helpers_keep_order_and_raise_errors():

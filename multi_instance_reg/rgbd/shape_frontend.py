@@ -447,7 +447,8 @@ class ShapeFrontEnd:
         """Each transform refined by ICP against the frame's points and kept when the depth
         image agrees with the model's visible surface: (T, support share, agreeing points, evidence).
         Hypotheses that are one pose (ECC's and the vote clusters' for one instance) are
-        refined once: the first of each group, in the order given (``distinct``). Each is
+        refined once: the first of each group, in the order given (``distinct``); where that
+        one fails, the group's next from ``offset`` on as well (``_next_of_failed``). Each is
         refined and judged on its own (``refine_one``), so they run in the shared thread
         pool, two at a time on two cores (the compiled kernels, k-d tree queries and OpenCV
         calls release the GIL); the results in the order of ``distinct``, the same as one
@@ -462,12 +463,22 @@ class ShapeFrontEnd:
             return []
         order = self.distinct(transforms)
         claimed = started.stop() if started is not None else set()
-        tasks = [_Claimed(started, k - offset) if k - offset in claimed else None for k in order]
-        missing = [k for k, task in zip(order, tasks) if task is None]
-        new = iter(submit_each(lambda T0: self._refine(T0, cloud, depth_m, intrinsics),
-                               [np.array(transforms[k], np.float64) for k in missing]))
-        tasks = [task if task is not None else next(new) for task in tasks]
-        results = [task.result() for task in tasks]
+
+        def refined(indices):
+            tasks = [_Claimed(started, k - offset) if k - offset in claimed else None for k in indices]
+            missing = [k for k, task in zip(indices, tasks) if task is None]
+            new = iter(submit_each(lambda T0: self._refine(T0, cloud, depth_m, intrinsics),
+                                   [np.array(transforms[k], np.float64) for k in missing]))
+            return [(task if task is not None else next(new)).result() for task in tasks]
+
+        results = refined(order)
+        # A group whose first went wrong (an ECC transform ICP slid off, or one the checks
+        # turn down) is tried once more from its next hypothesis after ``offset`` (a vote
+        # cluster's pose: often refined already, ahead of ECC): seed 157 frame 2 lost a
+        # bracket whose vote pose, refined, was right.
+        again = self._next_of_failed(transforms, order, [k for k, r in zip(order, results) if r[0] is None], offset)
+        if again:
+            results = results + refined(again)
         if rejected is not None:
             rejected.extend(T for kept, T, support, _ in results if kept is None and T is not None and (
                 support < self.fe.shape_min_support or self.fe.shape_outline_by_instances))
@@ -491,6 +502,25 @@ class ShapeFrontEnd:
         rest = sorted(set(range(len(transforms))) - set(first))
         return Prefetch(lambda T0: self._refine(T0, cloud, depth_m, intrinsics),
                         [np.array(T, np.float64) for T in transforms], sorted(first, reverse=True) + rest[::-1])
+
+    def _next_of_failed(self, transforms, order, failed, offset: int) -> list[int]:
+        """Of each group of near-identical transforms (``distinct``: ``order`` its firsts)
+        whose first is among ``failed``, the next member at or after ``offset``; a member
+        belongs to the earliest first within ``distinct``'s bounds (as its greedy grouping)."""
+        if not failed or len(order) == len(transforms):
+            return []
+        P = np.stack([np.asarray(T, np.float64) for T in transforms])
+        firsts = np.sort(np.asarray(order, np.int64))
+        cos = (np.einsum("aij,bij->ab", P[offset:, :3, :3], P[firsts, :3, :3]) - 1.0) / 2.0
+        shift = np.linalg.norm(P[offset:, None, :3, 3] - P[firsts][None, :, :3, 3], axis=2)
+        near = (cos >= np.cos(np.radians(360.0 / ANGLE_STEPS))) & (shift < 0.1 * self.diameter)
+        wanted, out = set(failed), []
+        for j in range(offset, len(transforms)):
+            g = np.flatnonzero(near[j - offset])
+            if len(g) and firsts[g[0]] != j and firsts[g[0]] in wanted:
+                wanted.discard(firsts[g[0]])
+                out.append(j)
+        return out
 
     def distinct(self, transforms) -> list[int]:
         """Indices of the transforms to refine: the first of each group of near-identical
