@@ -504,19 +504,22 @@ def test_refinement_in_the_thread_pool_gives_the_serial_results():
     order = shape.distinct(hypotheses)
     assert 2 < len(order) < len(hypotheses)                  # the duplicate is refined once
     firsts = [shape.refine_one(np.array(hypotheses[k]), cloud, depth, intr) for k in order]
+    serial = [r for r in firsts if r is not None]
     failed = [k for k, r in zip(order, firsts) if r is None]
-    assert len(firsts) > len(failed) >= 1
+    assert len(serial) >= 1 and len(failed) >= 1
     for early in (None, 4):
-        # The groups whose first failed, tried again from their next (``_next_of_failed``).
+        # The groups whose first failed, tried again from their next (``_next_of_failed``),
+        # go to ``second`` (only where no instance is).
         again = [shape.refine_one(np.array(hypotheses[k]), cloud, depth, intr)
                  for k in shape._next_of_failed(hypotheses, order, failed, early or 0)]
-        serial = [r for r in firsts + again if r is not None]
+        again = [r for r in again if r is not None]
         started = None
         if early is not None:
             started = shape.start_refining(hypotheses[early:], cloud, depth, intr)
-        pooled = shape.refine_and_check(hypotheses, cloud, depth, intr, started, early or 0)
-        assert len(pooled) == len(serial)
-        for a, b in zip(pooled, serial):
+        second = []
+        pooled = shape.refine_and_check(hypotheses, cloud, depth, intr, started, early or 0, second=second)
+        assert len(again) >= 1 and len(pooled) == len(serial) and len(second) == len(again)
+        for a, b in zip(pooled + second, serial + again):
             assert np.array_equal(a[0], b[0]) and a[1:] == b[1:]
 
 

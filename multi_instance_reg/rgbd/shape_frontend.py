@@ -447,8 +447,9 @@ class ShapeFrontEnd:
         """Each transform refined by ICP against the frame's points and kept when the depth
         image agrees with the model's visible surface: (T, support share, agreeing points, evidence).
         Hypotheses that are one pose (ECC's and the vote clusters' for one instance) are
-        refined once: the first of each group, in the order given (``distinct``); where that
-        one fails, the group's next from ``offset`` on as well (``_next_of_failed``). Each is
+        refined once: the first of each group, in the order given (``distinct``); with
+        ``second``, where that one fails, the group's next from ``offset`` on as well
+        (``_next_of_failed``; kept ones go to ``second``). Each is
         refined and judged on its own (``refine_one``), so they run in the shared thread
         pool, two at a time on two cores (the compiled kernels, k-d tree queries and OpenCV
         calls release the GIL); the results in the order of ``distinct``, the same as one
@@ -458,7 +459,8 @@ class ShapeFrontEnd:
         to be judged: at least half ``shape_min_support``), and with
         ``shape_outline_by_instances`` those rejected by the later checks too, for
         ``judge_behind``. ``second``: receives the poses kept at their second look
-        (``shape_second_look``); without it they are not returned."""
+        (``shape_second_look``) and the groups' second tries; without it they are not
+        returned (nor tried)."""
         if cloud.grid is None:
             return []
         order = self.distinct(transforms)
@@ -475,15 +477,17 @@ class ShapeFrontEnd:
         # A group whose first went wrong (an ECC transform ICP slid off, or one the checks
         # turn down) is tried once more from its next hypothesis after ``offset`` (a vote
         # cluster's pose: often refined already, ahead of ECC): seed 157 frame 2 lost a
-        # bracket whose vote pose, refined, was right.
+        # bracket whose vote pose, refined, was right. Those kept go with ``second`` (added
+        # only where no instance is): ranked with the rest, a wrong one (91 deg off, passing
+        # every check) took a bracket's place from its right pose (seed 0 frame 6).
         again = self._next_of_failed(transforms, order, [k for k, r in zip(order, results) if r[0] is None], offset)
-        if again:
-            results = results + refined(again)
+        retried = refined(again) if again and second is not None else []
         if rejected is not None:
-            rejected.extend(T for kept, T, support, _ in results if kept is None and T is not None and (
+            rejected.extend(T for kept, T, support, _ in results + retried if kept is None and T is not None and (
                 support < self.fe.shape_min_support or self.fe.shape_outline_by_instances))
         if second is not None:
-            second.extend(s for _, _, _, s in results if s is not None)
+            second.extend(s for _, _, _, s in results + retried if s is not None)
+            second.extend(kept for kept, _, _, _ in retried if kept is not None)
         return [kept for kept, _, _, _ in results if kept is not None]
 
     def start_refining(self, transforms, cloud: FrameCloud, depth_m: np.ndarray, intrinsics: CameraIntrinsics
