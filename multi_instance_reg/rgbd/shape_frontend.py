@@ -451,7 +451,9 @@ class ShapeFrontEnd:
         """Each transform refined by ICP against the frame's points and kept when the depth
         image agrees with the model's visible surface: (T, support share, agreeing points, evidence).
         Hypotheses that are one pose (ECC's and the vote clusters' for one instance) are
-        refined once: the first of each group, in the order given (``distinct``). Each is
+        refined once: the first of each group, in the order given (``distinct``); with
+        ``second``, where that one fails, the group's next from ``offset`` on as well
+        (``_next_of_failed``; kept ones go to ``second``). Each is
         refined and judged on its own (``refine_one``), so they run in the shared thread
         pool, two at a time on two cores (the compiled kernels, k-d tree queries and OpenCV
         calls release the GIL); the results in the order of ``distinct``, the same as one
@@ -461,22 +463,35 @@ class ShapeFrontEnd:
         to be judged: at least half ``shape_min_support``), and with
         ``shape_outline_by_instances`` those rejected by the later checks too, for
         ``judge_behind``. ``second``: receives the poses kept at their second look
-        (``shape_second_look``); without it they are not returned."""
+        (``shape_second_look``) and the groups' second tries; without it they are not
+        returned (nor tried)."""
         if cloud.grid is None:
             return []
         order = self.distinct(transforms)
         claimed = started.stop() if started is not None else set()
-        tasks = [_Claimed(started, k - offset) if k - offset in claimed else None for k in order]
-        missing = [k for k, task in zip(order, tasks) if task is None]
-        new = iter(submit_each(lambda T0: self._refine(T0, cloud, depth_m, intrinsics),
-                               [np.array(transforms[k], np.float64) for k in missing]))
-        tasks = [task if task is not None else next(new) for task in tasks]
-        results = [task.result() for task in tasks]
+
+        def refined(indices):
+            tasks = [_Claimed(started, k - offset) if k - offset in claimed else None for k in indices]
+            missing = [k for k, task in zip(indices, tasks) if task is None]
+            new = iter(submit_each(lambda T0: self._refine(T0, cloud, depth_m, intrinsics),
+                                   [np.array(transforms[k], np.float64) for k in missing]))
+            return [(task if task is not None else next(new)).result() for task in tasks]
+
+        results = refined(order)
+        # A group whose first went wrong (an ECC transform ICP slid off, or one the checks
+        # turn down) is tried once more from its next hypothesis after ``offset`` (a vote
+        # cluster's pose: often refined already, ahead of ECC): seed 157 frame 2 lost a
+        # bracket whose vote pose, refined, was right. Those kept go with ``second`` (added
+        # only where no instance is): ranked with the rest, a wrong one (91 deg off, passing
+        # every check) took a bracket's place from its right pose (seed 0 frame 6).
+        again = self._next_of_failed(transforms, order, [k for k, r in zip(order, results) if r[0] is None], offset)
+        retried = refined(again) if again and second is not None else []
         if rejected is not None:
-            rejected.extend(T for kept, T, support, _ in results if kept is None and T is not None and (
+            rejected.extend(T for kept, T, support, _ in results + retried if kept is None and T is not None and (
                 support < self.fe.shape_min_support or self.fe.shape_outline_by_instances))
         if second is not None:
-            second.extend(s for _, _, _, s in results if s is not None)
+            second.extend(s for _, _, _, s in results + retried if s is not None)
+            second.extend(kept for kept, _, _, _ in retried if kept is not None)
         return [kept for kept, _, _, _ in results if kept is not None]
 
     def start_refining(self, transforms, cloud: FrameCloud, depth_m: np.ndarray, intrinsics: CameraIntrinsics
@@ -495,6 +510,25 @@ class ShapeFrontEnd:
         rest = sorted(set(range(len(transforms))) - set(first))
         return Prefetch(lambda T0: self._refine(T0, cloud, depth_m, intrinsics),
                         [np.array(T, np.float64) for T in transforms], sorted(first, reverse=True) + rest[::-1])
+
+    def _next_of_failed(self, transforms, order, failed, offset: int) -> list[int]:
+        """Of each group of near-identical transforms (``distinct``: ``order`` its firsts)
+        whose first is among ``failed``, the next member at or after ``offset``; a member
+        belongs to the earliest first within ``distinct``'s bounds (as its greedy grouping)."""
+        if not failed or len(order) == len(transforms):
+            return []
+        P = np.stack([np.asarray(T, np.float64) for T in transforms])
+        firsts = np.sort(np.asarray(order, np.int64))
+        cos = (np.einsum("aij,bij->ab", P[offset:, :3, :3], P[firsts, :3, :3]) - 1.0) / 2.0
+        shift = np.linalg.norm(P[offset:, None, :3, 3] - P[firsts][None, :, :3, 3], axis=2)
+        near = (cos >= np.cos(np.radians(360.0 / ANGLE_STEPS))) & (shift < 0.1 * self.diameter)
+        wanted, out = set(failed), []
+        for j in range(offset, len(transforms)):
+            g = np.flatnonzero(near[j - offset])
+            if len(g) and firsts[g[0]] != j and firsts[g[0]] in wanted:
+                wanted.discard(firsts[g[0]])
+                out.append(j)
+        return out
 
     def distinct(self, transforms) -> list[int]:
         """Indices of the transforms to refine: the first of each group of near-identical
@@ -975,12 +1009,33 @@ class ShapeFrontEnd:
         # rejected: channel seeds 9 / 503). A pose sunk whole into a real support's surface,
         # its top flush with it, is rejected by the outline check (the surface goes on).
         through = deep.any(axis=0) & (height > self.tolerance_at(T)).any(axis=0)
-        return any(self._pierces_plane(pts[deep[:, k]], up, offset, depth_m, intrinsics)
+        own = []
+        def own_pixels():
+            if not own:
+                own.append(self.instance_pixels([T], depth_m, intrinsics))
+            return own[0]
+        # A model on both sides of a plane of object tops (standing brackets' base plates,
+        # flush on one table: bracket seed 701) is spared where its own face lies in the
+        # plane (``_pierces_plane``), but not on the support the objects stand on
+        # (``cloud.up``): nothing stands below it, so a face of the model in it is a pose sunk
+        # into it (seed 811 frame 5: an L 8 cm into the table, its face flush with it and half
+        # out of view, passed as hidden).
+        def stood_on(up, offset):
+            return offset == cloud.up_offset and np.array_equal(up, cloud.up)
+        return any(self._pierces_plane(pts[deep[:, k]], up, offset, depth_m, intrinsics,
+                                       None if stood_on(up, offset) else own_pixels, self.tolerance_at(T))
                    for k, (up, offset) in enumerate(planes) if through[k])
 
-    def _pierces_plane(self, below, up, offset, depth_m, intrinsics) -> bool:
+    def _pierces_plane(self, below, up, offset, depth_m, intrinsics, own_pixels=None, tol: float = 0.0) -> bool:
         """``pierces`` for one plane (``up`` towards the camera, up . p + offset = 0 on it);
-        ``below`` the model's surface points (camera frame) more than ``PIERCE_VOXELS`` below it."""
+        ``below`` the model's surface points (camera frame) more than ``PIERCE_VOXELS`` below it.
+        ``own_pixels()``: the pixels where the depth shows the model itself (``instance_pixels``);
+        a ray whose depth lies on the plane (within ``tol``) there shows the model's own face in
+        that plane, not a support in front of it: touching objects' tops, flush and larger
+        than the support area together, are found as a plane (standing brackets' base plates
+        on one table, a plane 11 mm above it: bracket seed 701 frame 4, 9 true poses of 10
+        reached "through" it by their plates' thickness). ``pierces`` passes none for the
+        support the objects stand on."""
         K = intrinsics.K
         h, w = depth_m.shape
         z = np.maximum(below[:, 2], 1e-6)
@@ -995,7 +1050,14 @@ class ShapeFrontEnd:
         along = rays @ up
         plane_depth = np.where(along < 0, -offset / np.where(along < 0, along, -1.0), np.inf)
         there = (d > 0) & (d <= plane_depth + self.voxel)
-        return int(there.sum()) >= max(PIERCE_MIN_POINTS, PIERCE_SHARE * len(below))
+        need = max(PIERCE_MIN_POINTS, PIERCE_SHARE * len(below))
+        if int(there.sum()) < need or own_pixels is None:
+            return int(there.sum()) >= need
+        on_plane = there & (np.abs(d - plane_depth) <= tol)
+        if on_plane.any():
+            own = own_pixels()[v[inside], u[inside]] > 0
+            there &= ~(on_plane & own)
+        return int(there.sum()) >= need
 
     def _judge(self, T, support, free, n, cloud: FrameCloud, depth_m, intrinsics, explained=None):
         """(T, support, agreeing points, evidence) when the depth and the outline accept pose
