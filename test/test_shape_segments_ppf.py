@@ -1326,3 +1326,24 @@ def test_a_pose_sunk_whole_into_a_board_its_top_flush_with_the_boards_is_rejecte
     cloud = shape.frame_cloud(scene, intr, None, up)
     kept = shape.refine_one(standing, cloud, scene, intr)
     assert kept is not None and np.linalg.norm(kept[0][:3, 3] - standing[:3, 3]) < 0.005
+
+
+def test_found_share_is_the_share_of_agreeing_points_on_a_found_instances_surface():
+    """A bracket seen alone: judged against itself as found, all its agreeing points are that
+    instance's (1.0); against a bracket 20 cm away, none (0.0); nothing found, 0.0."""
+    from multi_instance_reg.rgbd.pipeline import PipelineConfig
+    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.synthetic.objects import get_object, object_mesh
+    from multi_instance_reg.synthetic.scene import look_at
+    from multi_instance_reg.transforms import invert_transform
+
+    mesh = object_mesh(get_object("bracket"))
+    shape = ShapeFrontEnd(build_model_from_mesh(mesh, "bracket"), PipelineConfig().frontend)
+    intr = CameraIntrinsics(K=np.array([[380.0, 0, 160], [0, 380.0, 120], [0, 0, 1]]), width=320, height=240)
+    T = invert_transform(look_at(np.array([0.35, -0.25, 0.4]), np.zeros(3)))
+    dense, _ = sample_surface(mesh, 0.001)
+    depth = _depth_of(dense, T, intr)
+    far = T @ make_transform(np.eye(3), [0.2, 0.0, 0.0])
+    assert shape.found_share(T, [T], depth, intr) > 0.99
+    assert shape.found_share(T, [far], depth, intr) == 0.0
+    assert shape.found_share(T, [], depth, intr) == 0.0
