@@ -1452,3 +1452,85 @@ def test_nearest_model_points_of_the_outline_checks_are_those_of_a_full_sort(ord
         assert set(j[i].tolist()) == set(np.argsort(d[i], kind="stable")[:k].tolist())
     # Tied rows still hold k points as near as the k nearest.
     assert np.allclose(np.sort(np.take_along_axis(d, j, axis=1), axis=1)[tied], ranked[tied, :k])
+
+
+def _board_on_table(cam, intr, half_x, half_y, height):
+    """Depth of the table (z = 0) with a board on it (|x| <= half_x, |y| <= half_y, 0 <= z <=
+    height; world frame, ``cam`` camera -> world): its top and the two sides facing a camera
+    at +x, +y."""
+    K = intr.K
+    v, u = np.mgrid[0:intr.height, 0:intr.width]
+    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u, float)], -1) @ cam[:3, :3].T
+    depth = -cam[2, 3] / rays[..., 2]                                   # the table
+    for axis, value, other, half in ((0, half_x, 1, half_y), (1, half_y, 0, half_x), (2, height, None, None)):
+        t = (value - cam[axis, 3]) / rays[..., axis]
+        p = cam[:3, 3] + t[..., None] * rays
+        if other is None:
+            inside = (np.abs(p[..., 0]) <= half_x) & (np.abs(p[..., 1]) <= half_y)
+        else:
+            inside = (np.abs(p[..., other]) <= half) & (p[..., 2] >= 0) & (p[..., 2] <= height)
+        depth = np.where(inside & (t > 0) & (t < depth), t, depth)
+    return depth.astype(np.float32)
+
+
+def test_a_pose_sunk_whole_into_a_board_its_top_flush_with_the_boards_is_rejected():
+    """A board 40 x 40 cm, 8 cm thick, on the table, and a tee (10 x 12 x 7 cm) sunk whole
+    into it, its top flush with the board's top: its top agrees with the board, the rest
+    lies behind the board's surface and counts as hidden (support 0.87, nothing free).
+    Nothing of it is above a support plane, so ``pierces`` passes it (a plane of object
+    tops is no support it goes through); the outline must reject it: the board's top goes
+    on past it. The same tee standing on the board is kept."""
+    from multi_instance_reg.rgbd.pipeline import PipelineConfig
+    from multi_instance_reg.rgbd.shape import depth_support
+    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.synthetic.objects import get_object, object_mesh
+    from multi_instance_reg.synthetic.scene import look_at
+    from multi_instance_reg.transforms import invert_transform
+
+    mesh = object_mesh(get_object("tee"))
+    top = float(mesh.vertices[:, 2].max())
+    height = float(np.ptp(mesh.vertices[:, 2])) + 0.01
+    intr = CameraIntrinsics(K=np.array([[380.0, 0, 160], [0, 380.0, 120], [0, 0, 1]]), width=320, height=240)
+    cam = look_at(np.array([0.35, 0.1, 0.6]), np.zeros(3))               # camera -> world, table z = 0
+    board = _board_on_table(cam, intr, 0.2, 0.2, height)
+    sunk = invert_transform(cam) @ make_transform(np.eye(3), [0.0, 0.0, height - top])
+    standing = invert_transform(cam) @ make_transform(np.eye(3), [0.0, 0.0, height + top])
+    dense, _ = sample_surface(mesh, 0.001)
+    tee = _depth_of(dense, standing, intr)
+    shape = ShapeFrontEnd(build_model_from_mesh(mesh, "tee"), PipelineConfig().frontend)
+    up = cam[:3, :3].T @ [0.0, 0.0, 1.0]                                 # world z in the camera frame
+    cloud = shape.frame_cloud(board, intr, None, up)
+    assert any(abs(o - (cam[2, 3] - height)) < 0.005 for _, o in cloud.planes)   # the board's top is a plane
+    support, free, n = depth_support(sunk, shape._surface, shape._surface_normals, board, intr,
+                                     shape.tolerance_at(sunk), shape._self_hiding)
+    assert support > shape.fe.shape_min_support and free == 0.0           # the depth alone would take it
+    assert not shape.pierces(sunk, cloud, board, intr)
+    assert shape._judge(sunk, support, free, n, cloud, board, intr) is None
+    assert shape.refine_one(sunk, cloud, board, intr) is None
+    assert shape.judge_hidden(sunk, cloud, board, intr, None) is None
+    # Standing on the board, the tee is kept.
+    scene = np.where((tee > 0) & (tee < board), tee, board)
+    cloud = shape.frame_cloud(scene, intr, None, up)
+    kept = shape.refine_one(standing, cloud, scene, intr)
+    assert kept is not None and np.linalg.norm(kept[0][:3, 3] - standing[:3, 3]) < 0.005
+
+
+def test_found_share_is_the_share_of_agreeing_points_on_a_found_instances_surface():
+    """A bracket seen alone: judged against itself as found, all its agreeing points are that
+    instance's (1.0); against a bracket 20 cm away, none (0.0); nothing found, 0.0."""
+    from multi_instance_reg.rgbd.pipeline import PipelineConfig
+    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.synthetic.objects import get_object, object_mesh
+    from multi_instance_reg.synthetic.scene import look_at
+    from multi_instance_reg.transforms import invert_transform
+
+    mesh = object_mesh(get_object("bracket"))
+    shape = ShapeFrontEnd(build_model_from_mesh(mesh, "bracket"), PipelineConfig().frontend)
+    intr = CameraIntrinsics(K=np.array([[380.0, 0, 160], [0, 380.0, 120], [0, 0, 1]]), width=320, height=240)
+    T = invert_transform(look_at(np.array([0.35, -0.25, 0.4]), np.zeros(3)))
+    dense, _ = sample_surface(mesh, 0.001)
+    depth = _depth_of(dense, T, intr)
+    far = T @ make_transform(np.eye(3), [0.2, 0.0, 0.0])
+    assert shape.found_share(T, [T], depth, intr) > 0.99
+    assert shape.found_share(T, [far], depth, intr) == 0.0
+    assert shape.found_share(T, [], depth, intr) == 0.0
