@@ -626,6 +626,23 @@ def test_a_box_half_hidden_by_an_instance_found_is_judged_by_what_is_in_view():
     assert shape.judge_behind(inside, cloud, depth, intr, occluders, [front]) is None
 
 
+
+def test_instance_pixels_kept_for_the_frame_equal_a_fresh_drawing():
+    _, shape, intr, front, back, depth = _front_and_back_boxes()
+    fresh = shape.instance_pixels([front, back], depth, intr)
+    assert fresh.any() and shape.instance_pixels([front, back], depth, intr) is not fresh   # nothing kept
+    shape.keep_pixels(depth, intr)
+    first = shape.instance_pixels([front, back], depth, intr)
+    assert np.array_equal(first, fresh) and not first.flags.writeable                 # shared: read-only
+    assert shape.instance_pixels([front, back], depth, intr) is first                 # kept, by the poses
+    alone = shape.instance_pixels([front], depth, intr)                                # other poses: drawn
+    assert np.array_equal(alone, shape._instance_pixels([front], depth, intr)) and not np.array_equal(alone, first)
+    # Another depth image is drawn, not taken from the one kept.
+    other = np.zeros_like(depth)
+    assert not shape.instance_pixels([front, back], other, intr).any()
+    shape.keep_pixels(None)
+    assert shape.instance_pixels([front, back], depth, intr) is not first
+
 def _front_and_back_boxes():
     from multi_instance_reg.rgbd.pipeline import PipelineConfig
     from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd

@@ -83,6 +83,7 @@ class FrameCloud:
 
 class ShapeFrontEnd:
     def __init__(self, model: ObjectModel, fe):
+        self._pixels_memo = None      # keep_pixels's (depth, intrinsics, {poses: image})
         if not model.has_shape:
             raise InputError("the object model has no shape data (frontend.correspondences shape/both); "
                              "build it from a mesh with `mireg build-model --mesh FILE`")
@@ -676,7 +677,28 @@ class ShapeFrontEnd:
 
     def instance_pixels(self, transforms, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> np.ndarray:
         """(H, W) uint8: 1 where the depth image shows one of these instances (a visible
-        model point within the depth tolerance there, drawn over its voxel's footprint)."""
+        model point within the depth tolerance there, drawn over its voxel's footprint).
+        Read-only while ``keep_pixels`` holds this depth image (the frame being registered):
+        the acceptance passes ask for the same poses' pixels several times a frame (the
+        instances found, each rejected pose of ``_meeting`` and ``judge_groups``), so they are
+        drawn once, kept by the poses' bytes."""
+        memo = self._pixels_memo
+        if memo is None or memo[0] is not depth_m or memo[1] is not intrinsics:
+            return self._instance_pixels(transforms, depth_m, intrinsics)
+        key = b"".join(np.asarray(T, np.float64).tobytes() for T in transforms)
+        out = memo[2].get(key)
+        if out is None:
+            out = self._instance_pixels(transforms, depth_m, intrinsics)
+            out.flags.writeable = False
+            memo[2][key] = out
+        return out
+
+    def keep_pixels(self, depth_m: np.ndarray | None, intrinsics: CameraIntrinsics | None = None) -> None:
+        """``instance_pixels`` of this depth image (and intrinsics; the same objects) kept
+        until the next call (None: none kept); the image must not change meanwhile."""
+        self._pixels_memo = None if depth_m is None else (depth_m, intrinsics, {})
+
+    def _instance_pixels(self, transforms, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> np.ndarray:
         out = np.zeros(depth_m.shape, np.uint8)
         K = intrinsics.K
         for T in transforms:
