@@ -518,16 +518,7 @@ class InstanceRegistration:
             # Poses rejected for too little support, perhaps for what the instances found
             # hide of them, or by the outline, where a found one is flush with them: judged
             # again with those points and pixels left out, added where no instance is.
-            found = [c[0] for c in chosen]
-            rejected = [rejected[k] for k in self._clear_of(found, rejected)[1]]
-            if rejected:
-                occluders = self._shape.instance_pixels(found, depth_m, intrinsics)
-                # Each on its own, two at a time in the shared thread pool (as the refinement).
-                behind = [c for c in map_each(lambda T: self._shape.judge_behind(T, cloud, depth_m, intrinsics,
-                                                                                 occluders, found), rejected)
-                          if c is not None]
-                if behind:
-                    chosen = self._one_per_box(chosen + behind, first=len(chosen), frame=(depth_m, intrinsics))
+            chosen, rejected = self._accept_behind(chosen, rejected, cloud, depth_m, intrinsics)
         if fe.shape_hidden_by_instances and fe.shape_rejected_pairs and len(rejected) >= 2:
             chosen = self._accept_pairs(chosen, rejected, cloud, depth_m, intrinsics)
         if fe.shape_hidden_by_instances and fe.shape_hidden_by_any and rejected:
@@ -609,17 +600,25 @@ class InstanceRegistration:
                                                second=second)
         if checked or second:
             chosen = self._one_per_box(chosen + checked + second, first=len(chosen), frame=(depth_m, intrinsics))
-            found = [c[0] for c in chosen]
         if self.config.frontend.shape_hidden_by_instances and rejected:
-            rejected = [rejected[k] for k in self._clear_of(found, rejected)[1]]
-            if rejected:
-                occluders = self._shape.instance_pixels(found, depth_m, intrinsics)
-                behind = [c for c in map_each(lambda T: self._shape.judge_behind(T, cloud, depth_m, intrinsics,
-                                                                                 occluders, found), rejected)
-                          if c is not None]
-                if behind:
-                    chosen = self._one_per_box(chosen + behind, first=len(chosen), frame=(depth_m, intrinsics))
+            chosen, _ = self._accept_behind(chosen, rejected, cloud, depth_m, intrinsics)
         return chosen
+
+    def _accept_behind(self, chosen, rejected, cloud, depth_m, intrinsics) -> tuple[list, list]:
+        """``chosen`` and the rejected poses that pass with the instances found hiding them
+        (``ShapeFrontEnd.judge_behind``), added where no instance is; and the rejected poses
+        clear of the instances found (``_clear_of``), the only ones a later pass can add."""
+        found = [c[0] for c in chosen]
+        rejected = [rejected[k] for k in self._clear_of(found, rejected)[1]]
+        if rejected:
+            occluders = self._shape.instance_pixels(found, depth_m, intrinsics)
+            # Each on its own, two at a time in the shared thread pool (as the refinement).
+            behind = [c for c in map_each(lambda T: self._shape.judge_behind(T, cloud, depth_m, intrinsics,
+                                                                             occluders, found), rejected)
+                      if c is not None]
+            if behind:
+                chosen = self._one_per_box(chosen + behind, first=len(chosen), frame=(depth_m, intrinsics))
+        return chosen, rejected
 
     def _clear_of(self, found, rejected) -> tuple[np.ndarray, list[int]]:
         """``box_overlaps`` of ``found`` followed by ``rejected``, and the indices of the
