@@ -862,9 +862,7 @@ def test_a_pose_reaching_through_the_table_is_rejected():
     dense, _ = sample_surface(mesh, 0.001)
     depth = _depth_of(dense, T, intr)
     # The table: the plane z = 0 wherever the bracket is not.
-    K = intr.K
-    v, u = np.mgrid[0:intr.height, 0:intr.width]
-    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u, float)], -1) @ cam[:3, :3].T
+    rays = _world_rays(cam, intr)
     table = (-cam[2, 3] / rays[..., 2]).astype(np.float32)              # depth: the rays have z = 1 in the camera
     depth = np.where((depth > 0) & (depth < table), depth, table)
     for on in (True, False):
@@ -902,9 +900,7 @@ def test_a_standing_bracket_below_a_plane_of_its_own_base_plates_top_does_not_re
     depth = _depth_of(dense, T, intr)
     seen = _depth_of(dense, sunk, intr)
     depth = np.where((seen > 0) & ((depth == 0) | (seen < depth)), seen, depth)
-    K = intr.K
-    v, u = np.mgrid[0:intr.height, 0:intr.width]
-    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u, float)], -1) @ cam[:3, :3].T
+    rays = _world_rays(cam, intr)
     table = (-cam[2, 3] / rays[..., 2]).astype(np.float32)
     # The plane fitted over many plates' tops lay a few mm above this one's (seed 701: its
     # base plate's underside 14-16 mm below it, beyond the 2 voxels).
@@ -943,9 +939,7 @@ def test_an_object_beyond_the_tables_edge_and_lower_does_not_reach_through_it():
     on_floor = invert_transform(cam) @ make_transform(np.eye(3), [-0.32, 0.0, -0.05 + 0.04])   # floor z = -0.05
     dense, _ = sample_surface(mesh, 0.001)
     depth = _depth_of(dense, on_floor, intr)
-    K = intr.K
-    v, u = np.mgrid[0:intr.height, 0:intr.width]
-    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u, float)], -1) @ cam[:3, :3].T
+    rays = _world_rays(cam, intr)
     table = (-cam[2, 3] / rays[..., 2]).astype(np.float32)
     floor = ((-0.05 - cam[2, 3]) / rays[..., 2]).astype(np.float32)
     on_table = cam[0, 3] + table * rays[..., 0] > -0.22
@@ -981,16 +975,7 @@ def test_touching_objects_whose_tops_are_found_as_a_plane_do_not_reach_through_i
     down = np.diag([1.0, -1.0, -1.0])                             # open side down
     poses = [invert_transform(cam) @ make_transform(down, [x, y, 0.025])
              for x in (-0.1, 0.0, 0.1) for y in (-0.08, 0.08)]
-    dense, _ = sample_surface(mesh, 0.001)
-    depth = np.zeros((intr.height, intr.width), np.float32)
-    for T in poses:
-        d = _depth_of(dense, T, intr)
-        depth = np.where((d > 0) & ((depth == 0) | (d < depth)), d, depth)
-    K = intr.K
-    v, u = np.mgrid[0:intr.height, 0:intr.width]
-    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u, float)], -1) @ cam[:3, :3].T
-    table = (-cam[2, 3] / rays[..., 2]).astype(np.float32)
-    depth = np.where((depth > 0) & (depth < table), depth, table)
+    depth = _meshes_on_table(mesh, poses, cam, intr)
     shape = ShapeFrontEnd(build_model_from_mesh(mesh, "channel"), PipelineConfig().frontend)
     up = cam[:3, :3].T @ [0.0, 0.0, 1.0]                          # world z in the camera frame
     cloud = shape.frame_cloud(depth, intr, None, up)
@@ -1023,16 +1008,7 @@ def test_a_row_of_three_flush_channels_passes_as_a_group_not_in_pairs():
     cam = look_at(np.array([0.0, -0.45, 0.55]), np.zeros(3))      # camera -> world, table z = 0
     down = np.diag([1.0, -1.0, -1.0])
     poses = [invert_transform(cam) @ make_transform(down, [x, 0.0, 0.025]) for x in (-0.1, 0.0, 0.1)]
-    dense, _ = sample_surface(mesh, 0.001)
-    depth = np.zeros((intr.height, intr.width), np.float32)
-    for T in poses:
-        d = _depth_of(dense, T, intr)
-        depth = np.where((d > 0) & ((depth == 0) | (d < depth)), d, depth)
-    K = intr.K
-    v, u = np.mgrid[0:intr.height, 0:intr.width]
-    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u, float)], -1) @ cam[:3, :3].T
-    table = (-cam[2, 3] / rays[..., 2]).astype(np.float32)
-    depth = np.where((depth > 0) & (depth < table), depth, table)
+    depth = _meshes_on_table(mesh, poses, cam, intr)
     model = build_model_from_mesh(mesh, "channel")
     fe = replace(PipelineConfig().frontend, shape_min_evidence=0.9)
     shape = ShapeFrontEnd(model, fe)
@@ -1068,9 +1044,7 @@ def test_a_carton_sunk_through_the_pallets_top_is_rejected_though_the_floor_is_t
 
     intr = CameraIntrinsics(K=np.array([[200.0, 0, 160], [0, 200.0, 120], [0, 0, 1]]), width=320, height=240)
     cam = look_at(np.array([0.1, 0.0, 1.5]), np.array([-0.15, 0.0, 0.0]))     # camera -> world, floor z = 0
-    K = intr.K
-    v, u = np.mgrid[0:intr.height, 0:intr.width]
-    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u, float)], -1) @ cam[:3, :3].T
+    rays = _world_rays(cam, intr)
 
     def level(height, half_x, half_y, cx=0.0):
         """Depth of the horizontal plane at ``height`` on each ray, and where it is inside the box."""
@@ -1475,9 +1449,7 @@ def _board_on_table(cam, intr, half_x, half_y, height):
     """Depth of the table (z = 0) with a board on it (|x| <= half_x, |y| <= half_y, 0 <= z <=
     height; world frame, ``cam`` camera -> world): its top and the two sides facing a camera
     at +x, +y."""
-    K = intr.K
-    v, u = np.mgrid[0:intr.height, 0:intr.width]
-    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u, float)], -1) @ cam[:3, :3].T
+    rays = _world_rays(cam, intr)
     depth = -cam[2, 3] / rays[..., 2]                                   # the table
     for axis, value, other, half in ((0, half_x, 1, half_y), (1, half_y, 0, half_x), (2, height, None, None)):
         t = (value - cam[axis, 3]) / rays[..., axis]
@@ -1551,3 +1523,23 @@ def test_found_share_is_the_share_of_agreeing_points_on_a_found_instances_surfac
     assert shape.found_share(T, [T], depth, intr) > 0.99
     assert shape.found_share(T, [far], depth, intr) == 0.0
     assert shape.found_share(T, [], depth, intr) == 0.0
+
+
+def _meshes_on_table(mesh, poses, cam, intr):
+    """Depth of the mesh at each pose (camera frame) on a table at world z = 0 (``cam``:
+    camera -> world), the nearest surface on each ray."""
+    dense, _ = sample_surface(mesh, 0.001)
+    depth = np.zeros((intr.height, intr.width), np.float32)
+    for T in poses:
+        d = _depth_of(dense, T, intr)
+        depth = np.where((d > 0) & ((depth == 0) | (d < depth)), d, depth)
+    rays = _world_rays(cam, intr)
+    table = (-cam[2, 3] / rays[..., 2]).astype(np.float32)
+    return np.where((depth > 0) & (depth < table), depth, table)
+
+
+def _world_rays(cam, intr):
+    """(H, W, 3): each pixel's ray (z = 1 in the camera) in the world frame (``cam``: camera -> world)."""
+    K = intr.K
+    v, u = np.mgrid[0:intr.height, 0:intr.width]
+    return np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u, float)], -1) @ cam[:3, :3].T
