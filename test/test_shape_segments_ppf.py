@@ -1520,9 +1520,9 @@ def test_found_share_is_the_share_of_agreeing_points_on_a_found_instances_surfac
     dense, _ = sample_surface(mesh, 0.001)
     depth = _depth_of(dense, T, intr)
     far = T @ make_transform(np.eye(3), [0.2, 0.0, 0.0])
-    assert shape.found_share(T, [T], depth, intr) > 0.99
-    assert shape.found_share(T, [far], depth, intr) == 0.0
-    assert shape.found_share(T, [], depth, intr) == 0.0
+    assert shape.found_shares([T], [T], depth, intr)[0] > 0.99
+    assert shape.found_shares([T], [far], depth, intr)[0] == 0.0
+    assert shape.found_shares([T], [], depth, intr)[0] == 0.0
 
 
 def _meshes_on_table(mesh, poses, cam, intr):

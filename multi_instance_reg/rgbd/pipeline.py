@@ -39,7 +39,7 @@ from ..threads import limit_blas_threads, map_each, submit_each
 
 STAGES = ("sift", "matching", "lifting", "ecc", "refinement", "total")
 # The most of a pose's agreeing points a later acceptance pass lets lie on the surface of an
-# instance found before it (``ShapeFrontEnd.found_share``): beyond it, its evidence is theirs.
+# instance found before it (``ShapeFrontEnd.found_shares``): beyond it, its evidence is theirs.
 FOUND_SHARE_MAX = 0.5
 
 
@@ -521,6 +521,8 @@ class InstanceRegistration:
             chosen, rejected = self._accept_behind(chosen, rejected, cloud, depth_m, intrinsics)
         if fe.shape_hidden_by_instances and fe.shape_rejected_pairs and len(rejected) >= 2:
             chosen = self._accept_pairs(chosen, rejected, cloud, depth_m, intrinsics)
+            if fe.shape_rejected_groups:
+                chosen = self._accept_groups(chosen, rejected, cloud, depth_m, intrinsics)
         if fe.shape_hidden_by_instances and fe.shape_hidden_by_any and rejected:
             chosen = self._accept_hidden(chosen, rejected, cloud, depth_m, intrinsics)
         if fe.shape_residual_votes and self._shape.non_convex and chosen:
@@ -537,15 +539,13 @@ class InstanceRegistration:
         """``chosen`` and the rejected poses accepted two at a time (``ShapeFrontEnd.judge_pairs``:
         each passes with the other taken as found), a pair only when neither overlaps an
         instance kept or a pose accepted before it; the strongest pairs first."""
-        if not self._shape.judges_pairs:
+        if not self._shape.non_convex:
             return chosen
         found = [c[0] for c in chosen]
         limit = self.config.frontend.max_overlap
-        overlap, free = self._clear_of(found, rejected)
+        free, sub = self._free_block(found, rejected)
         if len(free) < 2:
             return chosen
-        n = len(found)
-        sub = overlap[np.ix_([n + k for k in free], [n + k for k in free])]
         occluders = self._shape.instance_pixels(found, depth_m, intrinsics)
         pairs = self._shape.judge_pairs([rejected[k] for k in free], sub, limit, cloud, depth_m, intrinsics,
                                         occluders, found)
@@ -555,19 +555,15 @@ class InstanceRegistration:
                 continue
             taken |= {i, j}
             chosen = chosen + [ri, rj]
-        if self.config.frontend.shape_rejected_groups:
-            chosen = self._accept_groups(chosen, rejected, cloud, depth_m, intrinsics)
         return chosen
 
     def _accept_groups(self, chosen, rejected, cloud, depth_m, intrinsics) -> list:
         """``chosen`` and the rejected poses clear of it accepted in groups of three or more
         (``ShapeFrontEnd.judge_groups``: each passes with all the others taken as found)."""
         found = [c[0] for c in chosen]
-        overlap, free = self._clear_of(found, rejected)
+        free, sub = self._free_block(found, rejected)
         if len(free) < 3:
             return chosen
-        n = len(found)
-        sub = overlap[np.ix_([n + k for k in free], [n + k for k in free])]
         occluders = self._shape.instance_pixels(found, depth_m, intrinsics) if found \
             else np.zeros(depth_m.shape, np.uint8)
         return chosen + self._shape.judge_groups([rejected[k] for k in free], sub, self.config.frontend.max_overlap,
@@ -631,6 +627,12 @@ class InstanceRegistration:
                 if not (np.any(overlap[n + k, :n] > limit) or np.any(overlap[:n, n + k] > limit))]
         return overlap, free
 
+    def _free_block(self, found, rejected) -> tuple[list[int], np.ndarray]:
+        """``_clear_of``'s free rejected poses (indices) and the box overlaps among them."""
+        overlap, free = self._clear_of(found, rejected)
+        n = len(found)
+        return free, overlap[np.ix_([n + k for k in free], [n + k for k in free])]
+
     def _one_per_box(self, checked, first: int = 0, frame=None) -> list:
         """No two instances in one box: of the checked poses (T, support, agreeing points,
         evidence), the first ``first`` kept as they are, then the rest by their evidence (the
@@ -639,16 +641,16 @@ class InstanceRegistration:
         standing one's top (its 30 x 15 cm face inside the 30 x 20 top, some of the side
         face showing too) outnumbered the right pose by a few points while overhanging.
         ``frame`` ((depth, intrinsics)): the poses after the first ``first`` are also dropped
-        where most of their agreeing points lie on those first ones' surfaces (``found_share``)."""
+        where most of their agreeing points lie on those first ones' surfaces (``found_shares``)."""
         if frame is not None and first:
             # A later pass adds a pose only where its evidence is its own: most of its agreeing
             # points on the surface of an instance found before, it is that instance seen again
             # (an L bracket turned over, one plate on a found bracket's and its box clear of
             # that one's, passed by ``judge_behind``: bracket seed 923, share 1.00; the poses
             # those passes add right 0.00-0.05).
-            found = [c[0] for c in checked[:first]]
-            checked = list(checked[:first]) + [c for c in checked[first:] if self._shape.found_share(
-                c[0], found, *frame) <= FOUND_SHARE_MAX]
+            shares = self._shape.found_shares([c[0] for c in checked[first:]], [c[0] for c in checked[:first]], *frame)
+            checked = list(checked[:first]) + [c for c, share in zip(checked[first:], shares)
+                                               if share <= FOUND_SHARE_MAX]
         checked = list(checked[:first]) + sorted(checked[first:], key=lambda c: -c[3])
         overlap = box_overlaps(self.model, [c[0] for c in checked], self._box_grid)
         kept, limit = list(range(first)), self.config.frontend.max_overlap

@@ -138,11 +138,6 @@ class ShapeFrontEnd:
         """Whether the model hides parts of itself (an L bracket; ``_self_hiding``)."""
         return self._self_hiding > 0
 
-    @property
-    def judges_pairs(self) -> bool:
-        """Whether ``judge_pairs`` judges anything (non-convex models; see there)."""
-        return self._self_hiding > 0
-
     def tolerance_at(self, T: np.ndarray) -> float:
         """Metres: agreement with the depth image for an instance at pose T, within the depth
         noise at its distance (3 sigma; 2.4 cm at 2 m, where a fixed 1.2 cm left true cartons
@@ -306,19 +301,20 @@ class ShapeFrontEnd:
         s, m = self._matcher.match(cloud.descriptors)
         return self._model_pts[self._model_idx[m]], cloud.points[cloud.salient[s]]
 
-    def partner_reach(self, cloud: FrameCloud) -> np.ndarray | None:
+    def partner_reach(self, cloud: FrameCloud, labels: np.ndarray | None = None) -> np.ndarray | None:
         """(M,) metres: how far from each point of the cloud, as a reference, its vote
-        partners may lie; None: the object's diameter everywhere. In a segment larger than the
+        partners may lie, by segment (``labels``; default ``cloud.segments``); None: the
+        object's diameter everywhere. In a segment larger than the
         object (two points farther apart than its diameter), with ``shape_merged_reach``,
         ``central_reach``: touching instances form one segment (channels side by side, their
         tops flush), and partners spread over the diameter lay mostly on the neighbours
         (open-side-down channels merged in pairs or fours: 0-5 right references of 70-100
         each; voted over their own points alone, 10-60). A reference near its instance's
         middle still pairs with all of it."""
-        if not self.fe.shape_merged_reach or cloud.segments is None:
+        labels = cloud.segments if labels is None else labels
+        if not self.fe.shape_merged_reach or labels is None:
             return None
         reach = np.full(len(cloud.points), np.inf)
-        labels = cloud.segments
         for label in np.unique(labels[labels >= 0]):
             mine = labels == label
             if not within_reach(cloud.points[mine], self.diameter):
@@ -418,9 +414,7 @@ class ShapeFrontEnd:
         empty = np.zeros((0, 4, 4))
         if cloud.segments is None or not len(found) or cloud.tree is None:
             return empty
-        surfaces = np.concatenate([self._surface @ np.asarray(T)[:3, :3].T + np.asarray(T)[:3, 3] for T in found])
-        d, _ = cKDTree(surfaces).query(cloud.points, distance_upper_bound=RESIDUAL_VOXELS * self.voxel)
-        explained = np.isfinite(d)
+        explained = self._on_found(found)(cloud.points)
         labels = cloud.segments
         touched = np.unique(labels[explained & (labels >= 0)])
         rest = np.flatnonzero(~explained & np.isin(labels, touched))
@@ -432,15 +426,8 @@ class ShapeFrontEnd:
         new[rest] = sub
         if not np.any(new >= 0):
             return empty
-        reach = None
-        if fe.shape_merged_reach:
-            reach = np.full(len(cloud.points), np.inf)
-            for label in np.unique(sub[sub >= 0]):
-                mine = new == label
-                if not within_reach(cloud.points[mine], self.diameter):
-                    reach[mine] = self.central_reach
         s, _, poses, share = self._ppf.vote(cloud.points, cloud.normals, new, fe.shape_ref_step,
-                                            fe.shape_max_partners, reach=reach)
+                                            fe.shape_max_partners, reach=self.partner_reach(cloud, new))
         if len(poses) < 2:
             return empty
         return self.segment_poses(self._ppf.canonical_poses(poses), share, new[s], np.asarray(taken).reshape(-1, 4, 4))
@@ -657,23 +644,30 @@ class ShapeFrontEnd:
         T3 = self._icp(best[4], cloud, depth_m, intrinsics, 1.5 * self.voxel, self.fe.shape_icp_iterations - first)
         return max([best, fit(T3) + (T3,)], key=lambda c: c[0])
 
-    def found_share(self, T, found, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> float:
-        """Of the model's visible points at pose T that agree with the depth, the share within
-        ``RESIDUAL_VOXELS`` of a found pose's surface (``found``: poses): the evidence those
-        instances explain already. A flush neighbour shares a strip along its edge at most
-        (0.00-0.05 for the poses the later passes add right, bracket seeds 5 / 911)."""
+    def found_shares(self, poses, found, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> list[float]:
+        """Per pose: of the model's visible points there that agree with the depth, the share
+        within ``RESIDUAL_VOXELS`` of a found pose's surface (``found``: poses): the evidence
+        those instances explain already. A flush neighbour shares a strip along its edge at
+        most (0.00-0.05 for the poses the later passes add right, bracket seeds 5 / 911)."""
         if not len(found):
-            return 0.0
-        p = self._visible_surface(T)
-        u, v, inside = image_pixels(p, intrinsics, depth_m.shape)
-        p = p[inside]
-        d = depth_m[v[inside], u[inside]]
-        agree = p[(d > 0) & (np.abs(p[:, 2] - d) <= self.tolerance_at(T))]
-        if not len(agree):
-            return 0.0
-        surfaces = np.concatenate([self._surface @ np.asarray(F)[:3, :3].T + np.asarray(F)[:3, 3] for F in found])
-        near, _ = cKDTree(surfaces).query(agree, distance_upper_bound=RESIDUAL_VOXELS * self.voxel)
-        return float(np.mean(np.isfinite(near)))
+            return [0.0] * len(poses)
+        on_found = self._on_found(found)
+        out = []
+        for T in poses:
+            p = self._visible_surface(T)
+            u, v, inside = image_pixels(p, intrinsics, depth_m.shape)
+            p = p[inside]
+            d = depth_m[v[inside], u[inside]]
+            agree = p[(d > 0) & (np.abs(p[:, 2] - d) <= self.tolerance_at(T))]
+            out.append(float(np.mean(on_found(agree))) if len(agree) else 0.0)
+        return out
+
+    def _on_found(self, found):
+        """A test (points (N, 3) -> (N,) bool) of lying within ``RESIDUAL_VOXELS`` of the
+        surface of one of the poses ``found`` (a k-d tree of them, built once)."""
+        tree = cKDTree(np.concatenate([self._surface @ np.asarray(F)[:3, :3].T + np.asarray(F)[:3, 3]
+                                       for F in found]))
+        return lambda points: np.isfinite(tree.query(points, distance_upper_bound=RESIDUAL_VOXELS * self.voxel)[0])
 
     def instance_pixels(self, transforms, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> np.ndarray:
         """(H, W) uint8: 1 where the depth image shows one of these instances (a visible
@@ -773,7 +767,7 @@ class ShapeFrontEnd:
         ``box_overlaps`` of the rejected poses) and whose pixels meet (``_band_ring``).
         Returns (i, j, i's result, j's result) for every pair that passes both ways,
         the strongest first; none for a convex model (below)."""
-        if len(rejected) < 2 or not self.judges_pairs:
+        if len(rejected) < 2 or not self.non_convex:
             # Non-convex models only: on pallet seed 9's distractor-only frames two
             # carton-sized boxes, one flush against the other and hiding part of it, passed
             # as a pair exactly as two true brackets do (support 0.99 and outline 0.15 -> 0.0;
@@ -783,21 +777,9 @@ class ShapeFrontEnd:
         same = sorted(cluster_poses(np.stack([np.asarray(T, np.float64) for T in rejected]),
                                     -np.arange(len(rejected), dtype=np.float64), SAME_POSE_DEG, 0.5 * self.voxel,
                                     len(rejected), min_members=1, indices=True))
-        # Only those that can pass with some of their points hidden: enough support when
-        # every point behind the depth is taken as hidden, and no more free space than when
-        # none is (hiding points only raises the free share).
-        every = np.ones(depth_m.shape, np.uint8)
+        # Only those that can pass with some of their points hidden.
         fe = self.fe
-
-        def may_pass(T):
-            args = (T, self._surface, self._surface_normals, depth_m, intrinsics, self.tolerance_at(T),
-                    self._self_hiding)
-            support, _, _ = depth_support(*args, every)
-            if support < fe.shape_min_support:
-                return False
-            return depth_support(*args)[1] <= fe.shape_max_free
-
-        same = [i for i in same if may_pass(rejected[i])]
+        same = [i for i in same if self._evidence_if_hidden(rejected[i], depth_m, intrinsics) is not None]
         candidates, pixels = self._meeting(rejected, same, overlap, limit, depth_m, intrinsics)
 
         def supported(a, b, hiding):
@@ -824,6 +806,17 @@ class ShapeFrontEnd:
         # Two at a time in the shared thread pool (as the refinement).
         passed = [r for r in (task.result() for task in submit_each(both, candidates)) if r is not None]
         return sorted(passed, key=lambda r: -(r[2][3] + r[3][3]))
+
+    def _evidence_if_hidden(self, T, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> float | None:
+        """Support less free share at pose T when it can pass with some of its points hidden
+        (``judge_pairs``, ``judge_groups``), else None: enough support when every point behind
+        the depth is taken as hidden, and no more free space than when none is (hiding points
+        only raises the free share)."""
+        args = (T, self._surface, self._surface_normals, depth_m, intrinsics, self.tolerance_at(T), self._self_hiding)
+        if depth_support(*args, np.ones(depth_m.shape, np.uint8))[0] < self.fe.shape_min_support:
+            return None
+        support, free, _ = depth_support(*args)
+        return support - free if free <= self.fe.shape_max_free else None
 
     def _meeting(self, rejected, idx, overlap: np.ndarray, limit: float, depth_m: np.ndarray,
                  intrinsics: CameraIntrinsics) -> tuple[list[tuple[int, int]], dict]:
@@ -882,20 +875,11 @@ class ShapeFrontEnd:
         other taken as found besides ``found``; those that fail leave the group and the rest
         are judged again, until all pass (returned: their results) or fewer than three are
         left. Non-convex models only, as the pairs."""
-        if len(rejected) < 3 or not self.judges_pairs:
+        if len(rejected) < 3 or not self.non_convex:
             return []
-        fe = self.fe
-        every = np.ones(depth_m.shape, np.uint8)
-        score = {}
-        for i in range(len(rejected)):
-            T = rejected[i]
-            args = (T, self._surface, self._surface_normals, depth_m, intrinsics, self.tolerance_at(T),
-                    self._self_hiding)
-            hidden, _, _ = depth_support(*args, every)
-            support, free, _ = depth_support(*args)
-            # As the pairs': only those that can pass with some of their points hidden.
-            if hidden >= fe.shape_min_support and free <= fe.shape_max_free:
-                score[i] = support - free
+        # As the pairs': only those that can pass with some of their points hidden.
+        score = {i: e for i, e in enumerate(self._evidence_if_hidden(T, depth_m, intrinsics) for T in rejected)
+                 if e is not None}
         kept = []
         for i in sorted(score, key=lambda i: -score[i]):
             if all(overlap[i, j] <= limit and overlap[j, i] <= limit for j in kept):
