@@ -209,6 +209,11 @@ def _face_votes(P, nP, p, n, j, tolerance, cos_min, need):
     return out
 
 
+# The cosine of the largest angle between a surface's normal and the line of sight at which it
+# is taken as facing the camera (about 78 deg; ``facing_camera``, the outline's reach).
+MIN_FACING_COS = 0.2
+
+
 def facing_camera(p: np.ndarray, n: np.ndarray) -> np.ndarray:
     """Which surface points (camera frame) face the camera clearly (normal within about 78 deg
     of the line of sight, not grazing) and lie in front of it."""
@@ -222,7 +227,7 @@ def _facing(p, n):
     out = np.empty(p.shape[0], np.bool_)
     for i in range(p.shape[0]):
         x, y, z = p[i, 0], p[i, 1], p[i, 2]
-        out[i] = (n[i, 0] * -x + n[i, 1] * -y + n[i, 2] * -z > 0.2 * math.sqrt(x * x + y * y + z * z)) and z > 0.05
+        out[i] = (n[i, 0] * -x + n[i, 1] * -y + n[i, 2] * -z > MIN_FACING_COS * math.sqrt(x * x + y * y + z * z)) and z > 0.05
     return out
 
 
@@ -251,11 +256,6 @@ def in_view_share(T: np.ndarray, model_pts: np.ndarray, model_normals: np.ndarra
     v = K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]
     inside = (u >= -0.5) & (u < intrinsics.width - 0.5) & (v >= -0.5) & (v < intrinsics.height - 0.5)
     return float(inside.mean())
-
-
-# The cosine of the largest angle between a surface's normal and the line of sight at which it
-# is taken as facing the camera (about 78 deg, as ``facing_camera``).
-MIN_FACING_COS = 0.2
 
 
 def outline_continuation(T: np.ndarray, model_pts: np.ndarray, model_normals: np.ndarray, depth_m: np.ndarray,
