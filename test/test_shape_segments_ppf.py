@@ -1550,8 +1550,8 @@ def test_an_open_channel_behind_a_distractor_passes_judged_behind_anything():
     walls' rims and inner faces lie just past the tolerance behind its own nearer faces (the
     depth check leaves those within the self-hiding margin to count against it); at them the
     depth steps a few mm, and measured with them the step in front of the hidden part was
-    too small (channel seed 617: 5-8 mm median, 28-58 mm at the points hidden clearly). The
-    true pose passes; a pose sunk into the block still does not."""
+    too small (channel seed 617: 5-8 mm median, 28-58 mm at the points hidden clearly). Here
+    8 mm with them, 71 mm without (16 needed): the true pose passes."""
     from multi_instance_reg.rgbd.pipeline import PipelineConfig
     from multi_instance_reg.rgbd.shape import depth_support
     from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
