@@ -1032,6 +1032,13 @@ class ShapeFrontEnd:
         # Heights above every plane at once: most planes have no point below them.
         height = pts @ np.stack([up for up, _ in planes]).T + np.array([offset for _, offset in planes])
         deep = height < -PIERCE_VOXELS * self.voxel
+        # No point within PIERCE_VOXELS of the support below (``cloud.up``) reaches through
+        # another plane: one that lies that low there is the support itself seen off by a
+        # degree (a plane fitted 1 deg off the table, 17 mm above it under channels standing
+        # on it, their hidden wall bottoms "through" it: channel seed 631), or a board too thin
+        # to tell from it.
+        deep &= (pts @ cloud.up + cloud.up_offset > PIERCE_VOXELS * self.voxel)[:, None] | np.array(
+            [offset == cloud.up_offset and np.array_equal(up, cloud.up) for up, offset in planes])[None, :]
         # Through a plane means on both sides of it: a model wholly below one (up to the depth
         # tolerance) has its top in it, and the plane there is made of object tops, not a
         # support it goes through (touching channels' flush tops 5 cm above the table, larger
