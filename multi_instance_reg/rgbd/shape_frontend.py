@@ -1037,8 +1037,10 @@ class ShapeFrontEnd:
         # degree (a plane fitted 1 deg off the table, 17 mm above it under channels standing
         # on it, their hidden wall bottoms "through" it: channel seed 631), or a board too thin
         # to tell from it.
+        def stood_on(up, offset):
+            return offset == cloud.up_offset and np.array_equal(up, cloud.up)
         deep &= (pts @ cloud.up + cloud.up_offset > PIERCE_VOXELS * self.voxel)[:, None] | np.array(
-            [offset == cloud.up_offset and np.array_equal(up, cloud.up) for up, offset in planes])[None, :]
+            [stood_on(up, offset) for up, offset in planes])[None, :]
         # Through a plane means on both sides of it: a model wholly below one (up to the depth
         # tolerance) has its top in it, and the plane there is made of object tops, not a
         # support it goes through (touching channels' flush tops 5 cm above the table, larger
@@ -1057,8 +1059,6 @@ class ShapeFrontEnd:
         # (``cloud.up``): nothing stands below it, so a face of the model in it is a pose sunk
         # into it (seed 811 frame 5: an L 8 cm into the table, its face flush with it and half
         # out of view, passed as hidden).
-        def stood_on(up, offset):
-            return offset == cloud.up_offset and np.array_equal(up, cloud.up)
         return any(self._pierces_plane(pts[deep[:, k]], up, offset, depth_m, intrinsics,
                                        None if stood_on(up, offset) else own_pixels, self.tolerance_at(T))
                    for k, (up, offset) in enumerate(planes) if through[k])
