@@ -6,6 +6,7 @@ import pytest
 
 from multi_instance_reg.meshes import box_mesh, sample_surface
 from multi_instance_reg.messages import CameraIntrinsics
+from multi_instance_reg.rgbd.lifting import _depth_to_cloud_numpy, depth_to_cloud
 from multi_instance_reg.rgbd.mesh_model import build_model_from_mesh
 from multi_instance_reg.rgbd.ppf import PPFModel
 from multi_instance_reg.rgbd.segments import connected_segments, support_mask
@@ -85,6 +86,39 @@ def test_support_mask_keeps_a_plate_raised_less_than_the_band():
     # Larger than any face of the object (0.0128 m^2 against 0.005): a support, as the table.
     board = support_mask(depth, _intrinsics(), valid, max_area=0.005, thresh=0.004, noise_per_m2=0.002)
     assert board[inner].mean() > 0.8                        # (the rest: points above the band)
+
+
+@pytest.mark.parametrize("stride", [2, 3])
+def test_support_mask_rest_is_the_cloud_off_the_mask(stride):
+    """``rest``: the points lifted once are those ``depth_to_cloud`` gives off the mask, to the bit."""
+    noise = np.random.default_rng(3).standard_normal((240, 320))
+    depth, _ = _tilted_table(1.0, 0.002, noise, raised=0.008)
+    depth[::7, ::5] = 0.0
+    valid = depth > 0
+    rest = []
+    mask = support_mask(depth, _intrinsics(), valid, max_area=0.005, thresh=0.004, noise_per_m2=0.002,
+                        stride=stride, rest=rest)
+    pts, pix = depth_to_cloud(depth, _intrinsics(), valid & ~mask, stride=stride)
+    assert 0 < len(pts) < valid[::stride, ::stride].sum() // 2
+    assert rest[0].tobytes() == pts.tobytes() and rest[1].tobytes() == pix.tobytes()
+
+
+def test_depth_to_cloud_compiled_equals_numpy():
+    rng = np.random.default_rng(1)
+    depth = rng.uniform(-0.2, 3.0, (61, 83)).astype(np.float32)
+    depth[rng.random(depth.shape) < 0.1] = np.nan
+    depth[rng.random(depth.shape) < 0.1] = 0.0
+    depth[rng.random(depth.shape) < 0.02] = np.inf
+    mask = rng.random(depth.shape) < 0.7
+    K = np.array([[415.3, 0, 41.7], [0, 414.9, 30.2], [0, 0, 1]])
+    intr = CameraIntrinsics(K=K, width=83, height=61)
+    for d in (depth, depth.astype(np.float64)):
+        for m in (None, mask, mask.astype(np.uint8)):
+            for stride in (1, 2, 3):
+                pts, pix = depth_to_cloud(d, intr, m, stride)
+                ref_pts, ref_pix = _depth_to_cloud_numpy(d, intr, m, stride)
+                assert pts.dtype == ref_pts.dtype and pix.dtype == ref_pix.dtype and len(pts) > 0
+                assert pts.tobytes() == ref_pts.tobytes() and pix.tobytes() == ref_pix.tobytes()
 
 
 def test_support_mask_takes_no_table_for_raised_where_the_noise_is_smooth():

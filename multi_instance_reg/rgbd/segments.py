@@ -30,7 +30,8 @@ from .lifting import depth_to_cloud, fit_dominant_plane
 def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.ndarray, max_area: float,
                  thresh: float, noise_per_m2: float, max_planes: int = 4, min_share: float = 0.03,
                  stride: int = 2, ground: list | None = None, planes: list | None = None,
-                 up: np.ndarray | None = None, up_tolerance_deg: float = 20.0, window: int = 5) -> np.ndarray:
+                 up: np.ndarray | None = None, up_tolerance_deg: float = 20.0, window: int = 5,
+                 rest: list | None = None) -> np.ndarray:
     """(H, W) bool: valid pixels that lie on a large piece of a dominant plane (support
     surfaces). A plane point is within ``thresh`` + 3 sigma(z) of it, sigma(z) =
     ``noise_per_m2`` z^2 (stereo depth noise grows with the square of the distance); a piece
@@ -47,12 +48,18 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
     ``up`` (unit, camera frame: the direction of gravity's reaction, from an IMU or TF): then
     ``ground`` is the plane with the largest removed area among those whose normal lies within
     ``up_tolerance_deg`` of it (what objects stand on, not a wall that happens to be larger);
-    when there is none, the largest as without it."""
+    when there is none, the largest as without it.
+
+    ``rest``, a list, receives (points (P, 3) float32, pixels (P, 2)) of the valid pixels
+    sampled ``stride`` apart that were not removed: ``depth_to_cloud`` of ``valid`` and not
+    the mask returned, at ``stride``, without lifting the depth a second time."""
     h, w = depth_m.shape
-    pts, pix = depth_to_cloud(depth_m, intrinsics, valid, stride=stride)
-    pts = pts.astype(np.float64)
+    lifted, pix = depth_to_cloud(depth_m, intrinsics, valid, stride=stride)
+    pts = lifted.astype(np.float64)
     out = np.zeros((h, w), bool)
     if len(pts) < 50:
+        if rest is not None:
+            rest[:] = [lifted, pix]
         return out
     rows, cols = pix[:, 0] // stride, pix[:, 1] // stride
     hs, ws = (h + stride - 1) // stride, (w + stride - 1) // stride
@@ -108,6 +115,10 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
         alive &= ~band
     if level is not None:
         ground[:] = level
+    if rest is not None:
+        # Only the sampled pixels are marked yet: the filling below marks none of them anew.
+        kept = ~out[pix[:, 0], pix[:, 1]]
+        rest[:] = [lifted[kept], pix[kept]]
     if stride > 1:
         # Fill the pixels between the sampled ones.
         out = cv2.dilate(out.astype(np.uint8), np.ones((stride, stride), np.uint8),

@@ -21,7 +21,6 @@ from ..core import ECCConfig
 from ..errors import InputError
 from ..messages import CameraIntrinsics
 from .model import ObjectModel
-from .lifting import depth_to_cloud
 from .ppf import ANGLE_BINS as ANGLE_STEPS, PPFModel, cluster_poses
 from .faces import Faces, frame_patches, matches, model_faces, nearest_face_pose, patch_poses
 from .segments import connected_segments, pairs_across_steps, support_mask, within_reach
@@ -223,11 +222,12 @@ class ShapeFrontEnd:
         it, not a larger wall (``support_mask``)."""
         fe = self.fe
         valid = (depth_m >= fe.depth_min) & (depth_m <= fe.depth_max)
-        ground, planes = [], []
-        support = support_mask(depth_m, intrinsics, valid, fe.shape_support_area * self._max_face_area,
-                               fe.shape_plane_thresh, fe.shape_depth_noise, ground=ground, planes=planes,
-                               up=gravity, up_tolerance_deg=fe.shape_gravity_tolerance_deg)
-        pts, _ = depth_to_cloud(depth_m, intrinsics, valid & ~support, stride=2)
+        ground, planes, rest = [], [], []
+        # Every second pixel's point off the supports (lifted once, in support_mask).
+        support_mask(depth_m, intrinsics, valid, fe.shape_support_area * self._max_face_area,
+                     fe.shape_plane_thresh, fe.shape_depth_noise, stride=2, ground=ground, planes=planes,
+                     up=gravity, up_tolerance_deg=fe.shape_gravity_tolerance_deg, rest=rest)
+        pts = rest[0]
         pts = voxel_downsample(np.asarray(pts, np.float64), self.voxel)
         empty = FrameCloud(pts, np.zeros_like(pts), np.zeros(0, np.int64), np.zeros((0, 33), np.float32), None,
                            np.full(len(pts), -1, np.int64))
