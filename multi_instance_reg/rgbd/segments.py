@@ -24,6 +24,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from ..messages import CameraIntrinsics
+from ..threads import submit_each
 from .lifting import depth_to_cloud, fit_dominant_plane
 
 
@@ -72,6 +73,29 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
     best_area = 0.0
     level_area, level = 0.0, None
     min_cos = np.cos(np.radians(up_tolerance_deg)) if up is not None else 0.0
+    fxfy = K[0, 0] * K[1, 1]
+
+    def cut(plane_band):
+        """The plane's large pieces (and large raised surfaces in its band) marked in
+        ``out``; their area. Bands of different planes share no point."""
+        n, on, band, img, height = plane_band
+        if window > 1:
+            _leave_raised(pts, on, img, height, rows, cols, thresh, window)
+        count, labels = cv2.connectedComponents(img, connectivity=8)
+        removed_area = _remove_large_pieces(pts, on, labels, rows, cols, stride, fxfy, n, max_area, count, pix, out)
+        raised = band & ~on
+        if raised.any():
+            # A raised surface larger than any face of the object supports too (a board on
+            # the table), as a piece of the plane would.
+            img[:] = 0
+            img[rows[raised], cols[raised]] = 1
+            count, labels = cv2.connectedComponents(img, connectivity=8)
+            _remove_large_pieces(pts, raised, labels, rows, cols, stride, fxfy, n, max_area, count, pix, out)
+        return removed_area
+
+    # Each plane's band is cut into pieces in the shared thread pool while the next plane
+    # is sought here (the search needs only the band, not the pieces).
+    cuts = []
     for k in range(max_planes):
         cand = np.flatnonzero(alive)
         if len(cand) < min_share * total or len(cand) < 50:
@@ -87,19 +111,13 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
         if on.sum() < min_share * total:
             break
         band = on.copy()
-        if window > 1:
-            _leave_raised(pts, on, img, height, rows, cols, thresh, window)
-        count, labels = cv2.connectedComponents(img, connectivity=8)
-        removed_area = _remove_large_pieces(pts, on, labels, rows, cols, stride, K[0, 0] * K[1, 1], n, max_area,
-                                            count, pix, out)
-        raised = band & ~on
-        if raised.any():
-            # A raised surface larger than any face of the object supports too (a board on
-            # the table), as a piece of the plane would.
-            img[:] = 0
-            img[rows[raised], cols[raised]] = 1
-            count, labels = cv2.connectedComponents(img, connectivity=8)
-            _remove_large_pieces(pts, raised, labels, rows, cols, stride, K[0, 0] * K[1, 1], n, max_area, count, pix, out)
+        cuts.append((n, d, submit_each(cut, [(n, on, band, img, height)])[0]))
+        # The raised points too: the next plane is then sought among the same points as
+        # without them (one found among them by chance was the tops of touching channels, a
+        # piece larger than three faces, removed with every channel in it).
+        alive &= ~band
+    for n, d, task in cuts:
+        removed_area = task.result()
         # The normal on the camera's side, and the offset: normal . p + offset = 0 on the plane.
         normal, offset = np.asarray(n, np.float64) * (1.0 if d > 0 else -1.0), abs(float(d))
         if planes is not None and removed_area > 0:
@@ -109,10 +127,6 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
             ground[:] = [normal, offset]
         if ground is not None and up is not None and removed_area > level_area and float(normal @ up) >= min_cos:
             level_area, level = removed_area, [normal, offset]
-        # The raised points too: the next plane is then sought among the same points as
-        # without them (one found among them by chance was the tops of touching channels, a
-        # piece larger than three faces, removed with every channel in it).
-        alive &= ~band
     if level is not None:
         ground[:] = level
     if rest is not None:
