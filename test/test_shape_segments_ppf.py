@@ -1652,3 +1652,23 @@ def test_a_plane_just_off_the_table_is_not_pierced_by_what_stands_on_the_table()
     cloud.planes = tuple(cloud.planes[:-1]) + ((tilted[0], tilted[1] - 0.0225 * np.cos(a)),)
     raised = invert_transform(cam) @ make_transform(down, [0.0, 0.0, 0.045])
     assert shape.pierces(raised, cloud, _meshes_on_table(mesh, [raised], cam, intr), intr)
+
+
+def test_on_found_kept_for_the_same_instances_is_the_same_test():
+    """``_on_found`` keeps its last tree: asked again for the same poses it answers as a
+    fresh one; for other poses it is built anew (a kept tree would answer for the old ones)."""
+    from multi_instance_reg.rgbd.pipeline import FrontEndConfig
+    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+
+    shape = ShapeFrontEnd(_box_model(), FrontEndConfig())
+    A = make_transform(np.eye(3), [0.0, 0.0, 1.5])
+    B = make_transform(np.eye(3), [0.4, 0.0, 1.5])
+    points = np.random.default_rng(0).uniform([-0.3, -0.2, 1.3], [0.7, 0.2, 1.7], (3000, 3))
+    fresh = ShapeFrontEnd(_box_model(), FrontEndConfig())._on_found([A])(points)
+    assert 0 < fresh.sum() < len(points)
+    assert np.array_equal(shape._on_found([A])(points), fresh)
+    assert np.array_equal(shape._on_found([A.copy()])(points), fresh)      # kept (by the poses' values)
+    assert np.array_equal(shape._on_found([B])(points),
+                          ShapeFrontEnd(_box_model(), FrontEndConfig())._on_found([B])(points))
+    assert not np.array_equal(shape._on_found([B])(points), fresh)
+    assert np.array_equal(shape._on_found([A])(points[:100]), fresh[:100])  # one thread for few points
