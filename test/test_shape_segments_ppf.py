@@ -1171,6 +1171,24 @@ def test_two_small_segments_larger_together_are_paired_once():
     assert pairs_across_steps(points, labels, reach, 0.02) == [(1, 0)]
 
 
+def test_segments_within_reach_are_those_within_reach_one_by_one():
+    """``segments_within_reach`` (one sort) names the segments ``within_reach`` names one by
+    one (labels shuffled, some -1); given to ``pairs_across_steps`` it finds the same pairs."""
+    from multi_instance_reg.rgbd.segments import pairs_across_steps, segments_within_reach, within_reach
+
+    rng = np.random.default_rng(2)
+    sizes = rng.uniform(0.02, 0.3, 30)
+    points = np.concatenate([rng.uniform(0, s, (40, 3)) + [0.2 * k, 0.0, 0.8] for k, s in enumerate(sizes)])
+    labels = np.repeat(np.arange(30), 40)
+    labels[rng.random(len(labels)) < 0.1] = -1
+    perm = rng.permutation(len(points))
+    points, labels = points[perm], labels[perm]
+    compact = segments_within_reach(points, labels, 0.25)
+    assert compact.tolist() == [s for s in range(30) if within_reach(points[labels == s], 0.25)]
+    assert 0 < len(compact) < 30
+    assert pairs_across_steps(points, labels, 0.25, 0.02, small=compact) == pairs_across_steps(points, labels, 0.25, 0.02)
+
+
 def test_densest_pose_clusters_are_seeded_at_the_mode_not_at_the_strongest_vote():
     """References spread about the right pose (a plate's votes, blurred in its plane) with
     the strongest of them 22 deg off: strongest first, that one seeds the cluster and is

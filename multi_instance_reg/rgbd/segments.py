@@ -249,22 +249,21 @@ def connected_segments(points: np.ndarray, link: float, min_points: int) -> np.n
     return out
 
 
-def pairs_across_steps(points: np.ndarray, labels: np.ndarray, reach: float, link: float) -> list[tuple[int, int]]:
+def pairs_across_steps(points: np.ndarray, labels: np.ndarray, reach: float, link: float,
+                       small: np.ndarray | None = None) -> list[tuple[int, int]]:
     """Pairs of segments (a, b) that may be one object split by a depth step: side by side
     in the image (points within ``link`` of each other across the line of sight, at the
     nearer one's distance) while apart in depth (else they would be one segment), and a
     within ``reach`` (the object's diameter: no two points farther apart); b too, and both
     together (then a < b), or b larger (it joins the object's other part with a neighbour).
     A non-convex object hides part of itself: an L bracket seen from behind shows its upright
-    plate and, past a depth step, its base plate, two segments that each vote alone."""
+    plate and, past a depth step, its base plate, two segments that each vote alone.
+    ``small``: ``segments_within_reach`` of these points, labels and reach, when known."""
     ids = np.unique(labels[labels >= 0])
     if len(ids) < 2:
         return []
     # Segments small enough to be (part of) one object; their points' image directions.
-    small = []
-    for s in ids:
-        if within_reach(points[labels == s], reach):
-            small.append(s)
+    small = set((segments_within_reach(points, labels, reach) if small is None else small).tolist())
     if len(small) < 1:
         return []
     keep = labels >= 0
@@ -299,6 +298,18 @@ def pairs_across_steps(points: np.ndarray, labels: np.ndarray, reach: float, lin
     return out
 
 
+def segments_within_reach(points: np.ndarray, labels: np.ndarray, reach: float) -> np.ndarray:
+    """The ids (ascending) of the segments (labels >= 0) ``within_reach``: small enough to be
+    (part of) one object. Each segment's points in their order, found by one sort (not a
+    pass over all labels per segment)."""
+    order = np.flatnonzero(labels >= 0)
+    order = order[np.argsort(labels[order], kind="stable")]
+    ids, starts = np.unique(labels[order], return_index=True)
+    ends = np.append(starts[1:], len(order))
+    return np.array([s for s, a, b in zip(ids.tolist(), starts, ends) if within_reach(points[order[a:b]], reach)],
+                    np.int64)
+
+
 def within_reach(p: np.ndarray, reach: float) -> bool:
     """No two of the points farther apart than ``reach``. The box's diagonal bounds the
     farthest pair from above and its longest side from below; only between them are the
@@ -315,4 +326,4 @@ def within_reach(p: np.ndarray, reach: float) -> bool:
     return bool(pdist(p).max() <= reach)
 
 
-__all__ = ["support_mask", "connected_segments", "pairs_across_steps", "within_reach"]
+__all__ = ["support_mask", "connected_segments", "pairs_across_steps", "segments_within_reach", "within_reach"]

@@ -23,7 +23,7 @@ from ..messages import CameraIntrinsics
 from .model import ObjectModel
 from .ppf import ANGLE_BINS as ANGLE_STEPS, PPFModel, cluster_poses
 from .faces import Faces, frame_patches, matches, model_faces, nearest_face_pose, patch_poses
-from .segments import connected_segments, pairs_across_steps, support_mask, within_reach
+from .segments import connected_segments, pairs_across_steps, segments_within_reach, support_mask
 from .verify import facing_camera, image_pixels, in_view_share, outline_continuation, outline_shift
 from ..threads import shared_pool, submit_each
 from ..tracking.icp import align_projective
@@ -78,6 +78,7 @@ class FrameCloud:
     grid: PointGrid | None = None         # the points and normals for ICP's nearest-point search
     patches: Faces | None = None          # the segments' flat patches shaped as a model face (ppf, shape_faces)
     patch_fits: np.ndarray | None = None  # (J, F) bool: patch j has model face f's outline
+    compact: np.ndarray | None = None     # ids of the segments within the object's diameter (``compact_segments``)
 
 
 class ShapeFrontEnd:
@@ -312,15 +313,21 @@ class ShapeFrontEnd:
         (open-side-down channels merged in pairs or fours: 0-5 right references of 70-100
         each; voted over their own points alone, 10-60). A reference near its instance's
         middle still pairs with all of it."""
-        labels = cloud.segments if labels is None else labels
+        own = labels is None
+        labels = cloud.segments if own else labels
         if not self.fe.shape_merged_reach or labels is None:
             return None
+        compact = self.compact_segments(cloud) if own else segments_within_reach(cloud.points, labels, self.diameter)
         reach = np.full(len(cloud.points), np.inf)
-        for label in np.unique(labels[labels >= 0]):
-            mine = labels == label
-            if not within_reach(cloud.points[mine], self.diameter):
-                reach[mine] = self.central_reach
+        reach[(labels >= 0) & ~np.isin(labels, compact)] = self.central_reach
         return reach if np.isfinite(reach).any() else None
+
+    def compact_segments(self, cloud: FrameCloud) -> np.ndarray:
+        """``segments_within_reach`` of the cloud's segments and the object's diameter, found
+        once a frame (``partner_reach`` and ``joined_poses`` both ask: 3-4 ms a channel frame)."""
+        if cloud.compact is None:
+            cloud.compact = segments_within_reach(cloud.points, cloud.segments, self.diameter)
+        return cloud.compact
 
     def face_poses(self, cloud: FrameCloud) -> np.ndarray:
         """(K, 4, 4) pose hypotheses from the segments' flat patches whose outline moments are
@@ -378,7 +385,8 @@ class ShapeFrontEnd:
         other). Not given to ECC: its correspondences stay those of each segment alone
         (voting across segments everywhere cost the others their references)."""
         fe = self.fe
-        pairs = pairs_across_steps(cloud.points, cloud.segments, self.diameter, fe.shape_segment_link * self.voxel)
+        pairs = pairs_across_steps(cloud.points, cloud.segments, self.diameter, fe.shape_segment_link * self.voxel,
+                                   small=self.compact_segments(cloud))
         if not pairs:
             return np.zeros((0, 4, 4))
         groups = []
