@@ -231,13 +231,13 @@ def _remove_large_pieces(pts, on, labels, rows, cols, stride, fxfy, n, max_area,
     return removed
 
 
-def connected_segments(points: np.ndarray, link: float, min_points: int) -> np.ndarray:
+def connected_segments(points: np.ndarray, link: float, min_points: int, tree: cKDTree | None = None) -> np.ndarray:
     """(N,) segment label per point (-1: in a segment of fewer than ``min_points``), points
-    joined when closer than ``link``."""
+    joined when closer than ``link``. ``tree``: a k-d tree of ``points``, when there is one."""
     n = len(points)
     if n == 0:
         return np.zeros(0, np.int64)
-    pairs = cKDTree(points).query_pairs(link, output_type="ndarray")
+    pairs = (cKDTree(points) if tree is None else tree).query_pairs(link, output_type="ndarray")
     graph = coo_matrix((np.ones(len(pairs), np.int8), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
     _, labels = connected_components(graph, directed=False)
     sizes = np.bincount(labels)

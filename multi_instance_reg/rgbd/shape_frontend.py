@@ -236,15 +236,17 @@ class ShapeFrontEnd:
         if len(pts) < 10:
             return empty
         # The segments on the other core while the normals are estimated here (neither
-        # needs the other; both searches release the GIL).
-        segments = submit_each(lambda p: connected_segments(p, fe.shape_segment_link * self.voxel,
-                                                            fe.shape_min_segment), [pts])[0]
+        # needs the other; both searches release the GIL and share one tree), and the ICP
+        # grid built here while the segments, the longer of the two, are finished.
         tree = cKDTree(pts)
+        segments = submit_each(lambda p: connected_segments(p, fe.shape_segment_link * self.voxel,
+                                                            fe.shape_min_segment, tree=tree), [pts])[0]
         normals = surface_normals(pts, self.voxel, toward=np.zeros(3), tree=tree)
+        grid = PointGrid(pts, normals, ICP_REACH * self.voxel)
         labels = segments.result()
         return FrameCloud(pts, normals, np.zeros(0, np.int64), np.zeros((0, 33), np.float32), tree, labels,
                           up=ground[0] if ground else None, up_offset=ground[1] if ground else None,
-                          planes=tuple(planes), grid=PointGrid(pts, normals, ICP_REACH * self.voxel))
+                          planes=tuple(planes), grid=grid)
 
     def correspondences(self, cloud: FrameCloud, on_poses=None, on_matches=None) -> tuple[np.ndarray, np.ndarray]:
         """(model points (N, 3), scene points (N, 3)). ppf: each reference point of a
