@@ -131,8 +131,9 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
         ground[:] = level
     if rest is not None:
         # Only the sampled pixels are marked yet: the filling below marks none of them anew.
-        kept = ~out[pix[:, 0], pix[:, 1]]
-        rest[:] = [lifted[kept], pix[kept]]
+        # (take: rows by a boolean mask were 3 ms for 73,000 points, take 0.3)
+        kept = np.flatnonzero(~out[pix[:, 0], pix[:, 1]])
+        rest[:] = [lifted.take(kept, axis=0), pix.take(kept, axis=0)]
     if stride > 1:
         # Fill the pixels between the sampled ones.
         out = cv2.dilate(out.astype(np.uint8), np.ones((stride, stride), np.uint8),
