@@ -133,6 +133,20 @@ def test_support_mask_takes_no_table_for_raised_where_the_noise_is_smooth():
     assert mask[valid].mean() > 0.99
 
 
+def test_graph_components_number_components_as_scipy_does():
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    from multi_instance_reg.rgbd.segments import graph_components
+
+    rng = np.random.default_rng(5)
+    for n, m in ((1, 0), (50, 0), (500, 300), (2000, 2500), (3000, 9000)):
+        i, j = rng.integers(0, n, m), rng.integers(0, n, m)
+        _, ref = connected_components(coo_matrix((np.ones(m, np.int8), (i, j)), shape=(n, n)), directed=False)
+        labels = graph_components(n, i.astype(np.int64), j.astype(np.int64))
+        assert labels.dtype == ref.dtype and np.array_equal(labels, ref)
+
+
 def test_connected_segments_split_and_drop_small():
     rng = np.random.default_rng(0)
     a = rng.uniform(0, 0.1, (200, 3))

