@@ -287,6 +287,40 @@ def test_box_overlaps_of_instances():
     assert box_overlaps(Model, [], box_grid(Model.extent)).shape == (0, 0)
 
 
+def test_box_overlaps_skipping_pairs_apart_gives_every_share():
+    """The kernel skips pairs whose boxes lie apart; every entry is still the share the
+    grid points give, counted point by point (poses packed close, some touching, turned)."""
+    from multi_instance_reg.rgbd.pipeline import box_grid, box_overlaps
+    from multi_instance_reg.symmetry import _rotation
+
+    class Model:
+        extent = np.array([0.2, 0.1, 0.05])
+        box_centre = np.array([0.01, -0.02, 0.005])
+    rng = np.random.default_rng(4)
+    poses = []
+    for _ in range(40):
+        axis = rng.normal(size=3)
+        T = np.eye(4)
+        T[:3, :3] = _rotation(axis / np.linalg.norm(axis), rng.uniform(0, np.pi))
+        T[:3, 3] = rng.uniform(-0.25, 0.25, 3)
+        poses.append(T)
+    grid = box_grid(Model.extent)
+    O = box_overlaps(Model, poses, grid)
+    half = Model.extent / 2.0
+    ref = np.zeros_like(O)
+    for a, A in enumerate(poses):
+        for b, B in enumerate(poses):
+            R = A[:3, :3].T @ B[:3, :3]
+            t = A[:3, :3].T @ (B[:3, 3] - A[:3, 3])
+            x, y, z = grid[:, 0], grid[:, 1], grid[:, 2]
+            inside = np.ones(len(grid), bool)
+            for i in range(3):
+                inside &= np.abs(x * R[i, 0] + y * R[i, 1] + z * R[i, 2] + t[i] - Model.box_centre[i]) <= half[i]
+            ref[a, b] = inside.sum() / len(grid)
+    assert np.array_equal(O, ref)
+    assert 0 < (O > 0).sum() - 40 and (O == 0).sum() > 100      # both kinds of pairs
+
+
 def _box_cloud(extent, step=0.004):
     """Dense points on the surface of a box centred at the origin."""
     h = np.asarray(extent) / 2.0

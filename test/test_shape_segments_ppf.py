@@ -6,6 +6,7 @@ import pytest
 
 from multi_instance_reg.meshes import box_mesh, sample_surface
 from multi_instance_reg.messages import CameraIntrinsics
+from multi_instance_reg.rgbd.lifting import _depth_to_cloud_numpy, depth_to_cloud
 from multi_instance_reg.rgbd.mesh_model import build_model_from_mesh
 from multi_instance_reg.rgbd.ppf import PPFModel
 from multi_instance_reg.rgbd.segments import connected_segments, support_mask
@@ -87,6 +88,39 @@ def test_support_mask_keeps_a_plate_raised_less_than_the_band():
     assert board[inner].mean() > 0.8                        # (the rest: points above the band)
 
 
+@pytest.mark.parametrize("stride", [2, 3])
+def test_support_mask_rest_is_the_cloud_off_the_mask(stride):
+    """``rest``: the points lifted once are those ``depth_to_cloud`` gives off the mask, to the bit."""
+    noise = np.random.default_rng(3).standard_normal((240, 320))
+    depth, _ = _tilted_table(1.0, 0.002, noise, raised=0.008)
+    depth[::7, ::5] = 0.0
+    valid = depth > 0
+    rest = []
+    mask = support_mask(depth, _intrinsics(), valid, max_area=0.005, thresh=0.004, noise_per_m2=0.002,
+                        stride=stride, rest=rest)
+    pts, pix = depth_to_cloud(depth, _intrinsics(), valid & ~mask, stride=stride)
+    assert 0 < len(pts) < valid[::stride, ::stride].sum() // 2
+    assert rest[0].tobytes() == pts.tobytes() and rest[1].tobytes() == pix.tobytes()
+
+
+def test_depth_to_cloud_compiled_equals_numpy():
+    rng = np.random.default_rng(1)
+    depth = rng.uniform(-0.2, 3.0, (61, 83)).astype(np.float32)
+    depth[rng.random(depth.shape) < 0.1] = np.nan
+    depth[rng.random(depth.shape) < 0.1] = 0.0
+    depth[rng.random(depth.shape) < 0.02] = np.inf
+    mask = rng.random(depth.shape) < 0.7
+    K = np.array([[415.3, 0, 41.7], [0, 414.9, 30.2], [0, 0, 1]])
+    intr = CameraIntrinsics(K=K, width=83, height=61)
+    for d in (depth, depth.astype(np.float64)):
+        for m in (None, mask, mask.astype(np.uint8)):
+            for stride in (1, 2, 3):
+                pts, pix = depth_to_cloud(d, intr, m, stride)
+                ref_pts, ref_pix = _depth_to_cloud_numpy(d, intr, m, stride)
+                assert pts.dtype == ref_pts.dtype and pix.dtype == ref_pix.dtype and len(pts) > 0
+                assert pts.tobytes() == ref_pts.tobytes() and pix.tobytes() == ref_pix.tobytes()
+
+
 def test_support_mask_takes_no_table_for_raised_where_the_noise_is_smooth():
     """Stereo depth noise shared by neighbouring pixels (smooth over 3 px) at 2 m (sigma 8 mm):
     a window's mean scatters nearly as much as a point, which the plane's own scatter says;
@@ -97,6 +131,20 @@ def test_support_mask_takes_no_table_for_raised_where_the_noise_is_smooth():
     valid = depth > 0
     mask = support_mask(depth, _intrinsics(), valid, max_area=0.1, thresh=0.004, noise_per_m2=0.002)
     assert mask[valid].mean() > 0.99
+
+
+def test_graph_components_number_components_as_scipy_does():
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    from multi_instance_reg.rgbd.segments import graph_components
+
+    rng = np.random.default_rng(5)
+    for n, m in ((1, 0), (50, 0), (500, 300), (2000, 2500), (3000, 9000)):
+        i, j = rng.integers(0, n, m), rng.integers(0, n, m)
+        _, ref = connected_components(coo_matrix((np.ones(m, np.int8), (i, j)), shape=(n, n)), directed=False)
+        labels = graph_components(n, i.astype(np.int64), j.astype(np.int64))
+        assert labels.dtype == ref.dtype and np.array_equal(labels, ref)
 
 
 def test_connected_segments_split_and_drop_small():
@@ -1137,6 +1185,24 @@ def test_two_small_segments_larger_together_are_paired_once():
     assert pairs_across_steps(points, labels, reach, 0.02) == [(1, 0)]
 
 
+def test_segments_within_reach_are_those_within_reach_one_by_one():
+    """``segments_within_reach`` (one sort) names the segments ``within_reach`` names one by
+    one (labels shuffled, some -1); given to ``pairs_across_steps`` it finds the same pairs."""
+    from multi_instance_reg.rgbd.segments import pairs_across_steps, segments_within_reach, within_reach
+
+    rng = np.random.default_rng(2)
+    sizes = rng.uniform(0.02, 0.3, 30)
+    points = np.concatenate([rng.uniform(0, s, (40, 3)) + [0.2 * k, 0.0, 0.8] for k, s in enumerate(sizes)])
+    labels = np.repeat(np.arange(30), 40)
+    labels[rng.random(len(labels)) < 0.1] = -1
+    perm = rng.permutation(len(points))
+    points, labels = points[perm], labels[perm]
+    compact = segments_within_reach(points, labels, 0.25)
+    assert compact.tolist() == [s for s in range(30) if within_reach(points[labels == s], 0.25)]
+    assert 0 < len(compact) < 30
+    assert pairs_across_steps(points, labels, 0.25, 0.02, small=compact) == pairs_across_steps(points, labels, 0.25, 0.02)
+
+
 def test_densest_pose_clusters_are_seeded_at_the_mode_not_at_the_strongest_vote():
     """References spread about the right pose (a plate's votes, blurred in its plane) with
     the strongest of them 22 deg off: strongest first, that one seeds the cluster and is
@@ -1618,3 +1684,23 @@ def test_a_plane_just_off_the_table_is_not_pierced_by_what_stands_on_the_table()
     cloud.planes = tuple(cloud.planes[:-1]) + ((tilted[0], tilted[1] - 0.0225 * np.cos(a)),)
     raised = invert_transform(cam) @ make_transform(down, [0.0, 0.0, 0.045])
     assert shape.pierces(raised, cloud, _meshes_on_table(mesh, [raised], cam, intr), intr)
+
+
+def test_on_found_kept_for_the_same_instances_is_the_same_test():
+    """``_on_found`` keeps its last tree: asked again for the same poses it answers as a
+    fresh one; for other poses it is built anew (a kept tree would answer for the old ones)."""
+    from multi_instance_reg.rgbd.pipeline import FrontEndConfig
+    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+
+    shape = ShapeFrontEnd(_box_model(), FrontEndConfig())
+    A = make_transform(np.eye(3), [0.0, 0.0, 1.5])
+    B = make_transform(np.eye(3), [0.4, 0.0, 1.5])
+    points = np.random.default_rng(0).uniform([-0.3, -0.2, 1.3], [0.7, 0.2, 1.7], (3000, 3))
+    fresh = ShapeFrontEnd(_box_model(), FrontEndConfig())._on_found([A])(points)
+    assert 0 < fresh.sum() < len(points)
+    assert np.array_equal(shape._on_found([A])(points), fresh)
+    assert np.array_equal(shape._on_found([A.copy()])(points), fresh)      # kept (by the poses' values)
+    assert np.array_equal(shape._on_found([B])(points),
+                          ShapeFrontEnd(_box_model(), FrontEndConfig())._on_found([B])(points))
+    assert not np.array_equal(shape._on_found([B])(points), fresh)
+    assert np.array_equal(shape._on_found([A])(points[:100]), fresh[:100])  # one thread for few points

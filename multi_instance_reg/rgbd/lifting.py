@@ -83,6 +83,16 @@ def backproject(uv_undistorted: np.ndarray, depth: np.ndarray, intrinsics: Camer
 def depth_to_cloud(depth_m: np.ndarray, intrinsics: CameraIntrinsics, mask: np.ndarray | None = None,
                    stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """Back-project every valid (and masked) depth pixel: (points (P, 3) float32, pixel indices (P, 2) rows, cols)."""
+    if intrinsics.has_distortion:
+        return _depth_to_cloud_numpy(depth_m, intrinsics, mask, stride)
+    K = np.asarray(intrinsics.K, dtype=np.float64)
+    has_mask = mask is not None
+    return _lift_grid(np.asarray(depth_m), np.asarray(mask) if has_mask else np.zeros((1, 1), np.bool_), has_mask,
+                      int(stride), K[0, 2], K[1, 2], K[0, 0], K[1, 1])
+
+
+def _depth_to_cloud_numpy(depth_m, intrinsics, mask=None, stride=1):
+    # With distortion (OpenCV undistorts), and the reference the compiled path is tested against.
     d = depth_m[::stride, ::stride]
     valid = np.isfinite(d) & (d > 0)
     if mask is not None:
@@ -92,6 +102,35 @@ def depth_to_cloud(depth_m: np.ndarray, intrinsics: CameraIntrinsics, mask: np.n
     uv = np.stack([cols_full, rows_full], axis=1).astype(np.float64)
     pts = backproject(undistort_pixels(uv, intrinsics), d[rows, cols], intrinsics)
     return pts, np.stack([rows_full, cols_full], axis=1)
+
+
+@numba.njit(cache=True, nogil=True)
+def _lift_grid(depth, mask, has_mask, stride, cx, cy, fx, fy):
+    # depth_to_cloud without distortion in two passes over the sampled pixels (count, fill),
+    # the same float64 arithmetic as ``backproject``: the numpy steps (masks, nonzero,
+    # gathers, stacks) took ~4 ms of a frame's first, single-threaded, milliseconds.
+    h, w = depth.shape
+    n = 0
+    for r in range(0, h, stride):
+        for c in range(0, w, stride):
+            v = depth[r, c]
+            if np.isfinite(v) and v > 0 and (not has_mask or mask[r, c] != 0):
+                n += 1
+    pts = np.empty((n, 3), np.float32)
+    pix = np.empty((n, 2), np.int64)
+    k = 0
+    for r in range(0, h, stride):
+        for c in range(0, w, stride):
+            v = depth[r, c]
+            if np.isfinite(v) and v > 0 and (not has_mask or mask[r, c] != 0):
+                z = np.float64(v)
+                pts[k, 0] = np.float32((np.float64(c) - cx) / fx * z)
+                pts[k, 1] = np.float32((np.float64(r) - cy) / fy * z)
+                pts[k, 2] = np.float32(z)
+                pix[k, 0] = r
+                pix[k, 1] = c
+                k += 1
+    return pts, pix
 
 
 def fit_dominant_plane(points: np.ndarray, thresh: float, iterations: int = 200, seed: int = 0,

@@ -842,11 +842,29 @@ def _box_shares(grid, R_rel, t_rel, centre, half):
     # b's grid in a's model frame, pair by pair, compiled: as one (P, 3) x (3, M*M*3) product
     # and its comparisons, 1.3 ms a call for the 30-40 poses of a pallet frame (twice a frame,
     # after the refinement, on one core).
+    # A pair whose boxes lie apart (most: instances side by side) shares nothing, told from
+    # the centres: b's grid lies within ``reach`` of its box centre, a's box within |half| of
+    # its own; R_rel's stretch (1 for a rotation, bounded from its deviation from one) counted.
     m = R_rel.shape[0]
     out = np.zeros((m, m))
+    reach = 0.0
+    for p in range(grid.shape[0]):
+        d0, d1, d2 = grid[p, 0] - centre[0], grid[p, 1] - centre[1], grid[p, 2] - centre[2]
+        reach = max(reach, np.sqrt(d0 * d0 + d1 * d1 + d2 * d2))
+    half_norm = np.sqrt(half[0] * half[0] + half[1] * half[1] + half[2] * half[2])
     for a in range(m):
         for b in range(m):
             R, t = R_rel[a, b], t_rel[a, b]
+            off = 0.0
+            for i in range(3):
+                for j in range(3):
+                    g = R[0, i] * R[0, j] + R[1, i] * R[1, j] + R[2, i] * R[2, j] - (1.0 if i == j else 0.0)
+                    off = max(off, abs(g))
+            c0 = centre[0] * R[0, 0] + centre[1] * R[0, 1] + centre[2] * R[0, 2] + t[0] - centre[0]
+            c1 = centre[0] * R[1, 0] + centre[1] * R[1, 1] + centre[2] * R[1, 2] + t[1] - centre[1]
+            c2 = centre[0] * R[2, 0] + centre[1] * R[2, 1] + centre[2] * R[2, 2] + t[2] - centre[2]
+            if np.sqrt(c0 * c0 + c1 * c1 + c2 * c2) > np.sqrt(1.0 + 3.0 * off) * reach + half_norm + 1e-9:
+                continue
             count = 0
             for p in range(grid.shape[0]):
                 x, y, z = grid[p, 0], grid[p, 1], grid[p, 2]

@@ -21,10 +21,9 @@ from ..core import ECCConfig
 from ..errors import InputError
 from ..messages import CameraIntrinsics
 from .model import ObjectModel
-from .lifting import depth_to_cloud
 from .ppf import ANGLE_BINS as ANGLE_STEPS, PPFModel, cluster_poses
 from .faces import Faces, frame_patches, matches, model_faces, nearest_face_pose, patch_poses
-from .segments import connected_segments, pairs_across_steps, support_mask, within_reach
+from .segments import connected_segments, pairs_across_steps, segments_within_reach, support_mask
 from .verify import facing_camera, image_pixels, in_view_share, outline_continuation, outline_shift
 from ..threads import shared_pool, submit_each
 from ..tracking.icp import align_projective
@@ -79,11 +78,13 @@ class FrameCloud:
     grid: PointGrid | None = None         # the points and normals for ICP's nearest-point search
     patches: Faces | None = None          # the segments' flat patches shaped as a model face (ppf, shape_faces)
     patch_fits: np.ndarray | None = None  # (J, F) bool: patch j has model face f's outline
+    compact: np.ndarray | None = None     # ids of the segments within the object's diameter (``compact_segments``)
 
 
 class ShapeFrontEnd:
     def __init__(self, model: ObjectModel, fe):
         self._pixels_memo = None      # keep_pixels's (depth, intrinsics, {poses: image})
+        self._found_test = None       # _on_found's last (poses' bytes, test)
         if not model.has_shape:
             raise InputError("the object model has no shape data (frontend.correspondences shape/both); "
                              "build it from a mesh with `mireg build-model --mesh FILE`")
@@ -223,26 +224,29 @@ class ShapeFrontEnd:
         it, not a larger wall (``support_mask``)."""
         fe = self.fe
         valid = (depth_m >= fe.depth_min) & (depth_m <= fe.depth_max)
-        ground, planes = [], []
-        support = support_mask(depth_m, intrinsics, valid, fe.shape_support_area * self._max_face_area,
-                               fe.shape_plane_thresh, fe.shape_depth_noise, ground=ground, planes=planes,
-                               up=gravity, up_tolerance_deg=fe.shape_gravity_tolerance_deg)
-        pts, _ = depth_to_cloud(depth_m, intrinsics, valid & ~support, stride=2)
+        ground, planes, rest = [], [], []
+        # Every second pixel's point off the supports (lifted once, in support_mask).
+        support_mask(depth_m, intrinsics, valid, fe.shape_support_area * self._max_face_area,
+                     fe.shape_plane_thresh, fe.shape_depth_noise, stride=2, ground=ground, planes=planes,
+                     up=gravity, up_tolerance_deg=fe.shape_gravity_tolerance_deg, rest=rest)
+        pts = rest[0]
         pts = voxel_downsample(np.asarray(pts, np.float64), self.voxel)
         empty = FrameCloud(pts, np.zeros_like(pts), np.zeros(0, np.int64), np.zeros((0, 33), np.float32), None,
                            np.full(len(pts), -1, np.int64))
         if len(pts) < 10:
             return empty
         # The segments on the other core while the normals are estimated here (neither
-        # needs the other; both searches release the GIL).
-        segments = submit_each(lambda p: connected_segments(p, fe.shape_segment_link * self.voxel,
-                                                            fe.shape_min_segment), [pts])[0]
+        # needs the other; both searches release the GIL and share one tree), and the ICP
+        # grid built here while the segments, the longer of the two, are finished.
         tree = cKDTree(pts)
+        segments = submit_each(lambda p: connected_segments(p, fe.shape_segment_link * self.voxel,
+                                                            fe.shape_min_segment, tree=tree), [pts])[0]
         normals = surface_normals(pts, self.voxel, toward=np.zeros(3), tree=tree)
+        grid = PointGrid(pts, normals, ICP_REACH * self.voxel)
         labels = segments.result()
         return FrameCloud(pts, normals, np.zeros(0, np.int64), np.zeros((0, 33), np.float32), tree, labels,
                           up=ground[0] if ground else None, up_offset=ground[1] if ground else None,
-                          planes=tuple(planes), grid=PointGrid(pts, normals, ICP_REACH * self.voxel))
+                          planes=tuple(planes), grid=grid)
 
     def correspondences(self, cloud: FrameCloud, on_poses=None, on_matches=None) -> tuple[np.ndarray, np.ndarray]:
         """(model points (N, 3), scene points (N, 3)). ppf: each reference point of a
@@ -311,15 +315,21 @@ class ShapeFrontEnd:
         (open-side-down channels merged in pairs or fours: 0-5 right references of 70-100
         each; voted over their own points alone, 10-60). A reference near its instance's
         middle still pairs with all of it."""
-        labels = cloud.segments if labels is None else labels
+        own = labels is None
+        labels = cloud.segments if own else labels
         if not self.fe.shape_merged_reach or labels is None:
             return None
+        compact = self.compact_segments(cloud) if own else segments_within_reach(cloud.points, labels, self.diameter)
         reach = np.full(len(cloud.points), np.inf)
-        for label in np.unique(labels[labels >= 0]):
-            mine = labels == label
-            if not within_reach(cloud.points[mine], self.diameter):
-                reach[mine] = self.central_reach
+        reach[(labels >= 0) & ~np.isin(labels, compact)] = self.central_reach
         return reach if np.isfinite(reach).any() else None
+
+    def compact_segments(self, cloud: FrameCloud) -> np.ndarray:
+        """``segments_within_reach`` of the cloud's segments and the object's diameter, found
+        once a frame (``partner_reach`` and ``joined_poses`` both ask: 3-4 ms a channel frame)."""
+        if cloud.compact is None:
+            cloud.compact = segments_within_reach(cloud.points, cloud.segments, self.diameter)
+        return cloud.compact
 
     def face_poses(self, cloud: FrameCloud) -> np.ndarray:
         """(K, 4, 4) pose hypotheses from the segments' flat patches whose outline moments are
@@ -377,7 +387,8 @@ class ShapeFrontEnd:
         other). Not given to ECC: its correspondences stay those of each segment alone
         (voting across segments everywhere cost the others their references)."""
         fe = self.fe
-        pairs = pairs_across_steps(cloud.points, cloud.segments, self.diameter, fe.shape_segment_link * self.voxel)
+        pairs = pairs_across_steps(cloud.points, cloud.segments, self.diameter, fe.shape_segment_link * self.voxel,
+                                   small=self.compact_segments(cloud))
         if not pairs:
             return np.zeros((0, 4, 4))
         groups = []
@@ -664,10 +675,25 @@ class ShapeFrontEnd:
 
     def _on_found(self, found):
         """A test (points (N, 3) -> (N,) bool) of lying within ``RESIDUAL_VOXELS`` of the
-        surface of one of the poses ``found`` (a k-d tree of them, built once)."""
+        surface of one of the poses ``found`` (a k-d tree of them, built once). The last
+        one is kept: a frame asks it of the same instances two or three times
+        (``found_shares``, ``residual_poses``; 1-4 ms a tree of 4-11 poses' surfaces)."""
+        key = b"".join(np.asarray(F, np.float64).tobytes() for F in found)
+        kept = self._found_test
+        if kept is not None and kept[0] == key:
+            return kept[1]
         tree = cKDTree(np.concatenate([self._surface @ np.asarray(F)[:3, :3].T + np.asarray(F)[:3, 3]
                                        for F in found]))
-        return lambda points: np.isfinite(tree.query(points, distance_upper_bound=RESIDUAL_VOXELS * self.voxel)[0])
+
+        def test(points):
+            # The frame's whole cloud (2,500-5,000 points) on both cores; a pose's few
+            # hundred points are not worth the threads.
+            workers = -1 if len(points) >= 2000 else 1
+            return np.isfinite(tree.query(points, distance_upper_bound=RESIDUAL_VOXELS * self.voxel,
+                                          workers=workers)[0])
+
+        self._found_test = (key, test)
+        return test
 
     def instance_pixels(self, transforms, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> np.ndarray:
         """(H, W) uint8: 1 where the depth image shows one of these instances (a visible
