@@ -116,6 +116,10 @@ class ShapeFrontEnd:
         # their own tangent planes, the bracket's 20 voxels).
         self._self_hiding = 0.0 if is_convex(self._surface, self._surface_normals, self.voxel) \
             else 0.75 * self.voxel
+        self._box_centre = np.asarray(model.box_centre, np.float64)
+        # ``_turned_over``'s half turns, per model axis standing up (for the channel and tee, whose
+        # half turn about z maps them onto themselves, one: the turns about x and y are alike).
+        self._half_turns = self._flip_axes() if self._self_hiding > 0 else [[], [], []]
         self.features = fe.shape_features
         if self.features == "ppf":
             self._ppf = PPFModel(self._surface, self._surface_normals, self.diameter, self.voxel, model.symmetries,
@@ -1001,10 +1005,9 @@ class ShapeFrontEnd:
 
     def _turned_over(self, T, up: np.ndarray, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> list:
         """Pose T turned over: half a turn about each of the model's axes but the one nearest
-        ``up`` (through its box centre; those one of the model's symmetries makes the same, or
-        makes T, left out), then moved along ``up`` until its highest point is as high as the
-        surface T agrees with (95th percentile): what T fitted its inside to is the turned
-        object's top."""
+        ``up`` (through its box centre; ``_half_turns``), then moved along ``up`` until its
+        highest point is as high as the surface T agrees with (95th percentile): what T fitted
+        its inside to is the turned object's top."""
         p = self._visible_surface(T)
         u, v, inside = image_pixels(p, intrinsics, depth_m.shape)
         d = np.zeros(len(p))
@@ -1014,22 +1017,34 @@ class ShapeFrontEnd:
             return []
         top = float(np.percentile(p[agree] @ up, 95))
         R = T[:3, :3]
-        centre = R @ np.asarray(self.model.box_centre, np.float64) + T[:3, 3]
-        level = np.argsort(np.abs(R.T @ up))[:2]
+        centre = R @ self._box_centre + T[:3, 3]
+        out = []
+        for H in self._half_turns[int(np.argmax(np.abs(R.T @ up)))]:
+            T1 = np.eye(4)
+            T1[:3, :3] = R @ H
+            T1[:3, 3] = R @ (H @ (R.T @ (T[:3, 3] - centre))) + centre
+            # The highest point: heights along up are linear in the surface, so the model's
+            # points' heights in its own frame at the turned rotation.
+            T1[:3, 3] += (top - float(np.max(self._surface @ (T1[:3, :3].T @ up)) + T1[:3, 3] @ up)) * up
+            out.append(T1)
+        return out
+
+    def _flip_axes(self) -> list:
+        """Per model axis (the one standing up): the half turns (model frame, 3 x 3) about the
+        other two that no symmetry of the model makes the same as each other or as no turn."""
         sym = self.model.symmetries
         same = [np.eye(3)] if sym is None else [S[:3, :3] for S in np.asarray(sym.discrete, np.float64)]
-        out, rotations = [], [R]
-        for k in level:
-            half = 2.0 * np.outer(R[:, k], R[:, k]) - np.eye(3)
-            R1 = half @ R
-            if any(np.allclose(R1, Q @ S, atol=1e-6) for Q in rotations for S in same):
-                continue
-            rotations.append(R1)
-            T1 = np.eye(4)
-            T1[:3, :3] = R1
-            T1[:3, 3] = half @ (T[:3, 3] - centre) + centre
-            T1[:3, 3] += (top - float(np.max((self._surface @ R1.T + T1[:3, 3]) @ up))) * up
-            out.append(T1)
+        out = []
+        for standing in range(3):
+            kept = [np.eye(3)]
+            for k in range(3):
+                if k == standing:
+                    continue
+                H = -np.eye(3)
+                H[k, k] = 1.0
+                if not any(np.allclose(H, Q @ S, atol=1e-6) for Q in kept for S in same):
+                    kept.append(H)
+            out.append(kept[1:])
         return out
 
     def _band_meets(self, T, pixels: np.ndarray, intrinsics: CameraIntrinsics) -> bool:
