@@ -1704,3 +1704,48 @@ def test_on_found_kept_for_the_same_instances_is_the_same_test():
                           ShapeFrontEnd(_box_model(), FrontEndConfig())._on_found([B])(points))
     assert not np.array_equal(shape._on_found([B])(points), fresh)
     assert np.array_equal(shape._on_found([A])(points[:100]), fresh[:100])  # one thread for few points
+
+
+def test_a_channel_seen_turned_over_is_found_from_its_fit_open_side_up():
+    """A channel lying open side down on the table shows a flat top; the votes fit its inner
+    floor to it, open side up and 42 mm too high, its walls and rims then standing in front of
+    the depth (channel seeds 631 / 1607: the only fits near such channels). That pose is
+    rejected and does not refine onto the channel; turned over it is a start that refines and
+    passes at the true pose. The true pose open side up gives no start (nothing of it in front
+    of the depth)."""
+    from multi_instance_reg.rgbd.pipeline import PipelineConfig
+    from multi_instance_reg.rgbd.shape import depth_support
+    from multi_instance_reg.rgbd.shape_frontend import TURNED_OVER_MIN, ShapeFrontEnd
+    from multi_instance_reg.synthetic.objects import get_object, object_mesh
+    from multi_instance_reg.synthetic.scene import look_at
+    from multi_instance_reg.transforms import invert_transform
+
+    mesh = object_mesh(get_object("channel"))                    # 0.10 x 0.16 x 0.05, open towards +z
+    intr = CameraIntrinsics(K=np.array([[380.0, 0, 160], [0, 380.0, 120], [0, 0, 1]]), width=320, height=240)
+    cam = look_at(np.array([0.3, -0.2, 0.5]), np.zeros(3))        # camera -> world, table z = 0
+    world = invert_transform(cam)
+    down = np.diag([1.0, -1.0, -1.0])
+    T = world @ make_transform(down, [0.0, 0.0, 0.025])          # open side down, on the table
+    fitted = world @ make_transform(np.eye(3), [0.0, 0.0, 0.067])  # its inner floor in the channel's top
+    depth = _meshes_on_table(mesh, [T], cam, intr)
+    model = build_model_from_mesh(mesh, "channel")
+    shape = ShapeFrontEnd(model, PipelineConfig().frontend)
+    cloud = shape.frame_cloud(depth, intr, None, cam[:3, :3].T @ [0.0, 0.0, 1.0])
+    support, free, _ = depth_support(fitted, shape._surface, shape._surface_normals, depth, intr,
+                                     shape.tolerance_at(fitted), shape._self_hiding)
+    assert support < shape.fe.shape_min_support and free >= TURNED_OVER_MIN
+    assert shape.refine_one(fitted, cloud, depth, intr) is None
+    starts = shape.turned_over_starts(fitted, cloud, depth, intr)
+    assert len(starts) == 1                                      # the turn about y is the one about x
+    turned = shape.refine_one(starts[0], cloud, depth, intr)
+    assert turned is not None
+    # Right up to the channel's half turn about z.
+    flipped = T @ np.diag([-1.0, -1.0, 1.0, 1.0])
+    assert min(np.linalg.norm(turned[0][:3, :3] - P[:3, :3]) for P in (T, flipped)) < 0.1
+    assert np.linalg.norm(turned[0][:3, 3] - T[:3, 3]) < 0.005
+    # Open side up on the table, it is kept as it is and not turned over.
+    up = world @ make_transform(np.eye(3), [0.0, 0.0, 0.025])
+    depth = _meshes_on_table(mesh, [up], cam, intr)
+    cloud = shape.frame_cloud(depth, intr, None, cam[:3, :3].T @ [0.0, 0.0, 1.0])
+    assert shape.refine_one(up, cloud, depth, intr) is not None
+    assert shape.turned_over_starts(up, cloud, depth, intr) == []

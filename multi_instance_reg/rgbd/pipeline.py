@@ -525,6 +525,8 @@ class InstanceRegistration:
                 chosen = self._accept_groups(chosen, rejected, cloud, depth_m, intrinsics)
         if fe.shape_hidden_by_instances and fe.shape_hidden_by_any and rejected:
             chosen = self._accept_hidden(chosen, rejected, cloud, depth_m, intrinsics)
+        if fe.shape_hidden_by_instances and self._shape.non_convex and rejected:
+            chosen = self._accept_turned(chosen, rejected, cloud, depth_m, intrinsics)
         if fe.shape_residual_votes and self._shape.non_convex and chosen:
             chosen = self._accept_residual(chosen, hypotheses, cloud, depth_m, intrinsics)
         self._shape.keep_pixels(None)
@@ -582,6 +584,24 @@ class InstanceRegistration:
                                       free) if c is not None]
         return self._one_per_box(chosen + hidden, first=len(chosen), frame=(depth_m, intrinsics)) if hidden else chosen
 
+    def _accept_turned(self, chosen, rejected, cloud, depth_m, intrinsics) -> list:
+        """``chosen`` and the rejected poses clear of it turned over (``ShapeFrontEnd.turned_over_starts``),
+        those clear of the instances found refined and judged as hypotheses (one of each group
+        alike: several fits of one channel turn over onto it), added where no instance is."""
+        found = [c[0] for c in chosen]
+        free = [rejected[k] for k in self._clear_of(found, rejected)[1]]
+        starts = [T1 for S in map_each(lambda T: self._shape.turned_over_starts(T, cloud, depth_m, intrinsics), free)
+                  for T1 in S]
+        # Most fits on an instance found turn over onto it (a fit sliding between two).
+        starts = [starts[k] for k in self._clear_of(found, starts)[1]]
+        if not starts:
+            return chosen
+        second = []
+        checked = self._shape.refine_and_check(starts, cloud, depth_m, intrinsics, second=second)
+        if not checked and not second:
+            return chosen
+        return self._one_per_box(chosen + checked + second, first=len(chosen), frame=(depth_m, intrinsics))
+
     def _accept_residual(self, chosen, hypotheses, cloud, depth_m, intrinsics) -> list:
         """``chosen`` and the poses voted again over what the instances found leave of their
         segments (``ShapeFrontEnd.residual_poses``), refined and judged as the first
@@ -597,7 +617,11 @@ class InstanceRegistration:
         if checked or second:
             chosen = self._one_per_box(chosen + checked + second, first=len(chosen), frame=(depth_m, intrinsics))
         if self.config.frontend.shape_hidden_by_instances and rejected:
-            chosen, _ = self._accept_behind(chosen, rejected, cloud, depth_m, intrinsics)
+            chosen, rejected = self._accept_behind(chosen, rejected, cloud, depth_m, intrinsics)
+            # These votes are over what the instances found leave: a channel lying open side
+            # down among found ones has its fits here (channel seed 631 frame 11: both misses).
+            if rejected:
+                chosen = self._accept_turned(chosen, rejected, cloud, depth_m, intrinsics)
         return chosen
 
     def _accept_behind(self, chosen, rejected, cloud, depth_m, intrinsics) -> tuple[list, list]:

@@ -48,6 +48,11 @@ PIERCE_MIN_POINTS = 3
 # ``judge_hidden``: the depth steps at least this many tolerances forward from the agreeing
 # points to the hidden points next to them.
 HIDDEN_STEP = 2.0
+# ``turned_over_starts``: a rejected pose of a non-convex model is judged again turned over when
+# at least this share of its visible surface lies in front of the depth (what it shows towards
+# the camera, the object hides: an open channel's walls and rims standing up from its floor,
+# fitted onto the top of one lying open side down).
+TURNED_OVER_MIN = 0.15
 # Rejected poses this close (degrees; and half a voxel) are one pose for ``judge_pairs``.
 SAME_POSE_DEG = 3.0
 # A direction holds ICP when at least this share of the visible normals' weight lies along it.
@@ -112,6 +117,10 @@ class ShapeFrontEnd:
         # their own tangent planes, the bracket's 20 voxels).
         self._self_hiding = 0.0 if is_convex(self._surface, self._surface_normals, self.voxel) \
             else 0.75 * self.voxel
+        self._box_centre = np.asarray(model.box_centre, np.float64)
+        # ``_turned_over``'s half turns, per model axis standing up (for the channel and tee, whose
+        # half turn about z maps them onto themselves, one: the turns about x and y are alike).
+        self._half_turns = self._flip_axes() if self._self_hiding > 0 else [[], [], []]
         self.features = fe.shape_features
         if self.features == "ppf":
             self._ppf = PPFModel(self._surface, self._surface_normals, self.diameter, self.voxel, model.symmetries,
@@ -993,6 +1002,76 @@ class ShapeFrontEnd:
         if np.median(step) < HIDDEN_STEP * tol:
             return None
         return self._judge(T, support, free, n, cloud, depth_m, intrinsics, explained=explained)
+
+    def turned_over_starts(self, T, cloud: FrameCloud, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> list:
+        """Hypotheses from a rejected pose of a non-convex model: T turned over (``_turned_over``).
+        An open channel lying open side down shows the votes and ICP a flat top they fit its
+        inner floor to, open side up and 42 mm too high, its walls and rims then in front of
+        the depth (channel seeds 631 / 1607 / 1627: the only fits near most such channels in
+        segments of several). Only when at least ``TURNED_OVER_MIN`` of T's visible surface lies
+        in front of the depth, and each turned pose only when the depth agrees with it better
+        than with T and by at least half ``shape_min_evidence`` (a projection each): the caller
+        refines and judges them as hypotheses."""
+        if cloud.up is None or not self.non_convex:
+            return []
+        support, free, _ = depth_support(T, self._surface, self._surface_normals, depth_m, intrinsics,
+                                         self.tolerance_at(T), self._self_hiding)
+        if free < TURNED_OVER_MIN:
+            return []
+        out = []
+        for T1 in self._turned_over(T, cloud.up, depth_m, intrinsics):
+            s1, f1, _ = depth_support(T1, self._surface, self._surface_normals, depth_m, intrinsics,
+                                      self.tolerance_at(T1), self._self_hiding)
+            # Placed this well, ICP moves a start little: one the depth agrees with less than half
+            # the evidence asked for is not refined (channel seeds 0 / 631: the starts kept had
+            # 0.60-0.94 support - free, those under 0.4 all failed; 1627's lowest kept, 0.43).
+            if s1 - f1 > max(support - free, 0.5 * self.fe.shape_min_evidence):
+                out.append(T1)
+        return out
+
+    def _turned_over(self, T, up: np.ndarray, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> list:
+        """Pose T turned over: half a turn about each of the model's axes but the one nearest
+        ``up`` (through its box centre; ``_half_turns``), then moved along ``up`` until its
+        highest point is as high as the surface T agrees with (95th percentile): what T fitted
+        its inside to is the turned object's top."""
+        p = self._visible_surface(T)
+        u, v, inside = image_pixels(p, intrinsics, depth_m.shape)
+        d = np.zeros(len(p))
+        d[inside] = depth_m[v[inside], u[inside]]
+        agree = (d > 0) & (np.abs(p[:, 2] - d) <= self.tolerance_at(T))
+        if agree.sum() < 3:
+            return []
+        top = float(np.percentile(p[agree] @ up, 95))
+        R = T[:3, :3]
+        centre = R @ self._box_centre + T[:3, 3]
+        out = []
+        for H in self._half_turns[int(np.argmax(np.abs(R.T @ up)))]:
+            T1 = np.eye(4)
+            T1[:3, :3] = R @ H
+            T1[:3, 3] = R @ (H @ (R.T @ (T[:3, 3] - centre))) + centre
+            # The highest point: heights along up are linear in the surface, so the model's
+            # points' heights in its own frame at the turned rotation.
+            T1[:3, 3] += (top - float(np.max(self._surface @ (T1[:3, :3].T @ up)) + T1[:3, 3] @ up)) * up
+            out.append(T1)
+        return out
+
+    def _flip_axes(self) -> list:
+        """Per model axis (the one standing up): the half turns (model frame, 3 x 3) about the
+        other two that no symmetry of the model makes the same as each other or as no turn."""
+        sym = self.model.symmetries
+        same = [np.eye(3)] if sym is None else [S[:3, :3] for S in np.asarray(sym.discrete, np.float64)]
+        out = []
+        for standing in range(3):
+            kept = [np.eye(3)]
+            for k in range(3):
+                if k == standing:
+                    continue
+                H = -np.eye(3)
+                H[k, k] = 1.0
+                if not any(np.allclose(H, Q @ S, atol=1e-6) for Q in kept for S in same):
+                    kept.append(H)
+            out.append(kept[1:])
+        return out
 
     def _band_meets(self, T, pixels: np.ndarray, intrinsics: CameraIntrinsics) -> bool:
         """Whether any of ``pixels`` lies a voxel and a half (the outline band's outer edge)
