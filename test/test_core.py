@@ -312,6 +312,28 @@ def test_consistency_counts_pair_once_equal_the_per_query_counts(n, reference_si
     assert np.array_equal(scores, counts.astype(np.float64))
 
 
+@pytest.mark.parametrize("cell_per_radius", [0.3, 0.75, 1.5, 4.0])
+def test_consistency_counts_do_not_depend_on_the_grid_cell_size(cell_per_radius, monkeypatch):
+    # The grid only decides which references a query looks at; every neighbour within the
+    # radius must be visited whatever the cell size, so the counts are the brute-force ones.
+    from multi_instance_reg.core import sampling
+
+    rng = np.random.default_rng(11)
+    n, radius, tol = 800, 0.2, 0.03
+    tgt = rng.random((n, 3))
+    src = tgt @ Rotation.from_euler("z", 30, degrees=True).as_matrix().T + rng.normal(0, 0.01, (n, 3))
+    src[: n // 2] = rng.random((n // 2, 3))
+    monkeypatch.setattr(sampling, "_CELL_PER_RADIUS", cell_per_radius)
+    counts = sampling.consistency_scores(src, tgt, radius, tol, np.random.default_rng(0), score="count")
+    e = np.linalg.norm(tgt[:, None] - tgt[None], axis=2)
+    f = np.linalg.norm(src[:, None] - src[None], axis=2)
+    near = (e < radius) & (e != 0.0)
+    assert (np.abs(np.abs(f - e)[near] - tol) > 1e-9).all()   # no pair on the boundary of the test
+    brute = (near & (np.abs(f - e) < tol)).sum(1)
+    assert brute.sum() > n
+    assert np.array_equal(counts, brute.astype(np.float64))
+
+
 def test_distance_preservation_without_square_roots_is_the_plain_test():
     # The sampling kernels test | |f| - |e| | < t from squared lengths without a square root;
     # it must agree with the plain test everywhere but within rounding of the boundary.
