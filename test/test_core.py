@@ -169,6 +169,36 @@ def test_merge_duplicates_keeps_the_transform_with_fewer_outliers():
     assert sorted(merge_duplicates(sets, 0.95).tolist()) == [0, 1, 2]
 
 
+def _merge_duplicates_plain(inlier_sets, iou_thresh):
+    # The numpy form the compiled merge_duplicates replaced: all IoUs at once, then the pass.
+    counts = inlier_sets.sum(0)
+    order = np.argsort(-counts, kind="stable")
+    sets = inlier_sets[:, order].astype(np.float32)
+    inter = sets.T @ sets
+    union = counts[order][:, None] + counts[order][None, :] - inter
+    iou = np.where(union > 0, inter / np.maximum(union, 1), 0.0)
+    keep = np.ones(len(order), dtype=bool)
+    for i in range(len(order)):
+        if keep[i]:
+            keep[i + 1:] &= iou[i, i + 1:] < iou_thresh
+    return order[keep]
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_compiled_merge_duplicates_equals_the_plain_one(seed):
+    rng = np.random.default_rng(seed)
+    n, m = rng.integers(1, 400), rng.integers(1, 40)
+    base = rng.random((n, m)) < rng.uniform(0.05, 0.6)
+    # Near-copies of some columns (the duplicates to merge), exact copies (count ties) and
+    # empty sets (union 0).
+    for j in rng.choice(m, m // 2):
+        k = rng.integers(m)
+        base[:, j] = base[:, k] ^ (rng.random(n) < rng.choice([0.0, 0.02, 0.2]))
+    base[:, rng.choice(m, m // 8)] = False
+    for thresh in (0.0, 0.5, 0.8, 1.0):
+        assert np.array_equal(merge_duplicates(base, thresh), _merge_duplicates_plain(base, thresh))
+
+
 def test_registration_finds_every_instance():
     rng = np.random.default_rng(4)
     src, tgt, Ts, truth = two_instance_scene(rng, n_per=80, n_out=60)
