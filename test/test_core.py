@@ -111,6 +111,16 @@ def test_sparse_and_dense_products_give_the_same_clusters(seed, monkeypatch):
     assert _same_partition(labels["sparse"], labels["dense"])
 
 
+def test_clustering_leaves_g_alone_unless_allowed_to_overwrite_it():
+    s = make_sized_scene(np.random.default_rng(4), 300, 0.5, 3)
+    G = compatibility_matrix(s.src, s.tgt, 0.0)     # no spatial weight: dense rows
+    before = G.copy()
+    labels = cluster_compatibility_vectors(G, 0.2)
+    assert np.array_equal(G, before)
+    assert np.array_equal(cluster_compatibility_vectors(G, 0.2, overwrite=True), labels)
+    assert not np.array_equal(G, before)             # used as scratch: no copy made
+
+
 def test_residuals_are_alignment_errors():
     rng = np.random.default_rng(3)
     x, y = rng.normal(size=(50, 3)), rng.normal(size=(50, 3))

@@ -460,11 +460,12 @@ def _agglomerate(G, indptr, indices, values, S, max_dist, dense, stats):
 
 
 def cluster_compatibility_vectors(G: np.ndarray, min_dist_thresh: float = 0.2,
-                                  stats: np.ndarray | None = None) -> np.ndarray:
+                                  stats: np.ndarray | None = None, overwrite: bool = False) -> np.ndarray:
     """Cluster labels (N,) int64, 0..C-1, from the agglomerative clustering of G's rows.
 
     ``stats``, if given (4 int64), receives: initial candidate pairs, merges, exact dot
-    products computed, 0.
+    products computed, 0. ``overwrite``: G (float32, C-contiguous) may be overwritten (dense
+    rows become the merged vectors in place), which saves a copy of it.
     """
     n = len(G)
     if n == 0:
@@ -473,11 +474,11 @@ def cluster_compatibility_vectors(G: np.ndarray, min_dist_thresh: float = 0.2,
     counts, row_end = _row_counts(G)
     if counts.sum() > _DENSE_ROWS_ABOVE * n * n:
         # Dense: one GEMM (the sparse product cannot win here), and full rows need no
-        # column indices: the rows of a copy of G are used as they are.
+        # column indices: the rows of G (or of a copy) are used as they are.
         S = G @ G  # G is symmetric: all row dot products at once
         indptr = np.arange(0, n * n + 1, n, dtype=np.int64)
         indices = np.zeros(0, dtype=np.int32)
-        values = G.reshape(-1).copy()
+        values = G.reshape(-1) if overwrite else G.reshape(-1).copy()
         dense = True
     else:
         indptr, indices, values = _to_rows(G, counts)
