@@ -11,9 +11,9 @@ merge, O(N^3) in all. This implementation makes the same merges with far less wo
 - dot products of groups a merge does not touch never change, so they are computed once;
 - for a merged group m = min(p, q) and any group r, <m, r> <= min(<p, r>, <q, r>) because all
   entries are non-negative; that bound rules out almost every pair, and the exact dot
-  product is computed only for pairs that could still merge, and only once the merge loop
-  reaches them: a pair waits keyed by the lower bound of its distance the bound gives, and
-  most wait in lists that a later merge makes stale, never read;
+  product is computed only for pairs that could still merge; with dense rows, only once the
+  merge loop reaches them: a pair waits keyed by the lower bound of its distance the bound
+  gives, and most wait in lists that a later merge makes stale, never read;
 - candidate pairs wait in per-group lists sorted by distance, and a heap holds each group's
   best one: a pop per merge rather than per pair. Entries whose partner changed since the
   list was built are skipped, so nothing is ever rescanned. Ties break by index, so results
@@ -269,7 +269,8 @@ def _agglomerate(G, indptr, indices, values, S, max_dist, dense, stats):
     active = np.ones(n, dtype=np.bool_)
     parent = np.arange(n)
     candidate = np.zeros(n, dtype=np.bool_)
-    scratch = np.zeros(n, dtype=np.float32)   # sparse rows: one row scattered, zero between uses
+    dense_a = np.zeros(n, dtype=np.float32)   # scratch (sparse rows): the merged vector, scattered
+    dense_b = np.zeros(n, dtype=np.float32)
     # d(p, q) <= max_dist  <=>  <p, q> >= t / (1 + t) * (|p|^2 + |q|^2) with t = 1 - max_dist;
     # the multiplicative form is cheap, and the slack keeps rounding from losing a pair.
     t = 1.0 - max_dist
@@ -337,23 +338,10 @@ def _agglomerate(G, indptr, indices, values, S, max_dist, dense, stats):
                 continue
             if (pool[h] & 1) == 0:
                 break
-            # r's and k's vectors are those the bound was taken from: the dot product is
-            # the one an eager pass would have computed then, the same sums in the same order.
-            pr = indptr[r]
-            if not dense and changed_at[k] < 0 and rowlen[r] < rowlen[k]:
-                # The merged vector's support (an intersection) is often the shorter:
-                # walk it and read the partner, never merged, from its row of G.
-                s = _dot_with_g_row(G, k, indices[pr:pr + rowlen[r]], values[pr:pr + rowlen[r]], rowlen[r])
-            elif dense:
-                s = _dot_with_row(values[pr:pr + n], indices, values, indptr[k], rowlen[k], n)
-            else:
-                cr = indices[pr:pr + rowlen[r]]
-                vr = values[pr:pr + rowlen[r]]
-                for q in range(len(cr)):
-                    scratch[cr[q]] = vr[q]
-                s = _dot_with_row(scratch, indices, values, indptr[k], rowlen[k], n)
-                for q in range(len(cr)):
-                    scratch[cr[q]] = 0.0
+            # (Dense rows.) r's and k's vectors are those the bound was taken from: the dot
+            # product is the one an eager pass would have computed then, the same sums in
+            # the same order.
+            s = _dot_with_row(values[indptr[r]:indptr[r] + n], indices, values, indptr[k], rowlen[k], n)
             stats[2] += 1
             S[r, k] = s
             S[k, r] = s
@@ -390,36 +378,43 @@ def _agglomerate(G, indptr, indices, values, S, max_dist, dense, stats):
         ca = indices[pa:pa + rowlen[a]]   # empty for full rows
         s_aa = 0.0
         if dense:
+            # Full rows: the merged row, in place, is the scattered vector itself.
+            merged = va
             for c in range(n):
                 v = min(va[c], vb[c])
                 va[c] = v
                 s_aa += v * v
         else:
+            merged = dense_a
             cb = indices[pb:pb + rowlen[b]]
             for q in range(len(cb)):
-                scratch[cb[q]] = vb[q]
+                dense_b[cb[q]] = vb[q]
             kept = 0
             for q in range(len(ca)):
                 c = ca[q]
-                v = min(va[q], scratch[c])
+                v = min(va[q], dense_b[c])
                 if v > 0.0:
                     ca[kept] = c
                     va[kept] = v
+                    dense_a[c] = v
                     kept += 1
                     s_aa += v * v
             rowlen[a] = kept
             for q in range(len(cb)):
-                scratch[cb[q]] = 0.0
+                dense_b[cb[q]] = 0.0
         sq[a] = s_aa
         S[a, a] = s_aa
         active[b] = False
         parent[b] = a
         changed_at[a] = merges
-        # Dot products of a: the bound min(<p_a, r>, <p_b, r>) everywhere; the pairs it
-        # still allows to merge wait with the distance it bounds (made exact at their list's
-        # head). Only row a is rewritten (contiguous): a column entry S[k, a] left stale is
-        # still an upper bound, since a's vector only ever shrinks. First a branch-free pass
-        # (it vectorises), then the few candidates.
+        # New dot products of a: the bound min(<p_a, r>, <p_b, r>) everywhere; only where
+        # it still allows a merge is the exact one needed. With dense rows the pair waits
+        # with the distance the bound gives, made exact at its list's head (most never
+        # are); sparse rows gain less (more dot products stay needed) and would pay for
+        # scattering the row again each time, so they are computed now. Only row a is
+        # rewritten (contiguous): a column entry S[k, a] left stale is still an upper
+        # bound, since a's vector only ever shrinks. First a branch-free pass (it
+        # vectorises), then the few candidates.
         row_a = S[a]
         row_b = S[b]
         for k in range(n):
@@ -430,10 +425,29 @@ def _agglomerate(G, indptr, indices, values, S, max_dist, dense, stats):
         for k in range(n):
             if not candidate[k] or k == a or not active[k]:
                 continue
-            dk = _distance_at_least(row_a[k], s_aa, sq[k])
+            if dense:
+                dk = _distance_at_least(row_a[k], s_aa, sq[k])
+                if dk <= max_dist:
+                    pool[used] = _pack(dk, (k << 1) | 1)
+                    used += 1
+                continue
+            if changed_at[k] < 0 and rowlen[a] < rowlen[k]:
+                # The merged vector's support (an intersection) is often the shorter:
+                # walk it and read the partner, never merged, from its row of G.
+                s = _dot_with_g_row(G, k, ca, va, rowlen[a])
+            else:
+                s = _dot_with_row(merged, indices, values, indptr[k], rowlen[k], n)
+            stats[2] += 1
+            row_a[k] = s
+            S[k, a] = s
+            dk = _tanimoto_distance(s, s_aa, sq[k])
             if dk <= max_dist:
-                pool[used] = _pack(dk, (k << 1) | 1)
+                pool[used] = _pack(dk, k << 1)
                 used += 1
+        if not dense:
+            ca = indices[pa:pa + rowlen[a]]
+            for q in range(len(ca)):
+                dense_a[ca[q]] = 0.0
         # a's new list replaces the old one (whose entries all predate a's new vector).
         pool[first:used] = np.sort(pool[first:used])
         start[a] = head[a] = first
