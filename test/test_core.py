@@ -111,6 +111,16 @@ def test_sparse_and_dense_products_give_the_same_clusters(seed, monkeypatch):
     assert _same_partition(labels["sparse"], labels["dense"])
 
 
+def test_clustering_leaves_g_alone_unless_allowed_to_overwrite_it():
+    s = make_sized_scene(np.random.default_rng(4), 300, 0.5, 3)
+    G = compatibility_matrix(s.src, s.tgt, 0.0)     # no spatial weight: dense rows
+    before = G.copy()
+    labels = cluster_compatibility_vectors(G, 0.2)
+    assert np.array_equal(G, before)
+    assert np.array_equal(cluster_compatibility_vectors(G, 0.2, overwrite=True), labels)
+    assert not np.array_equal(G, before)             # used as scratch: no copy made
+
+
 def test_residuals_are_alignment_errors():
     rng = np.random.default_rng(3)
     x, y = rng.normal(size=(50, 3)), rng.normal(size=(50, 3))
@@ -167,6 +177,36 @@ def test_merge_duplicates_keeps_the_transform_with_fewer_outliers():
     sets[60:90, 2] = True         # disjoint: kept
     assert sorted(merge_duplicates(sets, 0.8).tolist()) == [0, 2]
     assert sorted(merge_duplicates(sets, 0.95).tolist()) == [0, 1, 2]
+
+
+def _merge_duplicates_plain(inlier_sets, iou_thresh):
+    # The numpy form the compiled merge_duplicates replaced: all IoUs at once, then the pass.
+    counts = inlier_sets.sum(0)
+    order = np.argsort(-counts, kind="stable")
+    sets = inlier_sets[:, order].astype(np.float32)
+    inter = sets.T @ sets
+    union = counts[order][:, None] + counts[order][None, :] - inter
+    iou = np.where(union > 0, inter / np.maximum(union, 1), 0.0)
+    keep = np.ones(len(order), dtype=bool)
+    for i in range(len(order)):
+        if keep[i]:
+            keep[i + 1:] &= iou[i, i + 1:] < iou_thresh
+    return order[keep]
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_compiled_merge_duplicates_equals_the_plain_one(seed):
+    rng = np.random.default_rng(seed)
+    n, m = rng.integers(1, 400), rng.integers(1, 40)
+    base = rng.random((n, m)) < rng.uniform(0.05, 0.6)
+    # Near-copies of some columns (the duplicates to merge), exact copies (count ties) and
+    # empty sets (union 0).
+    for j in rng.choice(m, m // 2):
+        k = rng.integers(m)
+        base[:, j] = base[:, k] ^ (rng.random(n) < rng.choice([0.0, 0.02, 0.2]))
+    base[:, rng.choice(m, m // 8)] = False
+    for thresh in (0.0, 0.5, 0.8, 1.0):
+        assert np.array_equal(merge_duplicates(base, thresh), _merge_duplicates_plain(base, thresh))
 
 
 def test_registration_finds_every_instance():
@@ -310,6 +350,28 @@ def test_consistency_counts_pair_once_equal_the_per_query_counts(n, reference_si
     counts, _ = sampling._counts(src, tgt, table, start, grid, dims, 0.3, 0.05)
     assert counts.sum() > n
     assert np.array_equal(scores, counts.astype(np.float64))
+
+
+@pytest.mark.parametrize("cell_per_radius", [0.3, 0.75, 1.5, 4.0])
+def test_consistency_counts_do_not_depend_on_the_grid_cell_size(cell_per_radius, monkeypatch):
+    # The grid only decides which references a query looks at; every neighbour within the
+    # radius must be visited whatever the cell size, so the counts are the brute-force ones.
+    from multi_instance_reg.core import sampling
+
+    rng = np.random.default_rng(11)
+    n, radius, tol = 800, 0.2, 0.03
+    tgt = rng.random((n, 3))
+    src = tgt @ Rotation.from_euler("z", 30, degrees=True).as_matrix().T + rng.normal(0, 0.01, (n, 3))
+    src[: n // 2] = rng.random((n // 2, 3))
+    monkeypatch.setattr(sampling, "_CELL_PER_RADIUS", cell_per_radius)
+    counts = sampling.consistency_scores(src, tgt, radius, tol, np.random.default_rng(0), score="count")
+    e = np.linalg.norm(tgt[:, None] - tgt[None], axis=2)
+    f = np.linalg.norm(src[:, None] - src[None], axis=2)
+    near = (e < radius) & (e != 0.0)
+    assert (np.abs(np.abs(f - e)[near] - tol) > 1e-9).all()   # no pair on the boundary of the test
+    brute = (near & (np.abs(f - e) < tol)).sum(1)
+    assert brute.sum() > n
+    assert np.array_equal(counts, brute.astype(np.float64))
 
 
 def test_distance_preservation_without_square_roots_is_the_plain_test():

@@ -11,7 +11,9 @@ merge, O(N^3) in all. This implementation makes the same merges with far less wo
 - dot products of groups a merge does not touch never change, so they are computed once;
 - for a merged group m = min(p, q) and any group r, <m, r> <= min(<p, r>, <q, r>) because all
   entries are non-negative; that bound rules out almost every pair, and the exact dot
-  product is computed only for pairs that could still merge;
+  product is computed only for pairs that could still merge; with dense rows, only once the
+  merge loop reaches them: a pair waits keyed by the lower bound of its distance the bound
+  gives, and most wait in lists that a later merge makes stale, never read;
 - candidate pairs wait in per-group lists sorted by distance, and a heap holds each group's
   best one: a pop per merge rather than per pair. Entries whose partner changed since the
   list was built are skipped, so nothing is ever rescanned. Ties break by index, so results
@@ -42,9 +44,25 @@ def _tanimoto_distance(dot, sq_a, sq_b):
     return 1.0 - dot / denom
 
 
+# Room for rounding between a bound min(<p, r>, <q, r>) and the exact <min(p, q), r>, each
+# summed in float32 (relative errors of n * 6e-8 at most: 1e-3 covers n up to 16,000).
+_BOUND_SLACK = 1e-3
+
+
+@compiled(fastmath=True)
+def _distance_at_least(bound, sq_a, sq_b):
+    """A lower bound of the distance of a pair whose dot product is at most ``bound``."""
+    dot = bound * (1.0 + _BOUND_SLACK)
+    denom = sq_a + sq_b - dot
+    if denom <= 0.0:
+        return 0.0
+    return max(0.0, 1.0 - dot / denom)
+
+
 # The merge queue: a 4-ary min-heap of int64 items packing (distance, index): the distance,
 # in [0, 1], as a fixed-point number in the high bits (steps of 1e-9), a group or partner
-# index in the low bits, which also breaks ties deterministically. One array and 4 children
+# index in the low bits, which also breaks ties deterministically. A partner entry holds the
+# partner index shifted by one, its lowest bit set while the distance is only a lower bound. One array and 4 children
 # per level cut the time per pop to a third of a binary heap of (key, value) pairs.
 @compiled()
 def _pack(distance, entry):
@@ -262,7 +280,9 @@ def _agglomerate(G, indptr, indices, values, S, max_dist, dense, stats):
     # pool[start[g]:stop[g]], the next unread at head[g]. A group's list is rebuilt whenever
     # it changes; an entry is stale once its partner changed after the list was built
     # (changed_at[k] >= built_at[g]) or left. A heap holds one item per group, keyed by the
-    # distance of its head: pops are per merge, not per candidate pair.
+    # distance of its head: pops are per merge, not per candidate pair. An entry keyed by a
+    # lower bound is made exact when it reaches its list's head, and moved to its place:
+    # every entry's exact key is at least its key, so the pops come in the eager order.
     # Loops run over slices indexed from 0 throughout: numba then knows the index is not
     # negative, drops its wrap-around check and vectorises (3x faster here).
     start = np.zeros(n, dtype=np.int64)
@@ -288,7 +308,7 @@ def _agglomerate(G, indptr, indices, values, S, max_dist, dense, stats):
                 continue
             d = _tanimoto_distance(row[k], sq[i], sq_rest[k])
             if d <= max_dist:
-                pool[used] = _pack(d, i + 1 + k)
+                pool[used] = _pack(d, (i + 1 + k) << 1)
                 used += 1
         stop[i] = used
         head[i] = start[i]
@@ -309,13 +329,32 @@ def _agglomerate(G, indptr, indices, values, S, max_dist, dense, stats):
         if not active[r] or queued[r] != item:
             continue
         queued[r] = -1
-        # Skip the stale entries at the head of r's list.
+        # Skip the stale entries at the head of r's list, making bounds exact on the way.
         h = head[r]
         while h < stop[r]:
-            k = pool[h] & 0xFFFFFFFF
-            if active[k] and changed_at[k] < built_at[r]:
+            k = (pool[h] & 0xFFFFFFFF) >> 1
+            if not active[k] or changed_at[k] >= built_at[r]:
+                h += 1
+                continue
+            if (pool[h] & 1) == 0:
                 break
-            h += 1
+            # (Dense rows.) r's and k's vectors are those the bound was taken from: the dot
+            # product is the one an eager pass would have computed then, the same sums in
+            # the same order.
+            s = _dot_with_row(values[indptr[r]:indptr[r] + n], indices, values, indptr[k], rowlen[k], n)
+            stats[2] += 1
+            S[r, k] = s
+            S[k, r] = s
+            dk = _tanimoto_distance(s, sq[r], sq[k])
+            if dk > max_dist:
+                h += 1
+                continue
+            key = _pack(dk, k << 1)
+            j = h
+            while j + 1 < stop[r] and pool[j + 1] < key:
+                pool[j] = pool[j + 1]
+                j += 1
+            pool[j] = key
         head[r] = h
         if h == stop[r]:
             continue
@@ -323,7 +362,7 @@ def _agglomerate(G, indptr, indices, values, S, max_dist, dense, stats):
             # Its best pair is now a worse one: requeue, something else may come first.
             size = _row_heap_push(heap, size, ((pool[h] >> 32) << 32) | r, queued, r)
             continue
-        k = pool[h] & 0xFFFFFFFF
+        k = (pool[h] & 0xFFFFFFFF) >> 1
         a = min(r, k)
         b = max(r, k)
         merges += 1
@@ -368,10 +407,14 @@ def _agglomerate(G, indptr, indices, values, S, max_dist, dense, stats):
         active[b] = False
         parent[b] = a
         changed_at[a] = merges
-        # New dot products of a: the bound min(<p_a, r>, <p_b, r>) everywhere, made exact
-        # only where the bound still allows a merge. Only row a is rewritten (contiguous):
-        # a column entry S[k, a] left stale is still an upper bound, since a's vector only
-        # ever shrinks. First a branch-free pass (it vectorises), then the few candidates.
+        # New dot products of a: the bound min(<p_a, r>, <p_b, r>) everywhere; only where
+        # it still allows a merge is the exact one needed. With dense rows the pair waits
+        # with the distance the bound gives, made exact at its list's head (most never
+        # are); sparse rows gain less (more dot products stay needed) and would pay for
+        # scattering the row again each time, so they are computed now. Only row a is
+        # rewritten (contiguous): a column entry S[k, a] left stale is still an upper
+        # bound, since a's vector only ever shrinks. First a branch-free pass (it
+        # vectorises), then the few candidates.
         row_a = S[a]
         row_b = S[b]
         for k in range(n):
@@ -382,7 +425,13 @@ def _agglomerate(G, indptr, indices, values, S, max_dist, dense, stats):
         for k in range(n):
             if not candidate[k] or k == a or not active[k]:
                 continue
-            if not dense and changed_at[k] < 0 and rowlen[a] < rowlen[k]:
+            if dense:
+                dk = _distance_at_least(row_a[k], s_aa, sq[k])
+                if dk <= max_dist:
+                    pool[used] = _pack(dk, (k << 1) | 1)
+                    used += 1
+                continue
+            if changed_at[k] < 0 and rowlen[a] < rowlen[k]:
                 # The merged vector's support (an intersection) is often the shorter:
                 # walk it and read the partner, never merged, from its row of G.
                 s = _dot_with_g_row(G, k, ca, va, rowlen[a])
@@ -393,7 +442,7 @@ def _agglomerate(G, indptr, indices, values, S, max_dist, dense, stats):
             S[k, a] = s
             dk = _tanimoto_distance(s, s_aa, sq[k])
             if dk <= max_dist:
-                pool[used] = _pack(dk, k)
+                pool[used] = _pack(dk, k << 1)
                 used += 1
         if not dense:
             ca = indices[pa:pa + rowlen[a]]
@@ -425,11 +474,12 @@ def _agglomerate(G, indptr, indices, values, S, max_dist, dense, stats):
 
 
 def cluster_compatibility_vectors(G: np.ndarray, min_dist_thresh: float = 0.2,
-                                  stats: np.ndarray | None = None) -> np.ndarray:
+                                  stats: np.ndarray | None = None, overwrite: bool = False) -> np.ndarray:
     """Cluster labels (N,) int64, 0..C-1, from the agglomerative clustering of G's rows.
 
     ``stats``, if given (4 int64), receives: initial candidate pairs, merges, exact dot
-    products computed, 0.
+    products computed, 0. ``overwrite``: G (float32, C-contiguous) may be overwritten (dense
+    rows become the merged vectors in place), which saves a copy of it.
     """
     n = len(G)
     if n == 0:
@@ -438,11 +488,11 @@ def cluster_compatibility_vectors(G: np.ndarray, min_dist_thresh: float = 0.2,
     counts, row_end = _row_counts(G)
     if counts.sum() > _DENSE_ROWS_ABOVE * n * n:
         # Dense: one GEMM (the sparse product cannot win here), and full rows need no
-        # column indices: the rows of a copy of G are used as they are.
+        # column indices: the rows of G (or of a copy) are used as they are.
         S = G @ G  # G is symmetric: all row dot products at once
         indptr = np.arange(0, n * n + 1, n, dtype=np.int64)
         indices = np.zeros(0, dtype=np.int32)
-        values = G.reshape(-1).copy()
+        values = G.reshape(-1) if overwrite else G.reshape(-1).copy()
         dense = True
     else:
         indptr, indices, values = _to_rows(G, counts)

@@ -76,7 +76,7 @@ class ECC:
         t1 = time.perf_counter()
         G = compatibility_matrix(xs, ys, cfg.spatial_sigma)
         t2 = time.perf_counter()
-        labels = cluster_compatibility_vectors(G, cfg.min_dist_thresh)
+        labels = cluster_compatibility_vectors(G, cfg.min_dist_thresh, overwrite=True)  # G is not needed after
         t3 = time.perf_counter()
         if len(sample) < n and cfg.refine_scope == "all":
             # The authors' order: the sampled clusters' members keep their labels, the rest

@@ -136,20 +136,43 @@ def instance_scores(labels: np.ndarray, residual: np.ndarray, thresh: float, cou
     return sums / np.maximum(np.bincount(labels[inl], minlength=count), 1)
 
 
+@compiled("i8[::1](b1[:, ::1], f8)")
+def _unduplicated(sets, iou_thresh):
+    """merge_duplicates on sets (M, N), one row per transform. An intersection is counted
+    only when the greedy pass asks for it: with the dropped transforms skipped, that is
+    a fraction of the M x M products, each a contiguous row pair."""
+    m, n = sets.shape
+    counts = np.zeros(m, dtype=np.int64)
+    for i in range(m):
+        row = sets[i]
+        c = 0
+        for k in range(n):
+            c += row[k]
+        counts[i] = c
+    order = np.argsort(-counts, kind="mergesort")   # stable: ties keep the transforms' order
+    keep = np.ones(m, dtype=np.bool_)
+    for a in range(m):
+        if not keep[a]:
+            continue
+        p = sets[order[a]]
+        for b in range(a + 1, m):
+            if not keep[b]:
+                continue
+            q = sets[order[b]]
+            inter = 0
+            for k in range(n):
+                inter += p[k] & q[k]
+            union = counts[order[a]] + counts[order[b]] - inter
+            iou = inter / union if union > 0 else 0.0
+            if iou >= iou_thresh:
+                keep[b] = False
+    return order[keep]
+
+
 def merge_duplicates(inlier_sets: np.ndarray, iou_thresh: float) -> np.ndarray:
     """Indices of transforms to keep: of two whose inlier sets overlap with IoU >= iou_thresh,
     the one with more outliers (fewer inliers) is dropped. inlier_sets: (N, M) bool."""
-    counts = inlier_sets.sum(0)
-    order = np.argsort(-counts, kind="stable")
-    sets = inlier_sets[:, order].astype(np.float32)
-    inter = sets.T @ sets
-    union = counts[order][:, None] + counts[order][None, :] - inter
-    iou = np.where(union > 0, inter / np.maximum(union, 1), 0.0)
-    keep = np.ones(len(order), dtype=bool)
-    for i in range(len(order)):
-        if keep[i]:
-            keep[i + 1:] &= iou[i, i + 1:] < iou_thresh
-    return order[keep]
+    return _unduplicated(np.ascontiguousarray(np.asarray(inlier_sets, dtype=bool).T), float(iou_thresh))
 
 
 def relabel(labels: np.ndarray) -> tuple[np.ndarray, int]:

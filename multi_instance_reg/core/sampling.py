@@ -29,11 +29,12 @@ import numpy as np
 from . import native
 from .native import compiled, prange, row_parts, split_rows
 
-# Neighbour search: the references are binned on a grid of cells 1.5 x radius wide (measured
-# fastest: smaller cells mean more, shorter ranges per query, larger ones more points outside
-# the sphere), each query visits the columns of cells its sphere reaches, and in each column
-# only the cells within the sphere's extent there: one contiguous run of references.
-_CELL_PER_RADIUS = 1.5
+# Neighbour search: the references are binned on a grid of cells 0.75 x radius wide, each
+# query visits the columns of cells its sphere reaches, and in each column only the cells
+# within the sphere's extent there: one contiguous run of references. Smaller cells mean
+# more, shorter runs per query, larger ones more points outside the sphere; the cell size
+# changes which points are looked at, never the counts (the distance test decides).
+_CELL_PER_RADIUS = 0.75
 # At most this many cells (the bin starts cost 8 bytes each); a wider cloud gets larger cells.
 _MAX_CELLS = 1 << 18
 
