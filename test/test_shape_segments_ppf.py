@@ -1525,6 +1525,36 @@ def test_found_share_is_the_share_of_agreeing_points_on_a_found_instances_surfac
     assert shape.found_shares([T], [], depth, intr)[0] == 0.0
 
 
+def test_the_first_choice_drops_a_pose_whose_evidence_lies_on_a_stronger_instance():
+    """A bracket turned over about its base plate (the plate on the true one's, the upright
+    below it; its box clear of the true one's) agrees with the depth only on the true one's
+    plate: found second, it took the place of a bracket below whose box it overlaps (bracket
+    seed 5 frame 2). The first choice drops it, and keeps the one below."""
+    from multi_instance_reg.rgbd.pipeline import InstanceRegistration, PipelineConfig, box_overlaps
+    from multi_instance_reg.synthetic.objects import get_object, object_mesh
+    from multi_instance_reg.synthetic.scene import look_at
+    from multi_instance_reg.transforms import invert_transform
+
+    mesh = object_mesh(get_object("bracket"))          # base plate z -0.04..-0.028, upright at -x
+    reg = InstanceRegistration(build_model_from_mesh(mesh, "bracket"), PipelineConfig())
+    intr = CameraIntrinsics(K=np.array([[380.0, 0, 160], [0, 380.0, 120], [0, 0, 1]]), width=320, height=240)
+    T = invert_transform(look_at(np.array([0.35, -0.25, 0.4]), np.zeros(3)))
+    over = T @ make_transform(np.diag([1.0, -1.0, -1.0]), [0.0, 0.0, -0.068])   # turned about the plate
+    below = T @ make_transform(np.eye(3), [0.0, 0.0, -0.085])
+    dense, _ = sample_surface(mesh, 0.001)
+    near, far = _depth_of(dense, T, intr), _depth_of(dense, below, intr)
+    depth = np.where((near > 0) & ((far == 0) | (near < far)), near, far)
+    overlap = box_overlaps(reg.model, [T, over, below], reg._box_grid)
+    limit = reg.config.frontend.max_overlap
+    assert overlap[0, 1] <= limit and overlap[1, 0] <= limit and overlap[0, 2] == 0.0 and overlap[1, 2] > limit
+    assert reg._shape.found_shares([over], [T], depth, intr)[0] > 0.8
+    checked = [(T, 1.0, 300, 300.0), (below, 0.9, 100, 90.0), (over, 1.0, 200, 200.0)]
+    alone = reg._one_per_box(checked)                  # by the boxes alone: the one turned over kept
+    assert len(alone) == 2 and alone[0][0] is T and alone[1][0] is over
+    chosen = reg._one_per_box(checked, frame=(depth, intr))
+    assert len(chosen) == 2 and chosen[0][0] is T and chosen[1][0] is below
+
+
 def _meshes_on_table(mesh, poses, cam, intr):
     """Depth of the mesh at each pose (camera frame) on a table at world z = 0 (``cam``:
     camera -> world), the nearest surface on each ray."""
