@@ -612,8 +612,10 @@ class ShapeFrontEnd:
             T2 = align_projective(T, self._surface, self._surface_normals, depth_m, intrinsics,
                                   SECOND_LOOK_ITERATIONS, 1.5 * self.voxel, 0.75 * self.voxel).T
             score, support, free, n = fit(T2)
+            T_look, support_look = T, support0
             if score > support0 - free0:
                 second = self._judge(T2, support, free, n, cloud, depth_m, intrinsics)
+                T_look, support_look = T2, support
             if second is None and fe.shape_turned_starts > 0 and support0 >= fe.shape_min_support:
                 # Still overhanging, though the depth confirms it: ICP may sit in a local
                 # minimum a turn away (a standing bracket seen from above, 4-12 deg off in its
@@ -623,6 +625,14 @@ class ShapeFrontEnd:
                 best = self._turned_start(T, fe.shape_turned_starts, fit, cloud, depth_m, intrinsics)
                 if best[0] > max(score, support0 - free0):
                     second = self._judge(best[4], best[1], best[2], best[3], cloud, depth_m, intrinsics)
+                    T_look, support_look = best[4], best[1]
+            if second is None:
+                # Still rejected: the later passes (judged with points hidden) are handed the
+                # pose the depth agrees with best. A bracket half behind a distractor: ICP 11.5
+                # deg off (support - free 0.75), the projective look 0.3 deg off (0.78, all but
+                # its hidden points), rejected on the evidence by its hidden points alone; the
+                # pose ICP left then passed with them hidden (seed 5 frame 7).
+                T, support0 = T_look, support_look
         return kept, T, support0, second
 
     def _turned_start(self, T, degrees: float, fit, cloud: FrameCloud, depth_m, intrinsics):
