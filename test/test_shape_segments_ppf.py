@@ -708,6 +708,27 @@ def test_a_pose_behind_a_nearer_surface_is_judged_by_what_is_in_view_where_the_d
     assert shape.judge_hidden(sunk, cloud, depth, intr, None, [front]) is None
 
 
+def test_the_step_in_front_of_a_hidden_part_is_measured_across_a_band_with_no_depth():
+    """The depth lost along the front box's edge (the spread and the stereo shadow there: 4-8
+    px, 1.5-3 voxels) lies between the back box's hidden and agreeing points, so none is next
+    to the other: the agreeing points' depth is carried across the band, and the back box
+    passes as where none is lost. A box sunk into the front one still does not."""
+    model, shape, intr, front, back, depth = _front_and_back_boxes()
+    solid = box_mesh(0.08, 0.07, 0.05)
+    dense, _ = sample_surface(solid, 0.001)
+    mine = _depth_of(dense, front, intr) > 0
+    sunk = make_transform(front[:3, :3], [0.06, 0.0, 0.61])
+    other = _depth_of(dense, sunk, intr)
+    into = np.where(~mine | ((other > 0) & (other < depth)), other, depth)
+    for r in (4, 8):
+        band = (cv2.dilate(mine.astype(np.uint8), np.ones((2 * r + 1, 2 * r + 1), np.uint8)) > 0) & ~mine
+        lost = np.where(band, 0, depth).astype(np.float32)
+        again = shape.judge_hidden(back, shape.frame_cloud(lost, intr, None), lost, intr, None)
+        assert again is not None and np.allclose(again[0], back) and again[1] > 0.95
+        lost = np.where(band, 0, into).astype(np.float32)
+        assert shape.judge_hidden(sunk, shape.frame_cloud(lost, intr, None), lost, intr, None) is None
+
+
 def test_a_bracket_split_by_a_depth_step_is_voted_as_one_pair_of_segments():
     """Seen from behind, a bracket's upright plate and its base plate past the depth step
     form two segments; each alone votes hardly a right pose, the pair voted together does."""
