@@ -1386,6 +1386,47 @@ def test_the_segments_an_instance_found_touches_are_voted_again_without_its_poin
     assert not any(right(P) for P in shape.residual_poses(cloud, [T1], np.stack([T2])))
 
 
+def test_the_pieces_a_bracket_found_in_front_cuts_another_into_are_voted_together():
+    """A bracket found lying across another in front of it (6 cm above) cuts what is seen of
+    the other into two segments, its upright end and its base plate's far end; no instance
+    found touches either, so the residual votes leave them. Voted together
+    (``bridged_poses``), they give its pose, which refined passes behind the one found."""
+    from multi_instance_reg.rgbd.pipeline import PipelineConfig
+    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.synthetic.objects import get_object, object_mesh
+    from multi_instance_reg.synthetic.scene import look_at
+    from multi_instance_reg.transforms import invert_transform
+
+    mesh = object_mesh(get_object("bracket"))
+    shape = ShapeFrontEnd(build_model_from_mesh(mesh, "bracket"), PipelineConfig().frontend)
+    intr = CameraIntrinsics(K=np.array([[380.0, 0, 160], [0, 380.0, 120], [0, 0, 1]]), width=320, height=240)
+    world = invert_transform(look_at(np.array([0.05, -0.12, 0.5]), np.zeros(3)))
+    under = world @ make_transform(np.eye(3), [0.0, 0.0, 0.04])
+    across = world @ make_transform(rotation_z(90.0), [0.0, 0.0, 0.11])
+    dense, _ = sample_surface(mesh, 0.001)
+    a, b = _depth_of(dense, across, intr), _depth_of(dense, under, intr)
+    depth = np.where((a > 0) & ((b == 0) | (a < b)), a, b)
+    cloud = shape.frame_cloud(depth, intr, None)
+
+    def right(P, deg=15.0, metres=0.03):
+        return rotation_angle_deg(P[:3, :3].T @ under[:3, :3]) < deg and np.linalg.norm(P[:3, 3] - under[:3, 3]) < metres
+
+    surf = shape._surface @ under[:3, :3].T + under[:3, 3]
+    on = np.min(np.linalg.norm(cloud.points[:, None] - surf[None], axis=2), axis=1) < shape.voxel
+    assert len(np.unique(cloud.segments[on & (cloud.segments >= 0)])) == 2     # two pieces
+    none = np.zeros((0, 4, 4))
+    assert len(shape.residual_poses(cloud, [across], none)) == 0               # without the frame: no bridging
+    bridged = shape.residual_poses(cloud, [across], none, depth, intr)
+    assert 1 <= len(bridged) and any(right(P) for P in bridged)
+    rejected = []
+    shape.refine_and_check(list(bridged), cloud, depth, intr, rejected=rejected)
+    occluders = shape.instance_pixels([across], depth, intr)
+    behind = [shape.judge_behind(R, cloud, depth, intr, occluders, [across]) for R in rejected]
+    assert any(r is not None and right(r[0], 2.0, 0.005) for r in behind)
+    # Already refined: not given again.
+    assert not any(right(P) for P in shape.residual_poses(cloud, [across], np.stack([under]), depth, intr))
+
+
 def rotation_z(degrees):
     a = np.radians(degrees)
     return np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])

@@ -588,7 +588,7 @@ class InstanceRegistration:
         hypotheses, then with the instances found hiding them (``judge_behind``); added
         where no instance is."""
         found = [c[0] for c in chosen]
-        poses = self._shape.residual_poses(cloud, found, hypotheses)
+        poses = self._shape.residual_poses(cloud, found, hypotheses, depth_m, intrinsics)
         if not len(poses):
             return chosen
         rejected, second = [], []
