@@ -23,7 +23,8 @@ from ..messages import CameraIntrinsics
 from .model import ObjectModel
 from .ppf import ANGLE_BINS as ANGLE_STEPS, PPFModel, cluster_poses
 from .faces import Faces, frame_patches, matches, model_faces, nearest_face_pose, patch_poses
-from .segments import connected_segments, pairs_across_steps, segments_within_reach, support_mask
+from .segments import (connected_segments, pairs_across_steps, segments_within_reach, support_mask,
+                       within_reach)
 from .verify import facing_camera, image_pixels, in_view_share, outline_continuation, outline_shift
 from ..threads import shared_pool, submit_each
 from ..tracking.icp import align_projective
