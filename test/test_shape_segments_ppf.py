@@ -571,6 +571,38 @@ def test_refinement_in_the_thread_pool_gives_the_serial_results():
             assert np.array_equal(a[0], b[0]) and a[1:] == b[1:]
 
 
+def test_a_rejected_pose_where_one_is_kept_gets_no_further_tries():
+    """``refine_and_check(conflicts=)``: every hypothesis is judged first; a rejected one that
+    takes a kept one's place gets no further tries (``_rescue``: moved onto its outline's
+    patch, looked at again), one clear of every kept pose does."""
+    from multi_instance_reg.rgbd.pipeline import FrontEndConfig
+    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd, _Plain
+
+    intr = _intrinsics()
+    K = intr.K
+    T = make_transform(np.diag([1.0, -1.0, -1.0]), [0.0, 0.0, 1.5])
+    v, u = np.mgrid[0:240, 0:320]
+    depth = np.full((240, 320), 1.575, np.float32)
+    x, y = (u - K[0, 2]) / K[0, 0] * 1.425, (v - K[1, 2]) / K[1, 1] * 1.425
+    depth[(np.abs(x) < 0.15) & (np.abs(y) < 0.1)] = 1.425      # a box's top on the floor
+    shape = ShapeFrontEnd(_box_model(), FrontEndConfig())
+    cloud = shape.frame_cloud(depth, intr, None)
+    off = T.copy()
+    off[0, 3] += 0.06                                         # along the top: overhangs the floor
+    tried = []
+    rescue = shape._rescue
+    shape._rescue = lambda plain, *a: tried.append(plain) or rescue(plain, *a)
+    near = lambda P, poses: any(np.linalg.norm(P[:3, 3] - Q[:3, 3]) < 0.1 for Q in poses)
+    plain = [shape._refine_plain(H, cloud, depth, intr) for H in (T, off)]
+    assert isinstance(plain[0], _Plain) and plain[0].kept is not None        # the true pose: kept as judged
+    assert shape.wants_rescue(plain[1])                   # the shifted one: rejected, though the depth supports it
+    for conflicts, expected in ((None, 1), (lambda P, poses: False, 1), (near, 0)):
+        tried.clear()
+        shape.refine_and_check([T, off], cloud, depth, intr, conflicts=conflicts)
+        assert len(tried) == expected
+        assert all(np.array_equal(t.T, plain[1].T) for t in tried)
+
+
 def test_a_group_whose_first_fails_is_tried_again_from_its_next_vote_pose():
     """``distinct`` refines the first of each group of near-identical hypotheses; where that
     one fails, ``_next_of_failed`` names the group's next one at or after ``offset`` (the vote

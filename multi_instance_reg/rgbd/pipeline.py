@@ -507,7 +507,7 @@ class InstanceRegistration:
                                                   fe.recover_min_inliers, thresh)
         rejected, second = [], []
         checked = self._shape.refine_and_check(hypotheses, cloud, depth_m, intrinsics, started, offset, rejected,
-                                               second)
+                                               second, conflicts=self._overlaps_any)
         chosen = self._one_per_box(checked, frame=(depth_m, intrinsics))
         if second:
             # Poses kept at their second look (a non-convex model's projective ICP) only where
@@ -656,6 +656,15 @@ class InstanceRegistration:
         overlap, free = self._clear_of(found, rejected)
         n = len(found)
         return free, overlap[np.ix_([n + k for k in free], [n + k for k in free])]
+
+    def _overlaps_any(self, T, poses) -> bool:
+        """Whether pose T's box and one of ``poses``' overlap beyond ``max_overlap`` (either
+        way), as ``_one_per_box`` keeps no two."""
+        if not len(poses):
+            return False
+        overlap = box_overlaps(self.model, [T] + list(poses), self._box_grid)
+        limit = self.config.frontend.max_overlap
+        return bool(np.any(overlap[0, 1:] > limit) or np.any(overlap[1:, 0] > limit))
 
     def _one_per_box(self, checked, first: int = 0, frame=None) -> list:
         """No two instances in one box: of the checked poses (T, support, agreeing points,

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import threading
 from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -526,7 +527,7 @@ class ShapeFrontEnd:
 
     def refine_and_check(self, transforms, cloud: FrameCloud, depth_m: np.ndarray,
                          intrinsics: CameraIntrinsics, started: "Prefetch | None" = None, offset: int = 0,
-                         rejected: list | None = None, second: list | None = None
+                         rejected: list | None = None, second: list | None = None, conflicts=None
                          ) -> list[tuple[np.ndarray, float, int, float]]:
         """Each transform refined by ICP against the frame's points and kept when the depth
         image agrees with the model's visible surface: (T, support share, agreeing points, evidence).
@@ -544,18 +545,31 @@ class ShapeFrontEnd:
         ``shape_outline_by_instances`` those rejected by the later checks too, for
         ``judge_behind``. ``second``: receives the poses kept at their second look
         (``shape_second_look``) and the groups' second tries; without it they are not
-        returned (nor tried)."""
+        returned (nor tried). ``conflicts(T, poses)``: whether pose T takes the place of one of
+        the poses (None: never); a rejected pose that does gets no further tries
+        (``_rescue``)."""
         if cloud.grid is None:
             return []
         order = self.distinct(transforms)
         claimed = started.stop() if started is not None else set()
 
-        def refined(indices):
+        def judged(indices):
             tasks = [_Claimed(started, k - offset) if k - offset in claimed else None for k in indices]
             missing = [k for k, task in zip(indices, tasks) if task is None]
-            new = iter(submit_each(lambda T0: self._refine(T0, cloud, depth_m, intrinsics),
+            new = iter(submit_each(lambda T0: self._refine_plain(T0, cloud, depth_m, intrinsics),
                                    [np.array(transforms[k], np.float64) for k in missing]))
             return [(task if task is not None else next(new)).result() for task in tasks]
+
+        def refined(indices, kept_before=()):
+            # Every pose judged first; the further tries then only for the rejected ones
+            # clear of every pose kept (``conflicts``): beside a kept one, what they find is
+            # that instance again, or added only where no instance is.
+            plain = judged(indices)
+            kept = list(kept_before) + [p.kept[0] for p in plain if isinstance(p, _Plain) and p.kept is not None]
+            tries = [p for p in plain if self.wants_rescue(p) and (conflicts is None or not conflicts(p.T, kept))]
+            rescued = iter(submit_each(lambda p: self._rescue(p, cloud, depth_m, intrinsics), tries))
+            tried = {id(p) for p in tries}
+            return [next(rescued).result() if id(p) in tried else _unrescued(p) for p in plain]
 
         results = refined(order)
         # A group whose first went wrong (an ECC transform ICP slid off, or one the checks
@@ -565,7 +579,7 @@ class ShapeFrontEnd:
         # only where no instance is): ranked with the rest, a wrong one (91 deg off, passing
         # every check) took a bracket's place from its right pose (seed 0 frame 6).
         again = self._next_of_failed(transforms, order, [k for k, r in zip(order, results) if r[0] is None], offset)
-        retried = refined(again) if again and second is not None else []
+        retried = refined(again, [r[0][0] for r in results if r[0] is not None]) if again and second is not None else []
         if rejected is not None:
             rejected.extend(T for kept, T, support, _ in results + retried if kept is None and T is not None and (
                 support < self.fe.shape_min_support or self.fe.shape_outline_by_instances))
@@ -588,7 +602,7 @@ class ShapeFrontEnd:
         # not used, 40-70 ms of the other core's time). The order changes no result.
         first = self.distinct(transforms)
         rest = sorted(set(range(len(transforms))) - set(first))
-        return Prefetch(lambda T0: self._refine(T0, cloud, depth_m, intrinsics),
+        return Prefetch(lambda T0: self._refine_plain(T0, cloud, depth_m, intrinsics),
                         [np.array(T, np.float64) for T in transforms], sorted(first, reverse=True) + rest[::-1])
 
     def _next_of_failed(self, transforms, order, failed, offset: int) -> list[int]:
@@ -627,13 +641,22 @@ class ShapeFrontEnd:
 
     def _refine(self, T0: np.ndarray, cloud: FrameCloud, depth_m: np.ndarray, intrinsics: CameraIntrinsics):
         """``refine_one``'s result, the refined pose it judged and its support (None, 0 when
-        dropped before)."""
+        dropped before), and the pose of its second look (or None)."""
+        return self._rescue(self._refine_plain(T0, cloud, depth_m, intrinsics), cloud, depth_m, intrinsics)
+
+    def _fit(self, T, depth_m, intrinsics):
+        """(support - free, support, free, judged points) of pose T (``depth_support``)."""
+        support, free, n = depth_support(T, self._surface, self._surface_normals, depth_m, intrinsics,
+                                         self.tolerance_at(T), self._self_hiding)
+        return support - free, support, free, n
+
+    def _refine_plain(self, T0: np.ndarray, cloud: FrameCloud, depth_m: np.ndarray, intrinsics: CameraIntrinsics):
+        """ICP and the judgement, without the further tries for a pose the depth supports
+        yet the checks reject (``_rescue``): ``_Plain``, or ``_refine``'s result when dropped
+        before the judgement."""
         fe = self.fe
         first = min(3, fe.shape_icp_iterations)
-        def fit(T):
-            support, free, n = depth_support(T, self._surface, self._surface_normals, depth_m, intrinsics,
-                                             self.tolerance_at(T), self._self_hiding)
-            return support - free, support, free, n
+        fit = lambda T: self._fit(T, depth_m, intrinsics)
 
         # The depth check first (a projection, no search), then a few rounds of ICP: a
         # hypothesis the depth hardly supports is dropped without paying for the rest
@@ -659,9 +682,26 @@ class ShapeFrontEnd:
         # ICP can slide a box seen by one face alone: keep whichever pose the depth
         # image supports better.
         _, support, free, n, T = max([cand, fit(T) + (T,)], key=lambda c: c[0])
+        return _Plain(self._judge(T, support, free, n, cloud, depth_m, intrinsics), T, support, free)
+
+    def wants_rescue(self, plain) -> bool:
+        """Whether ``_rescue`` would try more for this ``_refine_plain`` result."""
+        return isinstance(plain, _Plain) and plain.kept is None
+
+    def _rescue(self, plain, cloud: FrameCloud, depth_m: np.ndarray, intrinsics: CameraIntrinsics):
+        """``_refine``'s result from ``_refine_plain``'s: a pose the depth supports but the
+        checks reject is moved onto its outline's patch, and a non-convex model's looked at
+        again (projective ICP, turned starts)."""
+        if not isinstance(plain, _Plain):
+            return plain
+        fe = self.fe
+        first = min(3, fe.shape_icp_iterations)
+        fit = lambda T: self._fit(T, depth_m, intrinsics)
+        kept, T, support, free = plain
+        if kept is not None:
+            return kept, T, support, None
         support0, free0 = support, free
-        kept = self._judge(T, support, free, n, cloud, depth_m, intrinsics)
-        if kept is None and support >= fe.shape_min_support:
+        if support >= fe.shape_min_support:
             # The depth confirms it, but it overhangs empty space or stops short of its
             # face's edge: off along a face seen alone, where ICP cannot hold it. Moved
             # onto the patch its outline bounds, ICP'd back onto the depth, judged again.
@@ -1392,6 +1432,22 @@ class Prefetch:
         if self._future is not None:
             self._future.result()      # the worker's exception, if any, is raised here
         return self._done[k]
+
+
+class _Plain(NamedTuple):
+    """``ShapeFrontEnd._refine_plain``'s result for a pose it judged: what the judgement kept
+    (or None), the pose and the depth's support and free share there."""
+    kept: tuple | None
+    T: np.ndarray
+    support: float
+    free: float
+
+
+def _unrescued(plain):
+    """``_rescue``'s result for a ``_refine_plain`` result not tried further."""
+    if not isinstance(plain, _Plain):
+        return plain
+    return (plain.kept, plain.T, plain.support, None)
 
 
 class _Claimed:
