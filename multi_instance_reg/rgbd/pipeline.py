@@ -659,12 +659,8 @@ class InstanceRegistration:
 
     def _overlaps_any(self, T, poses) -> bool:
         """Whether pose T's box and one of ``poses``' overlap beyond ``max_overlap`` (either
-        way), as ``_one_per_box`` keeps no two."""
-        if not len(poses):
-            return False
-        overlap = box_overlaps(self.model, [T] + list(poses), self._box_grid)
-        limit = self.config.frontend.max_overlap
-        return bool(np.any(overlap[0, 1:] > limit) or np.any(overlap[1:, 0] > limit))
+        way; ``_clear_of``), as ``_one_per_box`` keeps no two."""
+        return bool(len(poses)) and not self._clear_of(poses, [T])[1]
 
     def _one_per_box(self, checked, first: int = 0, frame=None) -> list:
         """No two instances in one box: of the checked poses (T, support, agreeing points,
