@@ -600,7 +600,22 @@ class InstanceRegistration:
         checked = self._shape.refine_and_check(starts, cloud, depth_m, intrinsics, second=second)
         if not checked and not second:
             return chosen
-        return self._one_per_box(chosen + checked + second, first=len(chosen), frame=(depth_m, intrinsics))
+        # A pose placed by a half turn is a guess the votes did not make: its near-symmetric
+        # twin is as near (an L bracket with its plates swapped), and of the two the depth
+        # agrees with better is kept (bracket seed 1213 frame 6: the turned pose 178 deg off
+        # a bracket, evidence 138; its twin refined onto that bracket, 181).
+        accepted = [self._better_twin(c, cloud, depth_m, intrinsics) for c in checked + second]
+        return self._one_per_box(chosen + accepted, first=len(chosen), frame=(depth_m, intrinsics))
+
+    def _better_twin(self, kept, cloud, depth_m, intrinsics):
+        """Of ``kept`` (T, support, agreeing points, evidence) and its near-symmetric twins
+        (``ShapeFrontEnd.near_twins``) refined and judged, the one with the most evidence."""
+        twins = self._shape.near_twins(kept[0])
+        if not twins:
+            return kept
+        second = []
+        checked = self._shape.refine_and_check(twins, cloud, depth_m, intrinsics, second=second)
+        return max([kept] + checked + second, key=lambda c: c[3])
 
     def _accept_residual(self, chosen, hypotheses, cloud, depth_m, intrinsics) -> list:
         """``chosen`` and the poses voted again over what the instances found leave of their

@@ -54,6 +54,12 @@ HIDDEN_STEP = 2.0
 # the camera, the object hides: an open channel's walls and rims standing up from its floor,
 # fitted onto the top of one lying open side down).
 TURNED_OVER_MIN = 0.15
+# ``near_twins``: a half turn of the model (about a box axis or the bisector of two) is a near
+# symmetry when at least this share of its surface samples then lies within a voxel of its own
+# surface (shifted to fit best). The L bracket's swap of its two plates (half a turn about the
+# bisector of its corner): 0.58; every other half turn of it 0.28 at most. The channel's and the
+# stairs' turn over (about x, y): 0.60-0.65 (the channel's about z is a symmetry); the tee's 0.49.
+NEAR_SYMMETRY_MIN = 0.5
 # Rejected poses this close (degrees; and half a voxel) are one pose for ``judge_pairs``.
 SAME_POSE_DEG = 3.0
 # A direction holds ICP when at least this share of the visible normals' weight lies along it.
@@ -122,6 +128,9 @@ class ShapeFrontEnd:
         # ``_turned_over``'s half turns, per model axis standing up (for the channel and tee, whose
         # half turn about z maps them onto themselves, one: the turns about x and y are alike).
         self._half_turns = self._flip_axes() if self._self_hiding > 0 else [[], [], []]
+        # ``near_twins``' maps (model frame, 4 x 4): the poses the depth of a partly seen
+        # non-convex object may not tell from each other.
+        self._near_symmetries = self._near_symmetry_maps() if self._self_hiding > 0 else []
         self.features = fe.shape_features
         if self.features == "ppf":
             self._ppf = PPFModel(self._surface, self._surface_normals, self.diameter, self.voxel, model.symmetries,
@@ -1149,6 +1158,43 @@ class ShapeFrontEnd:
                 if not any(np.allclose(H, Q @ S, atol=1e-6) for Q in kept for S in same):
                     kept.append(H)
             out.append(kept[1:])
+        return out
+
+    def near_twins(self, T) -> list:
+        """Pose T's near-symmetric twins (``_near_symmetry_maps``): the model turned half a turn
+        onto most of its own surface. An L bracket lying on its long plate with its short one
+        standing and the same bracket on its short plate with its long one standing share most
+        of what the camera sees of them (bracket seed 1213 frame 6: the one placed by a turn
+        over 178 deg and 2.7 cm off the other)."""
+        return [T @ M for M in self._near_symmetries]
+
+    def _near_symmetry_maps(self) -> list:
+        """The half turns through the box centre about the model's box axes and the bisectors
+        of each two of them that map at least ``NEAR_SYMMETRY_MIN`` of its surface onto itself,
+        each with the shift that fits it best (nearest points, 20 rounds), as 4 x 4 maps in
+        the model frame; none a symmetry of the model, nor two alike under one."""
+        sym = self.model.symmetries
+        same = [np.eye(3)] if sym is None else [S[:3, :3] for S in np.asarray(sym.discrete, np.float64)]
+        surface, centre = self._surface, self._box_centre
+        tree = cKDTree(surface)
+        axes = [np.eye(3)[k] for k in range(3)]
+        axes += [(np.eye(3)[i] + sign * np.eye(3)[j]) / np.sqrt(2.0) for i in range(3) for j in range(i + 1, 3)
+                 for sign in (1.0, -1.0)]
+        kept, out = [np.eye(3)], []
+        for a in axes:
+            H = 2.0 * np.outer(a, a) - np.eye(3)
+            if any(np.allclose(H, Q @ S, atol=1e-6) for Q in kept for S in same):
+                continue
+            turned = (surface - centre) @ H.T + centre
+            shift = np.zeros(3)
+            for _ in range(20):
+                shift += np.mean(surface[tree.query(turned + shift)[1]] - (turned + shift), axis=0)
+            if np.mean(tree.query(turned + shift)[0] < self.voxel) >= NEAR_SYMMETRY_MIN:
+                kept.append(H)
+                M = np.eye(4)
+                M[:3, :3] = H
+                M[:3, 3] = centre - H @ centre + shift
+                out.append(M)
         return out
 
     def _hidden_step(self, p: np.ndarray, d: np.ndarray, hidden: np.ndarray, agree: np.ndarray) -> np.ndarray | None:
