@@ -128,9 +128,9 @@ class ShapeFrontEnd:
         # ``_turned_over``'s half turns, per model axis standing up (for the channel and tee, whose
         # half turn about z maps them onto themselves, one: the turns about x and y are alike).
         self._half_turns = self._flip_axes() if self._self_hiding > 0 else [[], [], []]
-        # ``near_twins``' maps (model frame, 4 x 4): the poses the depth of a partly seen
-        # non-convex object may not tell from each other.
-        self._near_symmetries = self._near_symmetry_maps() if self._self_hiding > 0 else []
+        # ``near_twins``' maps (model frame, 4 x 4; made at the first call: 60-90 ms, wanted
+        # only when the turned-over pass accepts a pose).
+        self._near_symmetries = None
         self.features = fe.shape_features
         if self.features == "ppf":
             self._ppf = PPFModel(self._surface, self._surface_normals, self.diameter, self.voxel, model.symmetries,
@@ -1166,12 +1166,14 @@ class ShapeFrontEnd:
         standing and the same bracket on its short plate with its long one standing share most
         of what the camera sees of them (bracket seed 1213 frame 6: the one placed by a turn
         over 178 deg and 2.7 cm off the other)."""
+        if self._near_symmetries is None:
+            self._near_symmetries = self._near_symmetry_maps() if self._self_hiding > 0 else []
         return [T @ M for M in self._near_symmetries]
 
     def _near_symmetry_maps(self) -> list:
         """The half turns through the box centre about the model's box axes and the bisectors
         of each two of them that map at least ``NEAR_SYMMETRY_MIN`` of its surface onto itself,
-        each with the shift that fits it best (nearest points, 20 rounds), as 4 x 4 maps in
+        each with the shift that fits it best (nearest points, at most 20 rounds), as 4 x 4 maps in
         the model frame; none a symmetry of the model, nor two alike under one."""
         sym = self.model.symmetries
         same = [np.eye(3)] if sym is None else [S[:3, :3] for S in np.asarray(sym.discrete, np.float64)]
@@ -1188,7 +1190,10 @@ class ShapeFrontEnd:
             turned = (surface - centre) @ H.T + centre
             shift = np.zeros(3)
             for _ in range(20):
-                shift += np.mean(surface[tree.query(turned + shift)[1]] - (turned + shift), axis=0)
+                step = np.mean(surface[tree.query(turned + shift)[1]] - (turned + shift), axis=0)
+                shift += step
+                if np.linalg.norm(step) < 0.01 * self.voxel:
+                    break
             if np.mean(tree.query(turned + shift)[0] < self.voxel) >= NEAR_SYMMETRY_MIN:
                 kept.append(H)
                 M = np.eye(4)
