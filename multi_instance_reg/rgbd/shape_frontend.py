@@ -710,8 +710,7 @@ class ShapeFrontEnd:
             # point with the depth pixel on its own ray, the tracker's ICP) has no such
             # pairs; its pose, if the depth agrees better, is judged again. Returned apart
             # (``refine_and_check(second=)``): the selection adds it only where no instance is.
-            T2 = align_projective(T, self._surface, self._surface_normals, depth_m, intrinsics,
-                                  SECOND_LOOK_ITERATIONS, 1.5 * self.voxel, 0.75 * self.voxel).T
+            T2 = self._projective_look(T, depth_m, intrinsics)
             score, support, free, n = fit(T2)
             T_look, support_look = T, support0
             if score > support0 - free0:
@@ -735,6 +734,20 @@ class ShapeFrontEnd:
                 # pose ICP left then passed with them hidden (seed 5 frame 7).
                 T, support0 = T_look, support_look
         return kept, T, support0, second
+
+    def _projective_look(self, T, depth_m, intrinsics) -> np.ndarray:
+        """Pose T aligned by the second look's projective ICP (each model point paired with the
+        depth pixel on its own ray)."""
+        return align_projective(T, self._surface, self._surface_normals, depth_m, intrinsics,
+                                SECOND_LOOK_ITERATIONS, 1.5 * self.voxel, 0.75 * self.voxel).T
+
+    def look_again(self, T, cloud: FrameCloud, depth_m: np.ndarray, intrinsics: CameraIntrinsics):
+        """Pose T after the second look's projective ICP, judged: (T, support, agreeing points,
+        evidence) or None."""
+        T2 = self._projective_look(T, depth_m, intrinsics)
+        support, free, n = depth_support(T2, self._surface, self._surface_normals, depth_m, intrinsics,
+                                         self.tolerance_at(T2), self._self_hiding)
+        return self._judge(T2, support, free, n, cloud, depth_m, intrinsics)
 
     def _turned_start(self, T, degrees: float, fit, cloud: FrameCloud, depth_m, intrinsics):
         """Pose T turned by +-``degrees`` about each of the model's axes (camera frame,
