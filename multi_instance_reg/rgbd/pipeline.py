@@ -600,7 +600,26 @@ class InstanceRegistration:
         checked = self._shape.refine_and_check(starts, cloud, depth_m, intrinsics, second=second)
         if not checked and not second:
             return chosen
-        return self._one_per_box(chosen + checked + second, first=len(chosen), frame=(depth_m, intrinsics))
+        # A pose placed by a half turn is a guess the votes did not make: its near-symmetric
+        # twin is as near (an L bracket with its plates swapped), and so is a pose a few
+        # degrees off the one ICP left; of them the depth agrees with best is kept (bracket
+        # seed 1213 frame 6: the turned pose 178 deg off a bracket, evidence 138, its twin
+        # refined onto that bracket 181; 1917 frame 2: 10.4 deg off, 171.5, its second look
+        # 1.0 deg off, 213).
+        accepted = [self._better_twin(c, cloud, depth_m, intrinsics) for c in checked + second]
+        return self._one_per_box(chosen + accepted, first=len(chosen), frame=(depth_m, intrinsics))
+
+    def _better_twin(self, kept, cloud, depth_m, intrinsics):
+        """Of ``kept`` (T, support, agreeing points, evidence), it after the second look's
+        projective ICP (``ShapeFrontEnd.look_again``) and its near-symmetric twins
+        (``ShapeFrontEnd.near_twins``) refined, each judged, the one with the most evidence."""
+        looked = self._shape.look_again(kept[0], cloud, depth_m, intrinsics)
+        candidates = [kept] + ([looked] if looked is not None else [])
+        twins = self._shape.near_twins(kept[0])
+        if twins:
+            second = []
+            candidates += self._shape.refine_and_check(twins, cloud, depth_m, intrinsics, second=second) + second
+        return max(candidates, key=lambda c: c[3])
 
     def _accept_residual(self, chosen, hypotheses, cloud, depth_m, intrinsics) -> list:
         """``chosen`` and the poses voted again over what the instances found leave of their

@@ -55,6 +55,12 @@ HIDDEN_STEP = 2.0
 # the camera, the object hides: an open channel's walls and rims standing up from its floor,
 # fitted onto the top of one lying open side down).
 TURNED_OVER_MIN = 0.15
+# ``near_twins``: a half turn of the model (about a box axis or the bisector of two) is a near
+# symmetry when at least this share of its surface samples then lies within a voxel of its own
+# surface (shifted to fit best). The L bracket's swap of its two plates (half a turn about the
+# bisector of its corner): 0.58; every other half turn of it 0.28 at most. The channel's and the
+# stairs' turn over (about x, y): 0.60-0.65 (the channel's about z is a symmetry); the tee's 0.49.
+NEAR_SYMMETRY_MIN = 0.5
 # Rejected poses this close (degrees; and half a voxel) are one pose for ``judge_pairs``.
 SAME_POSE_DEG = 3.0
 # A direction holds ICP when at least this share of the visible normals' weight lies along it.
@@ -123,6 +129,9 @@ class ShapeFrontEnd:
         # ``_turned_over``'s half turns, per model axis standing up (for the channel and tee, whose
         # half turn about z maps them onto themselves, one: the turns about x and y are alike).
         self._half_turns = self._flip_axes() if self._self_hiding > 0 else [[], [], []]
+        # ``near_twins``' maps (model frame, 4 x 4; made at the first call: 60-90 ms, wanted
+        # only when the turned-over pass accepts a pose).
+        self._near_symmetries = None
         self.features = fe.shape_features
         if self.features == "ppf":
             self._ppf = PPFModel(self._surface, self._surface_normals, self.diameter, self.voxel, model.symmetries,
@@ -741,8 +750,7 @@ class ShapeFrontEnd:
             # point with the depth pixel on its own ray, the tracker's ICP) has no such
             # pairs; its pose, if the depth agrees better, is judged again. Returned apart
             # (``refine_and_check(second=)``): the selection adds it only where no instance is.
-            T2 = align_projective(T, self._surface, self._surface_normals, depth_m, intrinsics,
-                                  SECOND_LOOK_ITERATIONS, 1.5 * self.voxel, 0.75 * self.voxel).T
+            T2 = self._projective_look(T, depth_m, intrinsics)
             score, support, free, n = fit(T2)
             T_look, support_look = T, support0
             if score > support0 - free0:
@@ -766,6 +774,19 @@ class ShapeFrontEnd:
                 # pose ICP left then passed with them hidden (seed 5 frame 7).
                 T, support0 = T_look, support_look
         return kept, T, support0, second
+
+    def _projective_look(self, T, depth_m, intrinsics) -> np.ndarray:
+        """Pose T aligned by the second look's projective ICP (each model point paired with the
+        depth pixel on its own ray)."""
+        return align_projective(T, self._surface, self._surface_normals, depth_m, intrinsics,
+                                SECOND_LOOK_ITERATIONS, 1.5 * self.voxel, 0.75 * self.voxel).T
+
+    def look_again(self, T, cloud: FrameCloud, depth_m: np.ndarray, intrinsics: CameraIntrinsics):
+        """Pose T after the second look's projective ICP, judged: (T, support, agreeing points,
+        evidence) or None."""
+        T2 = self._projective_look(T, depth_m, intrinsics)
+        _, support, free, n = self._fit(T2, depth_m, intrinsics)
+        return self._judge(T2, support, free, n, cloud, depth_m, intrinsics)
 
     def _turned_start(self, T, degrees: float, fit, cloud: FrameCloud, depth_m, intrinsics):
         """Pose T turned by +-``degrees`` about each of the model's axes (camera frame,
@@ -1189,6 +1210,48 @@ class ShapeFrontEnd:
                 if not any(np.allclose(H, Q @ S, atol=1e-6) for Q in kept for S in same):
                     kept.append(H)
             out.append(kept[1:])
+        return out
+
+    def near_twins(self, T) -> list:
+        """Pose T's near-symmetric twins (``_near_symmetry_maps``): the model turned half a turn
+        onto most of its own surface. An L bracket lying on its long plate with its short one
+        standing and the same bracket on its short plate with its long one standing share most
+        of what the camera sees of them (bracket seed 1213 frame 6: the one placed by a turn
+        over 178 deg and 2.7 cm off the other)."""
+        if self._near_symmetries is None:
+            self._near_symmetries = self._near_symmetry_maps() if self._self_hiding > 0 else []
+        return [T @ M for M in self._near_symmetries]
+
+    def _near_symmetry_maps(self) -> list:
+        """The half turns through the box centre about the model's box axes and the bisectors
+        of each two of them that map at least ``NEAR_SYMMETRY_MIN`` of its surface onto itself,
+        each with the shift that fits it best (nearest points, at most 20 rounds), as 4 x 4 maps in
+        the model frame; none a symmetry of the model, nor two alike under one."""
+        sym = self.model.symmetries
+        same = [np.eye(3)] if sym is None else [S[:3, :3] for S in np.asarray(sym.discrete, np.float64)]
+        surface, centre = self._surface, self._box_centre
+        tree = cKDTree(surface)
+        axes = [np.eye(3)[k] for k in range(3)]
+        axes += [(np.eye(3)[i] + sign * np.eye(3)[j]) / np.sqrt(2.0) for i in range(3) for j in range(i + 1, 3)
+                 for sign in (1.0, -1.0)]
+        kept, out = [np.eye(3)], []
+        for a in axes:
+            H = 2.0 * np.outer(a, a) - np.eye(3)
+            if any(np.allclose(H, Q @ S, atol=1e-6) for Q in kept for S in same):
+                continue
+            turned = (surface - centre) @ H.T + centre
+            shift = np.zeros(3)
+            for _ in range(20):
+                step = np.mean(surface[tree.query(turned + shift)[1]] - (turned + shift), axis=0)
+                shift += step
+                if np.linalg.norm(step) < 0.01 * self.voxel:
+                    break
+            if np.mean(tree.query(turned + shift)[0] < self.voxel) >= NEAR_SYMMETRY_MIN:
+                kept.append(H)
+                M = np.eye(4)
+                M[:3, :3] = H
+                M[:3, 3] = centre - H @ centre + shift
+                out.append(M)
         return out
 
     def _hidden_step(self, p: np.ndarray, d: np.ndarray, hidden: np.ndarray, agree: np.ndarray) -> np.ndarray | None:
