@@ -651,11 +651,11 @@ class ShapeFrontEnd:
                     T0, start = on_patch, moved
         if start[1] < 0.25 * fe.shape_min_support:
             return None, None, 0.0, None
-        T = self._icp(T0, cloud, depth_m, intrinsics, ICP_REACH * self.voxel, first)
+        T = self._held_icp(T0, cloud, depth_m, intrinsics, ICP_REACH * self.voxel, first)
         cand = max([start + (T0,), fit(T) + (T,)], key=lambda c: c[0])
         if cand[1] < 0.5 * fe.shape_min_support:
             return None, None, 0.0, None
-        T = self._icp(cand[4], cloud, depth_m, intrinsics, 1.5 * self.voxel, fe.shape_icp_iterations - first)
+        T = self._held_icp(cand[4], cloud, depth_m, intrinsics, 1.5 * self.voxel, fe.shape_icp_iterations - first)
         # ICP can slide a box seen by one face alone: keep whichever pose the depth
         # image supports better.
         _, support, free, n, T = max([cand, fit(T) + (T,)], key=lambda c: c[0])
@@ -687,7 +687,7 @@ class ShapeFrontEnd:
                     a = axis if axis[2] >= 0 else -axis
                     T1 = apply_twist(T1, np.concatenate([turn * a, np.zeros(3)]), centre)
                 T1[:3, 3] += shift
-                T1 = self._icp(T1, cloud, depth_m, intrinsics, 1.5 * self.voxel, first)
+                T1 = self._held_icp(T1, cloud, depth_m, intrinsics, 1.5 * self.voxel, first)
                 _, support, free, n = fit(T1)
                 kept = self._judge(T1, support, free, n, cloud, depth_m, intrinsics)
                 if kept is not None:
@@ -1348,6 +1348,35 @@ class ShapeFrontEnd:
         if evidence >= fe.shape_min_evidence:
             return T, support, int(round(support * n)), evidence * n
         return None
+
+    def _held_icp(self, T0, cloud: FrameCloud, depth_m, intrinsics, max_dist: float, iterations: int) -> np.ndarray:
+        """``_icp`` from T0, for a non-convex model its move kept only in the directions the
+        model's visible surface at T0 holds (``_unheld``): along the others ICP has nothing
+        to go by, and a slightly off pose slid there. A U channel lying open side down, seen
+        from above, shows its top and the slivers of its walls: its long axis is held by its
+        thin end faces alone, and from its true pose ICP slid 10-20 mm along it (channel seed
+        1607: every open-side-down miss refined away from its right hypotheses and the truth).
+        The outline places the model along those directions (``outline_shift``), not ICP. A
+        convex model is left as it was (its faces are placed by their patches first)."""
+        T = self._icp(T0, cloud, depth_m, intrinsics, max_dist, iterations)
+        if self._self_hiding == 0:
+            return T
+        unheld, axis, centre = self._unheld(T0)
+        if not unheld.any():
+            return T
+        # The move as a turn about the visible surface's centre and a shift of it.
+        D = T @ np.linalg.inv(T0)
+        R = D[:3, :3]
+        shift = R @ centre + D[:3, 3] - centre
+        shift = shift - unheld @ shift
+        if axis is not None:
+            # A face seen alone: no turn about its normal either.
+            w = cv2.Rodrigues(np.ascontiguousarray(R))[0].ravel()
+            R = cv2.Rodrigues((w - (w @ axis) * axis).reshape(3, 1))[0]
+        out = np.eye(4)
+        out[:3, :3] = R @ T0[:3, :3]
+        out[:3, 3] = R @ (T0[:3, 3] - centre) + centre + shift
+        return out
 
     def _icp(self, T, cloud: FrameCloud, depth_m, intrinsics, max_dist: float, iterations: int) -> np.ndarray:
         """Point-to-plane ICP of the model's surface facing the camera, paired as
