@@ -651,11 +651,11 @@ class ShapeFrontEnd:
                     T0, start = on_patch, moved
         if start[1] < 0.25 * fe.shape_min_support:
             return None, None, 0.0, None
-        T = self._held_icp(T0, cloud, depth_m, intrinsics, ICP_REACH * self.voxel, first)
+        T = self._icp(T0, cloud, depth_m, intrinsics, ICP_REACH * self.voxel, first)
         cand = max([start + (T0,), fit(T) + (T,)], key=lambda c: c[0])
         if cand[1] < 0.5 * fe.shape_min_support:
             return None, None, 0.0, None
-        T = self._held_icp(cand[4], cloud, depth_m, intrinsics, 1.5 * self.voxel, fe.shape_icp_iterations - first)
+        T = self._icp(cand[4], cloud, depth_m, intrinsics, 1.5 * self.voxel, fe.shape_icp_iterations - first)
         # ICP can slide a box seen by one face alone: keep whichever pose the depth
         # image supports better.
         _, support, free, n, T = max([cand, fit(T) + (T,)], key=lambda c: c[0])
@@ -687,7 +687,7 @@ class ShapeFrontEnd:
                     a = axis if axis[2] >= 0 else -axis
                     T1 = apply_twist(T1, np.concatenate([turn * a, np.zeros(3)]), centre)
                 T1[:3, 3] += shift
-                T1 = self._held_icp(T1, cloud, depth_m, intrinsics, 1.5 * self.voxel, first)
+                T1 = self._icp(T1, cloud, depth_m, intrinsics, 1.5 * self.voxel, first)
                 _, support, free, n = fit(T1)
                 kept = self._judge(T1, support, free, n, cloud, depth_m, intrinsics)
                 if kept is not None:
@@ -725,6 +725,11 @@ class ShapeFrontEnd:
                 # its hidden points), rejected on the evidence by its hidden points alone; the
                 # pose ICP left then passed with them hidden (seed 5 frame 7).
                 T, support0 = T_look, support_look
+        if kept is None and second is None and self._self_hiding > 0:
+            # Still rejected: refined once more from its start with ICP held to what the
+            # visible surface holds, then placed by its outline (``_held_look``); returned
+            # apart, as the second look's poses are.
+            second = self._held_look(T0, start, fit, cloud, depth_m, intrinsics)
         return kept, T, support0, second
 
     def _turned_start(self, T, degrees: float, fit, cloud: FrameCloud, depth_m, intrinsics):
@@ -1211,13 +1216,15 @@ class ShapeFrontEnd:
         ok = (uu >= 0) & (uu < w) & (vv >= 0) & (vv < h)
         return vv[ok], uu[ok]
 
-    def _unheld(self, T):
+    def _unheld(self, T, cloud=None):
         """(3, 3) projection onto the directions in which the visible surface's normals do not
         hold the model (point-to-plane ICP's weak translations): a face seen alone, its
         plane; a lying cylinder, its axis. Elsewhere ICP places the model, and the outline
         shift must not move it. With it: the one held direction when only one is (a face
         seen alone: turning about it is free too), else None, and the visible surface's
-        centre (camera frame)."""
+        centre (camera frame). With ``cloud``: the normals of the frame's points within ICP's
+        reach of that surface instead of the model's (what the camera shows: a channel's
+        walls seen edge on face the camera in the model, and hold nothing in the frame)."""
         R, t = T[:3, :3], T[:3, 3]
         p = self._surface @ R.T + t
         n = self._surface_normals @ R.T
@@ -1225,6 +1232,11 @@ class ShapeFrontEnd:
         n = n[facing]
         if len(n) < 3:
             return np.zeros((3, 3)), None, t
+        if cloud is not None:
+            d, j = cloud.tree.query(p[facing], distance_upper_bound=ICP_REACH * self.voxel)
+            j = np.unique(j[np.isfinite(d)])
+            if len(j) >= 3:
+                n = cloud.normals[j]
         w, V = np.linalg.eigh(n.T @ n / len(n))
         weak = V[:, w < UNHELD_SHARE]
         held = V[:, w >= UNHELD_SHARE]
@@ -1349,18 +1361,52 @@ class ShapeFrontEnd:
             return T, support, int(round(support * n)), evidence * n
         return None
 
+    def _held_look(self, T0, start, fit, cloud: FrameCloud, depth_m, intrinsics):
+        """A non-convex model's pose rejected after ``_refine``'s looks, refined again from its
+        start ``T0`` (``start``: ``fit(T0)``) by ``_held_icp``, and judged; when what does not
+        agree lies in front of the depth (it overhangs: off along what it shows, not through
+        anything), moved once onto the patch its outline bounds, in the directions the frame's
+        own normals there do not hold (``_unheld`` with the cloud), held ICP'd and judged
+        again. (T, support, agreeing points, evidence) or None. A U channel lying open side
+        down seen from above shows its top and slivers of its walls: the model's walls and
+        edges counted as holding it, while the frame's points held nothing in the top's
+        plane; its right hypotheses (4-15 deg, 9-18 mm off) refined away or stayed off
+        (channel seed 1607 frames 2 / 7 / 8 / 9-11)."""
+        fe = self.fe
+        first = min(3, fe.shape_icp_iterations)
+        T = self._held_icp(T0, cloud, depth_m, intrinsics, ICP_REACH * self.voxel, first)
+        cand = max([start + (T0,), fit(T) + (T,)], key=lambda c: c[0])
+        T = self._held_icp(cand[4], cloud, depth_m, intrinsics, 1.5 * self.voxel, fe.shape_icp_iterations - first)
+        _, support, free, n, T = max([cand, fit(T) + (T,)], key=lambda c: c[0])
+        kept = self._judge(T, support, free, n, cloud, depth_m, intrinsics)
+        if kept is not None or support + free < fe.shape_min_support:
+            return kept
+        unheld, axis, centre = self._unheld(T, cloud)
+        if not unheld.any():
+            return None
+        same = max(3.0 * fe.shape_depth_noise * float(T[2, 3]) ** 2, 0.002)
+        moved = outline_shift(T, self._surface, self._surface_normals, depth_m, intrinsics, self.voxel, same,
+                              0.1 * self.diameter + self.voxel, with_turn=True)
+        if moved is None:
+            return None
+        T = T.copy()
+        turn = moved[1] if axis is not None else 0.0
+        if turn != 0.0:
+            a = axis if axis[2] >= 0 else -axis      # as in ``_refine``'s outline rounds
+            T = apply_twist(T, np.concatenate([turn * a, np.zeros(3)]), centre)
+        T[:3, 3] += unheld @ moved[0]
+        T = self._held_icp(T, cloud, depth_m, intrinsics, 1.5 * self.voxel, first)
+        _, support, free, n = fit(T)
+        return self._judge(T, support, free, n, cloud, depth_m, intrinsics)
+
     def _held_icp(self, T0, cloud: FrameCloud, depth_m, intrinsics, max_dist: float, iterations: int) -> np.ndarray:
-        """``_icp`` from T0, for a non-convex model its move kept only in the directions the
-        model's visible surface at T0 holds (``_unheld``): along the others ICP has nothing
-        to go by, and a slightly off pose slid there. A U channel lying open side down, seen
-        from above, shows its top and the slivers of its walls: its long axis is held by its
-        thin end faces alone, and from its true pose ICP slid 10-20 mm along it (channel seed
-        1607: every open-side-down miss refined away from its right hypotheses and the truth).
-        The outline places the model along those directions (``outline_shift``), not ICP. A
-        convex model is left as it was (its faces are placed by their patches first)."""
+        """``_icp`` from T0, its move kept only in the directions the model's visible surface
+        at T0 holds (``_unheld``): along the others ICP has nothing to go by. A U channel
+        lying open side down seen from above has its length held by its thin end faces
+        alone, and from its true pose tilted 6 deg ICP slid it 10-20 mm along it (channel
+        seed 1607). Used for ``_held_look`` only: in the first refinement it cost poses ICP
+        had set right along such a direction (channel 631: 83 -> 78 hits)."""
         T = self._icp(T0, cloud, depth_m, intrinsics, max_dist, iterations)
-        if self._self_hiding == 0:
-            return T
         unheld, axis, centre = self._unheld(T0)
         if not unheld.any():
             return T
