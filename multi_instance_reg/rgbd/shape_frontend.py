@@ -1382,7 +1382,7 @@ class ShapeFrontEnd:
         down seen from above shows its top and slivers of its walls: the model's walls and
         edges counted as holding it, while the frame's points held nothing in the top's
         plane; its right hypotheses (4-15 deg, 9-18 mm off) refined away or stayed off
-        (channel seed 1607 frames 2 / 7 / 8 / 9-11)."""
+        (channel seed 1607 frames 2 / 4 / 10: set right by this look)."""
         fe = self.fe
         first = min(3, fe.shape_icp_iterations)
         T = self._held_icp(T0, cloud, depth_m, intrinsics, ICP_REACH * self.voxel, first)
