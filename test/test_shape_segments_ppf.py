@@ -528,6 +528,19 @@ def test_votes_split_over_threads_give_the_peaks_of_one_call(monkeypatch):
         assert np.array_equal(a, b)
 
 
+def _box_top_on_floor():
+    """The box model's pose seen from above, 1.5 m away, and a depth image of its top (the
+    0.3 x 0.2 m face, 1.425 m away) on a floor 1.575 m away; and the intrinsics."""
+    intr = _intrinsics()
+    K = intr.K
+    T = make_transform(np.diag([1.0, -1.0, -1.0]), [0.0, 0.0, 1.5])
+    v, u = np.mgrid[0:240, 0:320]
+    depth = np.full((240, 320), 1.575, np.float32)
+    x, y = (u - K[0, 2]) / K[0, 0] * 1.425, (v - K[1, 2]) / K[1, 1] * 1.425
+    depth[(np.abs(x) < 0.15) & (np.abs(y) < 0.1)] = 1.425
+    return T, depth, intr
+
+
 def test_refinement_in_the_thread_pool_gives_the_serial_results():
     """Hypotheses refined two at a time, and some of them started early (``start_refining``,
     as the pipeline does during ECC), give exactly what one at a time gives, in the same order."""
@@ -536,13 +549,7 @@ def test_refinement_in_the_thread_pool_gives_the_serial_results():
     from multi_instance_reg.symmetry import _rotation
 
     model = _box_model()
-    intr = _intrinsics()
-    K = intr.K
-    T = make_transform(np.diag([1.0, -1.0, -1.0]), [0.0, 0.0, 1.5])
-    v, u = np.mgrid[0:240, 0:320]
-    depth = np.full((240, 320), 1.575, np.float32)
-    x, y = (u - K[0, 2]) / K[0, 0] * 1.425, (v - K[1, 2]) / K[1, 1] * 1.425
-    depth[(np.abs(x) < 0.15) & (np.abs(y) < 0.1)] = 1.425
+    T, depth, intr = _box_top_on_floor()
     shape = ShapeFrontEnd(model, FrontEndConfig())
     cloud = shape.frame_cloud(depth, intr, None)
     rng = np.random.default_rng(3)
@@ -578,13 +585,7 @@ def test_a_rejected_pose_where_one_is_kept_gets_no_further_tries():
     from multi_instance_reg.rgbd.pipeline import FrontEndConfig
     from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd, _Plain
 
-    intr = _intrinsics()
-    K = intr.K
-    T = make_transform(np.diag([1.0, -1.0, -1.0]), [0.0, 0.0, 1.5])
-    v, u = np.mgrid[0:240, 0:320]
-    depth = np.full((240, 320), 1.575, np.float32)
-    x, y = (u - K[0, 2]) / K[0, 0] * 1.425, (v - K[1, 2]) / K[1, 1] * 1.425
-    depth[(np.abs(x) < 0.15) & (np.abs(y) < 0.1)] = 1.425      # a box's top on the floor
+    T, depth, intr = _box_top_on_floor()
     shape = ShapeFrontEnd(_box_model(), FrontEndConfig())
     cloud = shape.frame_cloud(depth, intr, None)
     off = T.copy()
