@@ -714,7 +714,7 @@ class ShapeFrontEnd:
         fit = lambda T: self._fit(T, depth_m, intrinsics)
         kept, T, support, free, T0, start = plain
         if kept is not None:
-            return kept, T, support, None
+            return _unrescued(plain)
         support0, free0 = support, free
         if support >= fe.shape_min_support:
             # The depth confirms it, but it overhangs empty space or stops short of its
@@ -725,23 +725,13 @@ class ShapeFrontEnd:
                 unheld, axis, centre = self._unheld(T1)
                 if not unheld.any():
                     break       # the normals hold every direction: ICP has placed it
-                same = max(3.0 * fe.shape_depth_noise * float(T1[2, 3]) ** 2, 0.002)
-                moved = outline_shift(T1, self._surface, self._surface_normals, depth_m, intrinsics,
-                                      self.voxel, same, 0.1 * self.diameter + self.voxel, with_turn=True)
-                if moved is None:
+                move = self._outline_move(T1, unheld, axis, depth_m, intrinsics)
+                if move is None:
                     break
-                shift = unheld @ moved[0]
-                turn = moved[1] if axis is not None else 0.0
+                shift, turn = move
                 if np.linalg.norm(shift) < 0.25 * self.voxel and abs(turn) * self.diameter < 0.25 * self.voxel:
                     break
-                T1 = T1.copy()
-                if turn != 0.0:
-                    # About the one held direction (the face's normal), through the visible
-                    # surface's centre; image u towards v is a turn about +z (the turn is
-                    # measured in the image: exact for a face square to the line of sight).
-                    a = axis if axis[2] >= 0 else -axis
-                    T1 = apply_twist(T1, np.concatenate([turn * a, np.zeros(3)]), centre)
-                T1[:3, 3] += shift
+                T1 = _moved(T1, shift, turn, axis, centre)
                 T1 = self._icp(T1, cloud, depth_m, intrinsics, 1.5 * self.voxel, first)
                 _, support, free, n = fit(T1)
                 kept = self._judge(T1, support, free, n, cloud, depth_m, intrinsics)
@@ -1460,7 +1450,7 @@ class ShapeFrontEnd:
         # A piece of a larger surface (a carton fitted onto a crate's top) agrees with the
         # depth wherever it covers: what tells is the same surface continuing just past
         # its outline, "same" meaning within the depth noise (3 sigma) at its distance.
-        same = max(3.0 * fe.shape_depth_noise * float(T[2, 3]) ** 2, 0.002)
+        same = self._same_surface(T)
         # The object's own surface is where the depth is up to the noise at most of its
         # points, not only up to the tolerance's floor (another shape that passes near it).
         if fe.shape_min_noise_agreement > 0 and noise_agreement(
@@ -1498,20 +1488,28 @@ class ShapeFrontEnd:
         unheld, axis, centre = self._unheld(T, cloud)
         if not unheld.any():
             return None
-        same = max(3.0 * fe.shape_depth_noise * float(T[2, 3]) ** 2, 0.002)
-        moved = outline_shift(T, self._surface, self._surface_normals, depth_m, intrinsics, self.voxel, same,
-                              0.1 * self.diameter + self.voxel, with_turn=True)
-        if moved is None:
+        move = self._outline_move(T, unheld, axis, depth_m, intrinsics)
+        if move is None:
             return None
-        T = T.copy()
-        turn = moved[1] if axis is not None else 0.0
-        if turn != 0.0:
-            a = axis if axis[2] >= 0 else -axis      # as in ``_refine``'s outline rounds
-            T = apply_twist(T, np.concatenate([turn * a, np.zeros(3)]), centre)
-        T[:3, 3] += unheld @ moved[0]
-        T = self._held_icp(T, cloud, depth_m, intrinsics, 1.5 * self.voxel, first)
+        T = self._held_icp(_moved(T, *move, axis, centre), cloud, depth_m, intrinsics, 1.5 * self.voxel, first)
         _, support, free, n = fit(T)
         return self._judge(T, support, free, n, cloud, depth_m, intrinsics)
+
+    def _same_surface(self, T) -> float:
+        """Metres: depth differences within the noise (3 sigma) at pose T's distance, at least
+        2 mm: "the same surface" for the outline checks."""
+        return max(3.0 * self.fe.shape_depth_noise * float(T[2, 3]) ** 2, 0.002)
+
+    def _outline_move(self, T, unheld, axis, depth_m, intrinsics):
+        """(shift, turn) that moves pose T onto the patch its outline bounds (``outline_shift``),
+        the shift kept to the ``unheld`` directions and the turn only about the one held
+        ``axis`` (0 without one), or None where there is no bounded patch (``_unheld``'s
+        figures at T)."""
+        moved = outline_shift(T, self._surface, self._surface_normals, depth_m, intrinsics, self.voxel,
+                              self._same_surface(T), 0.1 * self.diameter + self.voxel, with_turn=True)
+        if moved is None:
+            return None
+        return unheld @ moved[0], (moved[1] if axis is not None else 0.0)
 
     def _held_icp(self, T0, cloud: FrameCloud, depth_m, intrinsics, max_dist: float, iterations: int) -> np.ndarray:
         """``_icp`` from T0, its move kept only in the directions the model's visible surface
@@ -1592,6 +1590,18 @@ class _Plain(NamedTuple):
     free: float
     T0: np.ndarray          # the pose ICP started from, and ``_fit``'s figures there
     start: tuple
+
+
+def _moved(T, shift, turn, axis, centre):
+    """Pose T turned by ``turn`` about the held ``axis`` through ``centre`` and shifted by
+    ``shift`` (``ShapeFrontEnd._outline_move``). The turn is measured in the image, u towards
+    v: about +z, exact for a face square to the line of sight."""
+    T = T.copy()
+    if turn != 0.0:
+        a = axis if axis[2] >= 0 else -axis
+        T = apply_twist(T, np.concatenate([turn * a, np.zeros(3)]), centre)
+    T[:3, 3] += shift
+    return T
 
 
 def _unrescued(plain):
