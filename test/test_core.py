@@ -111,6 +111,19 @@ def test_sparse_and_dense_products_give_the_same_clusters(seed, monkeypatch):
     assert _same_partition(labels["sparse"], labels["dense"])
 
 
+@pytest.mark.parametrize("n", [40, 130, 700])
+def test_the_gram_product_is_the_whole_matrix_product(n):
+    # Half the work by a rank-k update of the upper triangle, mirrored: the clustering reads
+    # S's rows in full (the lower triangle as bounds), so every entry must be there.
+    from multi_instance_reg.core import clustering
+    s = make_sized_scene(np.random.default_rng(n), n, 0.5, 3)
+    G = compatibility_matrix(s.src, s.tgt, 2.0)
+    S = clustering._gram(G)
+    assert S.flags.c_contiguous and S.dtype == np.float32
+    assert np.allclose(S, G.astype(np.float64) @ G, rtol=1e-5, atol=1e-5)
+    assert np.array_equal(S, S.T)
+
+
 def test_clustering_leaves_g_alone_unless_allowed_to_overwrite_it():
     s = make_sized_scene(np.random.default_rng(4), 300, 0.5, 3)
     G = compatibility_matrix(s.src, s.tgt, 0.0)     # no spatial weight: dense rows

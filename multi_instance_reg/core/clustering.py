@@ -24,6 +24,7 @@ merge, O(N^3) in all. This implementation makes the same merges with far less wo
 from __future__ import annotations
 
 import numpy as np
+from scipy.linalg import blas
 
 from .native import compiled, prange, row_parts, split_rows
 
@@ -219,6 +220,18 @@ def _sparse_gram(G, indptr, indices, values, row_end):
     n = G.shape[0]
     S = np.empty((n, n), dtype=np.float32)
     split_rows(_sparse_gram_rows, row_parts((n + 1) // 2, 64), G, indptr, indices, values, row_end, S)
+    split_rows(_mirror_upper, row_parts((n + 63) // 64, 2, "growing"), S)
+    return S
+
+
+def _gram(G):
+    """S = G G for a symmetric G (float32, C-contiguous), all row dot products at once: its
+    upper triangle by one BLAS rank-k update, half a matrix product's work (1024 rows: 16
+    against 22.5 ms), then mirrored. G G = G^T G; given G^T (Fortran order: no copy), the
+    update fills the lower triangle of a Fortran-order result, which read as C order is S's
+    upper one."""
+    n = G.shape[0]
+    S = blas.ssyrk(1.0, G.T, lower=1).T
     split_rows(_mirror_upper, row_parts((n + 63) // 64, 2, "growing"), S)
     return S
 
@@ -489,7 +502,7 @@ def cluster_compatibility_vectors(G: np.ndarray, min_dist_thresh: float = 0.2,
     if counts.sum() > _DENSE_ROWS_ABOVE * n * n:
         # Dense: one GEMM (the sparse product cannot win here), and full rows need no
         # column indices: the rows of G (or of a copy) are used as they are.
-        S = G @ G  # G is symmetric: all row dot products at once
+        S = _gram(G)
         indptr = np.arange(0, n * n + 1, n, dtype=np.int64)
         indices = np.zeros(0, dtype=np.int32)
         values = G.reshape(-1) if overwrite else G.reshape(-1).copy()
@@ -499,7 +512,7 @@ def cluster_compatibility_vectors(G: np.ndarray, min_dist_thresh: float = 0.2,
         if _SPARSE_PRODUCT_COST * _sparse_product_work(indptr, indices, row_end) < float(n) ** 3:
             S = _sparse_gram(G, indptr, indices, values, row_end)
         else:
-            S = G @ G
+            S = _gram(G)
         dense = False
     stats = np.zeros(4, dtype=np.int64) if stats is None else stats
     return _agglomerate(G, indptr, indices, values, S, float(min_dist_thresh), dense, stats)
