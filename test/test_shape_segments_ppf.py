@@ -593,11 +593,11 @@ def test_a_rejected_pose_where_one_is_kept_gets_no_further_tries():
     tried = []
     rescue = shape._rescue
     shape._rescue = lambda plain, *a: tried.append(plain) or rescue(plain, *a)
-    near = lambda P, poses: any(np.linalg.norm(P[:3, 3] - Q[:3, 3]) < 0.1 for Q in poses)
+    near = lambda Ps, poses: [any(np.linalg.norm(P[:3, 3] - Q[:3, 3]) < 0.1 for Q in poses) for P in Ps]
     plain = [shape._refine_plain(H, cloud, depth, intr) for H in (T, off)]
     assert isinstance(plain[0], _Plain) and plain[0].kept is not None        # the true pose: kept as judged
     assert shape.wants_rescue(plain[1])                   # the shifted one: rejected, though the depth supports it
-    for conflicts, expected in ((None, 1), (lambda P, poses: False, 1), (near, 0)):
+    for conflicts, expected in ((None, 1), (lambda Ps, poses: [False] * len(Ps), 1), (near, 0)):
         tried.clear()
         shape.refine_and_check([T, off], cloud, depth, intr, conflicts=conflicts)
         assert len(tried) == expected

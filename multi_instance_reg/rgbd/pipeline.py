@@ -676,10 +676,13 @@ class InstanceRegistration:
         n = len(found)
         return free, overlap[np.ix_([n + k for k in free], [n + k for k in free])]
 
-    def _overlaps_any(self, T, poses) -> bool:
-        """Whether pose T's box and one of ``poses``' overlap beyond ``max_overlap`` (either
-        way; ``_clear_of``), as ``_one_per_box`` keeps no two."""
-        return bool(len(poses)) and not self._clear_of(poses, [T])[1]
+    def _overlaps_any(self, transforms, poses) -> list[bool]:
+        """For each of ``transforms``, whether its box and one of ``poses``' overlap beyond
+        ``max_overlap`` (either way; ``_clear_of``), as ``_one_per_box`` keeps no two."""
+        if not len(poses):
+            return [False] * len(transforms)
+        free = set(self._clear_of(poses, transforms)[1])
+        return [k not in free for k in range(len(transforms))]
 
     def _one_per_box(self, checked, first: int = 0, frame=None) -> list:
         """No two instances in one box: of the checked poses (T, support, agreeing points,
@@ -879,37 +882,39 @@ def box_overlaps(model: ObjectModel, transforms, grid: np.ndarray) -> np.ndarray
     """(M, M): entry [a, b] is the share of instance b's box volume (``grid``: points inside
     the model's box, model frame) that lies inside instance a's box: near 0 for touching or
     stacked instances, large for two fits to one physical object."""
-    T = np.asarray(transforms, dtype=np.float64).reshape(-1, 4, 4)
+    T = np.ascontiguousarray(np.asarray(transforms, dtype=np.float64).reshape(-1, 4, 4))
     m = len(T)
     if m == 0 or len(grid) == 0:
         return np.zeros((m, m))
-    R, t = T[:, :3, :3], T[:, :3, 3]
-    Rt = np.transpose(R, (0, 2, 1))
-    R_rel = Rt[:, None] @ R[None, :]                                         # R_a^T R_b
-    t_rel = np.einsum("aij,abj->abi", Rt, t[None, :, :] - t[:, None, :])     # R_a^T (t_b - t_a)
     centre = np.asarray(getattr(model, "box_centre", np.zeros(3)), dtype=np.float64)
-    return _box_shares(np.ascontiguousarray(grid, np.float64), np.ascontiguousarray(R_rel), np.ascontiguousarray(t_rel),
-                       centre, np.asarray(model.extent, dtype=np.float64) / 2.0)
+    return _box_shares(np.ascontiguousarray(grid, np.float64), T, centre,
+                       np.asarray(model.extent, dtype=np.float64) / 2.0)
 
 
 @numba.njit(cache=True, nogil=True)
-def _box_shares(grid, R_rel, t_rel, centre, half):
-    # b's grid in a's model frame, pair by pair, compiled: as one (P, 3) x (3, M*M*3) product
-    # and its comparisons, 1.3 ms a call for the 30-40 poses of a pallet frame (twice a frame,
-    # after the refinement, on one core).
+def _box_shares(grid, T, centre, half):
+    # b's grid in a's model frame (R_a^T R_b, R_a^T (t_b - t_a)), pair by pair, compiled: the
+    # selection and the acceptance passes call this 50-60 times a bracket frame on one core,
+    # where the relative poses as numpy products had cost more than the shares.
     # A pair whose boxes lie apart (most: instances side by side) shares nothing, told from
     # the centres: b's grid lies within ``reach`` of its box centre, a's box within |half| of
     # its own; R_rel's stretch (1 for a rotation, bounded from its deviation from one) counted.
-    m = R_rel.shape[0]
+    m = T.shape[0]
     out = np.zeros((m, m))
     reach = 0.0
     for p in range(grid.shape[0]):
         d0, d1, d2 = grid[p, 0] - centre[0], grid[p, 1] - centre[1], grid[p, 2] - centre[2]
         reach = max(reach, np.sqrt(d0 * d0 + d1 * d1 + d2 * d2))
     half_norm = np.sqrt(half[0] * half[0] + half[1] * half[1] + half[2] * half[2])
+    R = np.empty((3, 3))
+    t = np.empty(3)
     for a in range(m):
         for b in range(m):
-            R, t = R_rel[a, b], t_rel[a, b]
+            for i in range(3):
+                for j in range(3):
+                    R[i, j] = T[a, 0, i] * T[b, 0, j] + T[a, 1, i] * T[b, 1, j] + T[a, 2, i] * T[b, 2, j]
+                e0, e1, e2 = T[b, 0, 3] - T[a, 0, 3], T[b, 1, 3] - T[a, 1, 3], T[b, 2, 3] - T[a, 2, 3]
+                t[i] = T[a, 0, i] * e0 + T[a, 1, i] * e1 + T[a, 2, i] * e2
             off = 0.0
             for i in range(3):
                 for j in range(3):

@@ -560,8 +560,8 @@ class ShapeFrontEnd:
         ``shape_outline_by_instances`` those rejected by the later checks too, for
         ``judge_behind``. ``second``: receives the poses kept at their second look
         (``shape_second_look``) and the groups' second tries; without it they are not
-        returned (nor tried). ``conflicts(T, poses)``: whether pose T takes the place of one of
-        the poses (None: never); a rejected pose that does gets no further tries
+        returned (nor tried). ``conflicts(Ts, poses)``: for each pose of Ts, whether it takes the
+        place of one of the poses (None: never); a rejected pose that does gets no further tries
         (``_rescue``)."""
         if cloud.grid is None:
             return []
@@ -581,7 +581,9 @@ class ShapeFrontEnd:
             # that instance again, or added only where no instance is.
             plain = judged(indices)
             kept = list(kept_before) + [p.kept[0] for p in plain if isinstance(p, _Plain) and p.kept is not None]
-            tries = [p for p in plain if self.wants_rescue(p) and (conflicts is None or not conflicts(p.T, kept))]
+            tries = [p for p in plain if self.wants_rescue(p)]
+            if conflicts is not None and tries:
+                tries = [p for p, taken in zip(tries, conflicts([p.T for p in tries], kept)) if not taken]
             rescued = iter(submit_each(lambda p: self._rescue(p, cloud, depth_m, intrinsics), tries))
             tried = {id(p) for p in tries}
             return [next(rescued).result() if id(p) in tried else _unrescued(p) for p in plain]
