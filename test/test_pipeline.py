@@ -263,6 +263,26 @@ def test_bad_frames_and_models_raise_clear_errors(object_model):
     assert result.instances == [] and result.timings_ms["total"] > 0
 
 
+def test_the_shared_pool_shortens_the_gil_switch_interval(monkeypatch):
+    """Kernels returning to a GIL held by Python in the other thread wait up to the switch
+    interval: the pool sets it to GIL_SWITCH_INTERVAL, and never lengthens a shorter one."""
+    import sys
+
+    from multi_instance_reg import threads
+
+    before = sys.getswitchinterval()
+    try:
+        for start, expected in ((0.005, threads.GIL_SWITCH_INTERVAL), (0.0002, 0.0002)):
+            sys.setswitchinterval(start)
+            monkeypatch.setattr(threads, "_POOL", None)
+            monkeypatch.setattr(threads.os, "cpu_count", lambda: 2)
+            pool = threads.shared_pool()
+            assert pool is not None and abs(sys.getswitchinterval() - expected) < 1e-9
+            pool.shutdown()
+    finally:
+        sys.setswitchinterval(before)
+
+
 def test_blas_thread_limit_reaches_the_loaded_libraries():
     import scipy.linalg  # noqa: F401  (scipy brings its own OpenBLAS)
 
