@@ -523,12 +523,15 @@ class InstanceRegistration:
             chosen = self._accept_pairs(chosen, rejected, cloud, depth_m, intrinsics)
             if fe.shape_rejected_groups:
                 chosen = self._accept_groups(chosen, rejected, cloud, depth_m, intrinsics)
+        provisional = []
         if fe.shape_hidden_by_instances and fe.shape_hidden_by_any and rejected:
+            before = chosen
             chosen = self._accept_hidden(chosen, rejected, cloud, depth_m, intrinsics)
+            provisional = chosen[len(before):]
         if fe.shape_hidden_by_instances and self._shape.non_convex and rejected:
             chosen = self._accept_turned(chosen, rejected, cloud, depth_m, intrinsics)
         if fe.shape_residual_votes and self._shape.non_convex and chosen:
-            chosen = self._accept_residual(chosen, hypotheses, cloud, depth_m, intrinsics)
+            chosen = self._accept_residual(chosen, hypotheses, cloud, depth_m, intrinsics, provisional)
         self._shape.keep_pixels(None)
         instances = [Instance(i, c[0], c[2], float(c[1]), self.model.name) for i, c in enumerate(chosen)]
         labels, _ = assign_nearest(src, tgt, [c[0] for c in chosen], self._shape_ecc.config.inlier_thresh)
@@ -621,20 +624,41 @@ class InstanceRegistration:
             candidates += self._shape.refine_and_check(twins, cloud, depth_m, intrinsics, second=second) + second
         return max(candidates, key=lambda c: c[3])
 
-    def _accept_residual(self, chosen, hypotheses, cloud, depth_m, intrinsics) -> list:
+    def _accept_residual(self, chosen, hypotheses, cloud, depth_m, intrinsics, provisional=()) -> list:
         """``chosen`` and the poses voted again over what the instances found leave of their
         segments (``ShapeFrontEnd.residual_poses``), refined and judged as the first
         hypotheses, then with the instances found hiding them (``judge_behind``); added
-        where no instance is."""
-        found = [c[0] for c in chosen]
-        poses = self._shape.residual_poses(cloud, found, hypotheses, depth_m, intrinsics)
-        if not len(poses):
-            return chosen
-        rejected, second = [], []
-        checked = self._shape.refine_and_check(list(poses), cloud, depth_m, intrinsics, rejected=rejected,
-                                               second=second)
+        where no instance is. ``provisional``: those of ``chosen`` passed only with points
+        taken as hidden behind whatever is in front (``_accept_hidden``): a pose here with
+        more evidence on the place of one takes it (``_one_per_box``), and their segments
+        are voted again with their points kept, for poses on their places
+        (``_on_place_of``). Bracket seed 157 frame 9: a bracket on the upright plate of
+        another, turned half about the vertical, its base plate taken as hidden (evidence
+        219), held the place of that bracket's right pose (243), voted over the points it
+        had taken."""
+        firm = [c for c in chosen if not any(c is q for q in provisional)]
+        provisional = [c for c in chosen if any(c is q for q in provisional)]
+        poses = self._shape.residual_poses(cloud, [c[0] for c in chosen], hypotheses, depth_m, intrinsics)
+        rejected, second, checked = [], [], []
+        if len(poses):
+            checked = self._shape.refine_and_check(list(poses), cloud, depth_m, intrinsics, rejected=rejected,
+                                                   second=second)
+        if provisional:
+            placed = [c[0] for c in provisional]
+            again = self._shape.residual_poses(cloud, [c[0] for c in firm],
+                                               np.concatenate([np.reshape(hypotheses, (-1, 4, 4)), poses]),
+                                               depth_m, intrinsics, kept=placed)
+            if len(again):
+                looked = []
+                more = self._shape.refine_and_check(list(again), cloud, depth_m, intrinsics, second=looked) + looked
+                # Only to take a provisional pose's place: elsewhere these votes over its
+                # points add nothing the votes without them did not (and they vote other
+                # clusters over its neighbours: seed 1811 frame 0, a bracket behind a right
+                # provisional one).
+                checked += [c for c in more if self._on_place_of(c[0], placed, (depth_m, intrinsics))]
         if checked or second:
-            chosen = self._one_per_box(chosen + checked + second, first=len(chosen), frame=(depth_m, intrinsics))
+            chosen = self._one_per_box(firm + provisional + checked + second, first=len(firm),
+                                       frame=(depth_m, intrinsics))
         if self.config.frontend.shape_hidden_by_instances and rejected:
             chosen, rejected = self._accept_behind(chosen, rejected, cloud, depth_m, intrinsics)
             # These votes are over what the instances found leave: a channel lying open side
@@ -642,6 +666,12 @@ class InstanceRegistration:
             if rejected:
                 chosen = self._accept_turned(chosen, rejected, cloud, depth_m, intrinsics)
         return chosen
+
+    def _on_place_of(self, T, poses, frame) -> bool:
+        """Whether pose T takes the place of one of ``poses`` in ``_one_per_box``: their
+        boxes overlap beyond ``max_overlap``, or more than ``FOUND_SHARE_MAX`` of that one's
+        agreeing points lie on T's surface (``_own_evidence``)."""
+        return self._overlaps_any([T], poses)[0] or any(not self._own_evidence(P, [T], frame) for P in poses)
 
     def _accept_behind(self, chosen, rejected, cloud, depth_m, intrinsics) -> tuple[list, list]:
         """``chosen`` and the rejected poses that pass with the instances found hiding them

@@ -448,7 +448,7 @@ class ShapeFrontEnd:
         return np.concatenate(out) if out else np.zeros((0, 4, 4))
 
     def residual_poses(self, cloud: FrameCloud, found, taken, depth_m: np.ndarray | None = None,
-                       intrinsics: CameraIntrinsics | None = None) -> np.ndarray:
+                       intrinsics: CameraIntrinsics | None = None, kept=()) -> np.ndarray:
         """(K, 4, 4) hypotheses voted again over what the instances ``found`` leave of the
         segments they touch: their points (within ``RESIDUAL_VOXELS`` of a found pose's
         surface) taken out, the rest cut into connected segments again, each one's best
@@ -457,13 +457,15 @@ class ShapeFrontEnd:
         neighbours pairs its references with their points: missed brackets that pass every
         check at their true pose had 0-3 right references of 40-60 in the frame's votes,
         11-32 voted over their own points alone (seed 157). With the frame (``depth_m``,
-        ``intrinsics``), also ``bridged_poses``."""
+        ``intrinsics``), also ``bridged_poses``. ``kept``: more poses whose segments are voted
+        again, their points kept in the votes."""
         empty = np.zeros((0, 4, 4))
-        if cloud.segments is None or not len(found) or cloud.tree is None:
+        if cloud.segments is None or not (len(found) or len(kept)) or cloud.tree is None:
             return empty
-        explained = self._on_found(found)(cloud.points)
+        explained = self._on_found(found)(cloud.points) if len(found) else np.zeros(len(cloud.points), bool)
+        touching = explained | self._on_found(kept)(cloud.points) if len(kept) else explained
         labels = cloud.segments
-        touched = np.unique(labels[explained & (labels >= 0)])
+        touched = np.unique(labels[touching & (labels >= 0)])
         rest = np.flatnonzero(~explained & np.isin(labels, touched))
         fe = self.fe
         new = np.full(len(cloud.points), -1, np.int64)
