@@ -655,6 +655,23 @@ def _depth_of(points, T, intr):
     return depth.astype(np.float32)
 
 
+def _two_brackets_side_by_side():
+    """(bracket mesh, intrinsics, T1, T2, depth): two brackets side by side, the second turned
+    90 deg about the first's z and touching it (one segment in the frame cloud)."""
+    from multi_instance_reg.synthetic.objects import get_object, object_mesh
+    from multi_instance_reg.synthetic.scene import look_at
+    from multi_instance_reg.transforms import invert_transform
+
+    mesh = object_mesh(get_object("bracket"))
+    intr = CameraIntrinsics(K=np.array([[380.0, 0, 160], [0, 380.0, 120], [0, 0, 1]]), width=320, height=240)
+    T1 = invert_transform(look_at(np.array([0.35, -0.25, 0.4]), np.zeros(3)))
+    T2 = T1 @ make_transform(rotation_z(90.0), [0.02, 0.09, 0.0])
+    dense, _ = sample_surface(mesh, 0.001)
+    first, second = _depth_of(dense, T1, intr), _depth_of(dense, T2, intr)
+    depth = np.where((first > 0) & ((second == 0) | (first < second)), first, second)
+    return mesh, intr, T1, T2, depth
+
+
 def test_depth_support_leaves_out_what_a_bracket_hides_of_itself():
     from multi_instance_reg.rgbd.shape import depth_support, is_convex
     from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
@@ -1452,19 +1469,10 @@ def test_the_segments_an_instance_found_touches_are_voted_again_without_its_poin
     found: nothing voted again."""
     from multi_instance_reg.rgbd.pipeline import PipelineConfig
     from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
-    from multi_instance_reg.synthetic.objects import get_object, object_mesh
-    from multi_instance_reg.synthetic.scene import look_at
-    from multi_instance_reg.transforms import invert_transform
 
-    mesh = object_mesh(get_object("bracket"))
+    mesh, intr, T1, T2, depth = _two_brackets_side_by_side()
     shape = ShapeFrontEnd(build_model_from_mesh(mesh, "bracket"), PipelineConfig().frontend)
     assert shape.non_convex
-    intr = CameraIntrinsics(K=np.array([[380.0, 0, 160], [0, 380.0, 120], [0, 0, 1]]), width=320, height=240)
-    T1 = invert_transform(look_at(np.array([0.35, -0.25, 0.4]), np.zeros(3)))
-    T2 = T1 @ make_transform(rotation_z(90.0), [0.02, 0.09, 0.0])
-    dense, _ = sample_surface(mesh, 0.001)
-    first, second = _depth_of(dense, T1, intr), _depth_of(dense, T2, intr)
-    depth = np.where((first > 0) & ((second == 0) | (first < second)), first, second)
     cloud = shape.frame_cloud(depth, intr, None)
 
     def on(T):
@@ -2057,18 +2065,9 @@ def test_a_pose_passed_only_with_points_hidden_gives_way_to_a_better_residual_po
     vertical off the one there, on its upright plate with its base taken as hidden, evidence
     219, held the place of that bracket's right pose, 243). With more evidence it stays."""
     from multi_instance_reg.rgbd.pipeline import InstanceRegistration, PipelineConfig
-    from multi_instance_reg.synthetic.objects import get_object, object_mesh
-    from multi_instance_reg.synthetic.scene import look_at
-    from multi_instance_reg.transforms import invert_transform
 
-    mesh = object_mesh(get_object("bracket"))
+    mesh, intr, T1, T2, depth = _two_brackets_side_by_side()
     reg = InstanceRegistration(build_model_from_mesh(mesh, "bracket"), PipelineConfig())
-    intr = CameraIntrinsics(K=np.array([[380.0, 0, 160], [0, 380.0, 120], [0, 0, 1]]), width=320, height=240)
-    T1 = invert_transform(look_at(np.array([0.35, -0.25, 0.4]), np.zeros(3)))
-    T2 = T1 @ make_transform(rotation_z(90.0), [0.02, 0.09, 0.0])
-    dense, _ = sample_surface(mesh, 0.001)
-    first, second = _depth_of(dense, T1, intr), _depth_of(dense, T2, intr)
-    depth = np.where((first > 0) & ((second == 0) | (first < second)), first, second)
     cloud = reg._shape.frame_cloud(depth, intr, None)
     wrong = T2 @ make_transform(rotation_z(180.0), [0.02, 0.0, 0.0])
     assert reg._overlaps_any([wrong], [T2])[0]
@@ -2110,4 +2109,4 @@ def test_the_second_look_keeps_the_better_fit_of_its_short_and_long_rounds(monke
     for short, long_ in ((T, past), (past, T)):
         looks = {sf.SECOND_LOOK_SHORT: short, sf.SECOND_LOOK_ITERATIONS: long_}
         monkeypatch.setattr(sf, "align_projective", lambda T0, *a: SimpleNamespace(T=looks[a[4]]))
-        assert np.allclose(shape._projective_look(past, depth, intr), T)
+        assert np.allclose(shape._projective_look(past, depth, intr)[0], T)

@@ -636,8 +636,9 @@ class InstanceRegistration:
         another, turned half about the vertical, its base plate taken as hidden (evidence
         219), held the place of that bracket's right pose (243), voted over the points it
         had taken."""
-        firm = [c for c in chosen if not any(c is q for q in provisional)]
-        provisional = [c for c in chosen if any(c is q for q in provisional)]
+        marked = {id(c) for c in provisional}
+        firm = [c for c in chosen if id(c) not in marked]
+        provisional = [c for c in chosen if id(c) in marked]
         poses = self._shape.residual_poses(cloud, [c[0] for c in chosen], hypotheses, depth_m, intrinsics)
         rejected, second, checked = [], [], []
         if len(poses):
@@ -940,10 +941,10 @@ def _box_shares(grid, T, centre, half):
     t = np.empty(3)
     for a in range(m):
         for b in range(m):
+            e0, e1, e2 = T[b, 0, 3] - T[a, 0, 3], T[b, 1, 3] - T[a, 1, 3], T[b, 2, 3] - T[a, 2, 3]
             for i in range(3):
                 for j in range(3):
                     R[i, j] = T[a, 0, i] * T[b, 0, j] + T[a, 1, i] * T[b, 1, j] + T[a, 2, i] * T[b, 2, j]
-                e0, e1, e2 = T[b, 0, 3] - T[a, 0, 3], T[b, 1, 3] - T[a, 1, 3], T[b, 2, 3] - T[a, 2, 3]
                 t[i] = T[a, 0, i] * e0 + T[a, 1, i] * e1 + T[a, 2, i] * e2
             off = 0.0
             for i in range(3):

@@ -758,8 +758,7 @@ class ShapeFrontEnd:
             # point with the depth pixel on its own ray, the tracker's ICP) has no such
             # pairs; its pose, if the depth agrees better, is judged again. Returned apart
             # (``refine_and_check(second=)``): the selection adds it only where no instance is.
-            T2 = self._projective_look(T, depth_m, intrinsics)
-            score, support, free, n = fit(T2)
+            T2, (score, support, free, n) = self._projective_look(T, depth_m, intrinsics)
             T_look, support_look = T, support0
             if score > support0 - free0:
                 second = self._judge(T2, support, free, n, cloud, depth_m, intrinsics)
@@ -792,20 +791,22 @@ class ShapeFrontEnd:
             second = self._held_look(T0, start, fit, cloud, depth_m, intrinsics)
         return kept, T, support0, second
 
-    def _projective_look(self, T, depth_m, intrinsics) -> np.ndarray:
+    def _projective_look(self, T, depth_m, intrinsics) -> tuple[np.ndarray, tuple]:
         """Pose T aligned by the second look's projective ICP (each model point paired with the
         depth pixel on its own ray), run for ``SECOND_LOOK_SHORT`` and for
-        ``SECOND_LOOK_ITERATIONS`` rounds; of the two, the pose the depth agrees with better."""
+        ``SECOND_LOOK_ITERATIONS`` rounds; of the two, the pose the depth agrees with better,
+        and its ``_fit``."""
         looks = [align_projective(T, self._surface, self._surface_normals, depth_m, intrinsics, rounds,
                                   1.5 * self.voxel, 0.75 * self.voxel).T
                  for rounds in (SECOND_LOOK_SHORT, SECOND_LOOK_ITERATIONS)]
-        return max(looks, key=lambda L: self._fit(L, depth_m, intrinsics)[0])
+        fits = [self._fit(L, depth_m, intrinsics) for L in looks]
+        best = max(range(len(looks)), key=lambda k: fits[k][0])
+        return looks[best], fits[best]
 
     def look_again(self, T, cloud: FrameCloud, depth_m: np.ndarray, intrinsics: CameraIntrinsics):
         """Pose T after the second look's projective ICP, judged: (T, support, agreeing points,
         evidence) or None."""
-        T2 = self._projective_look(T, depth_m, intrinsics)
-        _, support, free, n = self._fit(T2, depth_m, intrinsics)
+        T2, (_, support, free, n) = self._projective_look(T, depth_m, intrinsics)
         return self._judge(T2, support, free, n, cloud, depth_m, intrinsics)
 
     def _turned_start(self, T, degrees: float, fit, cloud: FrameCloud, depth_m, intrinsics):
