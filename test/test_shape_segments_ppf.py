@@ -578,8 +578,15 @@ def test_refinement_in_the_thread_pool_gives_the_serial_results():
             assert np.array_equal(a[0], b[0]) and a[1:] == b[1:]
 
 
+def _near_places(Ps, poses=None):
+    """An ``overlaps`` for ``refine_and_check``: poses whose origins lie within 10 cm share a place."""
+    poses = Ps if poses is None else poses
+    return np.array([[np.linalg.norm(P[:3, 3] - Q[:3, 3]) < 0.1 for Q in poses] for P in Ps], bool
+                    ).reshape(len(Ps), len(poses))
+
+
 def test_a_rejected_pose_where_one_is_kept_gets_no_further_tries():
-    """``refine_and_check(conflicts=)``: every hypothesis is judged first; a rejected one that
+    """``refine_and_check(overlaps=)``: every hypothesis is judged first; a rejected one that
     takes a kept one's place gets no further tries (``_rescue``: moved onto its outline's
     patch, looked at again), one clear of every kept pose does."""
     from multi_instance_reg.rgbd.pipeline import FrontEndConfig
@@ -593,15 +600,62 @@ def test_a_rejected_pose_where_one_is_kept_gets_no_further_tries():
     tried = []
     rescue = shape._rescue
     shape._rescue = lambda plain, *a: tried.append(plain) or rescue(plain, *a)
-    near = lambda Ps, poses: [any(np.linalg.norm(P[:3, 3] - Q[:3, 3]) < 0.1 for Q in poses) for P in Ps]
+    never = lambda Ps, poses=None: np.zeros((len(Ps), len(Ps if poses is None else poses)), bool)
     plain = [shape._refine_plain(H, cloud, depth, intr) for H in (T, off)]
     assert isinstance(plain[0], _Plain) and plain[0].kept is not None        # the true pose: kept as judged
     assert shape.wants_rescue(plain[1])                   # the shifted one: rejected, though the depth supports it
-    for conflicts, expected in ((None, 1), (lambda Ps, poses: [False] * len(Ps), 1), (near, 0)):
+    for overlaps, expected in ((None, 1), (never, 1), (_near_places, 0)):
         tried.clear()
-        shape.refine_and_check([T, off], cloud, depth, intr, conflicts=conflicts)
+        shape.refine_and_check([T, off], cloud, depth, intr, overlaps=overlaps)
         assert len(tried) == expected
         assert all(np.array_equal(t.T, plain[1].T) for t in tried)
+
+
+def test_of_the_rejected_poses_on_one_place_only_the_best_fits_get_further_tries():
+    """``shape_rescues_per_place``: rejected poses on one place (``overlaps``) get the further
+    tries only as many as that, the best fits (support - free) first; those on other places
+    their own; 0 tries them all."""
+    from multi_instance_reg.rgbd.pipeline import FrontEndConfig
+    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd, _Plain
+
+    T, depth, intr = _box_top_on_floor()
+    offs = []
+    for dx, dy in ((0.06, 0.0), (0.02, 0.05), (-0.07, -0.03)):     # two overhanging on one side, one on the other
+        off = T.copy()
+        off[0, 3] += dx
+        off[1, 3] += dy
+        offs.append(off)
+    for per_place, expected in ((1, 2), (2, 3), (0, 3)):
+        shape = ShapeFrontEnd(_box_model(), FrontEndConfig(shape_rescues_per_place=per_place))
+        cloud = shape.frame_cloud(depth, intr, None)
+        plain = [shape._refine_plain(H, cloud, depth, intr) for H in offs]
+        assert all(isinstance(p, _Plain) and shape.wants_rescue(p) for p in plain)
+        places = _near_places([p.T for p in plain])
+        assert places[0, 1] and not places[0, 2] and not places[1, 2]
+        tried = []
+        rescue = shape._rescue
+        shape._rescue = lambda p, *a, rescue=rescue: tried.append(p) or rescue(p, *a)
+        shape.refine_and_check(offs, cloud, depth, intr, overlaps=_near_places)
+        assert len(tried) == expected
+        if per_place == 1:
+            first = max(plain[:2], key=lambda p: p.support - p.free)
+            assert any(np.array_equal(t.T, first.T) for t in tried)
+            assert any(np.array_equal(t.T, plain[2].T) for t in tried)
+
+
+def test_best_per_place_keeps_a_pose_unless_as_many_better_ones_taken_overlap_it():
+    from types import SimpleNamespace
+
+    from multi_instance_reg.rgbd.shape_frontend import best_per_place
+
+    poses = [SimpleNamespace(support=s + 0.1, free=0.1, name=i) for i, s in enumerate((0.5, 0.9, 0.7, 0.8, 0.6, 0.55))]
+    overlap = np.eye(6, dtype=bool)
+    overlap[0, 1] = overlap[2, 1] = overlap[0, 2] = True        # 0, 1, 2 one place (either way)
+    overlap[4, 3] = True                                        # 3, 4 another
+    overlap[5, 4] = True                                        # 5 overlaps 4 alone (left out): taken
+    assert [p.name for p in best_per_place(poses, overlap, 1)] == [1, 3, 5]
+    assert [p.name for p in best_per_place(poses, overlap, 2)] == [1, 2, 3, 4, 5]
+    assert [p.name for p in best_per_place(poses, overlap, 3)] == [0, 1, 2, 3, 4, 5]
 
 
 def test_a_group_whose_first_fails_is_tried_again_from_its_next_vote_pose():

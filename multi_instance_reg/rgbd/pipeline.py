@@ -126,6 +126,7 @@ class FrontEndConfig:
     shape_residual_votes: bool = param(True, "shape ppf, non-convex models only: after the acceptance passes, the segments the instances found touch are voted again without those instances' points (cut into connected segments anew), and each new segment's best shape_segment_clusters clusters are refined and judged (also with the instances found hiding them), added where no instance is. A bracket in one segment with its neighbours pairs its references with their points: missed brackets that pass every check at their true pose had 0-3 right references of 40-60 in the frame's votes, 11-32 voted over their own points alone (bracket seed 157). Bracket MHF1 seeds 5 / 9 / 157 / 163 / 211 (tuned) 0.850 / 0.891 / 0.868 / 0.892 / 0.889 -> 0.874 / 0.903 / 0.887 / 0.911 / 0.904, fresh 701 / 709 / 719 / 727 / 733 / 739: 484 -> 493 hits; channel 0 / 5 / 9 / 743 +3 / +1 / +2 / +3 hits, tee, stairs the same or better; no false positive; about 9 ms CPU a bracket frame (session 16)", None, None)
     shape_outline_by_instances: bool = param(True, "shape (with shape_hidden_by_instances): a pose rejected by the free-space or outline check is judged again too, its outline band's pixels on the instances found left out (a neighbour flush with it continues its face there: no larger surface), and added where no instance is. MHF1 seed 0 / 5 with the bracket's joined votes: bracket 0.890 -> 0.925 / 0.811 -> 0.833, cylinders 0.993 -> 0.996 / same, pallet 0.919 -> 0.927 / same; false positives on distractor-only frames unchanged", None, None)
     shape_faces: bool = param(True, "shape ppf, convex models with a face that has a long axis (a box; not a cylinder): the segments' flat patches whose outline (second moments) is that of a model face (a carton's top seen whole) give pose hypotheses, and a hypothesis near such a patch is moved onto it before ICP (a face seen alone holds ICP in its plane nowhere, and its point pairs differ only in their distance; rgbd/faces.py). Pallet hits seeds 0 / 5 / 9 / 13 / 33 / 41: 75 / 76 / 74 / 72 / 63 / 77 -> 83 / 82 / 84 / 84 / 79 / 83 (with the selection by evidence: 83 / 83 / 84 / 84 / 81 / 83); cylinders and bracket unchanged", None, None)
+    shape_rescues_per_place: int = param(3, "shape: of the refined poses the checks reject (none of them on a kept pose's place), only this many on one place (their boxes overlapping beyond max_overlap), the best supported, get the further tries (moved onto their outline's patch; for non-convex models the second look, turned starts and held look); 0 = all. Several hypotheses refined onto one distractor, or onto one instance they all miss, find there what the best of them finds: bracket seed 0 had 36 such poses a frame on 7 places, channel seed 1607 34 on 10, where the tries cost 48 and ... ms of CPU a frame", 0, 1000)
     shape_second_look: bool = param(True, "shape, non-convex models only (an L bracket): a refined pose rejected while overhanging space seen empty (free >= 0.02, support and support - free >= 0.6) is aligned again by projective point-to-plane ICP (each model point with the depth pixel on its ray: no pairs across the two plates where they meet, which left nearest-point ICP 4-6 deg off), judged again when the depth agrees better, and added where no instance is. Bracket MHF1, with shape_reject_through_support off, seeds 5 / 9 / 13 (tuned), 0, 113 / 127 / 139 (held out), 151 / 157 / 163 (fresh): 0.833 / 0.852 / 0.849 / 0.925 / 0.824 / 0.932 / 0.913 / 0.714 / 0.808 / 0.882 -> 0.829 / 0.885 / 0.867 / 0.946 / 0.862 / 0.944 / 0.913 / 0.764 / 0.832 / 0.887", None, None)
     shape_turned_starts: float = param(10.0, "shape, with shape_second_look (non-convex models): a pose still rejected after its second look, though the depth supports it (shape_min_support), is started again from itself turned by +- this many degrees about each of the model's axes (through its visible surface's centre), 3 ICP rounds each; the start the depth agrees with best gets the remaining rounds, is judged and added where no instance is. Standing brackets that nearest-point ICP left 4-12 deg / 1 cm off in the base plate's plane (free 0.1-0.2): replayed, 3 of 4 of seed 13's reached their pose from one of the six starts. Bracket MHF1 seeds 13 / 151 / 5 (tuned), every round from every start and no support gate: alone 0.879 / 0.841 / 0.829 -> 0.883 / 0.841 / 0.829, with shape_segment_clusters 6 0.887 / 0.855 / 0.834 (refinement p50 on seed 0 22 -> 57-66 ms; as now 38 ms); 0 = off (session 14)", 0.0, 90.0)
     shape_reject_through_support: bool = param(True, "shape ppf: drop a pose whose model reaches more than 2 voxels through the frame's largest support plane (the plane piece with the largest area removed, taken as unbounded: the table or floor): the depth check counts what lies behind the table's surface as hidden, and a bracket turned over with its upright plate sunk into the table, or a bracket's upright fitted onto a block's top, passed. Bracket false positives on distractor-only frames, seed 0: 1 -> 0; cylinders seed 9 MHF1 0.959 -> 0.982 (MHP 1.0), cylinders and pallet seeds 0 / 5 / 13, pallet 9 unchanged. Off where the largest plane is not what objects stand on and objects lie beyond its extension", None, None)
@@ -507,7 +508,7 @@ class InstanceRegistration:
                                                   fe.recover_min_inliers, thresh)
         rejected, second = [], []
         checked = self._shape.refine_and_check(hypotheses, cloud, depth_m, intrinsics, started, offset, rejected,
-                                               second, conflicts=self._overlaps_any)
+                                               second, overlaps=self._overlapping)
         chosen = self._one_per_box(checked, frame=(depth_m, intrinsics))
         if second:
             # Poses kept at their second look (a non-convex model's projective ICP) only where
@@ -710,10 +711,21 @@ class InstanceRegistration:
     def _overlaps_any(self, transforms, poses) -> list[bool]:
         """For each of ``transforms``, whether its box and one of ``poses``' overlap beyond
         ``max_overlap`` (either way; ``_clear_of``), as ``_one_per_box`` keeps no two."""
-        if not len(poses):
-            return [False] * len(transforms)
-        free = set(self._clear_of(poses, transforms)[1])
-        return [k not in free for k in range(len(transforms))]
+        return [bool(row.any()) for row in self._overlapping(transforms, poses)]
+
+    def _overlapping(self, transforms, poses=None) -> np.ndarray:
+        """(len(transforms), len(poses)) bool: whether each transform's box and each pose's
+        overlap beyond ``max_overlap`` (either way; ``_clear_of``); ``poses`` None: the
+        transforms among themselves (the diagonal True)."""
+        limit = self.config.frontend.max_overlap
+        if poses is None:
+            overlap = box_overlaps(self.model, list(transforms), self._box_grid)
+            return (overlap > limit) | (overlap.T > limit) | np.eye(len(transforms), dtype=bool)
+        n = len(poses)
+        if n == 0 or len(transforms) == 0:
+            return np.zeros((len(transforms), n), bool)
+        overlap = box_overlaps(self.model, list(poses) + list(transforms), self._box_grid)
+        return (overlap[n:, :n] > limit) | (overlap[:n, n:].T > limit)
 
     def _one_per_box(self, checked, first: int = 0, frame=None) -> list:
         """No two instances in one box: of the checked poses (T, support, agreeing points,
