@@ -643,6 +643,29 @@ def test_of_the_rejected_poses_on_one_place_only_the_best_fits_get_further_tries
             assert any(np.array_equal(t.T, plain[2].T) for t in tried)
 
 
+def test_overhanging_and_flush_rejected_poses_on_one_place_each_get_their_own_tries():
+    """Only a pose overhanging space seen empty gets the second look and turned starts: with
+    ``shape_rescues_per_place`` 1, the best overhanging pose on a place is tried beside the best
+    flush one, though a better flush one is left out."""
+    from multi_instance_reg.rgbd.pipeline import FrontEndConfig
+    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd, _Plain
+
+    T, depth, intr = _box_top_on_floor()
+    shape = ShapeFrontEnd(_box_model(), FrontEndConfig(shape_rescues_per_place=1))
+    cloud = shape.frame_cloud(depth, intr, None)
+    figures = {0.0: (0.95, 0.0), 0.05: (0.9, 0.0), -0.05: (0.8, 0.1)}     # shift: support, free
+    poses = []
+    for dx in figures:
+        P = T.copy()
+        P[0, 3] += dx
+        poses.append(P)
+    shape._refine_plain = lambda T0, *a: _Plain(None, T0, *figures[round(T0[0, 3], 3)], T0, (0.0, 0.0, 0.0, 0))
+    tried = []
+    shape._rescue = lambda p, *a: tried.append(round(p.T[0, 3], 3)) or (None, p.T, p.support, None)
+    shape.refine_and_check(poses, cloud, depth, intr, overlaps=_near_places)
+    assert sorted(tried) == [-0.05, 0.0]
+
+
 def test_best_per_place_keeps_a_pose_unless_as_many_better_ones_taken_overlap_it():
     from types import SimpleNamespace
 

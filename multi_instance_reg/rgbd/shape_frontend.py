@@ -574,7 +574,7 @@ class ShapeFrontEnd:
         pose of Ts takes the place of each of the poses (``poses`` left out: of Ts); None: never.
         A rejected pose that takes a kept one's place gets no further tries (``_rescue``), nor
         do all but the ``shape_rescues_per_place`` best fits of the rejected poses on one place
-        (``best_per_place``)."""
+        (``best_per_place``; those overhanging space seen empty and the others apart)."""
         if cloud.grid is None:
             return []
         order = self.distinct(transforms)
@@ -601,7 +601,13 @@ class ShapeFrontEnd:
             if overlaps is not None and tries and kept:
                 tries = [p for p, row in zip(tries, overlaps([p.T for p in tries], kept)) if not row.any()]
             if overlaps is not None and len(tries) > self.fe.shape_rescues_per_place > 0:
-                tries = best_per_place(tries, overlaps([p.T for p in tries]), self.fe.shape_rescues_per_place)
+                # A pose overhanging space seen empty gets looks the others do not (the
+                # second look, turned starts): those on a place have their own few (channel
+                # seed 2141 frame 11: the one overhanging fit of a channel, its look keeping
+                # it, was 4th by the fit after three rejected lying flush, free 0).
+                overhang = np.array([p.free >= SECOND_LOOK_MIN_FREE for p in tries])
+                same = overlaps([p.T for p in tries]) & (overhang[:, None] == overhang[None, :])
+                tries = best_per_place(tries, same, self.fe.shape_rescues_per_place)
             rescued = iter(submit_each(lambda p: self._rescue(p, cloud, depth_m, intrinsics), tries))
             tried = {id(p) for p in tries}
             return [next(rescued).result() if id(p) in tried else _unrescued(p) for p in plain]
