@@ -1438,6 +1438,44 @@ def test_a_bracket_pose_a_turn_away_from_icps_basin_is_started_again_turned(monk
             assert second == []
 
 
+def test_a_turned_start_icp_slides_off_is_judged_as_it_starts(monkeypatch):
+    """A bracket pose 10 deg off, rejected, and one of its turned starts lies on the true
+    pose, where ICP does not keep it (stubbed: it slides a start near the truth 10 deg off
+    again, as nearest-point ICP turned and slid an open-side-down channel onto its flush
+    neighbour: channel seed 2187 frame 4, a start 0.3 deg / 18 mm off went to 9 deg / 23 mm
+    and fitted worse). The start competes with what ICP makes of it (as in
+    ``_refine_plain``), so the true pose is kept (``second``); ranked after ICP alone, no
+    start beat the rejected pose and nothing was."""
+    from multi_instance_reg.rgbd import shape_frontend as sf
+    from multi_instance_reg.rgbd.pipeline import PipelineConfig
+    from multi_instance_reg.rgbd.shape import apply_twist
+    from multi_instance_reg.synthetic.objects import get_object, object_mesh
+    from multi_instance_reg.synthetic.scene import look_at
+    from multi_instance_reg.transforms import invert_transform
+
+    intr = CameraIntrinsics(K=np.array([[380.0, 0, 160], [0, 380.0, 120], [0, 0, 1]]), width=320, height=240)
+    T = invert_transform(look_at(np.array([0.3, -0.3, 0.4]), np.zeros(3)))
+    mesh = object_mesh(get_object("bracket"))
+    dense, _ = sample_surface(mesh, 0.001)
+    depth = _depth_of(dense, T, intr)
+    depth = np.where(depth > 0, depth, np.float32(T[2, 3] + 0.3))
+    shape = sf.ShapeFrontEnd(build_model_from_mesh(mesh, "bracket"), PipelineConfig().frontend)
+    centre = shape._visible_surface(T).mean(axis=0)
+    off = apply_twist(T, np.concatenate([np.radians(10.0) * T[:3, 0], np.zeros(3)]), centre)
+
+    def slides_off(T0, *a, **k):
+        near = rotation_angle_deg(T0[:3, :3].T @ T[:3, :3]) < 2.0 and np.linalg.norm(T0[:3, 3] - T[:3, 3]) < 0.01
+        return off.copy() if near else np.array(T0)
+
+    monkeypatch.setattr(sf, "align_projective", lambda T0, *a, **k: np.array(T0).T)
+    monkeypatch.setattr(shape, "_icp", slides_off)
+    cloud = shape.frame_cloud(depth, intr, None)
+    second = []
+    assert shape.refine_and_check([off], cloud, depth, intr, second=second) == []
+    assert len(second) == 1 and rotation_angle_deg(second[0][0][:3, :3].T @ T[:3, :3]) < 0.5
+    assert np.linalg.norm(second[0][0][:3, 3] - T[:3, 3]) < 0.002
+
+
 def test_a_pose_still_rejected_after_its_second_look_is_handed_on_as_the_pose_the_depth_agrees_with_best(monkeypatch):
     """The second look moves a bracket pose 5 deg off onto the depth, and the checks still
     reject it (stubbed: as a bracket half behind a distractor is, by its hidden points):

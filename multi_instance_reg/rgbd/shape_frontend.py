@@ -836,8 +836,11 @@ class ShapeFrontEnd:
             for sign in (1.0, -1.0):
                 twist = np.zeros(6)
                 twist[:3] = sign * np.radians(degrees) * T[:3, k]
-                T3 = self._icp(apply_twist(T, twist, centre), cloud, depth_m, intrinsics, ICP_REACH * self.voxel, first)
-                starts.append(fit(T3) + (T3,))
+                T0 = apply_twist(T, twist, centre)
+                T3 = self._icp(T0, cloud, depth_m, intrinsics, ICP_REACH * self.voxel, first)
+                # As in ``_refine_plain``: ICP can slide a face seen alone off the start the
+                # depth agrees with better (onto a flush neighbour), so the start itself competes.
+                starts.append(max([fit(T0) + (T0,), fit(T3) + (T3,)], key=lambda c: c[0]))
         best = max(starts, key=lambda c: c[0])
         T3 = self._icp(best[4], cloud, depth_m, intrinsics, 1.5 * self.voxel, self.fe.shape_icp_iterations - first)
         return max([best, fit(T3) + (T3,)], key=lambda c: c[0])
