@@ -858,6 +858,34 @@ def test_two_rejected_poses_are_judged_as_a_pair_each_with_the_other_found():
     assert shape.judge_pairs(poses, box_overlaps(model, poses, grid), 0.3, cloud, depth, intr, none, []) == []
 
 
+def test_a_pair_passes_with_a_member_as_its_second_look_places_it(monkeypatch):
+    """Two rejected poses that pass as a pair at their true poses, one of them left tilted by
+    the refinement (as nearest-point ICP left a channel lying flush beside another 2 deg
+    off, its outline running past the neighbour: channel seed 2187 frames 6 / 7): judged as
+    refined the pair fails; with that member as its projective look places it (stubbed:
+    onto the truth), it passes, and the pose the pair returns is the look's."""
+    from multi_instance_reg.rgbd.pipeline import box_grid, box_overlaps
+    from multi_instance_reg.rgbd.shape import apply_twist
+
+    model, shape, intr, front, back, depth = _front_and_back_boxes()
+    cloud = shape.frame_cloud(depth, intr, None)
+    grid = box_grid(model.extent) + np.asarray(model.box_centre, np.float64)
+    none = np.zeros(depth.shape, np.uint8)
+    shape._self_hiding = 0.75 * shape.voxel            # judged as a non-convex model's poses
+    tilted = apply_twist(front, np.array([np.radians(8.0), 0.0, 0.0, 0.0, 0.0, 0.0]),
+                         shape._visible_surface(front).mean(axis=0))
+    poses = [back, tilted]
+    overlap = box_overlaps(model, poses, grid)
+    still = lambda T, depth_m, intrinsics: (np.array(T), None)
+    monkeypatch.setattr(shape, "_projective_look", still)
+    assert shape.judge_pairs(poses, overlap, 0.3, cloud, depth, intr, none, []) == []
+    onto_front = lambda T, depth_m, intrinsics: (front.copy() if np.allclose(T, tilted) else np.array(T), None)
+    monkeypatch.setattr(shape, "_projective_look", onto_front)
+    pairs = shape.judge_pairs(poses, overlap, 0.3, cloud, depth, intr, none, [])
+    assert [(i, j) for i, j, _, _ in pairs] == [(0, 1)]
+    assert np.allclose(pairs[0][2][0], back) and np.allclose(pairs[0][3][0], front)
+
+
 def test_a_pose_behind_a_nearer_surface_is_judged_by_what_is_in_view_where_the_depth_steps_in_front(monkeypatch):
     import multi_instance_reg.rgbd.shape_frontend as shape_frontend
 
