@@ -732,6 +732,21 @@ def _depth_of(points, T, intr):
     return depth.astype(np.float32)
 
 
+def _bracket_before_a_wall():
+    """A bracket seen from above at 0.6 m, a wall 0.3 m behind it: (intrinsics, its pose,
+    its mesh, the depth image)."""
+    from multi_instance_reg.synthetic.objects import get_object, object_mesh
+    from multi_instance_reg.synthetic.scene import look_at
+    from multi_instance_reg.transforms import invert_transform
+
+    intr = CameraIntrinsics(K=np.array([[380.0, 0, 160], [0, 380.0, 120], [0, 0, 1]]), width=320, height=240)
+    T = invert_transform(look_at(np.array([0.3, -0.3, 0.4]), np.zeros(3)))
+    mesh = object_mesh(get_object("bracket"))
+    dense, _ = sample_surface(mesh, 0.001)
+    depth = _depth_of(dense, T, intr)
+    return intr, T, mesh, np.where(depth > 0, depth, np.float32(T[2, 3] + 0.3))
+
+
 def _two_brackets_side_by_side():
     """(bracket mesh, intrinsics, T1, T2, depth): two brackets side by side, the second turned
     90 deg about the first's z and touching it (one segment in the frame cloud)."""
@@ -1435,16 +1450,8 @@ def test_a_bracket_pose_a_turn_away_from_icps_basin_is_started_again_turned(monk
     from multi_instance_reg.rgbd import shape_frontend as sf
     from multi_instance_reg.rgbd.pipeline import PipelineConfig
     from multi_instance_reg.rgbd.shape import apply_twist
-    from multi_instance_reg.synthetic.objects import get_object, object_mesh
-    from multi_instance_reg.synthetic.scene import look_at
-    from multi_instance_reg.transforms import invert_transform
 
-    intr = CameraIntrinsics(K=np.array([[380.0, 0, 160], [0, 380.0, 120], [0, 0, 1]]), width=320, height=240)
-    T = invert_transform(look_at(np.array([0.3, -0.3, 0.4]), np.zeros(3)))
-    mesh = object_mesh(get_object("bracket"))
-    dense, _ = sample_surface(mesh, 0.001)
-    depth = _depth_of(dense, T, intr)
-    depth = np.where(depth > 0, depth, np.float32(T[2, 3] + 0.3))
+    intr, T, mesh, depth = _bracket_before_a_wall()
 
     def basin(T0, *a, **k):
         near = rotation_angle_deg(T0[:3, :3].T @ T[:3, :3]) < 2.0 and np.linalg.norm(T0[:3, 3] - T[:3, 3]) < 0.01
@@ -1477,16 +1484,8 @@ def test_a_turned_start_icp_slides_off_is_judged_as_it_starts(monkeypatch):
     from multi_instance_reg.rgbd import shape_frontend as sf
     from multi_instance_reg.rgbd.pipeline import PipelineConfig
     from multi_instance_reg.rgbd.shape import apply_twist
-    from multi_instance_reg.synthetic.objects import get_object, object_mesh
-    from multi_instance_reg.synthetic.scene import look_at
-    from multi_instance_reg.transforms import invert_transform
 
-    intr = CameraIntrinsics(K=np.array([[380.0, 0, 160], [0, 380.0, 120], [0, 0, 1]]), width=320, height=240)
-    T = invert_transform(look_at(np.array([0.3, -0.3, 0.4]), np.zeros(3)))
-    mesh = object_mesh(get_object("bracket"))
-    dense, _ = sample_surface(mesh, 0.001)
-    depth = _depth_of(dense, T, intr)
-    depth = np.where(depth > 0, depth, np.float32(T[2, 3] + 0.3))
+    intr, T, mesh, depth = _bracket_before_a_wall()
     shape = sf.ShapeFrontEnd(build_model_from_mesh(mesh, "bracket"), PipelineConfig().frontend)
     centre = shape._visible_surface(T).mean(axis=0)
     off = apply_twist(T, np.concatenate([np.radians(10.0) * T[:3, 0], np.zeros(3)]), centre)
@@ -1513,17 +1512,9 @@ def test_a_pose_still_rejected_after_its_second_look_is_handed_on_as_the_pose_th
     from multi_instance_reg.rgbd.pipeline import PipelineConfig
     from multi_instance_reg.rgbd.shape import apply_twist
     from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
-    from multi_instance_reg.synthetic.objects import get_object, object_mesh
-    from multi_instance_reg.synthetic.scene import look_at
-    from multi_instance_reg.transforms import invert_transform
 
-    intr = CameraIntrinsics(K=np.array([[380.0, 0, 160], [0, 380.0, 120], [0, 0, 1]]), width=320, height=240)
-    T = invert_transform(look_at(np.array([0.3, -0.3, 0.4]), np.zeros(3)))
+    intr, T, mesh, depth = _bracket_before_a_wall()
     off = apply_twist(T, np.array([0.0, np.radians(5.0), np.radians(2.0), 0.004, -0.003, 0.0]), T[:3, 3])
-    mesh = object_mesh(get_object("bracket"))
-    dense, _ = sample_surface(mesh, 0.001)
-    depth = _depth_of(dense, T, intr)
-    depth = np.where(depth > 0, depth, np.float32(T[2, 3] + 0.3))
     shape = ShapeFrontEnd(build_model_from_mesh(mesh, "bracket"), PipelineConfig().frontend)
     monkeypatch.setattr(shape, "_icp", lambda T0, *a, **k: T0)
     monkeypatch.setattr(shape, "_judge", lambda *a, **k: None)
