@@ -19,7 +19,7 @@ from __future__ import annotations
 import cv2
 import numba
 import numpy as np
-from scipy.spatial import cKDTree
+from scipy.spatial import ConvexHull, Delaunay, QhullError, cKDTree
 
 from ..messages import CameraIntrinsics
 from ..threads import submit_each
@@ -30,7 +30,7 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
                  thresh: float, noise_per_m2: float, max_planes: int = 4, min_share: float = 0.03,
                  stride: int = 2, ground: list | None = None, planes: list | None = None,
                  up: np.ndarray | None = None, up_tolerance_deg: float = 20.0, window: int = 5,
-                 rest: list | None = None) -> np.ndarray:
+                 rest: list | None = None, face_heights=None) -> np.ndarray:
     """(H, W) bool: valid pixels that lie on a large piece of a dominant plane (support
     surfaces). A plane point is within ``thresh`` + 3 sigma(z) of it, sigma(z) =
     ``noise_per_m2`` z^2 (stereo depth noise grows with the square of the distance); a piece
@@ -51,7 +51,12 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
 
     ``rest``, a list, receives (points (P, 3) float32, pixels (P, 2)) of the valid pixels
     sampled ``stride`` apart that were not removed: ``depth_to_cloud`` of ``valid`` and not
-    the mask returned, at ``stride``, without lifting the depth a second time."""
+    the mask returned, at ``stride``, without lifting the depth a second time.
+
+    ``face_heights`` (metres; ``object_face_heights``): the heights above a support at which
+    the object, resting on it, shows a flat face up. A large piece whose points stand at one
+    of them above a larger removed plane, with nothing standing on it, is the tops of
+    objects lying flush on that plane, not a support: it stays (``_is_object_tops``)."""
     h, w = depth_m.shape
     lifted, pix = depth_to_cloud(depth_m, intrinsics, valid, stride=stride)
     pts = lifted.astype(np.float64)
@@ -81,6 +86,8 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
             _leave_raised(pts, on, img, height, rows, cols, thresh, window)
         count, labels = cv2.connectedComponents(img, connectivity=8)
         removed_area = _remove_large_pieces(pts, on, labels, rows, cols, stride, fxfy, n, max_area, count, pix, out)
+        # Each plane point's piece (0: off the plane), for the object tops' check.
+        piece = np.where(on, labels[rows, cols], 0) if face_heights is not None and removed_area > 0 else None
         raised = band & ~on
         if raised.any():
             # A raised surface larger than any face of the object supports too (a board on
@@ -89,7 +96,7 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
             img[rows[raised], cols[raised]] = 1
             count, labels = cv2.connectedComponents(img, connectivity=8)
             _remove_large_pieces(pts, raised, labels, rows, cols, stride, fxfy, n, max_area, count, pix, out)
-        return removed_area
+        return removed_area, piece
 
     # Each plane's band is cut into pieces in the shared thread pool while the next plane
     # is sought here (the search needs only the band, not the pieces).
@@ -114,10 +121,32 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
         # without them (one found among them by chance was the tops of touching channels, a
         # piece larger than three faces, removed with every channel in it).
         alive &= ~band
+    found = []
     for n, d, task in cuts:
-        removed_area = task.result()
+        removed_area, piece = task.result()
         # The normal on the camera's side, and the offset: normal . p + offset = 0 on the plane.
         normal, offset = np.asarray(n, np.float64) * (1.0 if d > 0 else -1.0), abs(float(d))
+        found.append([normal, offset, removed_area, piece])
+    if face_heights is not None and len(found) > 1:
+        # The pieces of each plane's own points (a raised surface in its band stays removed).
+        heights = np.asarray(face_heights, np.float64)
+        for plane in found:
+            if plane[3] is None:
+                continue
+            kept = False
+            for label in np.unique(plane[3][plane[3] > 0]):
+                idx = np.flatnonzero((plane[3] == label) & out[pix[:, 0], pix[:, 1]])
+                if len(idx) == 0:
+                    continue
+                piece_area = float(_point_areas(pts[idx], plane[0], stride, fxfy).sum())
+                if any(other[2] > piece_area and _is_object_tops(pts, idx, other[0], other[1], heights, tol)
+                       for other in found if other is not plane):
+                    out[pix[idx, 0], pix[idx, 1]] = False
+                    kept = True
+            if kept:
+                left = (plane[3] > 0) & out[pix[:, 0], pix[:, 1]]
+                plane[2] = float(_point_areas(pts[left], plane[0], stride, fxfy).sum())
+    for normal, offset, removed_area, _ in found:
         if planes is not None and removed_area > 0:
             planes.append((normal, offset))
         if ground is not None and removed_area > best_area:
@@ -137,6 +166,49 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
         out = cv2.dilate(out.astype(np.uint8), np.ones((stride, stride), np.uint8),
                          anchor=(stride - 1, stride - 1)).astype(bool) & valid
     return out
+
+
+def _point_areas(p: np.ndarray, n: np.ndarray, stride: int, fxfy: float) -> np.ndarray:
+    """Each point's share of a plane's area (normal n), as ``_remove_large_pieces`` counts it."""
+    r = np.linalg.norm(p, axis=1)
+    return (p[:, 2] * stride) ** 2 / fxfy / np.maximum(np.abs(p @ n) / r, 0.2)
+
+
+# ``_is_object_tops``: at least this share of the piece's points within the tolerance of one
+# face height above the plane below ...
+TOPS_SHARE = 0.9
+# ... and at most this share of its points' number rising above it within its outline.
+TOPS_STANDING_SHARE = 0.02
+
+
+def _is_object_tops(pts, idx, up, offset, face_heights, tol) -> bool:
+    """Whether the plane piece ``pts[idx]`` is made of the tops of objects lying flush on the
+    plane (``up`` towards the camera, up . p + offset = 0) below it: its points stand at
+    one height above that plane at which the object shows a flat face up (within the
+    depth tolerance ``tol``), and nothing stands on it (no points rise above it within
+    its outline, seen along ``up``). A support raised at such a height (a pallet's top, as
+    high as a carton) carries objects (its tops would too, stacked on them: then it stays a
+    support)."""
+    h = pts[idx] @ up + offset
+    face = face_heights[np.argmin(np.abs(face_heights - np.median(h)))]
+    if np.mean(np.abs(h - face) <= tol[idx]) < TOPS_SHARE:
+        return False
+    # Along up, in the plane's own axes: the piece's outline (convex hull) and the points
+    # above it.
+    a = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+    a /= np.linalg.norm(a)
+    b = np.cross(up, a)
+    height = pts @ up + offset
+    above = np.flatnonzero(height > face + tol)
+    if len(above) == 0:
+        return True
+    flat = np.stack([pts @ a, pts @ b], axis=1)
+    try:
+        outline = flat[idx][ConvexHull(flat[idx]).vertices]
+        inside = Delaunay(outline).find_simplex(flat[above]) >= 0
+    except QhullError:
+        return False
+    return int(inside.sum()) <= TOPS_STANDING_SHARE * len(idx)
 
 
 @numba.njit(cache=True, nogil=True)

@@ -154,6 +154,8 @@ class ShapeFrontEnd:
             # The largest flat piece the object can show: its two largest box sides.
             e = np.sort(np.asarray(model.extent, np.float64))
             self._max_face_area = float(e[1] * e[2])
+            # Where flush tops of such objects would lie above their support (support_mask).
+            self._face_heights = object_face_heights(self._surface, self._surface_normals, self.voxel)
             # The model's flat faces with a long axis (a carton's six): a frame patch with
             # the same outline moments places the pose (rgbd/faces.py). Convex models only:
             # a non-convex one hides parts of its own faces (the bracket's upright, its base
@@ -263,7 +265,8 @@ class ShapeFrontEnd:
         # Every second pixel's point off the supports (lifted once, in support_mask).
         support_mask(depth_m, intrinsics, valid, fe.shape_support_area * self._max_face_area,
                      fe.shape_plane_thresh, fe.shape_depth_noise, stride=2, ground=ground, planes=planes,
-                     up=gravity, up_tolerance_deg=fe.shape_gravity_tolerance_deg, rest=rest)
+                     up=gravity, up_tolerance_deg=fe.shape_gravity_tolerance_deg, rest=rest,
+                     face_heights=self._face_heights if fe.shape_keep_object_tops else None)
         pts = rest[0]
         pts = voxel_downsample(np.asarray(pts, np.float64), self.voxel)
         empty = FrameCloud(pts, np.zeros_like(pts), np.zeros(0, np.int64), np.zeros((0, 33), np.float32), None,
@@ -1703,6 +1706,29 @@ def _within(poses: np.ndarray, others: np.ndarray, max_angle_deg: float, max_shi
     cos = (np.einsum("aij,bij->ab", poses[:, :3, :3], others[:, :3, :3]) - 1.0) / 2.0
     shift = np.linalg.norm(poses[:, None, :3, 3] - others[None, :, :3, 3], axis=2)
     return np.any((cos >= np.cos(np.radians(max_angle_deg))) & (shift < max_shift), axis=1)
+
+
+# ``object_face_heights``: model surface samples facing this close to up (degrees) ...
+FACE_UP_DEG = 10.0
+# ... at least this many within half a voxel of one height make a face there.
+FACE_MIN_POINTS = 10
+
+
+def object_face_heights(surface: np.ndarray, normals: np.ndarray, voxel: float) -> np.ndarray:
+    """The heights (metres, ascending) above its support at which the model, resting on a
+    side of its box, shows a flat face facing up: the channel lying open side down its back
+    at 5 cm, open side up its floor at 8 mm and its rims at 5 cm, on a side its wall at 10
+    cm. Surface samples (model frame, box axes) facing up within FACE_UP_DEG, binned by
+    half a voxel."""
+    out = []
+    for axis in range(3):
+        for sign in (1.0, -1.0):
+            s = sign * surface[:, axis]
+            up = sign * normals[:, axis] >= np.cos(np.radians(FACE_UP_DEG))
+            h = s[up] - s.min()
+            bins, counts = np.unique(np.rint(h / (0.5 * voxel)).astype(np.int64), return_counts=True)
+            out.extend(float(np.mean(h[np.rint(h / (0.5 * voxel)) == b])) for b in bins[counts >= FACE_MIN_POINTS])
+    return np.unique(np.round(np.asarray([x for x in out if x > 0.5 * voxel]), 4))
 
 
 def central_radius(points: np.ndarray) -> float:
