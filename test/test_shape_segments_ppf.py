@@ -2301,3 +2301,35 @@ def test_object_face_heights_of_a_box_are_its_sides():
     points, normals = sample_surface(box_mesh(0.16, 0.10, 0.05), 0.004, seed=1)
     heights = object_face_heights(points, normals, 0.008)
     assert np.allclose(heights, [0.05, 0.10, 0.16], atol=0.003)
+
+
+def test_a_rejected_pose_is_judged_again_with_the_instances_the_later_passes_find(monkeypatch):
+    """Three channels open side down in a row, their tops flush; at the evidence asked for
+    0.9 the middle one passes only with both neighbours found (its outline runs onto their
+    tops). One neighbour is found first, the other only by the residual votes (here: the
+    pass made to add it), after the middle one was judged: it is judged again with both
+    and passes (channel seed 2251 frames 7 / 8)."""
+    from dataclasses import replace
+    from multi_instance_reg.rgbd.pipeline import InstanceRegistration, PipelineConfig
+    from multi_instance_reg.synthetic.objects import get_object, object_mesh
+    from multi_instance_reg.synthetic.scene import look_at
+    from multi_instance_reg.transforms import invert_transform
+
+    mesh = object_mesh(get_object("channel"))
+    intr = CameraIntrinsics(K=np.array([[380.0, 0, 160], [0, 380.0, 120], [0, 0, 1]]), width=320, height=240)
+    cam = look_at(np.array([0.0, -0.45, 0.55]), np.zeros(3))
+    down = np.diag([1.0, -1.0, -1.0])
+    left, middle, right = (invert_transform(cam) @ make_transform(down, [x, 0.0, 0.025]) for x in (-0.1, 0.0, 0.1))
+    depth = _meshes_on_table(mesh, [left, middle, right], cam, intr)
+    config = PipelineConfig()
+    config = replace(config, frontend=replace(config.frontend, shape_min_evidence=0.9))
+    reg = InstanceRegistration(build_model_from_mesh(mesh, "channel"), config)
+    cloud = reg._shape.frame_cloud(depth, intr, None, cam[:3, :3].T @ [0.0, 0.0, 1.0])
+    late = (right, 1.0, 400, 400.0)
+    monkeypatch.setattr(InstanceRegistration, "_accept_residual",
+                        lambda self, chosen, *a, **k: chosen + [late])
+    found = (left, 1.0, 400, 400.0)
+    chosen = reg._accept_rejected([found], [middle], [], cloud, depth, intr)
+    assert chosen[:2] == [found, late] and len(chosen) == 3
+    assert rotation_angle_deg(chosen[2][0][:3, :3].T @ middle[:3, :3]) < 2.0
+    assert np.linalg.norm(chosen[2][0][:3, 3] - middle[:3, 3]) < 0.005

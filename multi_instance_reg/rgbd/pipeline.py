@@ -516,11 +516,25 @@ class InstanceRegistration:
             # no instance is: ranked with the rest, a wrong one polished onto a bracket took
             # the place of its right pose left 4 deg off (seed 0).
             chosen = self._one_per_box(chosen + second, first=len(chosen), frame=(depth_m, intrinsics))
+        chosen = self._accept_rejected(chosen, rejected, hypotheses, cloud, depth_m, intrinsics)
+        self._shape.keep_pixels(None)
+        instances = [Instance(i, c[0], c[2], float(c[1]), self.model.name) for i, c in enumerate(chosen)]
+        labels, _ = assign_nearest(src, tgt, [c[0] for c in chosen], self._shape_ecc.config.inlier_thresh)
+        t["refinement"] = (time.perf_counter() - t6) * 1e3
+        t["total"] = (time.perf_counter() - t0) * 1e3
+        uv = project_points(tgt, intrinsics)
+        return FrameResult(instances, t, uv, src.astype(np.float32), tgt.astype(np.float32), labels, 0)
+
+    def _accept_rejected(self, chosen, rejected, hypotheses, cloud, depth_m, intrinsics) -> list:
+        """``chosen`` (the instances the refinement keeps) and what the acceptance passes add
+        of the ``rejected`` poses (and of the residual votes over ``hypotheses``' segments)."""
+        fe = self.config.frontend
         if fe.shape_hidden_by_instances and chosen and rejected:
             # Poses rejected for too little support, perhaps for what the instances found
             # hide of them, or by the outline, where a found one is flush with them: judged
             # again with those points and pixels left out, added where no instance is.
             chosen, rejected = self._accept_behind(chosen, rejected, cloud, depth_m, intrinsics)
+        judged_with = {id(c) for c in chosen}
         if fe.shape_hidden_by_instances and fe.shape_rejected_pairs and len(rejected) >= 2:
             chosen = self._accept_pairs(chosen, rejected, cloud, depth_m, intrinsics)
             if fe.shape_rejected_groups:
@@ -534,13 +548,12 @@ class InstanceRegistration:
             chosen = self._accept_turned(chosen, rejected, cloud, depth_m, intrinsics)
         if fe.shape_residual_votes and self._shape.non_convex and chosen:
             chosen = self._accept_residual(chosen, hypotheses, cloud, depth_m, intrinsics, provisional)
-        self._shape.keep_pixels(None)
-        instances = [Instance(i, c[0], c[2], float(c[1]), self.model.name) for i, c in enumerate(chosen)]
-        labels, _ = assign_nearest(src, tgt, [c[0] for c in chosen], self._shape_ecc.config.inlier_thresh)
-        t["refinement"] = (time.perf_counter() - t6) * 1e3
-        t["total"] = (time.perf_counter() - t0) * 1e3
-        uv = project_points(tgt, intrinsics)
-        return FrameResult(instances, t, uv, src.astype(np.float32), tgt.astype(np.float32), labels, 0)
+        if fe.shape_hidden_by_instances and rejected and any(id(c) not in judged_with for c in chosen):
+            # The rejected poses judged again with the instances the later passes found: a
+            # channel rejected on its outline onto a flush neighbour found only by the
+            # residual votes (channel seed 2251 frames 7 / 8) passes with it.
+            chosen, rejected = self._accept_behind(chosen, rejected, cloud, depth_m, intrinsics)
+        return chosen
 
     def _accept_pairs(self, chosen, rejected, cloud, depth_m, intrinsics) -> list:
         """``chosen`` and the rejected poses accepted two at a time (``ShapeFrontEnd.judge_pairs``:
