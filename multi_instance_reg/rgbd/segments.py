@@ -85,9 +85,11 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
         if window > 1:
             _leave_raised(pts, on, img, height, rows, cols, thresh, window)
         count, labels = cv2.connectedComponents(img, connectivity=8)
-        removed_area = _remove_large_pieces(pts, on, labels, rows, cols, stride, fxfy, n, max_area, count, pix, out)
-        # Each plane point's piece (0: off the plane), for the object tops' check.
-        piece = np.where(on, labels[rows, cols], 0) if face_heights is not None and removed_area > 0 else None
+        removed_area, areas = _remove_large_pieces(pts, on, labels, rows, cols, stride, fxfy, n, max_area, count,
+                                                   pix, out)
+        # For the object tops' check: each plane point's piece (0: off the plane), each piece's area.
+        pieces = (np.where(on, labels[rows, cols], 0), areas) if face_heights is not None and removed_area > 0 \
+            else None
         raised = band & ~on
         if raised.any():
             # A raised surface larger than any face of the object supports too (a board on
@@ -96,7 +98,7 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
             img[rows[raised], cols[raised]] = 1
             count, labels = cv2.connectedComponents(img, connectivity=8)
             _remove_large_pieces(pts, raised, labels, rows, cols, stride, fxfy, n, max_area, count, pix, out)
-        return removed_area, piece
+        return removed_area, pieces
 
     # Each plane's band is cut into pieces in the shared thread pool while the next plane
     # is sought here (the search needs only the band, not the pieces).
@@ -123,29 +125,29 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
         alive &= ~band
     found = []
     for n, d, task in cuts:
-        removed_area, piece = task.result()
+        removed_area, pieces = task.result()
         # The normal on the camera's side, and the offset: normal . p + offset = 0 on the plane.
         normal, offset = np.asarray(n, np.float64) * (1.0 if d > 0 else -1.0), abs(float(d))
-        found.append([normal, offset, removed_area, piece])
+        found.append([normal, offset, removed_area, pieces])
     if face_heights is not None and len(found) > 1:
-        # The pieces of each plane's own points (a raised surface in its band stays removed).
+        # The large pieces of each plane's own points (a raised surface in its band stays removed).
         heights = np.asarray(face_heights, np.float64)
         for plane in found:
             if plane[3] is None:
                 continue
-            kept = False
-            for label in np.unique(plane[3][plane[3] > 0]):
-                idx = np.flatnonzero((plane[3] == label) & out[pix[:, 0], pix[:, 1]])
-                if len(idx) == 0:
+            labels, areas = plane[3]
+            large = np.flatnonzero(areas[1:] > max_area) + 1
+            kept = []
+            for k in large:
+                lower = [other for other in found if other is not plane and other[2] > areas[k]]
+                if not lower:
                     continue
-                piece_area = float(_point_areas(pts[idx], plane[0], stride, fxfy).sum())
-                if any(other[2] > piece_area and _is_object_tops(pts, idx, other[0], other[1], heights, tol)
-                       for other in found if other is not plane):
+                idx = np.flatnonzero(labels == k)
+                if any(_is_object_tops(pts, idx, other[0], other[1], heights, tol) for other in lower):
                     out[pix[idx, 0], pix[idx, 1]] = False
-                    kept = True
+                    kept.append(k)
             if kept:
-                left = (plane[3] > 0) & out[pix[:, 0], pix[:, 1]]
-                plane[2] = float(_point_areas(pts[left], plane[0], stride, fxfy).sum())
+                plane[2] = float(sum(areas[k] for k in large if k not in kept))
     for normal, offset, removed_area, _ in found:
         if planes is not None and removed_area > 0:
             planes.append((normal, offset))
@@ -168,12 +170,6 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
     return out
 
 
-def _point_areas(p: np.ndarray, n: np.ndarray, stride: int, fxfy: float) -> np.ndarray:
-    """Each point's share of a plane's area (normal n), as ``_remove_large_pieces`` counts it."""
-    r = np.linalg.norm(p, axis=1)
-    return (p[:, 2] * stride) ** 2 / fxfy / np.maximum(np.abs(p @ n) / r, 0.2)
-
-
 # ``_is_object_tops``: at least this share of the piece's points within the tolerance of one
 # face height above the plane below ...
 TOPS_SHARE = 0.9
@@ -189,26 +185,29 @@ def _is_object_tops(pts, idx, up, offset, face_heights, tol) -> bool:
     its outline, seen along ``up``). A support raised at such a height (a pallet's top, as
     high as a carton) carries objects (its tops would too, stacked on them: then it stays a
     support)."""
-    h = pts[idx] @ up + offset
+    # (Every few points of a large piece are plenty for where it stands.)
+    few = idx[::max(1, len(idx) // 2000)]
+    h = pts[few] @ up + offset
     face = face_heights[np.argmin(np.abs(face_heights - np.median(h)))]
-    if np.mean(np.abs(h - face) <= tol[idx]) < TOPS_SHARE:
+    if np.mean(np.abs(h - face) <= tol[few]) < TOPS_SHARE:
         return False
-    # Along up, in the plane's own axes: the piece's outline (convex hull) and the points
-    # above it.
+    limit = TOPS_STANDING_SHARE * len(idx)
+    above = np.flatnonzero(pts @ up + offset > face + tol)
+    if len(above) <= limit:
+        return True
+    # Along up, in the plane's own axes: the points above within the piece's outline (its
+    # convex hull), every few of them counted for as many (the outline of every few piece
+    # points is all but the piece's).
     a = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
     a /= np.linalg.norm(a)
-    b = np.cross(up, a)
-    height = pts @ up + offset
-    above = np.flatnonzero(height > face + tol)
-    if len(above) == 0:
-        return True
-    flat = np.stack([pts @ a, pts @ b], axis=1)
+    axes = np.stack([a, np.cross(up, a)], axis=1)
+    flat = pts[few] @ axes
+    step = max(1, len(above) // 2000)
     try:
-        outline = flat[idx][ConvexHull(flat[idx]).vertices]
-        inside = Delaunay(outline).find_simplex(flat[above]) >= 0
+        inside = Delaunay(flat[ConvexHull(flat).vertices]).find_simplex(pts[above[::step]] @ axes) >= 0
     except QhullError:
         return False
-    return int(inside.sum()) <= TOPS_STANDING_SHARE * len(idx)
+    return int(inside.sum()) * step <= limit
 
 
 @numba.njit(cache=True, nogil=True)
@@ -284,7 +283,8 @@ def _remove_large_pieces(pts, on, labels, rows, cols, stride, fxfy, n, max_area,
     """Marks in ``out`` (at their pixels ``pix``) the points ``on`` the plane (normal n)
     that lie in a piece (``labels`` at rows, cols) of more than ``max_area`` m^2; returns
     their summed area: each point stands for its pixel's footprint facing the camera
-    (pixels ``stride`` apart, fxfy = fx fy), divided by the plane's slant there (at most 5x)."""
+    (pixels ``stride`` apart, fxfy = fx fy), divided by the plane's slant there (at most 5x);
+    and each piece's area (by label)."""
     area = np.zeros(pts.shape[0])
     piece = np.zeros(count)
     for i in range(pts.shape[0]):
@@ -299,7 +299,7 @@ def _remove_large_pieces(pts, on, labels, rows, cols, stride, fxfy, n, max_area,
         if on[i] and label > 0 and piece[label] > max_area:
             out[pix[i, 0], pix[i, 1]] = True
             removed += area[i]
-    return removed
+    return removed, piece
 
 
 def connected_segments(points: np.ndarray, link: float, min_points: int, tree: cKDTree | None = None) -> np.ndarray:
