@@ -33,7 +33,7 @@ from .lifting import backproject, lookup_depth, off_planes, support_planes, undi
 from .matching import DescriptorMatcher, prepare_descriptors
 from .model import ObjectModel
 from .guided import GuidedMatcher, guide_instances
-from .shape_frontend import ShapeFrontEnd, resolve_correspondences
+from .shape_frontend import ShapeFrontEnd, rects_meet, resolve_correspondences
 from .verify import free_space_share, surface_samples, texture_agreement
 from ..threads import limit_blas_threads, map_each, submit_each
 
@@ -549,10 +549,16 @@ class InstanceRegistration:
         if fe.shape_residual_votes and self._shape.non_convex and chosen:
             chosen = self._accept_residual(chosen, hypotheses, cloud, depth_m, intrinsics, provisional)
         if fe.shape_hidden_by_instances and rejected and any(id(c) not in judged_with for c in chosen):
-            # The rejected poses judged again with the instances the later passes found: a
-            # channel rejected on its outline onto a flush neighbour found only by the
-            # residual votes (channel seed 2251 frames 7 / 8) passes with it.
-            chosen, rejected = self._accept_behind(chosen, rejected, cloud, depth_m, intrinsics)
+            # The rejected poses judged again with the instances the later passes found (those
+            # whose checks look where one of them is seen): a channel rejected on its outline
+            # onto a flush neighbour found only by the residual votes (channel seed 2251 frames
+            # 7 / 8) passes with it.
+            rects = [r for c in chosen if id(c) not in judged_with
+                     and (r := self._shape.image_rect(c[0], intrinsics)) is not None]
+            near = [T for T in rejected if (r := self._shape.image_rect(T, intrinsics)) is not None
+                    and any(rects_meet(r, other) for other in rects)]
+            if near:
+                chosen, _ = self._accept_behind(chosen, near, cloud, depth_m, intrinsics)
         return chosen
 
     def _accept_pairs(self, chosen, rejected, cloud, depth_m, intrinsics) -> list:

@@ -1060,22 +1060,26 @@ class ShapeFrontEnd:
         support, free, _ = depth_support(*args)
         return support - free if free <= self.fe.shape_max_free else None
 
+    def image_rect(self, T, intrinsics: CameraIntrinsics) -> tuple | None:
+        """(top, bottom, left, right) pixels: the image rectangle of the visible surface at
+        pose T grown by the outline band's reach (what its checks look at); None when none of
+        it faces the camera."""
+        p = self._visible_surface(T)
+        if len(p) == 0:
+            return None
+        K = intrinsics.K
+        u, v = K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2], K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]
+        r = 1.5 * self.voxel * K[0, 0] / float(p[:, 2].min()) + 1.0
+        return v.min() - r, v.max() + r, u.min() - r, u.max() + r
+
     def _meeting(self, rejected, idx, overlap: np.ndarray, limit: float, depth_m: np.ndarray,
                  intrinsics: CameraIntrinsics) -> tuple[list[tuple[int, int]], dict]:
         """The pairs (i, j) of the rejected poses ``idx`` whose boxes overlap by at most
         ``limit`` and whose pixels meet (one's ``instance_pixels`` on the other's
         ``_band_ring``), and those pixels of each pose in a pair (index -> image)."""
-        K = intrinsics.K
-        # Each pose's image rectangle (its visible surface's, grown by the outline band's
-        # reach): most pairs lie apart in the image and are not looked at further.
-        rects = {}
-        for i in idx:
-            p = self._visible_surface(rejected[i])
-            if len(p) == 0:
-                continue
-            u, v = K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2], K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]
-            r = 1.5 * self.voxel * K[0, 0] / float(p[:, 2].min()) + 1.0
-            rects[i] = (v.min() - r, v.max() + r, u.min() - r, u.max() + r)
+        # Each pose's image rectangle: most pairs lie apart in the image and are not looked
+        # at further.
+        rects = {i: r for i in idx if (r := self.image_rect(rejected[i], intrinsics)) is not None}
         pixels = {}
 
         def pixels_of(i):
@@ -1095,8 +1099,7 @@ class ShapeFrontEnd:
             for j in idx[a + 1:]:
                 if i not in rects or j not in rects or overlap[i, j] > limit or overlap[j, i] > limit:
                     continue
-                ri, rj = rects[i], rects[j]
-                if ri[0] > rj[1] or rj[0] > ri[1] or ri[2] > rj[3] or rj[2] > ri[3]:
+                if not rects_meet(rects[i], rects[j]):
                     continue
                 if pixels_of(j)[ring_of(i)].any() or pixels_of(i)[ring_of(j)].any():
                     candidates.append((i, j))
@@ -1729,6 +1732,11 @@ def object_face_heights(surface: np.ndarray, normals: np.ndarray, voxel: float) 
             bins, counts = np.unique(np.rint(h / (0.5 * voxel)).astype(np.int64), return_counts=True)
             out.extend(float(np.mean(h[np.rint(h / (0.5 * voxel)) == b])) for b in bins[counts >= FACE_MIN_POINTS])
     return np.unique(np.round(np.asarray([x for x in out if x > 0.5 * voxel]), 4))
+
+
+def rects_meet(a, b) -> bool:
+    """Whether two image rectangles (top, bottom, left, right) overlap."""
+    return not (a[0] > b[1] or b[0] > a[1] or a[2] > b[3] or b[2] > a[3])
 
 
 def central_radius(points: np.ndarray) -> float:
