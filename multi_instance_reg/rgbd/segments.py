@@ -19,7 +19,7 @@ from __future__ import annotations
 import cv2
 import numba
 import numpy as np
-from scipy.spatial import cKDTree
+from scipy.spatial import ConvexHull, Delaunay, QhullError, cKDTree
 
 from ..messages import CameraIntrinsics
 from ..threads import submit_each
@@ -30,7 +30,7 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
                  thresh: float, noise_per_m2: float, max_planes: int = 4, min_share: float = 0.03,
                  stride: int = 2, ground: list | None = None, planes: list | None = None,
                  up: np.ndarray | None = None, up_tolerance_deg: float = 20.0, window: int = 5,
-                 rest: list | None = None) -> np.ndarray:
+                 rest: list | None = None, face_heights=None) -> np.ndarray:
     """(H, W) bool: valid pixels that lie on a large piece of a dominant plane (support
     surfaces). A plane point is within ``thresh`` + 3 sigma(z) of it, sigma(z) =
     ``noise_per_m2`` z^2 (stereo depth noise grows with the square of the distance); a piece
@@ -51,7 +51,12 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
 
     ``rest``, a list, receives (points (P, 3) float32, pixels (P, 2)) of the valid pixels
     sampled ``stride`` apart that were not removed: ``depth_to_cloud`` of ``valid`` and not
-    the mask returned, at ``stride``, without lifting the depth a second time."""
+    the mask returned, at ``stride``, without lifting the depth a second time.
+
+    ``face_heights`` (metres; ``object_face_heights``): the heights above a support at which
+    the object, resting on it, shows a flat face up. A large piece whose points stand at one
+    of them above a larger removed plane, with nothing standing on it, is the tops of
+    objects lying flush on that plane, not a support: it stays (``_is_object_tops``)."""
     h, w = depth_m.shape
     lifted, pix = depth_to_cloud(depth_m, intrinsics, valid, stride=stride)
     pts = lifted.astype(np.float64)
@@ -80,7 +85,11 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
         if window > 1:
             _leave_raised(pts, on, img, height, rows, cols, thresh, window)
         count, labels = cv2.connectedComponents(img, connectivity=8)
-        removed_area = _remove_large_pieces(pts, on, labels, rows, cols, stride, fxfy, n, max_area, count, pix, out)
+        removed_area, areas = _remove_large_pieces(pts, on, labels, rows, cols, stride, fxfy, n, max_area, count,
+                                                   pix, out)
+        # For the object tops' check: each plane point's piece (0: off the plane), each piece's area.
+        pieces = (np.where(on, labels[rows, cols], 0), areas) if face_heights is not None and removed_area > 0 \
+            else None
         raised = band & ~on
         if raised.any():
             # A raised surface larger than any face of the object supports too (a board on
@@ -89,7 +98,7 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
             img[rows[raised], cols[raised]] = 1
             count, labels = cv2.connectedComponents(img, connectivity=8)
             _remove_large_pieces(pts, raised, labels, rows, cols, stride, fxfy, n, max_area, count, pix, out)
-        return removed_area
+        return removed_area, pieces
 
     # Each plane's band is cut into pieces in the shared thread pool while the next plane
     # is sought here (the search needs only the band, not the pieces).
@@ -114,10 +123,32 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
         # without them (one found among them by chance was the tops of touching channels, a
         # piece larger than three faces, removed with every channel in it).
         alive &= ~band
+    found = []
     for n, d, task in cuts:
-        removed_area = task.result()
+        removed_area, pieces = task.result()
         # The normal on the camera's side, and the offset: normal . p + offset = 0 on the plane.
         normal, offset = np.asarray(n, np.float64) * (1.0 if d > 0 else -1.0), abs(float(d))
+        found.append([normal, offset, removed_area, pieces])
+    if face_heights is not None and len(found) > 1:
+        # The large pieces of each plane's own points (a raised surface in its band stays removed).
+        heights = np.asarray(face_heights, np.float64)
+        for plane in found:
+            if plane[3] is None:
+                continue
+            labels, areas = plane[3]
+            large = np.flatnonzero(areas[1:] > max_area) + 1
+            kept = []
+            for k in large:
+                lower = [other for other in found if other is not plane and other[2] > areas[k]]
+                if not lower:
+                    continue
+                idx = np.flatnonzero(labels == k)
+                if any(_is_object_tops(pts, idx, other[0], other[1], heights, tol) for other in lower):
+                    out[pix[idx, 0], pix[idx, 1]] = False
+                    kept.append(k)
+            if kept:
+                plane[2] = float(sum(areas[k] for k in large if k not in kept))
+    for normal, offset, removed_area, _ in found:
         if planes is not None and removed_area > 0:
             planes.append((normal, offset))
         if ground is not None and removed_area > best_area:
@@ -137,6 +168,46 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
         out = cv2.dilate(out.astype(np.uint8), np.ones((stride, stride), np.uint8),
                          anchor=(stride - 1, stride - 1)).astype(bool) & valid
     return out
+
+
+# ``_is_object_tops``: at least this share of the piece's points within the tolerance of one
+# face height above the plane below ...
+TOPS_SHARE = 0.9
+# ... and at most this share of its points' number rising above it within its outline.
+TOPS_STANDING_SHARE = 0.02
+
+
+def _is_object_tops(pts, idx, up, offset, face_heights, tol) -> bool:
+    """Whether the plane piece ``pts[idx]`` is made of the tops of objects lying flush on the
+    plane (``up`` towards the camera, up . p + offset = 0) below it: its points stand at
+    one height above that plane at which the object shows a flat face up (within the
+    depth tolerance ``tol``), and nothing stands on it (no points rise above it within
+    its outline, seen along ``up``). A support raised at such a height (a pallet's top, as
+    high as a carton) carries objects (its tops would too, stacked on them: then it stays a
+    support)."""
+    # (Every few points of a large piece are plenty for where it stands.)
+    few = idx[::max(1, len(idx) // 2000)]
+    h = pts[few] @ up + offset
+    face = face_heights[np.argmin(np.abs(face_heights - np.median(h)))]
+    if np.mean(np.abs(h - face) <= tol[few]) < TOPS_SHARE:
+        return False
+    limit = TOPS_STANDING_SHARE * len(idx)
+    above = np.flatnonzero(pts @ up + offset > face + tol)
+    if len(above) <= limit:
+        return True
+    # Along up, in the plane's own axes: the points above within the piece's outline (its
+    # convex hull), every few of them counted for as many (the outline of every few piece
+    # points is all but the piece's).
+    a = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+    a /= np.linalg.norm(a)
+    axes = np.stack([a, np.cross(up, a)], axis=1)
+    flat = pts[few] @ axes
+    step = max(1, len(above) // 2000)
+    try:
+        inside = Delaunay(flat[ConvexHull(flat).vertices]).find_simplex(pts[above[::step]] @ axes) >= 0
+    except QhullError:
+        return False
+    return int(inside.sum()) * step <= limit
 
 
 @numba.njit(cache=True, nogil=True)
@@ -212,7 +283,8 @@ def _remove_large_pieces(pts, on, labels, rows, cols, stride, fxfy, n, max_area,
     """Marks in ``out`` (at their pixels ``pix``) the points ``on`` the plane (normal n)
     that lie in a piece (``labels`` at rows, cols) of more than ``max_area`` m^2; returns
     their summed area: each point stands for its pixel's footprint facing the camera
-    (pixels ``stride`` apart, fxfy = fx fy), divided by the plane's slant there (at most 5x)."""
+    (pixels ``stride`` apart, fxfy = fx fy), divided by the plane's slant there (at most 5x);
+    and each piece's area (by label)."""
     area = np.zeros(pts.shape[0])
     piece = np.zeros(count)
     for i in range(pts.shape[0]):
@@ -227,7 +299,7 @@ def _remove_large_pieces(pts, on, labels, rows, cols, stride, fxfy, n, max_area,
         if on[i] and label > 0 and piece[label] > max_area:
             out[pix[i, 0], pix[i, 1]] = True
             removed += area[i]
-    return removed
+    return removed, piece
 
 
 def connected_segments(points: np.ndarray, link: float, min_points: int, tree: cKDTree | None = None) -> np.ndarray:

@@ -154,6 +154,8 @@ class ShapeFrontEnd:
             # The largest flat piece the object can show: its two largest box sides.
             e = np.sort(np.asarray(model.extent, np.float64))
             self._max_face_area = float(e[1] * e[2])
+            # Where flush tops of such objects would lie above their support (support_mask).
+            self._face_heights = object_face_heights(self._surface, self._surface_normals, self.voxel)
             # The model's flat faces with a long axis (a carton's six): a frame patch with
             # the same outline moments places the pose (rgbd/faces.py). Convex models only:
             # a non-convex one hides parts of its own faces (the bracket's upright, its base
@@ -263,7 +265,8 @@ class ShapeFrontEnd:
         # Every second pixel's point off the supports (lifted once, in support_mask).
         support_mask(depth_m, intrinsics, valid, fe.shape_support_area * self._max_face_area,
                      fe.shape_plane_thresh, fe.shape_depth_noise, stride=2, ground=ground, planes=planes,
-                     up=gravity, up_tolerance_deg=fe.shape_gravity_tolerance_deg, rest=rest)
+                     up=gravity, up_tolerance_deg=fe.shape_gravity_tolerance_deg, rest=rest,
+                     face_heights=self._face_heights if fe.shape_keep_object_tops else None)
         pts = rest[0]
         pts = voxel_downsample(np.asarray(pts, np.float64), self.voxel)
         empty = FrameCloud(pts, np.zeros_like(pts), np.zeros(0, np.int64), np.zeros((0, 33), np.float32), None,
@@ -1057,22 +1060,26 @@ class ShapeFrontEnd:
         support, free, _ = depth_support(*args)
         return support - free if free <= self.fe.shape_max_free else None
 
+    def image_rect(self, T, intrinsics: CameraIntrinsics) -> tuple | None:
+        """(top, bottom, left, right) pixels: the image rectangle of the visible surface at
+        pose T grown by the outline band's reach (what its checks look at); None when none of
+        it faces the camera."""
+        p = self._visible_surface(T)
+        if len(p) == 0:
+            return None
+        K = intrinsics.K
+        u, v = K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2], K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]
+        r = 1.5 * self.voxel * K[0, 0] / float(p[:, 2].min()) + 1.0
+        return v.min() - r, v.max() + r, u.min() - r, u.max() + r
+
     def _meeting(self, rejected, idx, overlap: np.ndarray, limit: float, depth_m: np.ndarray,
                  intrinsics: CameraIntrinsics) -> tuple[list[tuple[int, int]], dict]:
         """The pairs (i, j) of the rejected poses ``idx`` whose boxes overlap by at most
         ``limit`` and whose pixels meet (one's ``instance_pixels`` on the other's
         ``_band_ring``), and those pixels of each pose in a pair (index -> image)."""
-        K = intrinsics.K
-        # Each pose's image rectangle (its visible surface's, grown by the outline band's
-        # reach): most pairs lie apart in the image and are not looked at further.
-        rects = {}
-        for i in idx:
-            p = self._visible_surface(rejected[i])
-            if len(p) == 0:
-                continue
-            u, v = K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2], K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]
-            r = 1.5 * self.voxel * K[0, 0] / float(p[:, 2].min()) + 1.0
-            rects[i] = (v.min() - r, v.max() + r, u.min() - r, u.max() + r)
+        # Each pose's image rectangle: most pairs lie apart in the image and are not looked
+        # at further.
+        rects = {i: r for i in idx if (r := self.image_rect(rejected[i], intrinsics)) is not None}
         pixels = {}
 
         def pixels_of(i):
@@ -1092,8 +1099,7 @@ class ShapeFrontEnd:
             for j in idx[a + 1:]:
                 if i not in rects or j not in rects or overlap[i, j] > limit or overlap[j, i] > limit:
                     continue
-                ri, rj = rects[i], rects[j]
-                if ri[0] > rj[1] or rj[0] > ri[1] or ri[2] > rj[3] or rj[2] > ri[3]:
+                if not rects_meet(rects[i], rects[j]):
                     continue
                 if pixels_of(j)[ring_of(i)].any() or pixels_of(i)[ring_of(j)].any():
                     candidates.append((i, j))
@@ -1703,6 +1709,34 @@ def _within(poses: np.ndarray, others: np.ndarray, max_angle_deg: float, max_shi
     cos = (np.einsum("aij,bij->ab", poses[:, :3, :3], others[:, :3, :3]) - 1.0) / 2.0
     shift = np.linalg.norm(poses[:, None, :3, 3] - others[None, :, :3, 3], axis=2)
     return np.any((cos >= np.cos(np.radians(max_angle_deg))) & (shift < max_shift), axis=1)
+
+
+# ``object_face_heights``: model surface samples facing this close to up (degrees) ...
+FACE_UP_DEG = 10.0
+# ... at least this many within half a voxel of one height make a face there.
+FACE_MIN_POINTS = 10
+
+
+def object_face_heights(surface: np.ndarray, normals: np.ndarray, voxel: float) -> np.ndarray:
+    """The heights (metres, ascending) above its support at which the model, resting on a
+    side of its box, shows a flat face facing up: the channel lying open side down its back
+    at 5 cm, open side up its floor at 8 mm and its rims at 5 cm, on a side its wall at 10
+    cm. Surface samples (model frame, box axes) facing up within FACE_UP_DEG, binned by
+    half a voxel."""
+    out = []
+    for axis in range(3):
+        for sign in (1.0, -1.0):
+            s = sign * surface[:, axis]
+            up = sign * normals[:, axis] >= np.cos(np.radians(FACE_UP_DEG))
+            h = s[up] - s.min()
+            bins, counts = np.unique(np.rint(h / (0.5 * voxel)).astype(np.int64), return_counts=True)
+            out.extend(float(np.mean(h[np.rint(h / (0.5 * voxel)) == b])) for b in bins[counts >= FACE_MIN_POINTS])
+    return np.unique(np.round(np.asarray([x for x in out if x > 0.5 * voxel]), 4))
+
+
+def rects_meet(a, b) -> bool:
+    """Whether two image rectangles (top, bottom, left, right) overlap."""
+    return not (a[0] > b[1] or b[0] > a[1] or a[2] > b[3] or b[2] > a[3])
 
 
 def central_radius(points: np.ndarray) -> float:
