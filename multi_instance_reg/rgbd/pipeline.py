@@ -664,7 +664,13 @@ class InstanceRegistration:
         found = [c[0] for c in chosen]
         supported = self._supported(rejected, found, cloud, depth_m, intrinsics) \
             if rejected and self.config.frontend.shape_residual_rejected else []
-        poses = self._shape.residual_poses(cloud, found, hypotheses, depth_m, intrinsics, supported=supported)
+        poses = self._shape.residual_poses(cloud, found, hypotheses, depth_m, intrinsics)
+        if supported:
+            # Besides, not instead: a supported pose may lie wrong over an instance that the
+            # votes above find (channel seed 0, bracket 2366: hits lost when they replaced them).
+            more = self._shape.residual_poses(cloud, found, np.concatenate([np.reshape(hypotheses, (-1, 4, 4)), poses]),
+                                              supported=supported)
+            poses = np.concatenate([poses, more]) if len(more) else poses
         rejected, second, checked = [], [], []
         if len(poses):
             checked = self._shape.refine_and_check(list(poses), cloud, depth_m, intrinsics, rejected=rejected,
