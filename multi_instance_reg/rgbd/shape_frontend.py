@@ -463,16 +463,23 @@ class ShapeFrontEnd:
         11-32 voted over their own points alone (seed 157). With the frame (``depth_m``,
         ``intrinsics``), also ``bridged_poses``. ``kept``: more poses whose segments are voted
         again, their points kept in the votes. ``supported``: rejected poses the depth supports
-        (``shape_min_support``), their points left out as the found ones' are: flush
+        (``shape_min_support``), their points left out as the found ones' are, and only the
+        segments they lie in voted again: flush
         neighbours rejected on their outlines onto an instance with no hypothesis leave its
         points to vote alone (channel seed 2251 frame 6: 2 of 64 references right in a
         segment of four channels, 12 of 65 over its own points)."""
         empty = np.zeros((0, 4, 4))
         if cloud.segments is None or not (len(found) or len(kept) or len(supported)) or cloud.tree is None:
             return empty
-        left_out = list(found) + list(supported)
-        explained = self._on_found(left_out)(cloud.points) if left_out else np.zeros(len(cloud.points), bool)
-        touching = explained | self._on_found(kept)(cloud.points) if len(kept) else explained
+        explained = self._on_found(found)(cloud.points) if len(found) else np.zeros(len(cloud.points), bool)
+        touching = explained
+        if len(supported):
+            # Only the segments those poses lie in: the others are voted without the found
+            # instances' points alone (``supported`` not given) as they would be here.
+            touching = self._on_found(supported, keep=False)(cloud.points)
+            explained = explained | touching
+        if len(kept):
+            touching = touching | self._on_found(kept)(cloud.points)
         labels = cloud.segments
         touched = np.unique(labels[touching & (labels >= 0)])
         rest = np.flatnonzero(~explained & np.isin(labels, touched))
@@ -872,11 +879,12 @@ class ShapeFrontEnd:
             out.append(float(np.mean(on_found(agree))) if len(agree) else 0.0)
         return out
 
-    def _on_found(self, found):
+    def _on_found(self, found, keep: bool = True):
         """A test (points (N, 3) -> (N,) bool) of lying within ``RESIDUAL_VOXELS`` of the
         surface of one of the poses ``found`` (a k-d tree of them, built once). The last
-        one is kept: a frame asks it of the same instances two or three times
-        (``found_shares``, ``residual_poses``; 1-4 ms a tree of 4-11 poses' surfaces)."""
+        one is kept (unless not ``keep``: poses asked once): a frame asks it of the same
+        instances two or three times (``found_shares``, ``residual_poses``; 1-4 ms a tree of
+        4-11 poses' surfaces)."""
         key = b"".join(np.asarray(F, np.float64).tobytes() for F in found)
         kept = self._found_test
         if kept is not None and kept[0] == key:
@@ -891,7 +899,8 @@ class ShapeFrontEnd:
             return np.isfinite(tree.query(points, distance_upper_bound=RESIDUAL_VOXELS * self.voxel,
                                           workers=workers)[0])
 
-        self._found_test = (key, test)
+        if keep:
+            self._found_test = (key, test)
         return test
 
     def instance_pixels(self, transforms, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> np.ndarray:
