@@ -88,6 +88,12 @@ MERGED_REF_STRIDE = 2
 # ``residual_poses``: a frame point within this many voxels of a found instance's surface is
 # that instance's, and left out of the votes again.
 RESIDUAL_VOXELS = 1.5
+# The least evidence (support - free - 2 x outline), as a share of shape_min_evidence, of a
+# rejected pose whose points the residual votes leave out (``supported_evidence``): channels
+# rejected on their outlines onto an unfound flush neighbour had 0.66-0.82 (channel seeds
+# 2251 / 2141); a fit at the image's edge with a third of its outline on a larger surface
+# (0.23, channel 2396 frame 6) left a distractor's remnant that voted a wrong pose which passed.
+SUPPORTED_EVIDENCE_SHARE = 0.5
 
 
 @dataclass
@@ -1003,14 +1009,16 @@ class ShapeFrontEnd:
     def supported_evidence(self, T, cloud: FrameCloud, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> float | None:
         """Support - free - 2 x outline continuation at pose T (as ``_judge`` ranks, nothing
         taken as hidden) when at least ``shape_min_support`` of its visible surface agrees
-        with the depth, else None."""
+        with the depth and that evidence is at least ``SUPPORTED_EVIDENCE_SHARE`` of
+        ``shape_min_evidence``, else None."""
         support, free, _ = depth_support(T, self._surface, self._surface_normals, depth_m, intrinsics,
                                          self.tolerance_at(T), self._self_hiding)
         if support < self.fe.shape_min_support:
             return None
         outline, _ = outline_continuation(T, self._surface, self._surface_normals, depth_m, intrinsics,
                                           self.voxel, self._same_surface(T), up=cloud.up)
-        return support - free - 2.0 * outline
+        evidence = support - free - 2.0 * outline
+        return evidence if evidence >= SUPPORTED_EVIDENCE_SHARE * self.fe.shape_min_evidence else None
 
     def judge_pairs(self, rejected, overlap: np.ndarray, limit: float, cloud: FrameCloud, depth_m: np.ndarray,
                     intrinsics: CameraIntrinsics, occluders: np.ndarray, found) -> list[tuple[int, int, tuple, tuple]]:
