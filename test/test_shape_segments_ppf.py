@@ -1637,6 +1637,35 @@ def test_the_segments_an_instance_found_touches_are_voted_again_without_its_poin
     assert not any(right(P) for P in shape.residual_poses(cloud, [T1], np.stack([T2])))
 
 
+def test_the_points_of_a_supported_rejected_pose_are_left_out_of_the_residual_votes_too():
+    """Two brackets side by side in one segment, neither found: with the first's pose
+    rejected but supported by the depth (``supported``), what it leaves of the segment is
+    voted again and gives the second its pose (session 22: a channel whose flush
+    neighbours were all rejected on their outlines onto it had no hypothesis). Its evidence
+    (``supported_evidence``) ranks the right pose above one slid off it, which takes in
+    points of the neighbour."""
+    from multi_instance_reg.rgbd.pipeline import PipelineConfig
+    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+
+    mesh, intr, T1, T2, depth = _two_brackets_side_by_side()
+    shape = ShapeFrontEnd(build_model_from_mesh(mesh, "bracket"), PipelineConfig().frontend)
+    cloud = shape.frame_cloud(depth, intr, None)
+
+    def right(P, deg=15.0, metres=0.03):
+        return rotation_angle_deg(P[:3, :3].T @ T2[:3, :3]) < deg and np.linalg.norm(P[:3, 3] - T2[:3, 3]) < metres
+
+    none = np.zeros((0, 4, 4))
+    assert len(shape.residual_poses(cloud, [], none)) == 0
+    again = shape.residual_poses(cloud, [], none, supported=[T1])
+    assert 1 <= len(again) and any(right(P) for P in again)
+    slid = T1.copy()
+    slid[:3, 3] += 0.5 * (T2[:3, 3] - T1[:3, 3])
+    at_truth = shape.supported_evidence(T1, cloud, depth, intr)
+    assert at_truth is not None
+    off = shape.supported_evidence(slid, cloud, depth, intr)
+    assert off is None or off < at_truth
+
+
 def test_the_pieces_a_bracket_found_in_front_cuts_another_into_are_voted_together():
     """A bracket found lying across another in front of it (6 cm above) cuts what is seen of
     the other into two segments, its upright end and its base plate's far end; no instance

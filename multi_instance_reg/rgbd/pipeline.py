@@ -129,6 +129,7 @@ class FrontEndConfig:
     shape_faces: bool = param(True, "shape ppf, convex models with a face that has a long axis (a box; not a cylinder): the segments' flat patches whose outline (second moments) is that of a model face (a carton's top seen whole) give pose hypotheses, and a hypothesis near such a patch is moved onto it before ICP (a face seen alone holds ICP in its plane nowhere, and its point pairs differ only in their distance; rgbd/faces.py). Pallet hits seeds 0 / 5 / 9 / 13 / 33 / 41: 75 / 76 / 74 / 72 / 63 / 77 -> 83 / 82 / 84 / 84 / 79 / 83 (with the selection by evidence: 83 / 83 / 84 / 84 / 81 / 83); cylinders and bracket unchanged", None, None)
     shape_rescues_per_place: int = param(3, "shape: of the refined poses the checks reject (none of them on a kept pose's place), only this many on one place (their boxes overlapping beyond max_overlap; those overhanging space seen empty, free >= 0.02, and the others each this many), the best fits (support - free), get the further tries (moved onto their outline's patch; for non-convex models the second look, turned starts and held look); 0 = all. Several hypotheses refined onto one distractor, or onto one instance they all miss, find there what the best of them finds: bracket seed 0 had 36 such poses a frame on 7 places, channel seed 1607 34 on 10. With 3: the tries' CPU a frame bracket 0 / 5 48 -> 38 / 51 -> 40 ms, channel 0 / 631 / 1607 65 -> 56 / 98 -> 89 / 179 -> 158 ms (3-4 % of a frame's CPU); MHF1 the same on 40 runs (the 24 seeds of session 20, 16 fresh bracket and channel seeds; session 21)", 0, 1000)
     shape_second_look: bool = param(True, "shape, non-convex models only (an L bracket): a refined pose rejected while overhanging space seen empty (free >= 0.02, support and support - free >= 0.6) is aligned again by projective point-to-plane ICP (each model point with the depth pixel on its ray: no pairs across the two plates where they meet, which left nearest-point ICP 4-6 deg off), judged again when the depth agrees better, and added where no instance is. Bracket MHF1, with shape_reject_through_support off, seeds 5 / 9 / 13 (tuned), 0, 113 / 127 / 139 (held out), 151 / 157 / 163 (fresh): 0.833 / 0.852 / 0.849 / 0.925 / 0.824 / 0.932 / 0.913 / 0.714 / 0.808 / 0.882 -> 0.829 / 0.885 / 0.867 / 0.946 / 0.862 / 0.944 / 0.913 / 0.764 / 0.832 / 0.887", None, None)
+    shape_residual_rejected: bool = param(True, "shape ppf, with shape_residual_votes: the residual votes also leave out the points of the rejected poses the depth supports (shape_min_support), the most evident first, each clear of those before it (max_overlap): an instance in one segment with flush neighbours that were all rejected (on their outlines onto it) had no hypothesis, its references paired with the neighbours' points (channel seed 2251 frame 6: 2 right of 64; voted over its own points, 12 of 65); voted besides the votes over the found instances' leftovers, not instead (in place of them: channel 0 -2 hits, bracket 2366 -2). Channel seed 2251 0.965 -> 0.985, held-out 2363 0.972 -> 0.991, 12 other seeds the same, no false positive; 5-11 ms CPU a frame (session 22)", None, None)
     shape_turned_starts: float = param(10.0, "shape, with shape_second_look (non-convex models): a pose still rejected after its second look, though the depth supports it (shape_min_support), is started again from itself turned by +- this many degrees about each of the model's axes (through its visible surface's centre), 3 ICP rounds each; the start the depth agrees with best gets the remaining rounds, is judged and added where no instance is. Standing brackets that nearest-point ICP left 4-12 deg / 1 cm off in the base plate's plane (free 0.1-0.2): replayed, 3 of 4 of seed 13's reached their pose from one of the six starts. Bracket MHF1 seeds 13 / 151 / 5 (tuned), every round from every start and no support gate: alone 0.879 / 0.841 / 0.829 -> 0.883 / 0.841 / 0.829, with shape_segment_clusters 6 0.887 / 0.855 / 0.834 (refinement p50 on seed 0 22 -> 57-66 ms; as now 38 ms); 0 = off (session 14)", 0.0, 90.0)
     shape_reject_through_support: bool = param(True, "shape ppf: drop a pose whose model reaches more than 2 voxels through the frame's largest support plane (the plane piece with the largest area removed, taken as unbounded: the table or floor): the depth check counts what lies behind the table's surface as hidden, and a bracket turned over with its upright plate sunk into the table, or a bracket's upright fitted onto a block's top, passed. Bracket false positives on distractor-only frames, seed 0: 1 -> 0; cylinders seed 9 MHF1 0.959 -> 0.982 (MHP 1.0), cylinders and pallet seeds 0 / 5 / 13, pallet 9 unchanged. Off where the largest plane is not what objects stand on and objects lie beyond its extension", None, None)
     shape_pierce_every_plane: bool = param(True, "shape ppf, with shape_reject_through_support: the model may reach through none of the support planes a large piece of which the frame shows (the floor and a pallet's top on it, a table and a wall), not only the largest: a carton fitted (tilted 2.5 deg) onto a crate's top on a pallet reached 4 cm through the pallet's top, where the crate on it is seen", None, None)
@@ -547,7 +548,7 @@ class InstanceRegistration:
         if fe.shape_hidden_by_instances and self._shape.non_convex and rejected:
             chosen = self._accept_turned(chosen, rejected, cloud, depth_m, intrinsics)
         if fe.shape_residual_votes and self._shape.non_convex and chosen:
-            chosen = self._accept_residual(chosen, hypotheses, cloud, depth_m, intrinsics, provisional)
+            chosen = self._accept_residual(chosen, hypotheses, cloud, depth_m, intrinsics, provisional, rejected)
         if fe.shape_hidden_by_instances and rejected and any(id(c) not in judged_with for c in chosen):
             # The rejected poses judged again with the instances the later passes found (those
             # whose checks look where one of them is seen): a channel rejected on its outline
@@ -645,7 +646,7 @@ class InstanceRegistration:
             candidates += self._shape.refine_and_check(twins, cloud, depth_m, intrinsics, second=second) + second
         return max(candidates, key=lambda c: c[3])
 
-    def _accept_residual(self, chosen, hypotheses, cloud, depth_m, intrinsics, provisional=()) -> list:
+    def _accept_residual(self, chosen, hypotheses, cloud, depth_m, intrinsics, provisional=(), rejected=()) -> list:
         """``chosen`` and the poses voted again over what the instances found leave of their
         segments (``ShapeFrontEnd.residual_poses``), refined and judged as the first
         hypotheses, then with the instances found hiding them (``judge_behind``); added
@@ -660,7 +661,16 @@ class InstanceRegistration:
         marked = {id(c) for c in provisional}
         firm = [c for c in chosen if id(c) not in marked]
         provisional = [c for c in chosen if id(c) in marked]
-        poses = self._shape.residual_poses(cloud, [c[0] for c in chosen], hypotheses, depth_m, intrinsics)
+        found = [c[0] for c in chosen]
+        supported = self._supported(rejected, found, cloud, depth_m, intrinsics) \
+            if rejected and self.config.frontend.shape_residual_rejected else []
+        poses = self._shape.residual_poses(cloud, found, hypotheses, depth_m, intrinsics)
+        if supported:
+            # Besides, not instead: a supported pose may lie wrong over an instance that the
+            # votes above find (channel seed 0, bracket 2366: hits lost when they replaced them).
+            more = self._shape.residual_poses(cloud, found, np.concatenate([np.reshape(hypotheses, (-1, 4, 4)), poses]),
+                                              supported=supported)
+            poses = np.concatenate([poses, more]) if len(more) else poses
         rejected, second, checked = [], [], []
         if len(poses):
             checked = self._shape.refine_and_check(list(poses), cloud, depth_m, intrinsics, rejected=rejected,
@@ -688,6 +698,30 @@ class InstanceRegistration:
             if rejected:
                 chosen = self._accept_turned(chosen, rejected, cloud, depth_m, intrinsics)
         return chosen
+
+    def _supported(self, rejected, found, cloud, depth_m, intrinsics) -> list:
+        """Of the ``rejected`` poses clear of the instances ``found``, those the depth
+        supports (``shape_min_support``, nothing taken as hidden), the most evident first
+        (``supported_evidence``) and each clear of those taken before it (``max_overlap``),
+        as ``_one_per_box`` takes instances: rejected by their other checks (the outline
+        onto an unfound neighbour), their points are theirs all the same. By support alone,
+        fits slid along a channel onto its flush neighbour came first (channel seed 2141
+        frame 0: support 0.98, outline 0.22, against the right fit's 0.94 and 0.06)."""
+        free = [rejected[k] for k in self._clear_of(found, rejected)[1]]
+        if not free:
+            return []
+        free = self._shape.one_of_each(free)
+        evidence = [self._shape.supported_evidence(T, cloud, depth_m, intrinsics) for T in free]
+        order = sorted((k for k in range(len(free)) if evidence[k] is not None), key=lambda k: -evidence[k])
+        if not order:
+            return []
+        limit = self.config.frontend.max_overlap
+        overlap = box_overlaps(self.model, [free[k] for k in order], self._box_grid)
+        taken: list[int] = []
+        for a in range(len(order)):
+            if not any(overlap[a, b] > limit or overlap[b, a] > limit for b in taken):
+                taken.append(a)
+        return [free[order[a]] for a in taken]
 
     def _on_place_of(self, T, poses, frame) -> bool:
         """Whether pose T takes the place of one of ``poses`` in ``_one_per_box``: their

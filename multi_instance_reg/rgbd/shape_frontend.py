@@ -88,6 +88,12 @@ MERGED_REF_STRIDE = 2
 # ``residual_poses``: a frame point within this many voxels of a found instance's surface is
 # that instance's, and left out of the votes again.
 RESIDUAL_VOXELS = 1.5
+# The least evidence (support - free - 2 x outline), as a share of shape_min_evidence, of a
+# rejected pose whose points the residual votes leave out (``supported_evidence``): channels
+# rejected on their outlines onto an unfound flush neighbour had 0.66-0.82 (channel seeds
+# 2251 / 2141); a fit at the image's edge with a third of its outline on a larger surface
+# (0.23, channel 2396 frame 6) left a distractor's remnant that voted a wrong pose which passed.
+SUPPORTED_EVIDENCE_SHARE = 0.5
 
 
 @dataclass
@@ -452,7 +458,7 @@ class ShapeFrontEnd:
         return np.concatenate(out) if out else np.zeros((0, 4, 4))
 
     def residual_poses(self, cloud: FrameCloud, found, taken, depth_m: np.ndarray | None = None,
-                       intrinsics: CameraIntrinsics | None = None, kept=()) -> np.ndarray:
+                       intrinsics: CameraIntrinsics | None = None, kept=(), supported=()) -> np.ndarray:
         """(K, 4, 4) hypotheses voted again over what the instances ``found`` leave of the
         segments they touch: their points (within ``RESIDUAL_VOXELS`` of a found pose's
         surface) taken out, the rest cut into connected segments again, each one's best
@@ -462,12 +468,24 @@ class ShapeFrontEnd:
         check at their true pose had 0-3 right references of 40-60 in the frame's votes,
         11-32 voted over their own points alone (seed 157). With the frame (``depth_m``,
         ``intrinsics``), also ``bridged_poses``. ``kept``: more poses whose segments are voted
-        again, their points kept in the votes."""
+        again, their points kept in the votes. ``supported``: rejected poses the depth supports
+        (``shape_min_support``), their points left out as the found ones' are, and only the
+        segments they lie in voted again: flush
+        neighbours rejected on their outlines onto an instance with no hypothesis leave its
+        points to vote alone (channel seed 2251 frame 6: 2 of 64 references right in a
+        segment of four channels, 12 of 65 over its own points)."""
         empty = np.zeros((0, 4, 4))
-        if cloud.segments is None or not (len(found) or len(kept)) or cloud.tree is None:
+        if cloud.segments is None or not (len(found) or len(kept) or len(supported)) or cloud.tree is None:
             return empty
         explained = self._on_found(found)(cloud.points) if len(found) else np.zeros(len(cloud.points), bool)
-        touching = explained | self._on_found(kept)(cloud.points) if len(kept) else explained
+        touching = explained
+        if len(supported):
+            # Only the segments those poses lie in: the others are voted without the found
+            # instances' points alone (``supported`` not given) as they would be here.
+            touching = self._on_found(supported, keep=False)(cloud.points)
+            explained = explained | touching
+        if len(kept):
+            touching = touching | self._on_found(kept)(cloud.points)
         labels = cloud.segments
         touched = np.unique(labels[touching & (labels >= 0)])
         rest = np.flatnonzero(~explained & np.isin(labels, touched))
@@ -867,11 +885,12 @@ class ShapeFrontEnd:
             out.append(float(np.mean(on_found(agree))) if len(agree) else 0.0)
         return out
 
-    def _on_found(self, found):
+    def _on_found(self, found, keep: bool = True):
         """A test (points (N, 3) -> (N,) bool) of lying within ``RESIDUAL_VOXELS`` of the
         surface of one of the poses ``found`` (a k-d tree of them, built once). The last
-        one is kept: a frame asks it of the same instances two or three times
-        (``found_shares``, ``residual_poses``; 1-4 ms a tree of 4-11 poses' surfaces)."""
+        one is kept (unless not ``keep``: poses asked once): a frame asks it of the same
+        instances two or three times (``found_shares``, ``residual_poses``; 1-4 ms a tree of
+        4-11 poses' surfaces)."""
         key = b"".join(np.asarray(F, np.float64).tobytes() for F in found)
         kept = self._found_test
         if kept is not None and kept[0] == key:
@@ -886,7 +905,8 @@ class ShapeFrontEnd:
             return np.isfinite(tree.query(points, distance_upper_bound=RESIDUAL_VOXELS * self.voxel,
                                           workers=workers)[0])
 
-        self._found_test = (key, test)
+        if keep:
+            self._found_test = (key, test)
         return test
 
     def instance_pixels(self, transforms, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> np.ndarray:
@@ -975,6 +995,30 @@ class ShapeFrontEnd:
         if not back:
             return support, free, n
         return support * n / (n + back), free * n / (n + back), n + back
+
+    def one_of_each(self, poses) -> list:
+        """``poses`` less those refined to the same place as an earlier one (within
+        ``SAME_POSE_DEG`` and half a voxel)."""
+        if len(poses) <= 1:
+            return list(poses)
+        same = cluster_poses(np.stack([np.asarray(T, np.float64) for T in poses]),
+                             -np.arange(len(poses), dtype=np.float64), SAME_POSE_DEG, 0.5 * self.voxel,
+                             len(poses), min_members=1, indices=True)
+        return [poses[i] for i in sorted(same)]
+
+    def supported_evidence(self, T, cloud: FrameCloud, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> float | None:
+        """Support - free - 2 x outline continuation at pose T (as ``_judge`` ranks, nothing
+        taken as hidden) when at least ``shape_min_support`` of its visible surface agrees
+        with the depth and that evidence is at least ``SUPPORTED_EVIDENCE_SHARE`` of
+        ``shape_min_evidence``, else None."""
+        support, free, _ = depth_support(T, self._surface, self._surface_normals, depth_m, intrinsics,
+                                         self.tolerance_at(T), self._self_hiding)
+        if support < self.fe.shape_min_support:
+            return None
+        outline, _ = outline_continuation(T, self._surface, self._surface_normals, depth_m, intrinsics,
+                                          self.voxel, self._same_surface(T), up=cloud.up)
+        evidence = support - free - 2.0 * outline
+        return evidence if evidence >= SUPPORTED_EVIDENCE_SHARE * self.fe.shape_min_evidence else None
 
     def judge_pairs(self, rejected, overlap: np.ndarray, limit: float, cloud: FrameCloud, depth_m: np.ndarray,
                     intrinsics: CameraIntrinsics, occluders: np.ndarray, found) -> list[tuple[int, int, tuple, tuple]]:
