@@ -33,7 +33,7 @@ from .lifting import backproject, lookup_depth, off_planes, support_planes, undi
 from .matching import DescriptorMatcher, prepare_descriptors
 from .model import ObjectModel
 from .guided import GuidedMatcher, guide_instances
-from .shape_frontend import ShapeFrontEnd, rects_meet, resolve_correspondences
+from .shape_frontend import ShapeFrontEnd, best_per_place, rects_meet, resolve_correspondences
 from .verify import free_space_share, surface_samples, texture_agreement
 from ..threads import limit_blas_threads, map_each, submit_each
 
@@ -702,26 +702,18 @@ class InstanceRegistration:
     def _supported(self, rejected, found, cloud, depth_m, intrinsics) -> list:
         """Of the ``rejected`` poses clear of the instances ``found``, those the depth
         supports (``shape_min_support``, nothing taken as hidden), the most evident first
-        (``supported_evidence``) and each clear of those taken before it (``max_overlap``),
-        as ``_one_per_box`` takes instances: rejected by their other checks (the outline
+        (``supported_evidence``) and each clear of those taken before it (``max_overlap``;
+        ``best_per_place`` with one a place), as ``_one_per_box`` takes instances: rejected by their other checks (the outline
         onto an unfound neighbour), their points are theirs all the same. By support alone,
         fits slid along a channel onto its flush neighbour came first (channel seed 2141
         frame 0: support 0.98, outline 0.22, against the right fit's 0.94 and 0.06)."""
-        free = [rejected[k] for k in self._clear_of(found, rejected)[1]]
-        if not free:
+        free = self._shape.one_of_each([rejected[k] for k in self._clear_of(found, rejected)[1]])
+        scored = [(T, e) for T in free if (e := self._shape.supported_evidence(T, cloud, depth_m, intrinsics))
+                  is not None]
+        if not scored:
             return []
-        free = self._shape.one_of_each(free)
-        evidence = [self._shape.supported_evidence(T, cloud, depth_m, intrinsics) for T in free]
-        order = sorted((k for k in range(len(free)) if evidence[k] is not None), key=lambda k: -evidence[k])
-        if not order:
-            return []
-        limit = self.config.frontend.max_overlap
-        overlap = box_overlaps(self.model, [free[k] for k in order], self._box_grid)
-        taken: list[int] = []
-        for a in range(len(order)):
-            if not any(overlap[a, b] > limit or overlap[b, a] > limit for b in taken):
-                taken.append(a)
-        return [free[order[a]] for a in taken]
+        poses = [T for T, _ in scored]
+        return best_per_place(poses, self._overlapping(poses), 1, fit=[e for _, e in scored])
 
     def _on_place_of(self, T, poses, frame) -> bool:
         """Whether pose T takes the place of one of ``poses`` in ``_one_per_box``: their

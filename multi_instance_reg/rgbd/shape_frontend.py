@@ -470,10 +470,9 @@ class ShapeFrontEnd:
         ``intrinsics``), also ``bridged_poses``. ``kept``: more poses whose segments are voted
         again, their points kept in the votes. ``supported``: rejected poses the depth supports
         (``shape_min_support``), their points left out as the found ones' are, and only the
-        segments they lie in voted again: flush
-        neighbours rejected on their outlines onto an instance with no hypothesis leave its
-        points to vote alone (channel seed 2251 frame 6: 2 of 64 references right in a
-        segment of four channels, 12 of 65 over its own points)."""
+        segments they lie in voted again: flush neighbours rejected on their outlines onto an
+        instance with no hypothesis leave its points to vote alone (channel seed 2251 frame 6:
+        2 of 64 references right in a segment of four channels, 12 of 65 over its own points)."""
         empty = np.zeros((0, 4, 4))
         if cloud.segments is None or not (len(found) or len(kept) or len(supported)) or cloud.tree is None:
             return empty
@@ -1687,19 +1686,21 @@ class Prefetch:
         return self._done[k]
 
 
-def best_per_place(poses, overlap: np.ndarray, k: int) -> list:
-    """Of ``poses`` (each with ``.support`` and ``.free``), in their order, those among the
-    ``k`` best fits on their place (support - free, as the refinement ranks its poses): taken
-    best first, each unless ``k`` taken already overlap it (``overlap``: (n, n) bool, either
-    way). Overlap with the taken ones only, not through chains of poses: touching instances'
-    fits link into a row (bracket seed 0: a bracket's best fit left out behind a neighbour's).
-    Support alone ranked worse: bracket seed 157 frame 11, of 12 fits of a bracket, the one
-    whose look keeps it was 4th by support (0.734, free 0.077), among the first two by the fit."""
+def best_per_place(poses, overlap: np.ndarray, k: int, fit=None) -> list:
+    """Of ``poses``, in their order, those among the ``k`` best fits on their place (``fit``,
+    one figure a pose, higher better; default each pose's ``.support - .free``, as the
+    refinement ranks its poses): taken best first, each unless ``k`` taken already overlap it
+    (``overlap``: (n, n) bool, either way). Overlap with the taken ones only, not through
+    chains of poses: touching instances' fits link into a row (bracket seed 0: a bracket's
+    best fit left out behind a neighbour's). Support alone ranked worse: bracket seed 157
+    frame 11, of 12 fits of a bracket, the one whose look keeps it was 4th by support (0.734,
+    free 0.077), among the first two by the fit."""
     n = len(poses)
+    fit = [p.support - p.free for p in poses] if fit is None else fit
     linked = np.asarray(overlap, bool)
     linked = linked | linked.T
     taken: list[int] = []
-    for i in sorted(range(n), key=lambda i: poses[i].free - poses[i].support):    # stable: ties in order
+    for i in sorted(range(n), key=lambda i: -fit[i]):    # stable: ties in order
         if int(linked[i, taken].sum()) < k:
             taken.append(i)
     keep = set(taken)
@@ -1773,8 +1774,9 @@ def object_face_heights(surface: np.ndarray, normals: np.ndarray, voxel: float) 
             s = sign * surface[:, axis]
             up = sign * normals[:, axis] >= np.cos(np.radians(FACE_UP_DEG))
             h = s[up] - s.min()
-            bins, counts = np.unique(np.rint(h / (0.5 * voxel)).astype(np.int64), return_counts=True)
-            out.extend(float(np.mean(h[np.rint(h / (0.5 * voxel)) == b])) for b in bins[counts >= FACE_MIN_POINTS])
+            binned = np.rint(h / (0.5 * voxel)).astype(np.int64)
+            bins, counts = np.unique(binned, return_counts=True)
+            out.extend(float(np.mean(h[binned == b])) for b in bins[counts >= FACE_MIN_POINTS])
     return np.unique(np.round(np.asarray([x for x in out if x > 0.5 * voxel]), 4))
 
 
