@@ -821,7 +821,7 @@ def test_instance_pixels_kept_for_the_frame_equal_a_fresh_drawing():
     _, shape, intr, front, back, depth = _front_and_back_boxes()
     fresh = shape.instance_pixels([front, back], depth, intr)
     assert fresh.any() and shape.instance_pixels([front, back], depth, intr) is not fresh   # nothing kept
-    shape.keep_pixels(depth, intr)
+    shape.keep_frame(depth, intr)
     first = shape.instance_pixels([front, back], depth, intr)
     assert np.array_equal(first, fresh) and not first.flags.writeable                 # shared: read-only
     assert shape.instance_pixels([front, back], depth, intr) is first                 # kept, by the poses
@@ -830,8 +830,36 @@ def test_instance_pixels_kept_for_the_frame_equal_a_fresh_drawing():
     # Another depth image is drawn, not taken from the one kept.
     other = np.zeros_like(depth)
     assert not shape.instance_pixels([front, back], other, intr).any()
-    shape.keep_pixels(None)
+    shape.keep_frame(None)
     assert shape.instance_pixels([front, back], depth, intr) is not first
+
+
+def test_depth_checks_kept_for_the_frame_equal_fresh_ones(monkeypatch):
+    from multi_instance_reg.rgbd import shape_frontend
+
+    _, shape, intr, front, back, depth = _front_and_back_boxes()
+    calls = []
+    kernel = shape_frontend.depth_support
+    monkeypatch.setattr(shape_frontend, "depth_support", lambda *a: calls.append(a[-1]) or kernel(*a))
+    occluders = shape.instance_pixels([front], depth, intr)
+    fresh = [shape.depth_check(back, depth, intr), shape.depth_check(back, depth, intr, occluders)]
+    assert fresh[0] != fresh[1] and len(calls) == 2                         # the front box hides some
+    shape.keep_frame(depth, intr)
+    kept = [shape.depth_check(back, depth, intr), shape.depth_check(back, depth, intr, shape.instance_pixels([front], depth, intr))]
+    assert kept == fresh and len(calls) == 4
+    assert shape.depth_check(back.copy(), depth, intr) == fresh[0] and len(calls) == 4     # by the pose's bytes
+    assert shape.depth_check(front, depth, intr) != fresh[0] and len(calls) == 5           # another pose: checked
+    # Occluders that can change (writeable) are checked each time, not taken from the kept.
+    mine = np.zeros(depth.shape, np.uint8)
+    assert shape.depth_check(back, depth, intr, mine) == fresh[0] and len(calls) == 6
+    mine[:] = 1
+    assert shape.depth_check(back, depth, intr, mine) != fresh[0] and len(calls) == 7
+    every = shape.depth_check(back, depth, intr, shape.every_pixel(depth))
+    assert every == shape.depth_check(back, depth, intr, mine) and len(calls) == 9
+    assert shape.depth_check(back, depth, intr, shape.every_pixel(depth)) == every and len(calls) == 9   # read-only: kept
+    shape.keep_frame(None)
+    shape.depth_check(back, depth, intr)
+    assert len(calls) == 10
 
 def _front_and_back_boxes():
     from multi_instance_reg.rgbd.pipeline import PipelineConfig

@@ -471,7 +471,7 @@ class InstanceRegistration:
         t3 = time.perf_counter()
         t["lifting"] = (t3 - t0) * 1e3
         cloud = self._shape.frame_cloud(depth_m, intrinsics, None if search is None else search > 0, gravity)
-        self._shape.keep_pixels(depth_m, intrinsics)        # the acceptance passes redraw the same poses
+        self._shape.keep_frame(depth_m, intrinsics)        # the acceptance passes redraw the same poses
         t4 = time.perf_counter()
         # ECC does not need the vote clusters' poses (ppf): it runs in the shared pool as
         # soon as the correspondences are made, while those poses are made (whose single-
@@ -518,7 +518,7 @@ class InstanceRegistration:
             # the place of its right pose left 4 deg off (seed 0).
             chosen = self._one_per_box(chosen + second, first=len(chosen), frame=(depth_m, intrinsics))
         chosen = self._accept_rejected(chosen, rejected, hypotheses, cloud, depth_m, intrinsics)
-        self._shape.keep_pixels(None)
+        self._shape.keep_frame(None)
         instances = [Instance(i, c[0], c[2], float(c[1]), self.model.name) for i, c in enumerate(chosen)]
         labels, _ = assign_nearest(src, tgt, [c[0] for c in chosen], self._shape_ecc.config.inlier_thresh)
         t["refinement"] = (time.perf_counter() - t6) * 1e3

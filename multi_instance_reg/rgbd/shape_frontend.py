@@ -117,7 +117,7 @@ class FrameCloud:
 
 class ShapeFrontEnd:
     def __init__(self, model: ObjectModel, fe):
-        self._pixels_memo = None      # keep_pixels's (depth, intrinsics, {poses: image})
+        self._frame_memo = None       # keep_frame's (depth, intrinsics, {poses: image}, {(pose, occluders): check})
         self._found_test = None       # _on_found's last (poses' bytes, test)
         if not model.has_shape:
             raise InputError("the object model has no shape data (frontend.correspondences shape/both); "
@@ -708,8 +708,7 @@ class ShapeFrontEnd:
 
     def _fit(self, T, depth_m, intrinsics):
         """(support - free, support, free, judged points) of pose T (``depth_support``)."""
-        support, free, n = depth_support(T, self._surface, self._surface_normals, depth_m, intrinsics,
-                                         self.tolerance_at(T), self._self_hiding)
+        support, free, n = self.depth_check(T, depth_m, intrinsics)
         return support - free, support, free, n
 
     def _refine_plain(self, T0: np.ndarray, cloud: FrameCloud, depth_m: np.ndarray, intrinsics: CameraIntrinsics):
@@ -911,11 +910,11 @@ class ShapeFrontEnd:
     def instance_pixels(self, transforms, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> np.ndarray:
         """(H, W) uint8: 1 where the depth image shows one of these instances (a visible
         model point within the depth tolerance there, drawn over its voxel's footprint).
-        Read-only while ``keep_pixels`` holds this depth image (the frame being registered):
+        Read-only while ``keep_frame`` holds this depth image (the frame being registered):
         the acceptance passes ask for the same poses' pixels several times a frame (the
         instances found, each rejected pose of ``_meeting`` and ``judge_groups``), so they are
         drawn once, kept by the poses' bytes."""
-        memo = self._pixels_memo
+        memo = self._frame_memo
         if memo is None or memo[0] is not depth_m or memo[1] is not intrinsics:
             return self._instance_pixels(transforms, depth_m, intrinsics)
         key = b"".join(np.asarray(T, np.float64).tobytes() for T in transforms)
@@ -926,10 +925,46 @@ class ShapeFrontEnd:
             memo[2][key] = out
         return out
 
-    def keep_pixels(self, depth_m: np.ndarray | None, intrinsics: CameraIntrinsics | None = None) -> None:
-        """``instance_pixels`` of this depth image (and intrinsics; the same objects) kept
-        until the next call (None: none kept); the image must not change meanwhile."""
-        self._pixels_memo = None if depth_m is None else (depth_m, intrinsics, {})
+    def keep_frame(self, depth_m: np.ndarray | None, intrinsics: CameraIntrinsics | None = None) -> None:
+        """``instance_pixels``, ``every_pixel`` and ``depth_check`` of this depth image (and
+        intrinsics; the same objects) kept until the next call (None: none kept); the image
+        must not change meanwhile."""
+        self._frame_memo = None if depth_m is None else (depth_m, intrinsics, {}, {})
+
+    def every_pixel(self, depth_m: np.ndarray) -> np.ndarray:
+        """(H, W) uint8 ones: occluders everywhere (every point behind the measurement hidden);
+        read-only, one a frame while ``keep_frame`` holds this image."""
+        memo = self._frame_memo
+        if memo is None or memo[0] is not depth_m:
+            return np.ones(depth_m.shape, np.uint8)
+        out = memo[2].get(b"every")
+        if out is None:
+            out = np.ones(depth_m.shape, np.uint8)
+            out.flags.writeable = False
+            memo[2][b"every"] = out
+        return out
+
+    def depth_check(self, T, depth_m: np.ndarray, intrinsics: CameraIntrinsics,
+                    occluders: np.ndarray | None = None) -> tuple[float, float, int]:
+        """``depth_support`` of the model's surface at pose T (at its tolerance there, hiding
+        itself if non-convex): (support, free, judged points). Kept for the frame
+        (``keep_frame``) by the pose's bytes and the occluders (only read-only ones, whose
+        pixels cannot change: ``instance_pixels``, ``every_pixel``): the passes judge one
+        pose again and again (bracket seed 0: 100 of 520 checks a frame were repeats)."""
+        memo = self._frame_memo
+        kept = memo is not None and memo[0] is depth_m and memo[1] is intrinsics and (
+            occluders is None or not occluders.flags.writeable)
+        if kept:
+            key = (np.asarray(T, np.float64).tobytes(), id(occluders))
+            hit = memo[3].get(key)
+            # The entry holds the occluders: no other array can have their id meanwhile.
+            if hit is not None and hit[0] is occluders:
+                return hit[1]
+        out = depth_support(T, self._surface, self._surface_normals, depth_m, intrinsics, self.tolerance_at(T),
+                            self._self_hiding, occluders)
+        if kept:
+            memo[3][key] = (occluders, out)
+        return out
 
     def _instance_pixels(self, transforms, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> np.ndarray:
         out = np.zeros(depth_m.shape, np.uint8)
@@ -955,12 +990,11 @@ class ShapeFrontEnd:
         judged points must remain (as for the image's edge)."""
         fe = self.fe
         tol_T = self.tolerance_at(T)
-        args = (T, self._surface, self._surface_normals, depth_m, intrinsics, tol_T, self._self_hiding)
-        support, free, n = depth_support(*args, occluders)
+        support, free, n = self.depth_check(T, depth_m, intrinsics, occluders)
         # What follows only lowers the support and support - free: most are dropped here.
         if support < fe.shape_min_support or support - free < fe.shape_min_evidence:
             return None
-        _, _, n_all = depth_support(*args)
+        _, _, n_all = self.depth_check(T, depth_m, intrinsics)
         if n >= n_all:
             # Nothing hidden: only the outline may judge it otherwise, where its band meets
             # an instance found (a neighbour flush with it, not a larger surface).
@@ -1010,8 +1044,7 @@ class ShapeFrontEnd:
         taken as hidden) when at least ``shape_min_support`` of its visible surface agrees
         with the depth and that evidence is at least ``SUPPORTED_EVIDENCE_SHARE`` of
         ``shape_min_evidence``, else None."""
-        support, free, _ = depth_support(T, self._surface, self._surface_normals, depth_m, intrinsics,
-                                         self.tolerance_at(T), self._self_hiding)
+        support, free, _ = self.depth_check(T, depth_m, intrinsics)
         if support < self.fe.shape_min_support:
             return None
         outline, _ = outline_continuation(T, self._surface, self._surface_normals, depth_m, intrinsics,
@@ -1050,8 +1083,7 @@ class ShapeFrontEnd:
             # pairs where both have the support with the other hiding them (a pose of support
             # 1.0 meets many wrong ones, which the judging then took 20 ms a bracket frame
             # to turn down on the outline).
-            support, free, _ = depth_support(T, self._surface, self._surface_normals, depth_m, intrinsics,
-                                             self.tolerance_at(T), self._self_hiding, hiding)
+            support, free, _ = self.depth_check(T, depth_m, intrinsics, hiding)
             return support >= fe.shape_min_support and support - free >= fe.shape_min_evidence
 
         # Each member also as its second look's projective ICP places it (a channel lying flush
@@ -1097,10 +1129,9 @@ class ShapeFrontEnd:
         (``judge_pairs``, ``judge_groups``), else None: enough support when every point behind
         the depth is taken as hidden, and no more free space than when none is (hiding points
         only raises the free share)."""
-        args = (T, self._surface, self._surface_normals, depth_m, intrinsics, self.tolerance_at(T), self._self_hiding)
-        if depth_support(*args, np.ones(depth_m.shape, np.uint8))[0] < self.fe.shape_min_support:
+        if self.depth_check(T, depth_m, intrinsics, self.every_pixel(depth_m))[0] < self.fe.shape_min_support:
             return None
-        support, free, _ = depth_support(*args)
+        support, free, _ = self.depth_check(T, depth_m, intrinsics)
         return support - free if free <= self.fe.shape_max_free else None
 
     def image_rect(self, T, intrinsics: CameraIntrinsics) -> tuple | None:
@@ -1217,12 +1248,11 @@ class ShapeFrontEnd:
         or None."""
         fe = self.fe
         tol = self.tolerance_at(T)
-        args = (T, self._surface, self._surface_normals, depth_m, intrinsics, tol, self._self_hiding)
-        every = np.ones(depth_m.shape, np.uint8)
-        support, free, n = depth_support(*args, every)
+        every = self.every_pixel(depth_m)
+        support, free, n = self.depth_check(T, depth_m, intrinsics, every)
         if support < fe.shape_min_support or support - free < fe.shape_min_evidence:
             return None
-        _, _, n_all = depth_support(*args)
+        _, _, n_all = self.depth_check(T, depth_m, intrinsics)
         # As in ``judge_behind``: what lies inside a found instance's box is not behind it.
         support, free, n = self._inside_found(T, found, depth_m, intrinsics, every, tol, support, free, n)
         if n >= n_all or n < fe.shape_min_in_view * n_all:
@@ -1263,14 +1293,12 @@ class ShapeFrontEnd:
         refines and judges them as hypotheses."""
         if cloud.up is None or not self.non_convex:
             return []
-        support, free, _ = depth_support(T, self._surface, self._surface_normals, depth_m, intrinsics,
-                                         self.tolerance_at(T), self._self_hiding)
+        support, free, _ = self.depth_check(T, depth_m, intrinsics)
         if free < TURNED_OVER_MIN:
             return []
         out = []
         for T1 in self._turned_over(T, cloud.up, depth_m, intrinsics):
-            s1, f1, _ = depth_support(T1, self._surface, self._surface_normals, depth_m, intrinsics,
-                                      self.tolerance_at(T1), self._self_hiding)
+            s1, f1, _ = self.depth_check(T1, depth_m, intrinsics)
             # Placed this well, ICP moves a start little: one the depth agrees with less than half
             # the evidence asked for is not refined (channel seeds 0 / 631: the starts kept had
             # 0.60-0.94 support - free, those under 0.4 all failed; 1627's lowest kept, 0.43).
