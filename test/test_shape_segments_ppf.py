@@ -2371,7 +2371,9 @@ def test_a_channel_half_hidden_by_its_flush_neighbour_is_climbed_onto_its_pose_a
     length: 16 mm here, as channel seed 2141 frames 0-2), and the pair fails there. Climbed by
     turned starts with the nearer one's pixels hiding it (``climbed``) it reaches its pose,
     and ``_accept_climbed_pairs`` adds the pair (the nearer one given as a supported rejected
-    pose, the turned fit as the residual votes' rejected one), which fails as given."""
+    pose, the turned fit as the residual votes' rejected one), which fails as given; not
+    with the nearer one slid along its length, overhanging space seen empty (channel seed
+    2404 frame 11: such a pair passed, one member 27 mm off)."""
     from multi_instance_reg.rgbd.pipeline import InstanceRegistration, PipelineConfig
     from multi_instance_reg.rgbd.shape import apply_twist
     from multi_instance_reg.synthetic.objects import get_object, object_mesh
@@ -2403,3 +2405,8 @@ def test_a_channel_half_hidden_by_its_flush_neighbour_is_climbed_onto_its_pose_a
     assert len(added) == 2 and np.allclose(added[0][0], near) and right(added[1][0])
     # As the residual votes gave it, the pair fails.
     assert reg._accept_pairs([], [near, turned], cloud, depth, intr) == []
+    # The nearer one slid 1 cm along its length overhangs space seen empty: not rejected for
+    # what a neighbour explains, it is not paired (it passed with the far one climbed).
+    slid = near @ make_transform(np.eye(3), [0.0, 0.01, 0.0])
+    assert shape.overhangs(slid, depth, intr) and not shape.overhangs(near, depth, intr)
+    assert reg._accept_climbed_pairs([], [slid], [turned], cloud, depth, intr) == []

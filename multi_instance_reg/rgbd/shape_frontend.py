@@ -876,6 +876,12 @@ class ShapeFrontEnd:
                                          self.tolerance_at(T), self._self_hiding, hiding)
         return support - free, support, free, n
 
+    def overhangs(self, T, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> bool:
+        """Whether pose T overhangs space the depth shows empty (free share at least
+        ``SECOND_LOOK_MIN_FREE``, nothing taken as hidden): off along what it shows. An
+        instance in front can hide a pose's points and explain its outline, not that."""
+        return self._fit(T, depth_m, intrinsics)[2] >= SECOND_LOOK_MIN_FREE
+
     def climb_fit(self, T, hiding: np.ndarray, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> float | None:
         """``hidden_fit``'s support - free at pose T when ``climbed`` is worth a try from it,
         else None: ``hiding`` hides some of it, and with those points hidden it passes the
