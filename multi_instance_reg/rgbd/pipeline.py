@@ -130,6 +130,7 @@ class FrontEndConfig:
     shape_rescues_per_place: int = param(3, "shape: of the refined poses the checks reject (none of them on a kept pose's place), only this many on one place (their boxes overlapping beyond max_overlap; those overhanging space seen empty, free >= 0.02, and the others each this many), the best fits (support - free), get the further tries (moved onto their outline's patch; for non-convex models the second look, turned starts and held look); 0 = all. Several hypotheses refined onto one distractor, or onto one instance they all miss, find there what the best of them finds: bracket seed 0 had 36 such poses a frame on 7 places, channel seed 1607 34 on 10. With 3: the tries' CPU a frame bracket 0 / 5 48 -> 38 / 51 -> 40 ms, channel 0 / 631 / 1607 65 -> 56 / 98 -> 89 / 179 -> 158 ms (3-4 % of a frame's CPU); MHF1 the same on 40 runs (the 24 seeds of session 20, 16 fresh bracket and channel seeds; session 21)", 0, 1000)
     shape_second_look: bool = param(True, "shape, non-convex models only (an L bracket): a refined pose rejected while overhanging space seen empty (free >= 0.02, support and support - free >= 0.6) is aligned again by projective point-to-plane ICP (each model point with the depth pixel on its ray: no pairs across the two plates where they meet, which left nearest-point ICP 4-6 deg off), judged again when the depth agrees better, and added where no instance is. Bracket MHF1, with shape_reject_through_support off, seeds 5 / 9 / 13 (tuned), 0, 113 / 127 / 139 (held out), 151 / 157 / 163 (fresh): 0.833 / 0.852 / 0.849 / 0.925 / 0.824 / 0.932 / 0.913 / 0.714 / 0.808 / 0.882 -> 0.829 / 0.885 / 0.867 / 0.946 / 0.862 / 0.944 / 0.913 / 0.764 / 0.832 / 0.887", None, None)
     shape_residual_rejected: bool = param(True, "shape ppf, with shape_residual_votes: the residual votes also leave out the points of the rejected poses the depth supports (shape_min_support), the most evident first, each clear of those before it (max_overlap): an instance in one segment with flush neighbours that were all rejected (on their outlines onto it) had no hypothesis, its references paired with the neighbours' points (channel seed 2251 frame 6: 2 right of 64; voted over its own points, 12 of 65); voted besides the votes over the found instances' leftovers, not instead (in place of them: channel 0 -2 hits, bracket 2366 -2). Channel seed 2251 0.965 -> 0.985, held-out 2363 0.972 -> 0.991, 12 other seeds the same, no false positive; 5-11 ms CPU a frame (session 22)", None, None)
+    shape_climbed_pairs: bool = param(True, "shape ppf, with shape_residual_rejected and shape_rejected_pairs: of the poses the residual votes give beside a supported rejected pose that does not overhang space seen empty (free < 0.02: rejected for what a neighbour explains), refined and rejected, the best fit on each place with that pose's pixels hiding them, when those hide some of it and the rest agrees or overhangs (the held look's gate), is climbed by turned starts (shape_turned_starts, halved twice when none is better; within the vote clusters' bounds) while the depth agrees better with it so hidden, then judged in a pair with that pose. A channel half hidden by its flush neighbour (rejected on its outline onto it) had fits 2-12 deg off about its top's normal that nearest-point ICP neither turns nor holds along its length: channel seed 2141 0.894 -> 0.977 (79 -> 85 hits), held-out 2433 0.980 -> 0.988, 13 other held-out channel and bracket seeds (2402-2449) and 8 others the same, no false positive (without the overhang gate channel 2404 gained a pose slid 27 mm); the step's CPU 0-14 ms a frame (session 23)", None, None)
     shape_turned_starts: float = param(10.0, "shape, with shape_second_look (non-convex models): a pose still rejected after its second look, though the depth supports it (shape_min_support), is started again from itself turned by +- this many degrees about each of the model's axes (through its visible surface's centre), 3 ICP rounds each; the start the depth agrees with best gets the remaining rounds, is judged and added where no instance is. Standing brackets that nearest-point ICP left 4-12 deg / 1 cm off in the base plate's plane (free 0.1-0.2): replayed, 3 of 4 of seed 13's reached their pose from one of the six starts. Bracket MHF1 seeds 13 / 151 / 5 (tuned), every round from every start and no support gate: alone 0.879 / 0.841 / 0.829 -> 0.883 / 0.841 / 0.829, with shape_segment_clusters 6 0.887 / 0.855 / 0.834 (refinement p50 on seed 0 22 -> 57-66 ms; as now 38 ms); 0 = off (session 14)", 0.0, 90.0)
     shape_reject_through_support: bool = param(True, "shape ppf: drop a pose whose model reaches more than 2 voxels through the frame's largest support plane (the plane piece with the largest area removed, taken as unbounded: the table or floor): the depth check counts what lies behind the table's surface as hidden, and a bracket turned over with its upright plate sunk into the table, or a bracket's upright fitted onto a block's top, passed. Bracket false positives on distractor-only frames, seed 0: 1 -> 0; cylinders seed 9 MHF1 0.959 -> 0.982 (MHP 1.0), cylinders and pallet seeds 0 / 5 / 13, pallet 9 unchanged. Off where the largest plane is not what objects stand on and objects lie beyond its extension", None, None)
     shape_pierce_every_plane: bool = param(True, "shape ppf, with shape_reject_through_support: the model may reach through none of the support planes a large piece of which the frame shows (the floor and a pallet's top on it, a table and a wall), not only the largest: a carton fitted (tilted 2.5 deg) onto a crate's top on a pallet reached 4 cm through the pallet's top, where the crate on it is seen", None, None)
@@ -691,6 +692,8 @@ class InstanceRegistration:
         if checked or second:
             chosen = self._one_per_box(firm + provisional + checked + second, first=len(firm),
                                        frame=(depth_m, intrinsics))
+        if supported and rejected and self.config.frontend.shape_climbed_pairs and self.config.frontend.shape_rejected_pairs:
+            chosen = self._accept_climbed_pairs(chosen, supported, rejected, cloud, depth_m, intrinsics)
         if self.config.frontend.shape_hidden_by_instances and rejected:
             chosen, rejected = self._accept_behind(chosen, rejected, cloud, depth_m, intrinsics)
             # These votes are over what the instances found leave: a channel lying open side
@@ -698,6 +701,50 @@ class InstanceRegistration:
             if rejected:
                 chosen = self._accept_turned(chosen, rejected, cloud, depth_m, intrinsics)
         return chosen
+
+    def _accept_climbed_pairs(self, chosen, supported, rejected, cloud, depth_m, intrinsics) -> list:
+        """``chosen`` and pairs (``_accept_pairs``) of the ``supported`` rejected poses (those
+        not overhanging space seen empty, ``ShapeFrontEnd.overhangs``) and the
+        poses the residual votes gave beside them (``rejected``: refined, rejected), each
+        of those first climbed (``ShapeFrontEnd.climbed``) with that supported pose's pixels
+        and the instances' taken as hiding it: the best fit so hidden on each place beside it
+        (its box clear of it, the image rectangles meeting) of those worth the climb
+        (``ShapeFrontEnd.climb_fit``). A channel half hidden by its
+        flush neighbour, which is rejected on its outline onto it, has no fit ICP sets right
+        (channel seed 2141 frames 0-2: 2-12 deg off about its top's normal); the pair, judged
+        as ``judge_pairs`` does, passes at the climbed pose."""
+        found = [c[0] for c in chosen]
+        shape = self._shape
+        # Only those rejected for what a neighbour explains: one that overhangs space seen
+        # empty is off along what it shows (channel seed 2404 frame 11: slid 27 mm along its
+        # length, free 0.07, it passed with a channel climbed beside it; 2141's, free 0.00).
+        supported = [supported[k] for k in self._clear_of(found, supported)[1]
+                     if not shape.overhangs(supported[k], depth_m, intrinsics)]
+        rejected = [rejected[k] for k in self._clear_of(found, rejected)[1]]
+        if not supported or not rejected:
+            return chosen
+        occluders = shape.instance_pixels(found, depth_m, intrinsics) if found \
+            else np.zeros(depth_m.shape, np.uint8)
+        rects = [shape.image_rect(T, intrinsics) for T in rejected]
+        starts = []
+        for P, beside in zip(supported, self._overlapping(supported, rejected)):
+            rect = shape.image_rect(P, intrinsics)
+            near = [k for k in range(len(rejected)) if not beside[k] and rect is not None
+                    and rects[k] is not None and rects_meet(rect, rects[k])]
+            if not near:
+                continue
+            hiding = np.maximum(occluders, shape.instance_pixels([P], depth_m, intrinsics))
+            scored = [(rejected[k], f) for k in near
+                      if (f := shape.climb_fit(rejected[k], hiding, depth_m, intrinsics)) is not None]
+            if not scored:
+                continue
+            poses = [T for T, _ in scored]
+            best = best_per_place(poses, self._overlapping(poses), 1, fit=[f for _, f in scored])
+            starts += [(T, hiding) for T in best]
+        if not starts:
+            return chosen
+        climbed = map_each(lambda s: shape.climbed(s[0], s[1], cloud, depth_m, intrinsics), starts)
+        return self._accept_pairs(chosen, supported + list(climbed), cloud, depth_m, intrinsics)
 
     def _supported(self, rejected, found, cloud, depth_m, intrinsics) -> list:
         """Of the ``rejected`` poses clear of the instances ``found``, those the depth

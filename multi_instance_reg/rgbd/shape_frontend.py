@@ -94,6 +94,9 @@ RESIDUAL_VOXELS = 1.5
 # 2251 / 2141); a fit at the image's edge with a third of its outline on a larger surface
 # (0.23, channel 2396 frame 6) left a distractor's remnant that voted a wrong pose which passed.
 SUPPORTED_EVIDENCE_SHARE = 0.5
+# ``climbed``: at most this many turned starts a pose (improvements and halvings of the turn:
+# channel seed 2141 frames 0-2 took 3-9).
+CLIMB_STEPS = 12
 
 
 @dataclass
@@ -864,6 +867,62 @@ class ShapeFrontEnd:
         best = max(starts, key=lambda c: c[0])
         T3 = self._icp(best[4], cloud, depth_m, intrinsics, 1.5 * self.voxel, self.fe.shape_icp_iterations - first)
         return max([best, fit(T3) + (T3,)], key=lambda c: c[0])
+
+    def hidden_fit(self, T, hiding: np.ndarray, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> tuple:
+        """``_fit`` at pose T with its points behind the depth where ``hiding`` is set taken
+        as hidden (``depth_support``'s occluders): (support - free, support, free, judged points)."""
+        support, free, n = depth_support(T, self._surface, self._surface_normals, depth_m, intrinsics,
+                                         self.tolerance_at(T), self._self_hiding, hiding)
+        return support - free, support, free, n
+
+    def overhangs(self, T, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> bool:
+        """Whether pose T overhangs space the depth shows empty (free share at least
+        ``SECOND_LOOK_MIN_FREE``, nothing taken as hidden): off along what it shows. An
+        instance in front can hide a pose's points and explain its outline, not that."""
+        return self._fit(T, depth_m, intrinsics)[2] >= SECOND_LOOK_MIN_FREE
+
+    def climb_fit(self, T, hiding: np.ndarray, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> float | None:
+        """``hidden_fit``'s support - free at pose T when ``climbed`` is worth a try from it,
+        else None: ``hiding`` hides some of it, and with those points hidden it passes the
+        held look's gate (``_rescue``: at least ``HELD_LOOK_MIN`` agrees and the rest
+        overhangs, support + free at least ``shape_min_support``: off along what it shows,
+        not through anything). Most of the fits the residual votes give beside a rejected
+        pose lie through it or the table (support 0.38-0.52 with its pixels hiding them,
+        free 0.31-0.61: channel seeds 2141 / 1607 / 2402)."""
+        score, support, free, n = self.hidden_fit(T, hiding, depth_m, intrinsics)
+        if support < HELD_LOOK_MIN or support + free < self.fe.shape_min_support:
+            return None
+        return score if n < self._fit(T, depth_m, intrinsics)[3] else None
+
+    def climbed(self, T, hiding: np.ndarray, cloud: FrameCloud, depth_m: np.ndarray,
+                intrinsics: CameraIntrinsics) -> np.ndarray:
+        """Pose T moved by turned starts (``_turned_start``) for as long as one agrees better
+        with the depth, its points behind ``hiding`` taken as hidden (``hidden_fit``), the
+        turn halved twice when none does; no further than the vote clusters' bounds from T
+        (``distinct``: a hypothesis is that close at best). For a pose half hidden by its
+        neighbour: nearest-point ICP cannot turn a channel lying flush beside another about
+        its top's normal (the top, seen alone, holds no turn in its plane, and the
+        neighbour's top goes on in that plane), and the support gate keeps the turned starts
+        of ``_rescue`` from it (channel seed 2141 frames 0-2: its fits voted over the
+        leftovers of the neighbour's rejected pose 2-12 deg off, support 0.55-0.63 with its
+        other half behind that neighbour; climbed with that neighbour's pixels hiding it,
+        1.0-2.9 deg and 3 mm off)."""
+        fit = lambda P: self.hidden_fit(P, hiding, depth_m, intrinsics)
+        best, score = T, fit(T)[0]
+        max_turn, max_shift = 360.0 / ANGLE_STEPS, 0.1 * self.diameter
+        degrees = self.fe.shape_turned_starts
+        for _ in range(CLIMB_STEPS):
+            moved = self._turned_start(best, degrees, fit, cloud, depth_m, intrinsics)
+            P = moved[4]
+            within = (rotation_angle_deg(P[:3, :3].T @ T[:3, :3]) <= max_turn
+                      and np.linalg.norm(P[:3, 3] - T[:3, 3]) <= max_shift)
+            if within and moved[0] > score:
+                best, score = P, moved[0]
+            elif degrees > 0.3 * self.fe.shape_turned_starts:
+                degrees *= 0.5
+            else:
+                break
+        return best
 
     def found_shares(self, poses, found, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> list[float]:
         """Per pose: of the model's visible points there that agree with the depth, the share
