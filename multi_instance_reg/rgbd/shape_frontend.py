@@ -871,8 +871,7 @@ class ShapeFrontEnd:
     def hidden_fit(self, T, hiding: np.ndarray, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> tuple:
         """``_fit`` at pose T with its points behind the depth where ``hiding`` is set taken
         as hidden (``depth_support``'s occluders): (support - free, support, free, judged points)."""
-        support, free, n = depth_support(T, self._surface, self._surface_normals, depth_m, intrinsics,
-                                         self.tolerance_at(T), self._self_hiding, hiding)
+        support, free, n = self.depth_check(T, depth_m, intrinsics, hiding)
         return support - free, support, free, n
 
     def overhangs(self, T, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> bool:
