@@ -1541,6 +1541,37 @@ def test_a_turned_start_icp_slides_off_is_judged_as_it_starts(monkeypatch):
     assert np.linalg.norm(second[0][0][:3, 3] - T[:3, 3]) < 0.002
 
 
+def test_a_pose_icp_could_not_better_gets_the_second_look_however_far_it_overhangs(monkeypatch):
+    """A bracket pose 11 deg / 8 mm off, overhanging (support - free 0.45: under the second
+    look's ``SECOND_LOOK_MIN``): where no ICP round bettered its start (ICP stubbed to stop
+    there, as it did on a crowded table: bracket seed 2462, four brackets 4-24 deg off at
+    support - free 0.21-0.58), the projective look is tried all the same and sets it right;
+    where ICP moved it (to a pose as far along, still rejected), it gets no look."""
+    from multi_instance_reg.rgbd.pipeline import PipelineConfig
+    from multi_instance_reg.rgbd.shape import apply_twist
+    from multi_instance_reg.rgbd.shape_frontend import SECOND_LOOK_MIN, ShapeFrontEnd
+
+    intr, T, mesh, depth = _bracket_before_a_wall()
+    off = apply_twist(T, np.array([0.0, np.radians(10.0), np.radians(5.0), 0.006, -0.005, 0.0]), T[:3, 3])
+    moved = apply_twist(T, np.array([0.0, np.radians(9.0), np.radians(4.5), 0.0055, -0.0045, 0.0]), T[:3, 3])
+    shape = ShapeFrontEnd(build_model_from_mesh(mesh, "bracket"), PipelineConfig().frontend)
+    cloud = shape.frame_cloud(depth, intr, None)
+    for P in (off, moved):
+        fit, support, free, _ = shape._fit(P, depth, intr)
+        assert free > 0.1 and fit < SECOND_LOOK_MIN
+    assert shape._fit(moved, depth, intr)[0] > shape._fit(off, depth, intr)[0]
+    for icp, looked in ((lambda T0, *a, **k: T0, True), (lambda T0, *a, **k: moved.copy(), False)):
+        monkeypatch.setattr(shape, "_icp", icp)
+        second = []
+        assert shape.refine_and_check([off], cloud, depth, intr, second=second) == []
+        if looked:
+            assert len(second) == 1
+            P = second[0][0]
+            assert rotation_angle_deg(P[:3, :3].T @ T[:3, :3]) < 1.0 and np.linalg.norm(P[:3, 3] - T[:3, 3]) < 0.002
+        else:
+            assert second == []
+
+
 def test_a_pose_still_rejected_after_its_second_look_is_handed_on_as_the_pose_the_depth_agrees_with_best(monkeypatch):
     """The second look moves a bracket pose 5 deg off onto the depth, and the checks still
     reject it (stubbed: as a bracket half behind a distractor is, by its hidden points):

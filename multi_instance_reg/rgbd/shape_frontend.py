@@ -817,6 +817,16 @@ class ShapeFrontEnd:
                 # its hidden points), rejected on the evidence by its hidden points alone; the
                 # pose ICP left then passed with them hidden (seed 5 frame 7).
                 T, support0 = T_look, support_look
+        elif (kept is None and fe.shape_second_look and self._self_hiding > 0 and free0 >= SECOND_LOOK_MIN_FREE
+              and T is T0):
+            # Overhanging, and no ICP round bettered the start (``_refine_plain`` kept T0): the
+            # nearest-point pairs led away from it, however far along it is. The projective
+            # look is the other way of aligning it; its pose is kept only where it passes
+            # (bracket seed 2462: four brackets 4-24 deg / 8-10 mm off, support - free 0.21-0.58,
+            # each set within 0.4 deg / 1 mm by the look).
+            T2, (score, support, free, n) = self._projective_look(T, depth_m, intrinsics)
+            if score > support0 - free0:
+                second = self._judge(T2, support, free, n, cloud, depth_m, intrinsics)
         if (kept is None and second is None and self._self_hiding > 0 and support0 >= HELD_LOOK_MIN
                 and support0 + free0 >= fe.shape_min_support and self._unheld(T0)[0].any()):
             # Still rejected, though most of it agrees with the depth and the rest overhangs
