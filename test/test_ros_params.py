@@ -31,6 +31,21 @@ def test_params_file_is_the_generated_one():
         "regenerate: python -m multi_instance_reg.ros.parameters > config/params.yaml"
 
 
+def test_the_faster_shape_setting_changes_known_parameters_within_their_ranges():
+    # config/shape_fast.yaml (README, "A faster setting"): read as the node and the tools read it.
+    from multi_instance_reg.tools.offline import load_config
+
+    fast = read_params_yaml(PARAMS_FILE.parent / "shape_fast.yaml")
+    defaults = read_params_yaml(PARAMS_FILE)
+    assert fast and set(fast) <= set(defaults)
+    assert all(fast[k] != defaults[k] and type(fast[k]) is type(defaults[k]) for k in fast)
+    specs = {s.name: s for s in all_specs()}
+    assert check_parameters(specs, [Parameter(k, value=v) for k, v in fast.items()]) is None
+    config = load_config(PARAMS_FILE.parent / "shape_fast.yaml")
+    assert config.frontend.shape_pose_clusters == fast["frontend.shape_pose_clusters"]
+    assert config.ecc.max_correspondences == fast["ecc.max_correspondences"]
+
+
 def test_descriptors_carry_type_description_and_range():
     specs = {s.name: s for s in all_specs()}
     d = descriptor(specs["ecc.inlier_thresh"])
