@@ -2457,7 +2457,7 @@ def test_a_channel_half_hidden_by_its_flush_neighbour_is_climbed_onto_its_pose_a
     refined = shape._refine(turned, cloud, depth, intr)
     assert refined[0] is None and not right(refined[1], 8.0, 0.01)
     hiding = shape.instance_pixels([near], depth, intr)
-    assert shape.hidden_fit(far, hiding, depth, intr)[3] < shape._fit(far, depth, intr)[3]     # near hides some of it
+    assert shape._fit(far, depth, intr, hiding)[3] < shape._fit(far, depth, intr)[3]     # near hides some of it
     assert shape.climb_fit(turned, hiding, depth, intr) is not None
     assert right(shape.climbed(turned, hiding, cloud, depth, intr))
     added = reg._accept_climbed_pairs([], [near], [turned], cloud, depth, intr)

@@ -33,7 +33,7 @@ from .lifting import backproject, lookup_depth, off_planes, support_planes, undi
 from .matching import DescriptorMatcher, prepare_descriptors
 from .model import ObjectModel
 from .guided import GuidedMatcher, guide_instances
-from .shape_frontend import ShapeFrontEnd, best_per_place, rects_meet, resolve_correspondences
+from .shape_frontend import ShapeFrontEnd, best_per_place, resolve_correspondences
 from .verify import free_space_share, surface_samples, texture_agreement
 from ..threads import limit_blas_threads, map_each, submit_each
 
@@ -555,10 +555,8 @@ class InstanceRegistration:
             # whose checks look where one of them is seen): a channel rejected on its outline
             # onto a flush neighbour found only by the residual votes (channel seed 2251 frames
             # 7 / 8) passes with it.
-            rects = [r for c in chosen if id(c) not in judged_with
-                     and (r := self._shape.image_rect(c[0], intrinsics)) is not None]
-            near = [T for T in rejected if (r := self._shape.image_rect(T, intrinsics)) is not None
-                    and any(rects_meet(r, other) for other in rects)]
+            meet = self._shape.rects_meeting(rejected, [c[0] for c in chosen if id(c) not in judged_with], intrinsics)
+            near = [T for T, row in zip(rejected, meet) if row.any()]
             if near:
                 chosen, _ = self._accept_behind(chosen, near, cloud, depth_m, intrinsics)
         return chosen
@@ -752,13 +750,11 @@ class InstanceRegistration:
             return chosen
         occluders = shape.instance_pixels(found, depth_m, intrinsics) if found \
             else np.zeros(depth_m.shape, np.uint8)
-        rects = [shape.image_rect(T, intrinsics) for T in rejected]
         starts = []
-        for P, beside in zip(supported, self._overlapping(supported, rejected)):
-            rect = shape.image_rect(P, intrinsics)
-            near = [k for k in range(len(rejected)) if not beside[k] and rect is not None
-                    and rects[k] is not None and rects_meet(rect, rects[k])]
-            if not near:
+        meet = shape.rects_meeting(supported, rejected, intrinsics)
+        for P, beside, meets in zip(supported, self._overlapping(supported, rejected), meet):
+            near = np.flatnonzero(meets & ~np.asarray(beside, bool))
+            if not len(near):
                 continue
             hiding = np.maximum(occluders, shape.instance_pixels([P], depth_m, intrinsics))
             scored = [(rejected[k], f) for k in near

@@ -709,9 +709,10 @@ class ShapeFrontEnd:
         dropped before), and the pose of its second look (or None)."""
         return self._rescue(self._refine_plain(T0, cloud, depth_m, intrinsics), cloud, depth_m, intrinsics)
 
-    def _fit(self, T, depth_m, intrinsics):
-        """(support - free, support, free, judged points) of pose T (``depth_support``)."""
-        support, free, n = self.depth_check(T, depth_m, intrinsics)
+    def _fit(self, T, depth_m, intrinsics, occluders: np.ndarray | None = None):
+        """(support - free, support, free, judged points) of pose T (``depth_check``; with
+        ``occluders``, its points behind the depth where they are set taken as hidden)."""
+        support, free, n = self.depth_check(T, depth_m, intrinsics, occluders)
         return support - free, support, free, n
 
     def _refine_plain(self, T0: np.ndarray, cloud: FrameCloud, depth_m: np.ndarray, intrinsics: CameraIntrinsics):
@@ -878,12 +879,6 @@ class ShapeFrontEnd:
         T3 = self._icp(best[4], cloud, depth_m, intrinsics, 1.5 * self.voxel, self.fe.shape_icp_iterations - first)
         return max([best, fit(T3) + (T3,)], key=lambda c: c[0])
 
-    def hidden_fit(self, T, hiding: np.ndarray, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> tuple:
-        """``_fit`` at pose T with its points behind the depth where ``hiding`` is set taken
-        as hidden (``depth_support``'s occluders): (support - free, support, free, judged points)."""
-        support, free, n = self.depth_check(T, depth_m, intrinsics, hiding)
-        return support - free, support, free, n
-
     def overhangs(self, T, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> bool:
         """Whether pose T overhangs space the depth shows empty (free share at least
         ``SECOND_LOOK_MIN_FREE``, nothing taken as hidden): off along what it shows. An
@@ -891,14 +886,14 @@ class ShapeFrontEnd:
         return self._fit(T, depth_m, intrinsics)[2] >= SECOND_LOOK_MIN_FREE
 
     def climb_fit(self, T, hiding: np.ndarray, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> float | None:
-        """``hidden_fit``'s support - free at pose T when ``climbed`` is worth a try from it,
+        """``_fit``'s support - free at pose T, ``hiding`` its occluders, when ``climbed`` is worth a try from it,
         else None: ``hiding`` hides some of it, and with those points hidden it passes the
         held look's gate (``_rescue``: at least ``HELD_LOOK_MIN`` agrees and the rest
         overhangs, support + free at least ``shape_min_support``: off along what it shows,
         not through anything). Most of the fits the residual votes give beside a rejected
         pose lie through it or the table (support 0.38-0.52 with its pixels hiding them,
         free 0.31-0.61: channel seeds 2141 / 1607 / 2402)."""
-        score, support, free, n = self.hidden_fit(T, hiding, depth_m, intrinsics)
+        score, support, free, n = self._fit(T, depth_m, intrinsics, hiding)
         if support < HELD_LOOK_MIN or support + free < self.fe.shape_min_support:
             return None
         return score if n < self._fit(T, depth_m, intrinsics)[3] else None
@@ -906,7 +901,7 @@ class ShapeFrontEnd:
     def climbed(self, T, hiding: np.ndarray, cloud: FrameCloud, depth_m: np.ndarray,
                 intrinsics: CameraIntrinsics) -> np.ndarray:
         """Pose T moved by turned starts (``_turned_start``) for as long as one agrees better
-        with the depth, its points behind ``hiding`` taken as hidden (``hidden_fit``), the
+        with the depth, its points behind ``hiding`` taken as hidden (``_fit``), the
         turn halved twice when none does; no further than the vote clusters' bounds from T
         (``distinct``: a hypothesis is that close at best). For a pose half hidden by its
         neighbour: nearest-point ICP cannot turn a channel lying flush beside another about
@@ -916,7 +911,7 @@ class ShapeFrontEnd:
         leftovers of the neighbour's rejected pose 2-12 deg off, support 0.55-0.63 with its
         other half behind that neighbour; climbed with that neighbour's pixels hiding it,
         1.0-2.9 deg and 3 mm off)."""
-        fit = lambda P: self.hidden_fit(P, hiding, depth_m, intrinsics)
+        fit = lambda P: self._fit(P, depth_m, intrinsics, hiding)
         best, score = T, fit(T)[0]
         max_turn, max_shift = 360.0 / ANGLE_STEPS, 0.1 * self.diameter
         degrees = self.fe.shape_turned_starts
@@ -1213,6 +1208,14 @@ class ShapeFrontEnd:
         u, v = K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2], K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]
         r = 1.5 * self.voxel * K[0, 0] / float(p[:, 2].min()) + 1.0
         return v.min() - r, v.max() + r, u.min() - r, u.max() + r
+
+    def rects_meeting(self, poses, others, intrinsics: CameraIntrinsics) -> np.ndarray:
+        """(len(poses), len(others)) bool: whether their image rectangles (``image_rect``)
+        meet; False where either has none."""
+        mine = [self.image_rect(T, intrinsics) for T in poses]
+        theirs = [self.image_rect(T, intrinsics) for T in others]
+        return np.array([[a is not None and b is not None and rects_meet(a, b) for b in theirs] for a in mine],
+                        bool).reshape(len(mine), len(theirs))
 
     def _meeting(self, rejected, idx, overlap: np.ndarray, limit: float, depth_m: np.ndarray,
                  intrinsics: CameraIntrinsics) -> tuple[list[tuple[int, int]], dict]:
