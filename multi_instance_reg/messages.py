@@ -151,9 +151,24 @@ def depth_to_metres(msg, depth_scale: float = 0.001) -> np.ndarray:
         raise InputError(f"depth image has encoding '{enc}'; expected 16UC1 (mm) or 32FC1 (m)")
     if enc == "32FC1":
         depth = arr.astype(np.float32, copy=True)
-        depth[~np.isfinite(depth) | (depth < 0)] = 0.0
+        invalid = ~np.isfinite(depth) | (depth < 0)
+        if invalid.any() and not np.any(depth[~invalid] > 0):
+            # Zeroed below, it would read "all zero" later: say what the camera sent.
+            raise InputError(f"depth image has no valid pixel ({no_depth_reason(arr)}); "
+                             "is the depth stream running and aligned to colour?")
+        depth[invalid] = 0.0
         return depth
     return arr.astype(np.float32) * np.float32(depth_scale)
+
+
+def no_depth_reason(depth: np.ndarray) -> str:
+    """Why a depth image without one pixel above zero has none, in a few words."""
+    non_finite = int(np.count_nonzero(~np.isfinite(depth)))
+    if non_finite == depth.size:
+        return "every pixel NaN or inf"
+    if non_finite:
+        return f"{non_finite} of {depth.size} pixels NaN or inf, the rest zero or negative"
+    return "all zero" if not np.any(depth) else "none above zero"
 
 
 def array_to_image_fields(arr: np.ndarray, encoding: str) -> dict:
@@ -197,6 +212,11 @@ def compressed_depth_fields(depth_mm: np.ndarray) -> dict:
     return {"format": "16UC1; compressedDepth png", "data": np.concatenate([head, buf.reshape(-1)])}
 
 
+# How many distortion coefficients OpenCV's undistortPoints takes per camera_info model
+# (fisheye: exactly 4); any other count fails there on every frame, so it is refused up front.
+_DISTORTION_COUNTS = {"plumb_bob": (4, 5, 8, 12, 14), "rational_polynomial": (8, 12, 14), "equidistant": (4,)}
+
+
 @dataclass(frozen=True)
 class CameraIntrinsics:
     """Pinhole intrinsics and distortion of one camera stream."""
@@ -220,8 +240,21 @@ def camera_info_to_intrinsics(msg) -> CameraIntrinsics:
     if d is None:
         d = getattr(msg, "D", ())
     K = np.asarray(k, dtype=np.float64).reshape(3, 3)
-    if not (K[0, 0] > 0 and K[1, 1] > 0 and np.all(np.isfinite(K))):
+    named = {"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2]}
+    not_finite = [f"{name}={value}" for name, value in named.items() if not np.isfinite(value)]
+    if not_finite or not np.all(np.isfinite(K)):
+        raise InputError(f"camera_info has a K that is not finite ({', '.join(not_finite) or f'k={list(K.reshape(-1))}'}); "
+                         "publish the camera's calibration")
+    if not (K[0, 0] > 0 and K[1, 1] > 0):
         raise InputError(f"camera_info has an invalid K (fx={K[0, 0]}, fy={K[1, 1]}); is the camera calibrated?")
     model = getattr(msg, "distortion_model", "") or "plumb_bob"
-    return CameraIntrinsics(K=K, width=int(msg.width), height=int(msg.height),
-                            D=np.asarray(d, dtype=np.float64), distortion_model=model)
+    D = np.asarray(d, dtype=np.float64).reshape(-1)
+    if not np.all(np.isfinite(D)):
+        raise InputError(f"camera_info has distortion coefficients that are not finite (d={list(D)}); "
+                         "publish the camera's calibration")
+    if np.any(D != 0) and len(D) not in _DISTORTION_COUNTS.get(model, _DISTORTION_COUNTS["plumb_bob"]):
+        counts = _DISTORTION_COUNTS.get(model, _DISTORTION_COUNTS["plumb_bob"])
+        raise InputError(f"camera_info has {len(D)} distortion coefficients for the {model} model; OpenCV takes "
+                         f"{', '.join(map(str, counts[:-1]))}{' or ' if len(counts) > 1 else ''}{counts[-1]}: "
+                         "publish the camera's full calibration (realsense-ros: 5, plumb_bob)")
+    return CameraIntrinsics(K=K, width=int(msg.width), height=int(msg.height), D=D, distortion_model=model)

@@ -44,6 +44,8 @@ def test_register_parameters_change_the_result(tmp_path):
 @pytest.mark.parametrize("content,message", [
     (None, "does not exist"),
     (b"not a zip", "not a readable .npz"),
+    (b"", "is empty (0 bytes)"),
+    (b"junk123", "not a zip archive"),
     ("missing_tgt", "no array(s) tgt"),
     ("bad_shape", "must be a numeric (N, 3) array"),
 ])
@@ -59,6 +61,7 @@ def test_register_bad_input_is_one_line_and_nonzero(tmp_path, content, message):
     assert p.returncode == 2
     assert message in p.stderr and len(p.stderr.strip().splitlines()) == 1, p.stderr
     assert "Traceback" not in p.stderr
+    assert str(path) in p.stderr and "pickled" not in p.stderr, p.stderr
 
 
 def test_out_of_range_parameter_is_rejected(tmp_path):

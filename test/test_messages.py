@@ -127,6 +127,61 @@ def test_uncalibrated_camera_info_is_refused():
         camera_info_to_intrinsics(info)
 
 
+
+def test_non_finite_principal_point_is_named_not_called_an_invalid_focal_length():
+    info = SimpleNamespace(k=[379.05, 0, float("nan"), 0, 378.68, 238.97, 0, 0, 1], d=[], width=640, height=480,
+                           distortion_model="plumb_bob")
+    with pytest.raises(InputError) as err:
+        camera_info_to_intrinsics(info)
+    message = str(err.value)
+    assert "cx" in message and "nan" in message and "fx=" not in message, message
+    assert len(message.splitlines()) == 1
+
+
+@pytest.mark.parametrize("model,count", [("plumb_bob", 3), ("rational_polynomial", 6), ("equidistant", 2)])
+def test_distortion_coefficients_opencv_cannot_take_are_refused_at_the_message(model, count):
+    info = SimpleNamespace(k=[379.05, 0, 321.89, 0, 378.68, 238.97, 0, 0, 1], d=[0.1, 0.01, 0.001, 0.002, 0.003, 0.004][:count],
+                           width=640, height=480, distortion_model=model)
+    with pytest.raises(InputError, match=f"{count} distortion coefficients") as err:
+        camera_info_to_intrinsics(info)
+    assert model in str(err.value) and "calibrat" in str(err.value)
+
+
+@pytest.mark.parametrize("model,count", [("plumb_bob", 5), ("plumb_bob", 4), ("plumb_bob", 8), ("rational_polynomial", 8),
+                                         ("equidistant", 4), ("plumb_bob", 0)])
+def test_distortion_coefficients_opencv_takes_are_used(model, count):
+    from multi_instance_reg.rgbd.lifting import undistort_pixels
+
+    info = SimpleNamespace(k=[379.05, 0, 321.89, 0, 378.68, 238.97, 0, 0, 1], d=[0.01] * count,
+                           width=640, height=480, distortion_model=model)
+    intr = camera_info_to_intrinsics(info)
+    assert undistort_pixels(np.array([[100.0, 50.0]]), intr).shape == (1, 2)
+
+
+def test_all_zero_distortion_of_any_length_is_no_distortion():
+    info = SimpleNamespace(k=[379.05, 0, 321.89, 0, 378.68, 238.97, 0, 0, 1], d=[0.0] * 3,
+                           width=640, height=480, distortion_model="plumb_bob")
+    assert not camera_info_to_intrinsics(info).has_distortion
+
+
+def test_all_nan_depth_is_called_what_it_is():
+    from multi_instance_reg.rgbd.pipeline import check_frame
+
+    info = SimpleNamespace(k=[379.05, 0, 321.89, 0, 378.68, 238.97, 0, 0, 1], d=[], width=6, height=4,
+                           distortion_model="plumb_bob")
+    for nan_depth in (np.full((4, 6), np.nan, np.float32), np.where(np.eye(4, 6) > 0, 0, np.nan).astype(np.float32)):
+        with pytest.raises(InputError) as err:   # the node converts, then checks the frame
+            check_frame(np.zeros((4, 6, 3), np.uint8), depth_to_metres(image_msg(nan_depth, "32FC1")),
+                        camera_info_to_intrinsics(info))
+        assert "NaN" in str(err.value) and "all zero" not in str(err.value), str(err.value)
+        assert "no valid pixel" in str(err.value)
+    with pytest.raises(InputError, match="every pixel NaN"):   # the same array given to the pipeline
+        check_frame(np.zeros((4, 6, 3), np.uint8), np.full((4, 6), np.nan, np.float32), camera_info_to_intrinsics(info))
+    zeros = depth_to_metres(image_msg(np.zeros((4, 6), np.uint16), "16UC1"))
+    with pytest.raises(InputError, match="all zero"):
+        check_frame(np.zeros((4, 6, 3), np.uint8), zeros, camera_info_to_intrinsics(info))
+
+
 # ---- compressed images (image_transport's compressed and compressedDepth) ------------------
 SMOOTH = np.dstack([np.tile(np.linspace(20, 230, 64, dtype=np.uint8), (48, 1)),
                     np.tile(np.linspace(200, 40, 48, dtype=np.uint8)[:, None], (1, 64)),

@@ -38,6 +38,7 @@ import cv2
 import numpy as np
 
 from ..errors import InputError
+from ..files import require_npz_archive
 from ..messages import CameraIntrinsics
 from ..transforms import apply_transform, invert_transform, make_transform
 from .features import SiftSettings, extract_sift
@@ -145,13 +146,7 @@ def model_name(stored: str, path) -> str:
 def load_model(path) -> ObjectModel:
     """Read and check a model file; InputError names what is wrong with it. The model's
     ``name`` is the stored one, or the file stem when none is stored (``model_name``)."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"model file {path} does not exist; build one with `mireg build-model`")
-    with open(path, "rb") as fh:
-        if fh.read(4) != b"PK\x03\x04":   # an npz is a zip archive
-            raise InputError(f"model file {path} is not a readable .npz (not a zip archive); "
-                             f"build one with `mireg build-model`")
+    path = require_npz_archive(path, "model file", "build one with `mireg build-model`")
     try:
         with np.load(path, allow_pickle=False) as npz:
             arrays = {k: npz[k] for k in npz.files}

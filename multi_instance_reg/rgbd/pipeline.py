@@ -25,7 +25,7 @@ from scipy.spatial.distance import cdist
 from ..core import ECC, ECCConfig
 from ..core.refinement import instance_scores, residuals
 from ..errors import InputError
-from ..messages import CameraIntrinsics
+from ..messages import CameraIntrinsics, no_depth_reason
 from ..params import param
 from ..transforms import apply_transform, rigid_fit
 from .features import SiftSettings, extract_sift_in_region
@@ -206,7 +206,8 @@ def check_frame(rgb: np.ndarray, depth_m: np.ndarray, intrinsics: CameraIntrinsi
         raise InputError(f"depth image is {depth_m.shape[1]}x{depth_m.shape[0]} but colour is "
                          f"{rgb.shape[1]}x{rgb.shape[0]}; register depth to colour (aligned_depth_to_color)")
     if not np.any(depth_m > 0):
-        raise InputError("depth image has no valid pixel (all zero); is the depth stream running and aligned to colour?")
+        raise InputError(f"depth image has no valid pixel ({no_depth_reason(depth_m)}); "
+                         "is the depth stream running and aligned to colour?")
     if (intrinsics.width, intrinsics.height) != (rgb.shape[1], rgb.shape[0]):
         raise InputError(f"camera_info is for {intrinsics.width}x{intrinsics.height} but the image is "
                          f"{rgb.shape[1]}x{rgb.shape[0]}; use the colour stream's camera_info")

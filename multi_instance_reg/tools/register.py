@@ -20,6 +20,7 @@ import numpy as np
 
 from ..core import ECC, ECCConfig, native
 from ..errors import InputError
+from ..files import require_npz_archive
 from ..threads import limit_blas_threads
 from ..params import param_specs, read_params_yaml, with_overrides
 
@@ -68,6 +69,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def load_correspondences(path) -> tuple[np.ndarray, np.ndarray]:
+    require_npz_archive(path, "correspondence file", "write it with numpy.savez(FILE, src=(N, 3) array, tgt=(N, 3) array)")
     try:
         with np.load(path, allow_pickle=False) as data:
             missing = [k for k in ("src", "tgt") if k not in data.files]
