@@ -44,6 +44,7 @@ Run: ``instance_registration_node --ros-args --params-file config/params.yaml
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import sys
 import threading
@@ -51,28 +52,33 @@ import time
 from collections import deque
 from dataclasses import asdict, dataclass
 
-import numpy as np
-import rclpy
-from rcl_interfaces.msg import SetParametersResult
-from rclpy.executors import ExternalShutdownException
-from rclpy.node import Node
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import CameraInfo, Image, Imu
-from geometry_msgs.msg import PoseArray
-from std_msgs.msg import String
-from visualization_msgs.msg import MarkerArray
+# Ctrl-C in the second or two these imports take ends the start quietly, like one later on.
+try:
+    import numpy as np
+    import rclpy
+    from rcl_interfaces.msg import SetParametersResult
+    from rclpy.executors import ExternalShutdownException
+    from rclpy.node import Node
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import CameraInfo, Image, Imu
+    from geometry_msgs.msg import PoseArray
+    from std_msgs.msg import String
+    from visualization_msgs.msg import MarkerArray
 
-from ..errors import InputError
-from ..gravity import AccelWindow, imu_accel
-from ..messages import array_to_image_fields, camera_info_to_intrinsics, colour_to_rgb, depth_to_metres
-from ..params import param_specs, with_overrides
-from . import conversions
-from .conversions import ObjectClass
-from .detections import DetectionPublisher
-from .parameters import (READ_ONLY, NodeSettings, all_specs, check_parameters, declare, node_settings, node_specs,
-                         tracking_specs)
-from .sync import ApproximateTimeSync, LatestSlot, stamp_to_ns
-from .transport import use_large_data_profile
+    from ..errors import InputError
+    from ..gravity import AccelWindow, imu_accel
+    from ..messages import array_to_image_fields, camera_info_to_intrinsics, colour_to_rgb, depth_to_metres
+    from ..params import param_specs, with_overrides
+    from . import conversions
+    from .conversions import ObjectClass
+    from .detections import DetectionPublisher
+    from .parameters import (READ_ONLY, NodeSettings, all_specs, check_parameters, declare, node_settings, node_specs,
+                             tracking_specs)
+    from .sync import ApproximateTimeSync, LatestSlot, stamp_to_ns
+    from .transport import use_large_data_profile
+except KeyboardInterrupt:
+    print("instance_registration: interrupted while starting", file=sys.stderr)
+    raise SystemExit(130) from None
 
 NODE_NAME = "instance_registration"
 # Relative names: `--ros-args -r __ns:=/left` moves inputs and outputs together (one node per
@@ -140,6 +146,7 @@ class InstanceRegistrationNode(Node):
         pipeline_values = declare(self, param_specs(PipelineConfig()))
         tracking_values = declare(self, tracking_specs(), READ_ONLY)
         self._specs = {s.name: s for s in all_specs()}
+        self._warn_unknown_parameters()
         self.settings = node_settings(node_values)
         self.config = with_overrides(PipelineConfig(), pipeline_values)
         live = {k: v for k, v in _tracker_fields(tracking_values).items() if k in LiveConfig.__dataclass_fields__}
@@ -156,7 +163,7 @@ class InstanceRegistrationNode(Node):
         # tracking it is the detector, behind the tracking of every frame (niced).
         self._niceness = self.settings.detector_niceness if tracking else 0
         self._pipelines = PipelineProcess.start_many(self.models, self.config, self.settings.pipeline_processes,
-                                                     niceness=self._niceness)
+                                                     niceness=self._niceness, keep_running=self.context.ok)
         self._tracker = LiveObjectTrackers(self.models, self.tracker_config, self.live_config) if tracking else None
         if tracking:
             from ..tracking.icp import warm_up
@@ -177,7 +184,11 @@ class InstanceRegistrationNode(Node):
         self._slot = LatestSlot()        # the detector's input: pairs, or frames already tracked
         self._track_slot = LatestSlot()  # the tracking thread's input (tracking on)
         self._intrinsics = None
+        self._camera_info_refused: str | None = None   # why the last camera_info was not taken
         self._have_intrinsics = threading.Event()
+        self._latest_stamps: list[int | None] = [None, None]   # colour, depth: for the pairing warning
+        self._unpaired_since_pair = [0, 0]
+        self._pairing_warned = False
         self._latencies = deque(maxlen=LATENCY_WINDOW)
         self._detection_latencies = deque(maxlen=LATENCY_WINDOW)  # pair complete -> detections fused
         self._last_detection: dict | None = None
@@ -220,6 +231,18 @@ class InstanceRegistrationNode(Node):
             f"({self.settings.qos_reliability}); tracking {'on' if self._tracker else 'off'}")
 
     # ---- parameters -------------------------------------------------------------------
+    def _warn_unknown_parameters(self) -> None:
+        """Once per name: a value from -p or a parameter file for a parameter this node does not
+        have (a typo, an older name) would otherwise be dropped without a word."""
+        import difflib
+
+        declared = set(self._parameters)
+        for name in sorted(set(self._parameter_overrides) - declared):
+            close = difflib.get_close_matches(name, sorted(declared), n=1, cutoff=0.75)
+            hint = f"did you mean {close[0]}? " if close else ""
+            self.get_logger().warn(f"unknown parameter {name} (ignored): {hint}config/params.yaml lists every "
+                                   "parameter of this node")
+
     def _load_models(self, files: list[str]):
         """(files, models) with every file loaded and checked (InputError naming the problem);
         a file loaded before and unchanged since gives the same model object."""
@@ -288,7 +311,7 @@ class InstanceRegistrationNode(Node):
             t0 = time.monotonic()
             try:
                 pipelines = PipelineProcess.start_many(models, self.config, len(self._pipelines),
-                                                       niceness=self._niceness)
+                                                       niceness=self._niceness, keep_running=self.context.ok)
             except InputError as exc:
                 self.get_logger().error(f"cannot load the new models, keeping the current ones: {exc}")
                 return
@@ -316,8 +339,10 @@ class InstanceRegistrationNode(Node):
     def _on_camera_info(self, msg: CameraInfo) -> None:
         try:
             self._intrinsics = camera_info_to_intrinsics(msg)
+            self._camera_info_refused = None
             self._have_intrinsics.set()
         except InputError as exc:
+            self._camera_info_refused = str(exc)
             self.get_logger().warn(f"ignoring camera_info: {exc}", throttle_duration_sec=5.0)
 
     def _subscribe_accel(self) -> None:
@@ -360,15 +385,36 @@ class InstanceRegistrationNode(Node):
                 self.counters.colour_received += 1
             else:
                 self.counters.depth_received += 1
-        pair = self._sync.add(stream, stamp_to_ns(msg.header.stamp), msg)
+        stamp = stamp_to_ns(msg.header.stamp)
+        pair = self._sync.add(stream, stamp, msg)
         if pair is None:
+            self._note_unpaired(stream, stamp)
             return
+        self._unpaired_since_pair = [0, 0]
         slot = self._slot if self._tracker is None else self._track_slot
         with self._counters_lock:
             self.counters.synchronised += 1
             self._sequence += 1
             if slot.put(_Pair(pair[0], pair[1], now, time.time_ns(), self._sequence)):
                 self.counters.dropped += 1
+
+    UNPAIRED_BEFORE_WARNING = 15   # images of each stream without a pair
+
+    def _note_unpaired(self, stream: int, stamp: int) -> None:
+        """Warn once when both streams keep arriving and never pair (their stamps further apart
+        than sync_slop_s: two clocks, a depth stream not aligned to colour, a bag with shifted
+        stamps), with how far apart they are."""
+        self._latest_stamps[stream] = stamp
+        self._unpaired_since_pair[stream] += 1
+        if self._pairing_warned or min(self._unpaired_since_pair) < self.UNPAIRED_BEFORE_WARNING:
+            return
+        self._pairing_warned = True
+        colour, depth = self._latest_stamps
+        self.get_logger().warn(
+            f"colour and depth images arrive but never pair: the latest depth stamp is {(depth - colour) / 1e6:+.0f} ms "
+            f"from the latest colour stamp, more than sync_slop_s ({self.settings.sync_slop_s * 1e3:g} ms) allows; "
+            "stamp both from one clock (realsense-ros: align_depth.enable:=true gives depth the colour stamp), "
+            "or raise sync_slop_s")
 
     # ---- the worker threads -----------------------------------------------------------
     def _work(self, index: int) -> None:
@@ -377,16 +423,28 @@ class InstanceRegistrationNode(Node):
             item = self._slot.take(timeout=0.5, fresher=self.settings.wait_for_fresher)
             if item is None:
                 continue
-            if isinstance(item, _Frame):
-                self._detect(item, index)
-            else:
-                self._process(item, index)
+            with self._ending_quietly():
+                if isinstance(item, _Frame):
+                    self._detect(item, index)
+                else:
+                    self._process(item, index)
 
     def _track_frames(self) -> None:
         while not self._track_slot.closed:
             pair = self._track_slot.take(timeout=0.5)
             if pair is not None:
-                self._track(pair)
+                with self._ending_quietly():
+                    self._track(pair)
+
+    @contextlib.contextmanager
+    def _ending_quietly(self):
+        """A frame under way when a signal shut the context down fails to publish (RCLError,
+        publisher's context invalid): the stop asked for, so the frame is dropped in silence."""
+        try:
+            yield
+        except Exception:
+            if self.context.ok():
+                raise
 
     def _count(self, name: str) -> None:
         with self._counters_lock:
@@ -396,15 +454,18 @@ class InstanceRegistrationNode(Node):
         """(rgb, depth in metres, intrinsics) of a pair, or None when it is skipped (counted)."""
         from ..rgbd.pipeline import check_frame
 
-        if self._intrinsics is None:
+        if self._intrinsics is None and self._camera_info_refused is None:
             # At start-up the first camera_info can trail the first images: a reliable reader
             # holds later samples back until a lost one is repaired (Fast DDS heartbeats: 3 s).
             self._have_intrinsics.wait(timeout=3.5)
         intrinsics = self._intrinsics
         if intrinsics is None:
             self._count("no_camera_info")
-            self.get_logger().warn(f"no camera_info received on {self.resolve_topic_name(CAMERA_INFO_TOPIC)} yet; "
-                                   "skipping frames until it arrives", throttle_duration_sec=5.0)
+            topic = self.resolve_topic_name(CAMERA_INFO_TOPIC)
+            refused = self._camera_info_refused
+            self.get_logger().warn(
+                f"skipping frames: the camera_info on {topic} is refused ({refused})" if refused else
+                f"no camera_info received on {topic} yet; skipping frames until it arrives", throttle_duration_sec=5.0)
             return None
         try:
             rgb = colour_to_rgb(pair.colour)
@@ -426,7 +487,7 @@ class InstanceRegistrationNode(Node):
                     result = self._pipelines[index].register(rgb, depth, intrinsics, self.config, gravity)
                     break
                 except PipelineClosed:   # the models were swapped meanwhile: the new process takes it
-                    if self._slot.closed:   # ... unless the node is shutting down
+                    if self._slot.closed or not self.context.ok():   # ... unless the node is shutting down
                         return None
         except InputError as exc:
             self._count("bad")
@@ -588,6 +649,13 @@ def _tracker_fields(values: dict) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:   # before rclpy took over the signals, or between its steps
+        return _stopped_while_starting()
+
+
+def _main(argv: list[str] | None) -> int:
     argv = sys.argv if argv is None else argv
     use_large_data_profile()
     try:
@@ -598,9 +666,19 @@ def main(argv: list[str] | None = None) -> int:
     try:
         node = InstanceRegistrationNode()
     except InputError as exc:
+        if not rclpy.ok():   # e.g. a parameter's declaration refused by the context a signal shut down
+            return _stopped_while_starting()
         print(f"{NODE_NAME}: error: {exc}", file=sys.stderr)
         rclpy.try_shutdown()
         return 1
+    except (KeyboardInterrupt, ExternalShutdownException):
+        return _stopped_while_starting()
+    except Exception:
+        # A signal shuts the context down under the constructor: its next publisher or
+        # subscription fails (RCLError). That is the stop asked for, not an error.
+        if rclpy.ok():
+            raise
+        return _stopped_while_starting()
     try:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
@@ -611,9 +689,19 @@ def main(argv: list[str] | None = None) -> int:
         if rclpy.ok():
             raise
     finally:
+        if not rclpy.ok():   # printed: the node's logger would try rosout, shut down with the context
+            print(f"{NODE_NAME}: interrupted, stopping", file=sys.stderr, flush=True)
         node.destroy_node()
         rclpy.try_shutdown()
     return 0
+
+
+def _stopped_while_starting() -> int:
+    """Ctrl-C or SIGTERM before the node was up: one line, the detector processes already closed
+    (PipelineProcess.start_many) or ended with this process (daemons)."""
+    print(f"{NODE_NAME}: interrupted while starting", file=sys.stderr, flush=True)
+    rclpy.try_shutdown()
+    return 130
 
 
 if __name__ == "__main__":
