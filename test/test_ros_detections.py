@@ -200,18 +200,14 @@ def test_two_nodes_in_two_namespaces_each_follow_their_own_camera(model, tmp_pat
         assert f"listening on {ns}/camera/camera/color/image_raw" in out, out
 
 
-def test_without_vision_msgs_the_node_runs_and_says_once_why_detections_are_off(tmp_path, model):
+def run_without_detections(env, domain: int, model) -> str:
+    """The node in ``env``: it must publish poses but no detections; returns its output."""
     from geometry_msgs.msg import PoseArray
 
-    # A vision_msgs that fails to import, first on the path: as on a machine without it.
-    (tmp_path / "vision_msgs").mkdir()
-    (tmp_path / "vision_msgs" / "__init__.py").write_text("raise ImportError('hidden by the test')\n")
-    env = ros_env(95)
-    env["PYTHONPATH"] = str(tmp_path) + os.pathsep + env["PYTHONPATH"]
     proc = subprocess.Popen([sys.executable, "-m", "multi_instance_reg.ros.node", "--ros-args",
                              "-p", f"model_path:={model}", "-p", UNTRACKED], env=env, cwd=REPO, stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
-    probe = Probe(95)
+    probe = Probe(domain)
     try:
         poses = probe.subscribe(PoseArray, "/instances/poses")
         camera = CameraPublisher(probe)
@@ -225,7 +221,37 @@ def test_without_vision_msgs_the_node_runs_and_says_once_why_detections_are_off(
     finally:
         probe.close()
         out = stop(proc)
+    assert "Traceback" not in out, out
+    return out
+
+
+def test_without_vision_msgs_the_node_runs_and_says_once_why_detections_are_off(tmp_path, model):
+    # A vision_msgs that fails to import, first on the path: as on a machine without it.
+    (tmp_path / "vision_msgs").mkdir()
+    (tmp_path / "vision_msgs" / "__init__.py").write_text("raise ImportError('hidden by the test')\n")
+    env = ros_env(95)
+    env["PYTHONPATH"] = str(tmp_path) + os.pathsep + env["PYTHONPATH"]
+    out = run_without_detections(env, 95, model)
     assert out.count("instances/detections is off: vision_msgs is not installed (hidden by the test)") == 1, out
+
+
+def test_when_vision_msgs_type_support_cannot_load_the_node_runs_and_says_once_why(tmp_path, model):
+    """vision_msgs' Python package imports but its C libraries are not found: the node started
+    from a program whose LD_LIBRARY_PATH names another ROS's libraries (here: this venv's without
+    vision_msgs), which the ROS wheels' bootstrap then leaves as it is."""
+    other_ros = tmp_path / "other_ros_lib"
+    other_ros.mkdir()
+    venv_lib = Path(sys.prefix) / "lib"
+    for lib in venv_lib.glob("lib*.so*"):
+        if not lib.name.startswith("libvision_msgs"):
+            (other_ros / lib.name).symlink_to(lib)
+    env = ros_env(96)
+    env["LD_LIBRARY_PATH"] = os.pathsep.join(str(other_ros) if part == str(venv_lib) else part
+                                             for part in env.get("LD_LIBRARY_PATH", "").split(os.pathsep))
+    env["_ROS_WHEELS_BOOTSTRAP_COMPLETE"] = "1"
+    out = run_without_detections(env, 96, model)
+    lines = [line for line in out.splitlines() if "instances/detections is off" in line]
+    assert len(lines) == 1 and "type support" in lines[0] and "LD_LIBRARY_PATH" in lines[0], out
 
 
 # ---- the message contents without DDS --------------------------------------------------------

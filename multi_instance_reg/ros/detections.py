@@ -24,12 +24,36 @@ LABEL_INFO_TOPIC = "instances/label_info"
 
 
 def vision_msgs_missing() -> str | None:
-    """None when vision_msgs' Python messages import, else why not (one line)."""
+    """None when vision_msgs' messages can be published, else why not and what to do (one line).
+    Its Python package may import while its C type support does not load: the node started
+    with an LD_LIBRARY_PATH that names another ROS's libraries (rclpy would refuse the
+    publisher with UnsupportedTypeSupport)."""
     try:
-        from vision_msgs.msg import Detection3DArray, LabelInfo  # noqa: F401
+        from vision_msgs.msg import Detection3DArray, LabelInfo
     except ImportError as exc:
-        return f"{exc}"
+        return (f"vision_msgs is not installed ({exc}); install ROS' ros-jazzy-vision-msgs, or run `make install` "
+                "(builds it into the venv)")
+    try:
+        for msg_type in (Detection3DArray, LabelInfo):
+            msg_type.__class__.__import_type_support__()
+    except Exception as exc:   # rosidl's UnsupportedTypeSupport, or an ImportError of the C library
+        return (f"vision_msgs imports but its type support cannot be loaded ({exc}); "
+                f"{_vision_msgs_library_hint()}")
     return None
+
+
+def _vision_msgs_library_hint() -> str:
+    import os
+    import sys
+    from pathlib import Path
+
+    name = "libvision_msgs__rosidl_typesupport_c.so"
+    prefixes = [sys.prefix, *os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep)]
+    found = next((Path(p) / "lib" for p in prefixes if p and (Path(p) / "lib" / name).is_file()), None)
+    if found is not None:
+        return (f"put {found} on LD_LIBRARY_PATH (it holds {name}; the program that started this one set "
+                "LD_LIBRARY_PATH without it)")
+    return f"LD_LIBRARY_PATH must reach {name}: source the ROS install that has vision_msgs"
 
 
 def detection_array(instances, header, objects: dict[str, ObjectClass]):
@@ -94,9 +118,7 @@ class DetectionPublisher:
     def create(cls, node, qos, objects: list[ObjectClass]) -> "DetectionPublisher | None":
         missing = vision_msgs_missing()
         if missing is not None:
-            node.get_logger().warn(
-                f"{DETECTIONS_TOPIC} is off: vision_msgs is not installed ({missing}); install ROS' "
-                "ros-jazzy-vision-msgs, or run `make install` (builds it into the venv)")
+            node.get_logger().warn(f"{DETECTIONS_TOPIC} is off: {missing}")
             return None
         return cls(node, qos, objects)
 
