@@ -11,21 +11,28 @@ from multi_instance_reg.rgbd.model import load_model, save_model
 
 from test_offline_cli import cli, one_line_error
 
+# Its module fixture (mixed_replays) runs `mireg offline`: one pytest-xdist worker takes the whole module, so
+# that it runs once.
+pytestmark = pytest.mark.xdist_group("test_multi_model")
+
 
 @pytest.fixture(scope="session")
-def can_model(bag_dir):
+def can_model(built_once):
     from multi_instance_reg.tools.bench_frames import generate_capture_bags, model_from_captures
 
-    captures = generate_capture_bags(bag_dir / "can_captures", "can", seed=0, views=8, poses=("+z", "-z", "+y"))
-    return save_model(model_from_captures(captures), bag_dir / "can.npz")
+    def build(folder):
+        captures = generate_capture_bags(folder / "can_captures", "can", seed=0, views=8, poses=("+z", "-z", "+y"))
+        return save_model(model_from_captures(captures), folder / "can.npz")
+    return built_once("can_model", build)
 
 
 @pytest.fixture(scope="session")
-def mixed_bag(bag_dir):
+def mixed_bag(built_once):
     """Two tabletop scenes with 3 snack boxes and 3 cans each (plus 3 distractors), 2 frames each."""
     from multi_instance_reg.tools.bench_frames import generate_benchmark_bag
 
-    return generate_benchmark_bag(bag_dir / "mixed", ["snack_box", "can"], scenes=2, frames=2, seed=0, instances_each=3)
+    return built_once("mixed_bag", lambda folder: generate_benchmark_bag(
+        folder / "mixed", ["snack_box", "can"], scenes=2, frames=2, seed=0, instances_each=3))
 
 
 def test_mixed_scene_names_each_instance_and_single_object_scenes_stay_as_they_were():

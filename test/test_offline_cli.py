@@ -9,6 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+# Its module fixture (replay) runs `mireg offline`: one pytest-xdist worker takes the whole module, so
+# that it runs once.
+pytestmark = pytest.mark.xdist_group("test_offline_cli")
+
 COLOUR, DEPTH, INFO = ("/camera/camera/color/image_raw", "/camera/camera/aligned_depth_to_color/image_raw",
                        "/camera/camera/color/camera_info")
 

@@ -6,6 +6,10 @@ import sys
 
 import pytest
 
+# Its module fixture (pan_run) runs `mireg offline`: one pytest-xdist worker takes the whole module, so
+# that it runs once.
+pytestmark = pytest.mark.xdist_group("test_offline_tracking")
+
 
 @pytest.fixture(scope="module")
 def pan_run(object_model, tmp_path_factory):

@@ -10,6 +10,9 @@ from rosbags.typesys import Stores, get_typestore
 from multi_instance_reg.messages import array_to_image_fields, colour_to_rgb
 from ros_testing import Probe, ros_env, start, stop, wait_until
 
+# Its tests share ROS_DOMAIN_ID 41: one pytest-xdist worker runs them one after the other.
+pytestmark = pytest.mark.xdist_group("ros_domain_41")
+
 TOPIC_IMAGE = "/camera/camera/color/image_raw"
 TOPIC_TEXT = "/ground_truth/object"
 PERIOD_NS = 100_000_000  # 10 Hz: timing differences are easy to see

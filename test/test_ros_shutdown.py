@@ -115,12 +115,14 @@ def test_ctrl_c_while_detecting_ends_quietly_without_restarting_the_detector(mod
     assert not group_alive(proc.pid), group_members(proc.pid)
 
 
-@pytest.mark.parametrize("sig,after_s", [(signal.SIGINT, 0.5), (signal.SIGINT, 2.0), (signal.SIGINT, 3.5),
-                                         (signal.SIGTERM, 2.5), (signal.SIGTERM, 4.0)])
-def test_a_signal_while_starting_ends_quietly(model, sig, after_s):
+@pytest.mark.parametrize("domain,sig,after_s", [(102, signal.SIGINT, 0.5), (106, signal.SIGINT, 2.0),
+                                                (107, signal.SIGINT, 3.5), (108, signal.SIGTERM, 2.5),
+                                                (109, signal.SIGTERM, 4.0)])
+def test_a_signal_while_starting_ends_quietly(model, domain, sig, after_s):
     # The node's start-up: imports (~1-2 s), the detector process spawned and warmed up, the
-    # publishers created; a signal may come in any of them.
-    proc = start_in_group(102, model)
+    # publishers created; a signal may come in any of them. A domain per case: the cases may
+    # run at once (pytest-xdist).
+    proc = start_in_group(domain, model)
     time.sleep(after_s)
     if proc.poll() is None:
         os.killpg(proc.pid, sig)
