@@ -23,16 +23,17 @@ def _rays():
 def test_box_pixels_follow_its_centre_size_and_turn():
     depth = np.full((240, 320), 1.0, np.float32)                 # a wall 1 m away
     depth[:, :10] = 0.0                                          # no depth there
-    ws = Workspace.from_config(WorkspaceConfig(centre_x=0.2, centre_z=1.0, size_x=0.2, size_y=0.1, size_z=0.1))
+    ws = Workspace.from_config(WorkspaceConfig(centre_x=0.2013, centre_z=1.0, size_x=0.2, size_y=0.1013, size_z=0.1))
     inside = ws.pixels(depth, INTR)
     p = _rays() * depth[..., None]
-    expected = (np.abs(p[..., 0] - 0.2) <= 0.1) & (np.abs(p[..., 1]) <= 0.05) & (depth > 0)
+    expected = (np.abs(p[..., 0] - 0.2013) <= 0.1) & (np.abs(p[..., 1]) <= 0.05065) & (depth > 0)
     assert inside.sum() > 1000 and np.array_equal(inside, expected)
+    assert not inside[:, :10].any()
     # Turned a quarter about the optical axis: the box's x side now runs down the image.
-    turned = Workspace.from_config(replace(WorkspaceConfig(centre_x=0.2, centre_z=1.0, size_x=0.2, size_y=0.1,
+    turned = Workspace.from_config(replace(WorkspaceConfig(centre_x=0.2013, centre_z=1.0, size_x=0.2, size_y=0.1013,
                                                            size_z=0.1), yaw_deg=90.0)).pixels(depth, INTR)
-    expected = (np.abs(p[..., 0] - 0.2) <= 0.05) & (np.abs(p[..., 1]) <= 0.1)
-    assert turned.sum() > 1000 and np.sum(turned != expected) <= 0.02 * expected.sum()   # edge pixels: rounding
+    expected = (np.abs(p[..., 0] - 0.2013) <= 0.05065) & (np.abs(p[..., 1]) <= 0.1)
+    assert turned.sum() > 1000 and np.array_equal(turned, expected)
     # Nearer than the box: nothing.
     assert not ws.pixels(np.full((240, 320), 0.5, np.float32), INTR).any()
 

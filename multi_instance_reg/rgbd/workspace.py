@@ -76,14 +76,6 @@ class Workspace:
             size = [config.size_x, config.size_y, config.size_z]
         return Workspace(T, size, read_mask(config.mask) if config.mask else None)
 
-    def contains(self, points: np.ndarray) -> np.ndarray:
-        """(N,) bool: camera-frame points (N, 3) inside the box (all True without one)."""
-        p = np.asarray(points, np.float64).reshape(-1, 3)
-        if self.T_box is None:
-            return np.ones(len(p), bool)
-        local = (p - self.T_box[:3, 3]) @ self.T_box[:3, :3]
-        return np.all(np.abs(local) <= self.half, axis=1)
-
     def pixels(self, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> np.ndarray:
         """(H, W) bool: the pixels whose depth puts their point inside the box and that the
         mask allows (pixels without depth: False)."""
@@ -95,12 +87,27 @@ class Workspace:
                                  f"{w}x{h}; draw it on a colour image of the camera")
             inside &= self.mask
         if self.T_box is not None:
-            v, u = np.nonzero(inside)
-            K = intrinsics.K
-            z = depth_m[v, u].astype(np.float64)
-            p = np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], axis=1)
-            inside[v, u] = self.contains(p)
+            # In the box's frame a pixel's point is z R^T ray - R^T c: per pixel three
+            # multiply-adds on rays turned once per camera (float32: 2-3 ms a VGA frame).
+            turned, offset = self._turned_rays(intrinsics)
+            z = depth_m.astype(np.float32, copy=False)
+            for axis in range(3):
+                inside &= np.abs(z * turned[axis] - offset[axis]) <= np.float32(self.half[axis])
         return inside
+
+    def _turned_rays(self, intrinsics: CameraIntrinsics):
+        """((3, H, W) float32 each pixel's ray (x, y, 1) in the box's axes, (3,) the box
+        centre in them), kept per camera."""
+        key = (intrinsics.width, intrinsics.height, tuple(np.asarray(intrinsics.K, np.float64).ravel()))
+        if getattr(self, "_rays_key", None) != key:
+            K = intrinsics.K
+            v, u = np.mgrid[0:intrinsics.height, 0:intrinsics.width]
+            rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones(u.shape)])
+            R = self.T_box[:3, :3]
+            self._rays = np.einsum("ij,jhw->ihw", R.T, rays).astype(np.float32)
+            self._offset = (R.T @ self.T_box[:3, 3]).astype(np.float32)
+            self._rays_key = key
+        return self._rays, self._offset
 
     def corners(self) -> np.ndarray:
         """(8, 3) the box's corners in its own frame, in ``ObjectModel.box_corners``' order."""
