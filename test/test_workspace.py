@@ -143,3 +143,42 @@ def test_search_deadline_stops_refining_and_says_so(cylinder_model):
     spent = InstanceRegistration(cylinder_model, replace(PipelineConfig(), frontend=replace(fe, shape_deadline_ms=1e-6)))
     cut = spent.register_frame(rgb, depth, INTR)
     assert cut.deadline_cut and len(cut.instances) < len(result.instances)
+
+
+def test_offline_reads_the_workspace_draws_it_and_counts_deadline_cuts(tmp_path):
+    """`mireg offline` as a user runs it: the workspace from the parameter file (a box where
+    no cylinder stands: nothing found, the box drawn in the overlay), and a spent deadline
+    counted in metrics.json and on the summary line."""
+    import json
+    import subprocess
+    import sys
+
+    mireg = [sys.executable, "-m", "multi_instance_reg.tools.cli"]
+    bag, mesh, model = tmp_path / "cyl", tmp_path / "cyl.ply", tmp_path / "cyl.npz"
+    for args in (["synth", "untextured", "-o", bag, "--preset", "cylinders", "--instances", "4", "--frames", "2",
+                  "--seed", "3", "--mesh", mesh], ["build-model", "--mesh", mesh, "-o", model]):
+        run = subprocess.run(mireg + [str(a) for a in args], capture_output=True, text=True)
+        assert run.returncode == 0, run.stderr
+
+    def offline(name, params):
+        (tmp_path / f"{name}.yaml").write_text("instance_registration:\n  ros__parameters:\n" + params)
+        run = subprocess.run(mireg + ["offline", str(bag), "--model", str(model), "-o", str(tmp_path / name),
+                                      "--no-tracking", "--quiet", "--overlays", "1",
+                                      "--params", str(tmp_path / f"{name}.yaml")], capture_output=True, text=True)
+        assert run.returncode == 0, run.stderr
+        return json.loads((tmp_path / name / "metrics.json").read_text()), run.stderr
+
+    # A box in the air 40 cm in front of the camera: no object in it.
+    metrics, _ = offline("box", "    workspace:\n      centre_x: 0.05\n      centre_z: 0.4\n"
+                                "      size_x: 0.1\n      size_y: 0.1\n      size_z: 0.1\n")
+    assert metrics["gt"] > 0 and metrics["est"] == 0 and metrics["deadline_cut_frames"] == 0
+    overlay = cv2.imread(str(next((tmp_path / "box").glob("overlay_*.png"))))
+    b, g, r = (overlay[..., k].astype(int) for k in range(3))
+    assert np.sum((r > 200) & (g > 100) & (g < 180) & (b < 80)) > 100    # the box's orange edges
+    metrics, line = offline("spent", "    frontend:\n      shape_deadline_ms: 0.000001\n")
+    assert metrics["deadline_cut_frames"] == 2 and "cut 2 of them" in line
+    bad, _ = tmp_path / "bad.yaml", None
+    bad.write_text("instance_registration:\n  ros__parameters:\n    workspace:\n      mask: /nonexistent/m.png\n")
+    run = subprocess.run(mireg + ["offline", str(bag), "--model", str(model), "-o", str(tmp_path / "bad"),
+                                  "--params", str(bad)], capture_output=True, text=True)
+    assert run.returncode == 2 and run.stderr.strip().count("\n") == 0 and "workspace mask" in run.stderr
