@@ -39,7 +39,6 @@ from ..params import param
 from ..transforms import invert_transform, rotation_angle_deg
 from ..rgbd.shape import apply_twist as twist_step
 from .icp import ProjectiveICP
-from .odometry import rigid_fit
 
 _log = logging.getLogger(__name__)
 
@@ -385,8 +384,9 @@ class InstanceTracker:
         motion D takes every track onto its object's detection: no motion and each (track,
         detection) pair propose one (the detection turned by the symmetry nearest the track);
         the one that brings most tracks within gate_distance of a detection wins (then the
-        nearer), refitted to all it pairs. It must pair at least two tracks: no camera motion
-        is made of one pair."""
+        nearer), refitted to all it pairs. It must pair at least two tracks (no camera motion
+        is made of one pair), and more than the tracks as they are: where those pair, the
+        detections correct them one by one."""
         c = self.config
         if len(poses) < 2 or len(dets) < 2:
             return None
@@ -401,21 +401,28 @@ class InstanceTracker:
             ok = d <= c.gate_distance
             return (int(ok.sum()), -float(d[ok].sum())), np.flatnonzero(ok), j[ok]
 
-        best = (np.eye(4),) + paired(np.eye(4))
+        identity = np.eye(4)
+        best = (identity,) + paired(identity)
+        identity_n = best[1][0]
         for T in poses:
             for det in dets:
-                T_det, _ = self._closest_symmetric(proper_pose(det.T), T)
-                D = T_det @ invert_transform(T)
+                D = self._closest_symmetric(proper_pose(det.T), T)[0] @ invert_transform(T)
                 if rotation_angle_deg(D[:3, :3]) > MAX_CAMERA_TURN_DEG:
                     continue
                 score, rows, cols = paired(D)
                 if score > best[1]:
                     best = (D, score, rows, cols)
         D, (n, _), rows, cols = best
-        if n < 2:
+        if n < 2 or D is identity or n == identity_n:
             return None
-        if len(rows) >= 3:
-            D = rigid_fit(pos_t[rows], pos_d[cols])
+        # Refitted to every pair it makes: the mean of the turns the pairs' orientations give
+        # (their positions alone would leave the turn about a row of objects free), then the
+        # mean of the shifts that turn leaves.
+        turns = [self._closest_symmetric(proper_pose(dets[k].T), poses[r])[0][:3, :3] @ poses[r][:3, :3].T
+                 for r, k in zip(rows, cols)]
+        R = Rotation.from_matrix(np.array(turns)).mean().as_matrix()
+        D = np.eye(4)
+        D[:3, :3], D[:3, 3] = R, np.mean(pos_d[cols] - pos_t[rows] @ R.T, axis=0)
         return D
 
     def _correct(self, tr: Track, T_then: np.ndarray, det, stamp_ns: int) -> None:
@@ -448,16 +455,15 @@ class InstanceTracker:
         # small gain, not a jump for the depth to decide. (Static + arm sequences: one
         # 5-9-inlier detection 6-7 deg off had turned a settled track for 1-15 frames.)
         spread = np.sqrt(max(1.0, self._detection_variance(det.inliers))) if c.smoothing > 0 else 1.0
-        far = not self._detections_win and (
-            np.linalg.norm(step[3:]) > c.icp_max_step
-            or (not flipped and np.degrees(np.linalg.norm(step[:3])) > c.icp_max_step_deg * spread))
-        if tr.state != TENTATIVE and far:
+        far = (np.linalg.norm(step[3:]) > c.icp_max_step
+               or (not flipped and np.degrees(np.linalg.norm(step[:3])) > c.icp_max_step_deg * spread))
+        if tr.state != TENTATIVE and far and not self._detections_win:
             # A detection far from a confirmed track, in position or orientation, may be a bad
             # one (few inliers on an object half hidden by an arm): the depth decides between
             # the two (_align).
             tr.T_before_jump = tr.T.copy()
             tr.far_detections += 1
-        elif tr.state != TENTATIVE and c.smoothing > 0 and not flipped:
+        elif tr.state != TENTATIVE and c.smoothing > 0 and not flipped and not far:
             # An agreeing detection: pull part of the way. The ICP (_align) re-fits what the
             # depth constrains, so this filters the rest, which the depth leaves at the track.
             # A Kalman gain: the first detections of a track are averaged, weak ones pull
@@ -465,7 +471,7 @@ class InstanceTracker:
             gain = self._pull_gain(tr, det.inliers)
             T_new = proper_pose(local_step(tr.T, gain * step))
             tr.pulled = gain
-        if not far:
+        if not far or self._detections_win:
             tr.far_detections = 0
             if not tr.pulled:
                 self._reset_pull(tr, det.inliers)     # the track is reset to this detection
@@ -602,8 +608,7 @@ class InstanceTracker:
             # Evidence on this frame: the depth confirms it, or a detection does and the depth
             # does not contradict it (a new track that only its detection vouches for is
             # published with publish_tentative).
-            tr.evidence = seen[tr.track_id] and (tr.state != TENTATIVE or tr.track_id in depth_ok
-                                                 or self._icp is None or depth_m is None or c.publish_tentative)
+            tr.evidence = seen[tr.track_id] and (tr.state != TENTATIVE or tr.track_id in depth_ok or c.publish_tentative)
             if seen[tr.track_id]:
                 tr.last_seen_ns = stamp_ns
                 if tr.state == COASTING:
