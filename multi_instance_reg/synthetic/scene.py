@@ -10,6 +10,12 @@ Python API (what tests, the demo and the tools call):
   some are occluded or leave the view. For tracking, ``motion="static"`` holds the camera
   still, ``motion="pan"`` pans it slowly along objects spread in a strip (instances enter and
   leave the view), and ``occluder=True`` passes an arm in front (``occluder_path``).
+  As recorded bags are (tracker benchmark, issue 35): ``motion="shaky_pan"`` a hand-held
+  30 deg arc in 5 s with shake new in every frame (``ShakyPanPlan``), ``motion="jumps"`` an
+  arm moving in bursts of 3-8 deg per 1/30 s (``jumps_trajectory``); ``frame_rate`` (Hz,
+  default 30: the paths are functions of time, so each frame moves further at a lower
+  rate), ``drop`` (share of frames left out in runs of 1-3: gaps in the stamps) and ``loop``
+  (the frames twice, the stamps jumping back once; ``frame_timeline``).
   ``object_name`` may also be a list of names (a mixed scene): K instances of each, labelled
   object after object (the first object's K, then the next's); ``SyntheticScene.instance_objects``
   names each instance's object, and /ground_truth/object carries it as ``instance_objects``.
@@ -24,7 +30,7 @@ Python API (what tests, the demo and the tools call):
   distractor), ``visibility`` (K,) visible fraction of each instance's silhouette, ``stamp_ns``.
 - ``generate_scene_bag(out_path, object_name=..., instances=..., distractors=..., frames=...,
   seed=..., storage="sqlite3", resolution="640x480", preview_dir=None, motion="sweep",
-  occluder=False) -> BagSummary`` and
+  occluder=False, frame_rate=30.0, drop=0.0, loop=False) -> BagSummary`` and
   ``generate_capture_bag(out_path, object_name, seed=0, views=10, ...)``: the same written as a
   rosbag2 with realsense-ros topics plus /ground_truth/{poses,object,visibility}
   (:mod:`multi_instance_reg.datasets.bag_writer`).
@@ -60,7 +66,9 @@ _DISTRACTOR_LABEL0 = 1000        # internal render labels of distractors (and of
 TABLE_HALF_X = 1.6
 TABLE_FRONT_Y = -2.4
 MIN_CAMERA_CLEARANCE_M = 0.32    # camera to any object surface (the depth minimum is 0.3 m)
-MOTIONS = ("sweep", "static", "pan")
+MOTIONS = ("sweep", "static", "pan", "shaky_pan", "jumps")
+MIN_FRAME_RATE_HZ, MAX_FRAME_RATE_HZ = 1.0, 90.0
+MAX_DROP = 0.5                   # share of the frames that ``drop`` may leave out
 # The accelerometer (sensor_msgs/Imu on realsense-ros' accel/sample topic): a D455 samples it
 # at 100 or 200 Hz (63 / 250 on units made before mid 2022). 200 Hz: 6-7 messages of ~330
 # bytes per frame, nothing beside a frame's 1.5 MB of images.
@@ -330,8 +338,9 @@ def _view_centre_and_distance(placements: list[Placement], rng) -> tuple[np.ndar
     return centre, min(max(rng.uniform(0.6, 0.75), 0.9 * spread), 1.2)
 
 
-def sweep_trajectory(placements: list[Placement], frames: int, rng) -> list[np.ndarray]:
-    """A smooth hand-held sweep over the table from the front: camera -> world poses at 30 Hz.
+def sweep_trajectory(placements: list[Placement], frames: int, rng, rate_hz: float = FRAME_RATE_HZ) -> list[np.ndarray]:
+    """A smooth hand-held sweep over the table from the front: camera -> world poses at
+    ``rate_hz`` (a function of time: at a lower rate each frame moves more).
 
     Distance to the looked-at point 0.5-0.9 m (up to ~1.35 m for crowded tables), elevation
     ~40-70 deg, azimuth swinging +-12-22 deg, plus a few millimetres of hand shake. Most
@@ -351,7 +360,7 @@ def sweep_trajectory(placements: list[Placement], frames: int, rng) -> list[np.n
     for _attempt in range(20):
         poses = []
         for i in range(frames):
-            tsec = i / FRAME_RATE_HZ
+            tsec = i / rate_hz
             w = 2 * np.pi * tsec
             r = r0 + amp_r * np.sin(w / period[0] + phase[0])
             az = az0 + amp_az * np.sin(w / period[1] + phase[1])
@@ -413,8 +422,8 @@ class PanPlan:
         hx = 0.5 * (view_width + self.travel)
         return hx, max(0.18, 2.4 * footprint_area / (4 * hx))
 
-    def trajectory(self, placements: list[Placement], frames: int) -> list[np.ndarray]:
-        """Camera -> world poses at 30 Hz. The looked-at point eases along x from one end of
+    def trajectory(self, placements: list[Placement], frames: int, rate_hz: float = FRAME_RATE_HZ) -> list[np.ndarray]:
+        """Camera -> world poses at ``rate_hz``. The looked-at point eases along x from one end of
         the travel to the other in ``PAN_SECONDS`` (then back), with the distance and the
         elevation wobbling by a few percent and a few millimetres of hand shake."""
         centres = np.array([p.pose[:3, 3] for p in placements])
@@ -423,7 +432,7 @@ class PanPlan:
         for _attempt in range(20):
             poses = []
             for i in range(frames):
-                tsec = i / FRAME_RATE_HZ
+                tsec = i / rate_hz
                 w = 2 * np.pi * tsec
                 along = 0.5 * (1 - np.cos(np.pi * tsec / PAN_SECONDS)) - 0.5      # -0.5 .. 0.5
                 target = mid + np.array([self.direction * self.travel * along, 0.0, 0.0])
@@ -436,6 +445,142 @@ class PanPlan:
                 return poses
             distance += 0.05        # too close to a tall object somewhere: back off
         return poses
+
+
+# Hand-held shaky pan and arm jumps: the camera paths of the tracker benchmark (issue 35). Both
+# are functions of time, so at 5-15 Hz each frame moves more than at 30 Hz; their random draws
+# come from the motion stream only (the objects lie where the sweep of the same seed puts them).
+SHAKY_ARC_DEG = 30.0            # the pan's arc about the objects' centre, in PAN_SECONDS
+SHAKE_STEP_M = (0.0025, 0.0035)     # mean frame-to-frame shake translation, drawn per seed
+SHAKE_STEP_DEG = (0.3, 0.5)         # mean frame-to-frame shake rotation, drawn per seed
+# A 3-D offset that is white per frame with sigma s per axis changes between two frames by
+# s * sqrt(2) per axis, i.e. by s * sqrt(2) * sqrt(8 / pi) = 2.257 s on average in length.
+_WHITE_STEP_PER_SIGMA = float(np.sqrt(2.0) * np.sqrt(8.0 / np.pi))
+
+
+@dataclass
+class ShakyPanPlan:
+    """A hand-held camera swung slowly along a 30 deg arc about the objects' centre, with
+    hand shake that is not smooth: every frame's pose is off the smooth arc by fresh white
+    noise (mean frame-to-frame change ``step_m`` in position, ``step_deg`` in orientation)
+    on top of a slowly varying offset (a few mm, under 1 Hz)."""
+    distance: float
+    elevation: float            # rad
+    azimuth: float              # rad, centre of the arc, about -90 deg: from the front
+    direction: float            # +1 or -1: which way the arc runs first
+    step_m: float
+    step_deg: float
+    slow_f: np.ndarray          # (3, 2) Hz of the slowly varying offset
+    slow_p: np.ndarray          # (3, 2) rad
+    noise_seed: int
+
+    @classmethod
+    def draw(cls, rng) -> "ShakyPanPlan":
+        return cls(distance=rng.uniform(0.6, 0.75), elevation=np.radians(rng.uniform(42, 58)),
+                   azimuth=np.radians(-90 + rng.uniform(-15, 15)), direction=float(rng.choice([-1.0, 1.0])),
+                   step_m=rng.uniform(*SHAKE_STEP_M), step_deg=rng.uniform(*SHAKE_STEP_DEG),
+                   slow_f=rng.uniform(0.15, 0.7, size=(3, 2)), slow_p=rng.uniform(0, 2 * np.pi, size=(3, 2)),
+                   noise_seed=int(rng.integers(2 ** 31)))
+
+    def trajectory(self, placements: list[Placement], frames: int, rate_hz: float = FRAME_RATE_HZ,
+                   shake: bool = True) -> list[np.ndarray]:
+        """Camera -> world poses at ``rate_hz``: the azimuth eases over SHAKY_ARC_DEG in
+        PAN_SECONDS (then back), looking at the objects' centre; ``shake=False``: the smooth
+        arc alone (what the shake is measured against)."""
+        centres = np.array([p.pose[:3, 3] for p in placements])
+        centre = np.array([centres[:, 0].mean(), centres[:, 1].mean(), 0.03])
+        noise = np.random.default_rng(self.noise_seed).standard_normal((frames, 6))
+        sigma_t = self.step_m / _WHITE_STEP_PER_SIGMA
+        sigma_r = np.radians(self.step_deg) / _WHITE_STEP_PER_SIGMA
+        distance = self.distance
+        for _attempt in range(20):
+            poses = []
+            for i in range(frames):
+                tsec = i / rate_hz
+                along = 0.5 * (1 - np.cos(np.pi * tsec / PAN_SECONDS)) - 0.5      # -0.5 .. 0.5
+                az = self.azimuth + self.direction * np.radians(SHAKY_ARC_DEG) * along
+                pose = look_at(_spherical(centre, distance, az, self.elevation), centre)
+                if shake:
+                    slow = 0.0015 * np.sin(2 * np.pi * tsec * self.slow_f + self.slow_p).sum(axis=1)
+                    pose[:3, 3] += slow + sigma_t * noise[i, :3]
+                    # Rotation noise about the camera's own axes (the hand turns the camera).
+                    pose[:3, :3] = pose[:3, :3] @ cv2.Rodrigues(sigma_r * noise[i, 3:])[0]
+                poses.append(pose)
+            if min(_clearance(P[:3, 3], placements) for P in poses) >= MIN_CAMERA_CLEARANCE_M:
+                return poses
+            distance += 0.05        # too close to a tall object somewhere: back off
+        return poses
+
+
+ARM_TICK_HZ = 30.0              # the arm's motion is planned on this grid (exact at 30/15/10/5 Hz)
+ARM_STEP_DEG = (3.0, 8.0)       # per tick while moving, drawn per burst
+ARM_BURST_TICKS = (2, 6)        # ticks a burst lasts
+ARM_HOLD_TICKS = (6, 24)        # ticks the arm holds still between bursts (0.2-0.8 s)
+
+
+def jumps_trajectory(placements: list[Placement], frames: int, rng, rate_hz: float = FRAME_RATE_HZ) -> list[np.ndarray]:
+    """A camera on a robot arm that moves in bursts: it holds still for 0.2-0.8 s, then moves
+    2-6 ticks of 1/30 s at 3-8 deg per tick (drawn per burst; 90-240 deg/s) over the sphere
+    about the objects' centre, and holds again. At 30 Hz consecutive frames differ by 0 or by
+    3-8 deg (the camera's rotation; its position moves distance x angle, 3-10 cm); at lower
+    rates a burst falls between two frames. Elevation stays 35-75 deg, azimuth within 40 deg
+    of the start; the arm does not shake."""
+    centre, r0 = _view_centre_and_distance(placements, rng)
+    el_home = np.radians(rng.uniform(45, 62))
+    az_home = np.radians(-90 + rng.uniform(-20, 20))
+    duration_ticks = int(np.ceil((frames - 1) / rate_hz * ARM_TICK_HZ)) + 2
+    az, el = [az_home], [el_home]
+    hold = int(rng.integers(ARM_HOLD_TICKS[0] // 2, ARM_HOLD_TICKS[1] + 1))   # first burst comes sooner
+    while len(az) < duration_ticks:
+        az.extend([az[-1]] * hold)
+        el.extend([el[-1]] * hold)
+        ticks = int(rng.integers(ARM_BURST_TICKS[0], ARM_BURST_TICKS[1] + 1))
+        step = np.radians(rng.uniform(*ARM_STEP_DEG))
+        # Head back towards home when a burst could leave the allowed range.
+        home = np.arctan2(el_home - el[-1], az_home - az[-1])
+        far = np.hypot(az_home - az[-1], el_home - el[-1]) > np.radians(15)
+        theta = home + rng.uniform(-1, 1) * np.radians(60) if far else rng.uniform(0, 2 * np.pi)
+        for _ in range(ticks):
+            a, e = az[-1] + step * np.cos(theta), el[-1] + step * np.sin(theta)
+            if not (np.radians(35) <= e <= np.radians(75)) or abs(a - az_home) > np.radians(40):
+                theta = np.arctan2(el_home - el[-1], az_home - az[-1])      # turn home mid-burst
+                a, e = az[-1] + step * np.cos(theta), el[-1] + step * np.sin(theta)
+            az.append(a)
+            el.append(e)
+        hold = int(rng.integers(ARM_HOLD_TICKS[0], ARM_HOLD_TICKS[1] + 1))
+    tick_times = np.arange(len(az)) / ARM_TICK_HZ
+    times = np.arange(frames) / rate_hz
+    az_t, el_t = np.interp(times, tick_times, az), np.interp(times, tick_times, el)
+    r = r0
+    for _attempt in range(20):
+        poses = [look_at(_spherical(centre, r, a, e), centre) for a, e in zip(az_t, el_t)]
+        if min(_clearance(P[:3, 3], placements) for P in poses) >= MIN_CAMERA_CLEARANCE_M:
+            return poses
+        r += 0.05           # too close to a tall object somewhere: back off
+    return poses
+
+
+def frame_timeline(frames: int, drop: float, loop: bool, rng) -> tuple[list[int], list[int]]:
+    """Which frames of a ``frames``-long camera path are written, and when: (stamp slots,
+    log slots), one per written frame, in frame periods from the first frame. ``drop`` > 0
+    leaves out about that share of the frames after the first, in runs of 1-3 (a gap in the
+    stamps, the camera moving on); ``loop`` plays the kept frames twice, the second time with
+    the same stamps (they jump back once) and later log times (bag time runs on)."""
+    slots = list(range(frames))
+    if drop > 0 and frames > 2:
+        dropped = np.zeros(frames, bool)
+        target = int(round(drop * (frames - 1)))
+        while dropped.sum() < target:
+            start = int(rng.integers(1, frames))
+            dropped[start:start + int(rng.integers(1, 4))] = True
+            dropped[0] = False
+            excess = int(dropped.sum()) - target
+            if excess > 0:      # trim the last run so that the share is what was asked
+                dropped[np.flatnonzero(dropped)[-excess:]] = False
+        slots = [i for i in range(frames) if not dropped[i]]
+    if loop:
+        return slots + slots, slots + [s + frames for s in slots]
+    return slots, slots
 
 
 @dataclass
@@ -714,6 +859,14 @@ class SyntheticScene:
     occluder: MovingObject | None = None
     more_targets: tuple = ()             # further target objects of a mixed scene (ObjectSpec)
     depth_noise_correlation_px: float = 0.0   # > 0: depth noise smooth over this many pixels (sensor.simulate_depth)
+    # When frames are written (``frame_timeline``): the camera path at ``frame_rate_hz`` has
+    # one pose per slot (``path_poses``); frame i is slot ``frame_slots[i]`` (its stamp, its
+    # noise) written at bag time slot ``log_slots[i]``. None: frame i is slot i (every frame
+    # of the path, once), ``camera_poses`` is the path.
+    frame_rate_hz: float = FRAME_RATE_HZ
+    frame_slots: list | None = None
+    log_slots: list | None = None
+    path_poses: list | None = None
 
     def __post_init__(self):
         wall_y = max(0.45, max(p.pose[1, 3] for p in self.placements) + 0.3)
@@ -756,6 +909,14 @@ class SyntheticScene:
             d["instance_objects"] = self.instance_objects
         if self.depth_noise_correlation_px > 0:
             d["depth_noise_correlation_px"] = float(self.depth_noise_correlation_px)
+        if self.frame_rate_hz != FRAME_RATE_HZ:
+            d["frame_rate_hz"] = float(self.frame_rate_hz)
+        if self.frame_slots is not None:
+            path_frames = len(self._path())
+            d["path_frames"] = path_frames
+            d["dropped_frames"] = path_frames - len(set(self.frame_slots))
+            if self.log_slots != self.frame_slots:
+                d["loop"] = True
         if self.occluder is not None:
             first, last = self.occluder.frames
             d["occluder"] = {"name": self.occluder.spec.name, "shape": self.occluder.spec.shape,
@@ -763,8 +924,24 @@ class SyntheticScene:
                              "frames": [first, last]}
         return d
 
+    def slot(self, index: int) -> int:
+        """Frame ``index``'s place on the camera path (frame periods from the first frame)."""
+        return index if self.frame_slots is None else int(self.frame_slots[index])
+
+    def _path(self) -> list:
+        return self.camera_poses if self.path_poses is None else self.path_poses
+
     def stamp_ns(self, index: int) -> int:
-        return START_STAMP_NS + int(round(index * 1e9 / FRAME_RATE_HZ))
+        """Header stamp of frame ``index``: its slot at ``frame_rate_hz`` (gaps where frames
+        were dropped; back to the start where a loop begins again)."""
+        return START_STAMP_NS + int(round(self.slot(index) * 1e9 / self.frame_rate_hz))
+
+    def log_time_ns(self, index: int) -> int:
+        """Bag time of frame ``index``: its stamp, except in a loop's second play, which is
+        recorded after the first (bag time never runs back)."""
+        if self.log_slots is None:
+            return self.stamp_ns(index)
+        return START_STAMP_NS + int(round(int(self.log_slots[index]) * 1e9 / self.frame_rate_hz))
 
     def set_depth_noise_correlation(self, pixels: float) -> "SyntheticScene":
         """Depth noise smooth over about ``pixels`` pixels from now on (0 = independent per
@@ -783,7 +960,8 @@ class SyntheticScene:
             primitives = primitives + self.occluder.primitives(index)
         instances = [p for p in placements if p.is_instance]
         out = self._renderer.render(primitives, T_cw, count_labels=[p.label for p in instances])
-        noise_seed = int(np.random.SeedSequence([self.seed, index, 17]).generate_state(1)[0])
+        # Keyed by the slot: a loop's second play is the same recording, byte for byte.
+        noise_seed = int(np.random.SeedSequence([self.seed, self.slot(index), 17]).generate_state(1)[0])
         rgb = simulate_colour(out.radiance, noise_seed)
         depth_mm = simulate_depth(out.depth_m, float(self.intrinsics.K[0, 0]), noise_seed + 1,
                                   self.depth_noise_correlation_px)
@@ -812,35 +990,47 @@ class SyntheticScene:
         a bias per recording and white noise, each from streams of their own (the images do not
         change). The reading's axes are those of the colour optical frame, as librealsense
         gives a D455's IMU samples up to a fraction of a degree."""
-        period = 1.0 / FRAME_RATE_HZ
-        t1 = index * period
-        k = np.arange(int(np.floor((t1 - period) * rate_hz + 1e-9)) + 1, int(np.floor(t1 * rate_hz + 1e-9)) + 1)
-        times = k / rate_hz
-        s = (times - (t1 - period)) / period                 # 0 at the previous frame, 1 at this one
-        prev = max(index - 1, 0)
+        period = 1.0 / self.frame_rate_hz
+        slot = self.slot(index)
+        # Since the previous frame: every path period up to this frame's slot (more than one
+        # after dropped frames; one at the first frame and where a loop starts again).
+        first = self.slot(index - 1) + 1 if index > 0 and self.slot(index - 1) < slot else slot
         acc = self._path_acceleration()
+        path = self._path()
         lift = np.array([0.0, 0.0, GRAVITY_M_S2])
-        f_prev = self.camera_poses[prev][:3, :3].T @ (acc[prev] + lift)
-        f_this = self.camera_poses[index][:3, :3].T @ (acc[index] + lift)
-        if self.kind != "scene":
-            f_prev = f_this                                  # views, not a path: still at each
-        force = (1.0 - s)[:, None] * f_prev + s[:, None] * f_this
+        k_all, times_all, force_all = [], [], []
+        for q in range(first, slot + 1):
+            t1 = q * period
+            k = np.arange(int(np.floor((t1 - period) * rate_hz + 1e-9)) + 1, int(np.floor(t1 * rate_hz + 1e-9)) + 1)
+            times = k / rate_hz
+            s = (times - (t1 - period)) / period                 # 0 at the previous path pose, 1 at this one
+            prev = max(q - 1, 0)
+            f_prev = path[prev][:3, :3].T @ (acc[prev] + lift)
+            f_this = path[q][:3, :3].T @ (acc[q] + lift)
+            if self.kind != "scene":
+                f_prev = f_this                                  # views, not a path: still at each
+            k_all.append(k)
+            times_all.append(times)
+            force_all.append((1.0 - s)[:, None] * f_prev + s[:, None] * f_this)
+        k, times = np.concatenate(k_all), np.concatenate(times_all)
+        force = np.concatenate(force_all)
         bias = np.clip(np.random.default_rng([self.seed, 41]).normal(0.0, ACCEL_BIAS_M_S2, 3),
                        -3 * ACCEL_BIAS_M_S2, 3 * ACCEL_BIAS_M_S2)
-        noise = np.random.default_rng([self.seed, index, 43]).normal(0.0, ACCEL_NOISE_M_S2, (len(k), 3))
+        noise = np.random.default_rng([self.seed, slot, 43]).normal(0.0, ACCEL_NOISE_M_S2, (len(k), 3))
         # Each rounded as the frame stamps are: in a scene's own bag the samples fall on an exact 5 ms grid.
-        offsets = np.round(times * 1e9).astype(np.int64) - int(round(t1 * 1e9))
+        offsets = np.round(times * 1e9).astype(np.int64) - int(round(slot * period * 1e9))
         return offsets, force + bias + noise
 
     def _path_acceleration(self) -> np.ndarray:
-        """(frames, 3) world acceleration of the camera at each frame (m/s^2): second
-        differences of its positions at 30 Hz (the ends take their neighbour's); zero for a
-        capture's separate views or fewer than three frames."""
-        n = self.num_frames
+        """(path slots, 3) world acceleration of the camera at each slot of its path (m/s^2):
+        second differences of its positions at ``frame_rate_hz`` (the ends take their
+        neighbour's); zero for a capture's separate views or fewer than three slots."""
+        path = self._path()
+        n = len(path)
         acc = np.zeros((n, 3))
         if self.kind == "scene" and n >= 3:
-            p = np.array([P[:3, 3] for P in self.camera_poses])
-            acc[1:-1] = (p[2:] - 2.0 * p[1:-1] + p[:-2]) * FRAME_RATE_HZ ** 2
+            p = np.array([P[:3, 3] for P in path])
+            acc[1:-1] = (p[2:] - 2.0 * p[1:-1] + p[:-2]) * self.frame_rate_hz ** 2
             acc[0], acc[-1] = acc[1], acc[-2]
         return acc
 
@@ -855,7 +1045,8 @@ def _check_common(object_name: str, seed: int, resolution: str) -> ObjectSpec:
 
 def make_tabletop_scene(object_name: str | list[str] = DEFAULT_OBJECT, instances: int = 6, distractors: int = 3,
                         frames: int = 60, seed: int = 0, resolution: str = "640x480", motion: str = "sweep",
-                        occluder: bool = False) -> SyntheticScene:
+                        occluder: bool = False, frame_rate: float = FRAME_RATE_HZ, drop: float = 0.0,
+                        loop: bool = False) -> SyntheticScene:
     names = [object_name] if isinstance(object_name, str) else list(object_name)
     if not names or len(set(names)) != len(names):
         raise InputError(f"target objects must be given once each, got {names}")
@@ -870,10 +1061,15 @@ def make_tabletop_scene(object_name: str | list[str] = DEFAULT_OBJECT, instances
         raise InputError(f"distractors must be 0 to {MAX_DISTRACTORS}, got {distractors}")
     if int(frames) < 1:
         raise InputError(f"frames must be at least 1, got {frames}")
+    frame_rate = float(frame_rate)
+    if not MIN_FRAME_RATE_HZ <= frame_rate <= MAX_FRAME_RATE_HZ:
+        raise InputError(f"frame rate must be {MIN_FRAME_RATE_HZ:g} to {MAX_FRAME_RATE_HZ:g} Hz, got {frame_rate:g}")
+    if not 0.0 <= float(drop) <= MAX_DROP:
+        raise InputError(f"drop (share of frames left out) must be 0 to {MAX_DROP:g}, got {drop:g}")
     # Independent streams, so that e.g. the frame count does not change the placement, and
     # the static camera, the pan and the occluder take nothing from the sweep's streams.
-    rng_choose, rng_place, rng_path, rng_motion, rng_occluder = (
-        np.random.default_rng([int(seed), k]) for k in (1, 2, 3, 6, 7))
+    rng_choose, rng_place, rng_path, rng_motion, rng_occluder, rng_drop = (
+        np.random.default_rng([int(seed), k]) for k in (1, 2, 3, 6, 7, 8))
     intrinsics = d455_intrinsics(resolution)
     pool = [s for s in OBJECTS.values() if s.name not in names]
     distractor_specs = [pool[int(i)] for i in rng_choose.integers(len(pool), size=int(distractors))]
@@ -882,16 +1078,32 @@ def make_tabletop_scene(object_name: str | list[str] = DEFAULT_OBJECT, instances
         footprint = footprint_area([spec, *more] * int(instances) + distractor_specs)
         placements = place_objects(spec, int(instances), distractor_specs, rng_place,
                                    region_half=pan.region_half(intrinsics, footprint), more_targets=more)
-        poses = pan.trajectory(placements, int(frames))
+        poses = pan.trajectory(placements, int(frames), frame_rate)
     else:
         placements = place_objects(spec, int(instances), distractor_specs, rng_place, more_targets=more)
         if motion == "static":
             poses = static_viewpoint(placements, int(frames), rng_motion)
+        elif motion == "shaky_pan":
+            poses = ShakyPanPlan.draw(rng_motion).trajectory(placements, int(frames), frame_rate)
+        elif motion == "jumps":
+            poses = jumps_trajectory(placements, int(frames), rng_motion, frame_rate)
         else:
-            poses = sweep_trajectory(placements, int(frames), rng_path)
-    moving = occluder_path(poses, placements, intrinsics, rng_occluder) if occluder else None
+            poses = sweep_trajectory(placements, int(frames), rng_path, frame_rate)
+    timeline = {}
+    if drop > 0 or loop:
+        slots, log_slots = frame_timeline(int(frames), float(drop), bool(loop), rng_drop)
+        timeline = dict(frame_slots=slots, log_slots=log_slots, path_poses=poses)
+        poses = [poses[s] for s in slots]
+    if occluder:
+        # On the written frames (a loop's first play; the second repeats it).
+        first_play = poses[:len(poses) // 2] if loop else poses
+        moving = occluder_path(first_play, placements, intrinsics, rng_occluder)
+        if loop:
+            moving.poses = moving.poses + moving.poses
+    else:
+        moving = None
     return SyntheticScene("scene", spec, placements, poses, intrinsics, int(seed), motion=motion,
-                          occluder=moving, more_targets=more)
+                          occluder=moving, more_targets=more, frame_rate_hz=frame_rate, **timeline)
 
 
 def make_capture_scene(object_name: str = DEFAULT_OBJECT, seed: int = 0, views: int = 10,
@@ -955,10 +1167,12 @@ def write_scene_bag(scene: SyntheticScene, out_path, storage: str = "sqlite3", p
     with RealSenseBagWriter(out_path, storage=storage, transport=transport) as bag:
         bag.write_object_description(scene.stamp_ns(0), scene.description())
         for frame in scene.frames():
+            log_time = scene.log_time_ns(frame.index)
             if imu:
-                bag.write_accel_samples(frame.stamp_ns, *scene.accel_samples(frame.index))
+                bag.write_accel_samples(frame.stamp_ns, *scene.accel_samples(frame.index),
+                                        log_offset_ns=log_time - frame.stamp_ns)
             bag.write_frame(frame.stamp_ns, frame.rgb, frame.depth_mm, scene.intrinsics,
-                            poses=frame.poses, visibility=frame.visibility)
+                            poses=frame.poses, visibility=frame.visibility, log_time_ns=log_time)
             if preview_dir is not None and frame.index in preview_frames:
                 write_preview(preview_dir, frame, scene)
     return BagSummary(Path(out_path), n, time.perf_counter() - t0, len(scene.instances), storage)
@@ -968,10 +1182,11 @@ def generate_scene_bag(out_path, object_name: str | list[str] = DEFAULT_OBJECT, 
                        distractors: int = 3, frames: int = 60, seed: int = 0, storage: str = "sqlite3",
                        resolution: str = "640x480", preview_dir=None, motion: str = "sweep",
                        occluder: bool = False, depth_noise_correlation_px: float = 0.0,
-                       transport: str = "raw", imu: bool = True) -> BagSummary:
+                       transport: str = "raw", imu: bool = True, frame_rate: float = FRAME_RATE_HZ,
+                       drop: float = 0.0, loop: bool = False) -> BagSummary:
     """Make a tabletop scene (see ``make_tabletop_scene``) and write it as a rosbag2."""
     scene = make_tabletop_scene(object_name, instances, distractors, frames, seed, resolution,
-                                motion=motion, occluder=occluder)
+                                motion=motion, occluder=occluder, frame_rate=frame_rate, drop=drop, loop=loop)
     scene.set_depth_noise_correlation(depth_noise_correlation_px)
     return write_scene_bag(scene, out_path, storage, preview_dir, transport=transport, imu=imu)
 

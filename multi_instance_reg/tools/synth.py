@@ -1,7 +1,8 @@
 """``mireg synth``: make synthetic D455 tabletop recordings with ground truth.
 
     mireg synth scene -o OUT [--object NAME [--object NAME2 ...]] [--instances K] [--distractors D] [--frames F]
-                      [--motion sweep|static|pan] [--occluder]
+                      [--motion sweep|static|pan|shaky_pan|jumps] [--frame-rate HZ] [--drop SHARE] [--loop]
+                      [--occluder]
                       [--seed S] [--storage sqlite3|mcap] [--image-transport raw|compressed]
                       [--resolution 640x480|1280x720] [--preview DIR]
     mireg synth capture -o OUT --object NAME [--seed S] [--views N] [...]
@@ -17,7 +18,7 @@ HELP = "make synthetic D455 tabletop bags with ground truth (scene, capture, unt
 def add_arguments(parser) -> None:
     from ..datasets.bag_writer import TRANSPORTS
     from ..synthetic.objects import DEFAULT_OBJECT, OBJECTS, UNTEXTURED_OBJECTS
-    from ..synthetic.scene import MOTIONS, PAN_SECONDS
+    from ..synthetic.scene import FRAME_RATE_HZ, MAX_DROP, MOTIONS, PAN_SECONDS, SHAKY_ARC_DEG
     from ..synthetic.sensor import RESOLUTIONS
     from ..synthetic.untextured import PRESETS
 
@@ -65,12 +66,26 @@ def add_arguments(parser) -> None:
     scene.add_argument("--instances", type=int, default=6, metavar="K",
                        help="instances of each object, 1-20 in all (default 6)")
     scene.add_argument("--distractors", type=int, default=3, metavar="D", help="other objects, 0-20 (default 3)")
-    scene.add_argument("--frames", type=int, default=60, metavar="F", help="frames at 30 Hz (default 60)")
+    scene.add_argument("--frames", type=int, default=60, metavar="F",
+                       help="frames of the camera path at --frame-rate (default 60); --loop writes them twice, "
+                            "--drop leaves some out")
     scene.add_argument("--motion", choices=MOTIONS, default="sweep",
                        help="camera path: sweep = hand-held, swinging over the table (default); static = "
                             "fixed on a tripod, only the sensor noise changes (pose jitter); pan = slow "
                             f"hand-held pan along the table, 0.45-0.7 m in {PAN_SECONDS:g} s and back, objects "
-                            "spread along it so that instances enter and leave the view")
+                            "spread along it so that instances enter and leave the view; shaky_pan = hand-held, "
+                            f"a {SHAKY_ARC_DEG:g} deg arc about the objects in {PAN_SECONDS:g} s (and back) with "
+                            "shake that is new every frame (2.5-3.5 mm, 0.3-0.5 deg mean frame-to-frame); jumps = "
+                            "on a robot arm moving in bursts, 3-8 deg per 1/30 s, still in between")
+    scene.add_argument("--frame-rate", type=float, default=FRAME_RATE_HZ, metavar="HZ",
+                       help=f"frames per second, 1-90 (default {FRAME_RATE_HZ:g}; a recorded bag is often throttled to "
+                            "5-15): stamps 1/HZ apart, the camera moving as far per frame as the time lets it")
+    scene.add_argument("--drop", type=float, default=0.0, metavar="SHARE",
+                       help=f"leave out this share of the frames (0-{MAX_DROP:g}) in runs of 1-3: gaps in the stamps "
+                            "while the camera moves on (default 0)")
+    scene.add_argument("--loop", action="store_true",
+                       help="write the frames twice, the second time with the same stamps (they jump back once, "
+                            "as a bag played with --loop does); bag time runs on")
     depth_noise(scene)
     scene.add_argument("--occluder", action="store_true",
                        help="an arm (a distractor, not in the ground truth) passes between the camera and "
@@ -146,7 +161,8 @@ def run(args) -> int:
                                      storage=args.storage, resolution=args.resolution, preview_dir=args.preview,
                                      motion=args.motion, occluder=args.occluder,
                                      depth_noise_correlation_px=args.depth_noise_correlation,
-                                     transport=args.image_transport, imu=not args.no_imu)
+                                     transport=args.image_transport, imu=not args.no_imu,
+                                     frame_rate=args.frame_rate, drop=args.drop, loop=args.loop)
     else:
         summary = generate_capture_bag(args.output, object_name=args.object, seed=args.seed, views=args.views,
                                        storage=args.storage, resolution=args.resolution, preview_dir=args.preview,
