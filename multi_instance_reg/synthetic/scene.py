@@ -55,7 +55,7 @@ from .objects import (BOX_FACES, DEFAULT_OBJECT, ENVIRONMENT_SIZE, OBJECTS, PROP
                       environment_texture, get_object, object_textures)
 from .preview import box_corners
 from .render import AMBIENT, DIFFUSE, LIGHT_DIR_WORLD, CylinderSide, Quad, Renderer, Texture
-from .sensor import d455_intrinsics, simulate_colour, simulate_depth
+from .sensor import SENSOR_PROFILES, SensorProfile, d455_intrinsics, sensor_profile, simulate_colour, simulate_depth
 
 FRAME_RATE_HZ = 30.0
 START_STAMP_NS = 1_700_000_000 * 1_000_000_000
@@ -867,6 +867,7 @@ class SyntheticScene:
     frame_slots: list | None = None
     log_slots: list | None = None
     path_poses: list | None = None
+    sensor: SensorProfile = SENSOR_PROFILES["d455"]     # how the depth is made (sensor.simulate_depth)
 
     def __post_init__(self):
         wall_y = max(0.45, max(p.pose[1, 3] for p in self.placements) + 0.3)
@@ -909,6 +910,8 @@ class SyntheticScene:
             d["instance_objects"] = self.instance_objects
         if self.depth_noise_correlation_px > 0:
             d["depth_noise_correlation_px"] = float(self.depth_noise_correlation_px)
+        if self.sensor != SENSOR_PROFILES["d455"]:
+            d["sensor"] = self.sensor.description()
         if self.frame_rate_hz != FRAME_RATE_HZ:
             d["frame_rate_hz"] = float(self.frame_rate_hz)
         if self.frame_slots is not None:
@@ -952,6 +955,13 @@ class SyntheticScene:
         self.depth_noise_correlation_px = pixels
         return self
 
+    def set_sensor(self, name: str = "d455", randomise: bool = False) -> "SyntheticScene":
+        """Depth as the named sensor profile makes it from now on (``sensor.SENSOR_PROFILES``:
+        "d455", "realistic"); with ``randomise`` each of its figures drawn per seed from
+        ``sensor.PROFILE_RANGES``. Returns the scene."""
+        self.sensor = sensor_profile(name, self.seed, randomise)
+        return self
+
     def render_frame(self, index: int) -> RenderedFrame:
         T_wc = self.camera_poses[index]
         T_cw = invert_transform(T_wc)
@@ -964,7 +974,7 @@ class SyntheticScene:
         noise_seed = int(np.random.SeedSequence([self.seed, self.slot(index), 17]).generate_state(1)[0])
         rgb = simulate_colour(out.radiance, noise_seed)
         depth_mm = simulate_depth(out.depth_m, float(self.intrinsics.K[0, 0]), noise_seed + 1,
-                                  self.depth_noise_correlation_px)
+                                  self.depth_noise_correlation_px, self.sensor)
         mask = out.labels.copy()
         mask[mask >= _DISTRACTOR_LABEL0] = LABEL_DISTRACTOR
         counts = np.bincount(mask[mask >= 0].ravel(), minlength=len(instances))
@@ -1046,7 +1056,7 @@ def _check_common(object_name: str, seed: int, resolution: str) -> ObjectSpec:
 def make_tabletop_scene(object_name: str | list[str] = DEFAULT_OBJECT, instances: int = 6, distractors: int = 3,
                         frames: int = 60, seed: int = 0, resolution: str = "640x480", motion: str = "sweep",
                         occluder: bool = False, frame_rate: float = FRAME_RATE_HZ, drop: float = 0.0,
-                        loop: bool = False) -> SyntheticScene:
+                        loop: bool = False, sensor: str = "d455", randomise: bool = False) -> SyntheticScene:
     names = [object_name] if isinstance(object_name, str) else list(object_name)
     if not names or len(set(names)) != len(names):
         raise InputError(f"target objects must be given once each, got {names}")
@@ -1103,7 +1113,8 @@ def make_tabletop_scene(object_name: str | list[str] = DEFAULT_OBJECT, instances
     else:
         moving = None
     return SyntheticScene("scene", spec, placements, poses, intrinsics, int(seed), motion=motion,
-                          occluder=moving, more_targets=more, frame_rate_hz=frame_rate, **timeline)
+                          occluder=moving, more_targets=more, frame_rate_hz=frame_rate,
+                          sensor=sensor_profile(sensor, int(seed), randomise), **timeline)
 
 
 def make_capture_scene(object_name: str = DEFAULT_OBJECT, seed: int = 0, views: int = 10,
@@ -1183,10 +1194,12 @@ def generate_scene_bag(out_path, object_name: str | list[str] = DEFAULT_OBJECT, 
                        resolution: str = "640x480", preview_dir=None, motion: str = "sweep",
                        occluder: bool = False, depth_noise_correlation_px: float = 0.0,
                        transport: str = "raw", imu: bool = True, frame_rate: float = FRAME_RATE_HZ,
-                       drop: float = 0.0, loop: bool = False) -> BagSummary:
+                       drop: float = 0.0, loop: bool = False, sensor: str = "d455",
+                       randomise: bool = False) -> BagSummary:
     """Make a tabletop scene (see ``make_tabletop_scene``) and write it as a rosbag2."""
     scene = make_tabletop_scene(object_name, instances, distractors, frames, seed, resolution,
-                                motion=motion, occluder=occluder, frame_rate=frame_rate, drop=drop, loop=loop)
+                                motion=motion, occluder=occluder, frame_rate=frame_rate, drop=drop, loop=loop,
+                                sensor=sensor, randomise=randomise)
     scene.set_depth_noise_correlation(depth_noise_correlation_px)
     return write_scene_bag(scene, out_path, storage, preview_dir, transport=transport, imu=imu)
 

@@ -1,6 +1,7 @@
 """``mireg synth``: make synthetic D455 tabletop recordings with ground truth.
 
     mireg synth scene -o OUT [--object NAME [--object NAME2 ...]] [--instances K] [--distractors D] [--frames F]
+                      [--sensor d455|realistic] [--randomise]
                       [--motion sweep|static|pan|shaky_pan|jumps] [--frame-rate HZ] [--drop SHARE] [--loop]
                       [--occluder]
                       [--seed S] [--storage sqlite3|mcap] [--image-transport raw|compressed]
@@ -19,7 +20,7 @@ def add_arguments(parser) -> None:
     from ..datasets.bag_writer import TRANSPORTS
     from ..synthetic.objects import DEFAULT_OBJECT, OBJECTS, UNTEXTURED_OBJECTS
     from ..synthetic.scene import FRAME_RATE_HZ, MAX_DROP, MOTIONS, PAN_SECONDS, SHAKY_ARC_DEG
-    from ..synthetic.sensor import RESOLUTIONS
+    from ..synthetic.sensor import RESOLUTIONS, SENSOR_PROFILES
     from ..synthetic.untextured import PRESETS
 
     sub = parser.add_subparsers(dest="synth_command", metavar="{scene,capture,untextured,mesh}", required=True)
@@ -51,6 +52,15 @@ def add_arguments(parser) -> None:
         p.add_argument("--no-imu", action="store_true",
                        help="leave out the accelerometer (default: sensor_msgs/Imu at 200 Hz on /camera/camera/accel/sample, "
                             "as realsense-ros with enable_accel:=true: gravity and the camera's motion, with noise and bias)")
+
+    def sensor(p):
+        p.add_argument("--sensor", choices=tuple(SENSOR_PROFILES), default="d455",
+                       help="depth sensor profile: d455 = the model the project was tuned on (default); realistic = "
+                            "noise 0.004 z^2 + 0.5 mm, 70 %% of depth-edge pixels dropped and half the rest between "
+                            "foreground and background (flying pixels), 1.5 %% single-pixel dropouts, depth in "
+                            "disparity steps (a few mm at 1-2 m)")
+        p.add_argument("--randomise", action="store_true",
+                       help="draw each figure of the sensor profile per seed from a range around the realistic one")
 
     def depth_noise(p):
         p.add_argument("--depth-noise-correlation", type=float, default=0.0, metavar="PX",
@@ -87,6 +97,7 @@ def add_arguments(parser) -> None:
                        help="write the frames twice, the second time with the same stamps (they jump back once, "
                             "as a bag played with --loop does); bag time runs on")
     depth_noise(scene)
+    sensor(scene)
     scene.add_argument("--occluder", action="store_true",
                        help="an arm (a distractor, not in the ground truth) passes between the camera and "
                             "the table from about 1/3 to 2/3 of the frames, hiding instances for a few "
@@ -119,6 +130,7 @@ def add_arguments(parser) -> None:
     untextured.add_argument("--resolution", choices=RESOLUTIONS, default="640x480", help="colour/depth size (default 640x480)")
     untextured.add_argument("--preview", metavar="DIR", default=None, help="also write PNGs of a few frames")
     depth_noise(untextured)
+    sensor(untextured)
     untextured.add_argument("--mesh", metavar="FILE", default=None,
                             help="also write the object's mesh (.ply, .stl or .obj; object frame of the ground truth)")
     untextured.add_argument("--units", choices=("m", "mm"), default="m", help="units of the written mesh (default m)")
@@ -150,7 +162,8 @@ def run(args) -> int:
 
         summary = generate_untextured_bag(args.output, args.preset, args.instances, args.distractors, args.frames,
                                           args.seed, args.storage, args.resolution, args.preview, args.mesh, args.units,
-                                          args.depth_noise_correlation, args.image_transport, imu=not args.no_imu)
+                                          args.depth_noise_correlation, args.image_transport, imu=not args.no_imu,
+                                          sensor=args.sensor, randomise=args.randomise)
         print(f"mireg synth untextured: {summary.line()}" + (f"; mesh {args.mesh}" if args.mesh else ""))
         return 0
     if args.synth_command == "scene":
@@ -162,7 +175,8 @@ def run(args) -> int:
                                      motion=args.motion, occluder=args.occluder,
                                      depth_noise_correlation_px=args.depth_noise_correlation,
                                      transport=args.image_transport, imu=not args.no_imu,
-                                     frame_rate=args.frame_rate, drop=args.drop, loop=args.loop)
+                                     frame_rate=args.frame_rate, drop=args.drop, loop=args.loop,
+                                     sensor=args.sensor, randomise=args.randomise)
     else:
         summary = generate_capture_bag(args.output, object_name=args.object, seed=args.seed, views=args.views,
                                        storage=args.storage, resolution=args.resolution, preview_dir=args.preview,
