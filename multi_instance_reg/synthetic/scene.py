@@ -42,16 +42,17 @@ from __future__ import annotations
 
 import functools
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from ..errors import InputError
 from ..messages import CameraIntrinsics
 from ..transforms import invert_transform, make_transform
-from .objects import (BOX_FACES, DEFAULT_OBJECT, ENVIRONMENT_SIZE, OBJECTS, PROPS, ObjectSpec,
+from .objects import (BOX_FACES, DEFAULT_OBJECT, ENVIRONMENT_SIZE, FURNITURE, OBJECTS, PROPS, ObjectSpec,
                       environment_texture, get_object, object_textures)
 from .preview import box_corners
 from .render import AMBIENT, DIFFUSE, LIGHT_DIR_WORLD, CylinderSide, Quad, Renderer, Texture
@@ -66,7 +67,9 @@ _DISTRACTOR_LABEL0 = 1000        # internal render labels of distractors (and of
 TABLE_HALF_X = 1.6
 TABLE_FRONT_Y = -2.4
 MIN_CAMERA_CLEARANCE_M = 0.32    # camera to any object surface (the depth minimum is 0.3 m)
-MOTIONS = ("sweep", "static", "pan", "shaky_pan", "jumps")
+MOTIONS = ("sweep", "static", "pan", "shaky_pan", "jumps", "overhead")
+LAYOUTS = ("table", "flush", "bin")
+BACKGROUNDS = ("wall", "clutter")
 MIN_FRAME_RATE_HZ, MAX_FRAME_RATE_HZ = 1.0, 90.0
 MAX_DROP = 0.5                   # share of the frames that ``drop`` may leave out
 # The accelerometer (sensor_msgs/Imu on realsense-ros' accel/sample topic): a D455 samples it
@@ -111,12 +114,16 @@ class Placement:
     """One object on the table: ``pose`` maps the object frame to the world frame."""
     spec: ObjectSpec
     pose: np.ndarray
-    label: int                      # 0..K-1 for instances, >= 1000 for distractors
-    arrangement: str = "free"       # free | touching | stacked | leaning
+    label: int                      # 0..K-1 for instances, >= 1000 for distractors, -1 fixtures (a bin)
+    arrangement: str = "free"       # free | touching | stacked | leaning | flush | pile | fixture
 
     @property
     def is_instance(self) -> bool:
         return 0 <= self.label < _DISTRACTOR_LABEL0
+
+    @property
+    def is_distractor(self) -> bool:
+        return self.label >= _DISTRACTOR_LABEL0
 
 
 def _obb_overlap(pa: np.ndarray, ha: np.ndarray, pb: np.ndarray, hb: np.ndarray, margin: float = 5e-4) -> bool:
@@ -171,8 +178,8 @@ class _Table:
     def __init__(self):
         self.placed: list[Placement] = []
 
-    def collides(self, pose, half) -> bool:
-        return any(_obb_overlap(pose, half, p.pose, p.spec.half_extents) for p in self.placed)
+    def collides(self, pose, half, margin: float = 5e-4) -> bool:
+        return any(_obb_overlap(pose, half, p.pose, p.spec.half_extents, margin) for p in self.placed)
 
     def slide_to_contact(self, pose, half, target: np.ndarray, direction: np.ndarray, other: Placement):
         """Move ``pose`` along -``direction`` from far away towards ``target`` until it just
@@ -201,17 +208,25 @@ def footprint_area(specs) -> float:
     return sum(s.dimensions_m[0] * max(s.dimensions_m[1], s.dimensions_m[2]) for s in specs)
 
 
+ARRANGEMENTS = ("free", "touching", "stacked", "leaning", "flush", "pile")
+
+
 def place_objects(target: ObjectSpec, instances: int, distractor_specs: list[ObjectSpec], rng,
                   arrangement_probs=(0.62, 0.2, 0.09, 0.09), region_half=None,
-                  more_targets: tuple[ObjectSpec, ...] = ()) -> list[Placement]:
+                  more_targets: tuple[ObjectSpec, ...] = (), fixtures: tuple[Placement, ...] = ()) -> list[Placement]:
     """Place ``instances`` copies of ``target`` (and of each of ``more_targets``, labelled
     after them) and the distractors on the table.
 
     Each object is placed free (anywhere in the region), touching a neighbour, stacked on a
-    flat top or leaning against a taller object, with probabilities ``arrangement_probs``;
-    if its arrangement fails it is placed free. No two objects interpenetrate. The region is
+    flat top, leaning against a taller object, flush against a copy of itself (same
+    orientation, face to face with a hairline gap: boxes packed on a pallet) or dropped onto a
+    pile at a random orientation (in a bin), with probabilities ``arrangement_probs`` in
+    the order of ``ARRANGEMENTS`` (fewer probabilities: the later kinds not drawn); if its
+    arrangement fails it is placed free. No two objects interpenetrate. The region is
     centred on the origin, 4:3 and about 2.4 times the summed footprints, unless
-    ``region_half`` gives its (x, y) half sizes (e.g. a strip along a camera pan).
+    ``region_half`` gives its (x, y) half sizes (e.g. a strip along a camera pan, a bin's
+    inside). ``fixtures`` (e.g. a bin's walls and floor) are there before the first object
+    and are returned with the objects.
     """
     items = [(spec, k) for k, spec in enumerate(s for s in (target,) + tuple(more_targets) for _ in range(instances))] + \
             [(spec, _DISTRACTOR_LABEL0 + j) for j, spec in enumerate(distractor_specs)]
@@ -222,11 +237,12 @@ def place_objects(target: ObjectSpec, instances: int, distractor_specs: list[Obj
     if region_half is not None:
         half = np.asarray(region_half, dtype=np.float64)
     table = _Table()
+    table.placed.extend(fixtures)
     for idx in order:
         spec, label = items[idx]
         placement = None
         up = _choose_up(spec, rng)      # once: retrying must not favour small footprints
-        arrangement = ["free", "touching", "stacked", "leaning"][int(rng.choice(4, p=arrangement_probs))]
+        arrangement = ARRANGEMENTS[int(rng.choice(len(arrangement_probs), p=arrangement_probs))]
         if arrangement != "free" and table.placed:
             placement = _try_arrangement(arrangement, spec, up, label, table, half, rng)
         grow = 1.0
@@ -250,10 +266,77 @@ def _place_free(spec, up, label, table, half, rng) -> Placement | None:
     return Placement(spec, pose, label, "free")
 
 
+FLUSH_GAP_M = 5e-4              # at most, between boxes packed flush (a hairline step in depth: none)
+PILE_STEP_M = 0.01              # how far a dropped object falls between collision checks
+PILE_SPOTS = 8                  # spots tried for each object dropped onto a pile
+
+
+def _drop(pose: np.ndarray, half: np.ndarray, reach_z: float, placed: list[Placement]) -> np.ndarray:
+    """``pose`` moved down from above everything near it until it touches something or its
+    lowest point reaches the table (to within 0.1 mm); ``reach_z`` is its lowest point's depth
+    below its centre. Only objects whose upright bounding boxes meet its own are tested."""
+    reach = np.abs(pose[:3, :3]) @ half
+    near = []
+    for p in placed:
+        other = np.abs(p.pose[:3, :3]) @ p.spec.half_extents
+        if np.all(np.abs(p.pose[:2, 3] - pose[:2, 3]) <= reach[:2] + other[:2] + 1e-3):
+            near.append((p, p.pose[2, 3] - other[2], p.pose[2, 3] + other[2]))
+    pose = pose.copy()
+    pose[2, 3] = max([top for _, _, top in near], default=0.0) + reach_z + 1e-3
+
+    def hits(z):
+        trial = pose.copy()
+        trial[2, 3] = z
+        # No margin: a margin would hold it up by margin / cos(slope) on a steep face.
+        return any(_obb_overlap(trial, half, p.pose, p.spec.half_extents, 0.0) for p, bottom, top in near
+                   if z - reach_z <= top + 1e-3 and z + reach_z >= bottom - 1e-3)
+    free = pose[2, 3]
+    while free - PILE_STEP_M > reach_z and not hits(free - PILE_STEP_M):
+        free -= PILE_STEP_M
+    low = max(free - PILE_STEP_M, reach_z)
+    if not hits(low):
+        free = low                      # reached the table
+    else:
+        for _ in range(7):              # between touching (low) and free
+            mid = 0.5 * (low + free)
+            if hits(mid):
+                low = mid
+            else:
+                free = mid
+    pose[2, 3] = free
+    return pose
+
+
 def _try_arrangement(kind, spec, up, label, table, half, rng) -> Placement | None:
+    margin = 5e-4
     for _ in range(25):
         other = table.placed[int(rng.integers(len(table.placed)))]
-        if kind == "touching":
+        if kind == "flush":
+            # Against a copy of itself, turned the same way, face to face along one of the
+            # copy's horizontal axes, with a gap of at most FLUSH_GAP_M: tops in one plane.
+            if other.spec != spec or spec.shape != "box" or other.arrangement == "fixture":
+                continue
+            horiz = [i for i in range(3) if abs(other.pose[2, i]) < 0.5]
+            axis = horiz[int(rng.integers(len(horiz)))]
+            sign = float(rng.choice([-1.0, 1.0]))
+            pose = other.pose.copy()
+            pose[:3, 3] += sign * other.pose[:3, axis] * (2 * spec.half_extents[axis] + rng.uniform(1e-4, FLUSH_GAP_M))
+            margin = 0.0
+        elif kind == "pile":
+            # Dropped at a random orientation into the region (a bin's inside): of PILE_SPOTS
+            # random spots, where it comes to rest lowest, falling straight down from above
+            # everything until it touches something (it is not turned by what it meets).
+            R = Rotation.random(random_state=rng).as_matrix()
+            reach = np.abs(R) @ spec.half_extents                # half sizes of its upright bounding box
+            room = np.maximum(half - reach[:2], 0.0)
+            best = None
+            for _spot in range(PILE_SPOTS):
+                pose = make_transform(R, [rng.uniform(-room[0], room[0]), rng.uniform(-room[1], room[1]), 0.0])
+                rest = _drop(pose, spec.half_extents, float(reach[2]), table.placed)
+                if best is None or rest[2, 3] < best[2, 3]:
+                    best = rest
+            return Placement(spec, best, label, kind)
+        elif kind == "touching":
             pose = make_transform(_resting_rotation(spec, up, rng.uniform(0, 2 * np.pi), rng), [0, 0, 0])
             pose[2, 3] -= _lowest_z(pose, spec.half_extents)
             a = rng.uniform(0, 2 * np.pi)
@@ -296,10 +379,36 @@ def _try_arrangement(kind, spec, up, label, table, half, rng) -> Placement | Non
             continue
         if np.any(np.abs(pose[:2, 3]) > 1.6 * half):
             continue
-        if table.collides(pose, spec.half_extents):
+        if table.collides(pose, spec.half_extents, margin):
             continue
         return Placement(spec, pose, label, kind)
     return None
+
+
+BIN_PANEL_M = 0.012             # wall and floor thickness of a bin
+BIN_HEIGHT_M = (0.12, 0.2)      # inside height, drawn per seed
+BIN_FILL = (1.5, 2.5)           # inside floor area / the objects' summed footprints, drawn per seed
+                                # (1.5: a heap two or three deep; 2.5: mostly one layer)
+
+
+def bin_fixtures(specs: list[ObjectSpec], rng) -> tuple[list[Placement], np.ndarray]:
+    """An open bin around the origin for ``specs`` to be piled in: its floor and four walls
+    (``PROPS["bin_panel"]``, fixtures labelled -1 like the table), the inside BIN_FILL times
+    the objects' footprints (4:3) and BIN_HEIGHT_M high. Returns (panels, inside half sizes)."""
+    area = max(0.03, rng.uniform(*BIN_FILL) * footprint_area(specs))
+    inside = np.array([np.sqrt(area * 4 / 3), np.sqrt(area * 3 / 4)])
+    height = rng.uniform(*BIN_HEIGHT_M)
+    t = BIN_PANEL_M
+    panel = PROPS["bin_panel"]
+    ox, oy = inside / 2 + t / 2                    # wall centres
+    boxes = [((0.0, 0.0, t / 2), (inside[0] + 2 * t, inside[1] + 2 * t, t)),
+             ((ox, 0.0, t + height / 2), (t, inside[1] + 2 * t, height)),
+             ((-ox, 0.0, t + height / 2), (t, inside[1] + 2 * t, height)),
+             ((0.0, oy, t + height / 2), (inside[0], t, height)),
+             ((0.0, -oy, t + height / 2), (inside[0], t, height))]
+    panels = [Placement(replace(panel, dimensions_m=tuple(float(v) for v in dims)), make_transform(np.eye(3), centre),
+                        -1, "fixture") for centre, dims in boxes]
+    return panels, inside / 2
 
 
 # ----------------------------------------------------------------------------------------------
@@ -373,6 +482,30 @@ def sweep_trajectory(placements: list[Placement], frames: int, rng, rate_hz: flo
         if min(_clearance(P[:3, 3], placements) for P in poses) >= MIN_CAMERA_CLEARANCE_M:
             return poses
         r0 += 0.05          # too close to a tall object somewhere: back off
+    return poses
+
+
+def overhead_trajectory(placements: list[Placement], frames: int, rng, rate_hz: float = FRAME_RATE_HZ,
+                        distance=(1.3, 1.8)) -> list[np.ndarray]:
+    """Camera -> world poses from above (a pallet, boxes packed flush, a bin): ``distance``
+    metres (drawn per seed; the ends of a slow wobble of +-8 cm) from the top of the load,
+    tilted 5-30 deg off vertical, drifting a few centimetres and turning slowly over time."""
+    load = [p for p in placements if p.spec.name != "pallet"] or placements
+    tops = np.array([p.pose[2, 3] + p.spec.dimensions_m[2] / 2 for p in load])
+    centre = np.array([np.mean([p.pose[0, 3] for p in placements]), np.mean([p.pose[1, 3] for p in placements]),
+                       float(tops.max())])
+    r0 = rng.uniform(*distance)
+    el0 = np.radians(90 - rng.uniform(5, 30))
+    az0 = rng.uniform(0, 2 * np.pi)
+    phase = rng.uniform(0, 2 * np.pi, size=4)
+    poses = []
+    for i in range(frames):
+        w = 2 * np.pi * i / rate_hz
+        r = r0 + 0.08 * np.sin(w / 6.0 + phase[0])
+        az = az0 + np.radians(10) * np.sin(w / 8.0 + phase[1])
+        el = el0 + np.radians(3) * np.sin(w / 5.0 + phase[2])
+        target = centre + 0.04 * np.array([np.sin(w / 7.0 + phase[3]), np.cos(w / 9.0 + phase[3]), 0.0])
+        poses.append(look_at(_spherical(target, r, az, el), target, np.radians(2.0) * np.sin(w / 3.0)))
     return poses
 
 
@@ -805,9 +938,43 @@ def table_lightmap(placements: list[Placement], wall_y: float, size_m: tuple[flo
     return np.clip(1.0 - direct * shadow - 0.25 * contact, 0.3, 1.0).astype(np.float32)
 
 
-def environment_primitives(wall_y: float, placements: list[Placement] = ()) -> list:
+FLOOR_BELOW_TABLE_M = 0.75
+CLUTTER_DISTANCE_M = (2.0, 3.0)     # the far wall behind the table's back edge, drawn per seed
+
+
+def clutter_primitives(table_back_y: float, rng) -> tuple[list, float]:
+    """A room behind the table (background "clutter"): a floor FLOOR_BELOW_TABLE_M below the
+    table top, 3-5 pieces of furniture (``objects.FURNITURE``: textured boxes standing on the
+    floor, most against the far wall) and the far wall's y, CLUTTER_DISTANCE_M behind the
+    table's back edge. Returns (primitives, far wall y)."""
+    far_y = table_back_y + rng.uniform(*CLUTTER_DISTANCE_M)
+    floor_z = -FLOOR_BELOW_TABLE_M
+    size = ENVIRONMENT_SIZE["floor"]
+    prims = [Quad(origin=np.array([-size[0] / 2, far_y, floor_z]), e1=np.array([size[0], 0.0, 0.0]),
+                  e2=np.array([0.0, -size[1], 0.0]), normal=np.array([0.0, 0.0, 1.0]),
+                  texture=_environment_texture("floor"), tex_rect=(0.0, 0.0, size[0] * size[2], size[1] * size[2]))]
+    placed: list[Placement] = []
+    for _ in range(int(rng.integers(3, 6))):
+        spec = PROPS[FURNITURE[int(rng.integers(len(FURNITURE)))]]
+        half = spec.half_extents
+        for _attempt in range(30):
+            against_wall = rng.random() < 0.7
+            yaw = rng.normal(0.0, np.radians(4)) if against_wall else rng.uniform(-0.6, 0.6)
+            y = far_y - half[1] - 0.02 if against_wall else rng.uniform(table_back_y + 0.6, far_y - 0.5)
+            pose = make_transform(_rot_z(yaw), [rng.uniform(-2.4, 2.4), y, floor_z + half[2]])
+            if y - half[1] > table_back_y + 0.3 and not any(
+                    _obb_overlap(pose, half, q.pose, q.spec.half_extents, 0.02) for q in placed):
+                placed.append(Placement(spec, pose, -1, "fixture"))
+                break
+    for q in placed:
+        prims += object_primitives(q)
+    return prims, far_y
+
+
+def environment_primitives(wall_y: float, placements: list[Placement] = (), clutter_rng=None) -> list:
     """The table top (z = 0) and the wall behind it (y = wall_y), both textured; the
-    placements cast shadows on the table."""
+    placements cast shadows on the table. With ``clutter_rng``, the table ends at wall_y and
+    a room lies behind it instead of the wall (``clutter_primitives``)."""
     table_tex = _environment_texture("table")
     wall_tex = _environment_texture("wall")
     table_per_m = ENVIRONMENT_SIZE["table"][2]
@@ -818,11 +985,15 @@ def environment_primitives(wall_y: float, placements: list[Placement] = ()) -> l
                  tex_rect=(0.0, 0.0, sx * table_per_m, sy * table_per_m),
                  lightmap=table_lightmap(list(placements), wall_y, (sx, sy)) if placements else None)
     wall_w, wall_h = ENVIRONMENT_SIZE["wall"][:2]
-    # The wall stops just below the table top: anything lower is hidden and costs time.
-    wall = Quad(origin=np.array([-wall_w / 2, wall_y, wall_h - 0.02]), e1=np.array([wall_w, 0.0, 0.0]),
+    room, bottom = [], -0.02
+    if clutter_rng is not None:
+        room, wall_y = clutter_primitives(wall_y, clutter_rng)
+        bottom = -FLOOR_BELOW_TABLE_M - 0.02
+    # The wall stops just below the table top (the floor): anything lower is hidden and costs time.
+    wall = Quad(origin=np.array([-wall_w / 2, wall_y, wall_h + bottom]), e1=np.array([wall_w, 0.0, 0.0]),
                 e2=np.array([0.0, 0.0, -wall_h]), normal=np.array([0.0, -1.0, 0.0]), texture=wall_tex,
                 tex_rect=(0.0, 0.0, wall_w * wall_per_m, wall_h * wall_per_m))
-    return [table, wall]
+    return [table, wall] + room
 
 
 # ----------------------------------------------------------------------------------------------
@@ -868,6 +1039,8 @@ class SyntheticScene:
     log_slots: list | None = None
     path_poses: list | None = None
     sensor: SensorProfile = SENSOR_PROFILES["d455"]     # how the depth is made (sensor.simulate_depth)
+    layout: str = "table"                # how the objects lie: table | flush | bin (make_tabletop_scene)
+    background: str = "wall"             # behind the table: wall | clutter (a room 2-3 m behind)
 
     def __post_init__(self):
         wall_y = max(0.45, max(p.pose[1, 3] for p in self.placements) + 0.3)
@@ -875,7 +1048,8 @@ class SyntheticScene:
             wall_y = 1.0
         self._stages = []           # (first frame, placements, primitives)
         for start, placements in [(0, self.placements)] + sorted(self.later_placements, key=lambda s: s[0]):
-            prims = environment_primitives(wall_y, placements)
+            clutter_rng = np.random.default_rng([self.seed, 10]) if self.background == "clutter" else None
+            prims = environment_primitives(wall_y, placements, clutter_rng)
             for p in placements:
                 prims += object_primitives(p)
             self._stages.append((start, placements, prims))
@@ -898,12 +1072,16 @@ class SyntheticScene:
         """The /ground_truth/object JSON: the shared convention plus what else was placed."""
         d = self.target.description()
         d.update({"instances": len(self.instances), "kind": self.kind, "seed": int(self.seed),
-                  "distractors": [p.spec.name for p in self.placements if not p.is_instance],
+                  "distractors": [p.spec.name for p in self.placements if p.is_distractor],
                   "arrangements": [p.arrangement for p in self.instances],
                   "generator": "multi_instance_reg.synthetic"})
         # Only when not the defaults, so that default bags stay byte for byte what they were.
         if self.motion != "sweep":
             d["motion"] = self.motion
+        if self.layout != "table":
+            d["layout"] = self.layout
+        if self.background != "wall":
+            d["background"] = self.background
         if self.more_targets:
             # A mixed scene: every target object, and which one each ground-truth index is.
             d["objects"] = [spec.description() for spec in (self.target,) + tuple(self.more_targets)]
@@ -1056,7 +1234,8 @@ def _check_common(object_name: str, seed: int, resolution: str) -> ObjectSpec:
 def make_tabletop_scene(object_name: str | list[str] = DEFAULT_OBJECT, instances: int = 6, distractors: int = 3,
                         frames: int = 60, seed: int = 0, resolution: str = "640x480", motion: str = "sweep",
                         occluder: bool = False, frame_rate: float = FRAME_RATE_HZ, drop: float = 0.0,
-                        loop: bool = False, sensor: str = "d455", randomise: bool = False) -> SyntheticScene:
+                        loop: bool = False, sensor: str = "d455", randomise: bool = False, layout: str = "table",
+                        background: str = "wall") -> SyntheticScene:
     names = [object_name] if isinstance(object_name, str) else list(object_name)
     if not names or len(set(names)) != len(names):
         raise InputError(f"target objects must be given once each, got {names}")
@@ -1064,6 +1243,14 @@ def make_tabletop_scene(object_name: str | list[str] = DEFAULT_OBJECT, instances
     more = tuple(get_object(n) for n in names[1:])
     if motion not in MOTIONS:
         raise InputError(f"motion must be one of {', '.join(MOTIONS)}, got '{motion}'")
+    if layout not in LAYOUTS:
+        raise InputError(f"layout must be one of {', '.join(LAYOUTS)}, got '{layout}'")
+    if background not in BACKGROUNDS:
+        raise InputError(f"background must be one of {', '.join(BACKGROUNDS)}, got '{background}'")
+    if motion == "pan" and layout != "table":
+        raise InputError(f"motion pan spreads the objects along the table: it needs layout table, not {layout}")
+    if layout == "flush" and not all(s.shape == "box" for s in (spec, *more)):
+        raise InputError("layout flush packs boxes: choose box objects (e.g. snack_box, cereal_box, snack_bar)")
     if not 1 <= int(instances) * len(names) <= MAX_INSTANCES:
         raise InputError(f"instances must be 1 to {MAX_INSTANCES} in all ({len(names)} object(s) x {instances})"
                          if len(names) > 1 else f"instances must be 1 to {MAX_INSTANCES}, got {instances}")
@@ -1078,8 +1265,8 @@ def make_tabletop_scene(object_name: str | list[str] = DEFAULT_OBJECT, instances
         raise InputError(f"drop (share of frames left out) must be 0 to {MAX_DROP:g}, got {drop:g}")
     # Independent streams, so that e.g. the frame count does not change the placement, and
     # the static camera, the pan and the occluder take nothing from the sweep's streams.
-    rng_choose, rng_place, rng_path, rng_motion, rng_occluder, rng_drop = (
-        np.random.default_rng([int(seed), k]) for k in (1, 2, 3, 6, 7, 8))
+    rng_choose, rng_place, rng_path, rng_motion, rng_occluder, rng_drop, rng_layout = (
+        np.random.default_rng([int(seed), k]) for k in (1, 2, 3, 6, 7, 8, 11))
     intrinsics = d455_intrinsics(resolution)
     pool = [s for s in OBJECTS.values() if s.name not in names]
     distractor_specs = [pool[int(i)] for i in rng_choose.integers(len(pool), size=int(distractors))]
@@ -1090,8 +1277,26 @@ def make_tabletop_scene(object_name: str | list[str] = DEFAULT_OBJECT, instances
                                    region_half=pan.region_half(intrinsics, footprint), more_targets=more)
         poses = pan.trajectory(placements, int(frames), frame_rate)
     else:
-        placements = place_objects(spec, int(instances), distractor_specs, rng_place, more_targets=more)
-        if motion == "static":
+        if layout == "flush":
+            # Every box against a copy of itself, all lying on their most likely face (as on a
+            # pallet: the first of each object sets the way; the copies follow it); the
+            # distractors fall back to free.
+            def lying(s):
+                return replace(s, resting=(max(s.resting, key=lambda r: r[1]),))
+            flat = [lying(s) for s in (spec, *more)]
+            placements = place_objects(flat[0], int(instances), distractor_specs, rng_place, more_targets=tuple(flat[1:]),
+                                       arrangement_probs=(0.0, 0.0, 0.0, 0.0, 1.0))
+        elif layout == "bin":       # everything dropped into a bin at random orientations
+            panels, inside = bin_fixtures([spec, *more] * int(instances) + distractor_specs, rng_layout)
+            placements = place_objects(spec, int(instances), distractor_specs, rng_place, more_targets=more,
+                                       arrangement_probs=(0.0, 0.0, 0.0, 0.0, 0.0, 1.0), region_half=inside,
+                                       fixtures=tuple(panels))
+        else:
+            placements = place_objects(spec, int(instances), distractor_specs, rng_place, more_targets=more)
+        if motion == "overhead":    # closer over a bin (it fills the view, as in bin-picking cells)
+            poses = overhead_trajectory(placements, int(frames), rng_motion, frame_rate,
+                                        distance=(0.55, 0.75) if layout == "bin" else (0.7, 1.0))
+        elif motion == "static":
             poses = static_viewpoint(placements, int(frames), rng_motion)
         elif motion == "shaky_pan":
             poses = ShakyPanPlan.draw(rng_motion).trajectory(placements, int(frames), frame_rate)
@@ -1114,7 +1319,8 @@ def make_tabletop_scene(object_name: str | list[str] = DEFAULT_OBJECT, instances
         moving = None
     return SyntheticScene("scene", spec, placements, poses, intrinsics, int(seed), motion=motion,
                           occluder=moving, more_targets=more, frame_rate_hz=frame_rate,
-                          sensor=sensor_profile(sensor, int(seed), randomise), **timeline)
+                          sensor=sensor_profile(sensor, int(seed), randomise), layout=layout, background=background,
+                          **timeline)
 
 
 def make_capture_scene(object_name: str = DEFAULT_OBJECT, seed: int = 0, views: int = 10,
@@ -1195,11 +1401,11 @@ def generate_scene_bag(out_path, object_name: str | list[str] = DEFAULT_OBJECT, 
                        occluder: bool = False, depth_noise_correlation_px: float = 0.0,
                        transport: str = "raw", imu: bool = True, frame_rate: float = FRAME_RATE_HZ,
                        drop: float = 0.0, loop: bool = False, sensor: str = "d455",
-                       randomise: bool = False) -> BagSummary:
+                       randomise: bool = False, layout: str = "table", background: str = "wall") -> BagSummary:
     """Make a tabletop scene (see ``make_tabletop_scene``) and write it as a rosbag2."""
     scene = make_tabletop_scene(object_name, instances, distractors, frames, seed, resolution,
                                 motion=motion, occluder=occluder, frame_rate=frame_rate, drop=drop, loop=loop,
-                                sensor=sensor, randomise=randomise)
+                                sensor=sensor, randomise=randomise, layout=layout, background=background)
     scene.set_depth_noise_correlation(depth_noise_correlation_px)
     return write_scene_bag(scene, out_path, storage, preview_dir, transport=transport, imu=imu)
 

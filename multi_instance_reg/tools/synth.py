@@ -1,8 +1,8 @@
 """``mireg synth``: make synthetic D455 tabletop recordings with ground truth.
 
     mireg synth scene -o OUT [--object NAME [--object NAME2 ...]] [--instances K] [--distractors D] [--frames F]
-                      [--sensor d455|realistic] [--randomise]
-                      [--motion sweep|static|pan|shaky_pan|jumps] [--frame-rate HZ] [--drop SHARE] [--loop]
+                      [--layout table|flush|bin] [--background wall|clutter] [--sensor d455|realistic] [--randomise]
+                      [--motion sweep|static|pan|shaky_pan|jumps|overhead] [--frame-rate HZ] [--drop SHARE] [--loop]
                       [--occluder]
                       [--seed S] [--storage sqlite3|mcap] [--image-transport raw|compressed]
                       [--resolution 640x480|1280x720] [--preview DIR]
@@ -19,7 +19,8 @@ HELP = "make synthetic D455 tabletop bags with ground truth (scene, capture, unt
 def add_arguments(parser) -> None:
     from ..datasets.bag_writer import TRANSPORTS
     from ..synthetic.objects import DEFAULT_OBJECT, OBJECTS, UNTEXTURED_OBJECTS
-    from ..synthetic.scene import FRAME_RATE_HZ, MAX_DROP, MOTIONS, PAN_SECONDS, SHAKY_ARC_DEG
+    from ..synthetic.scene import (BACKGROUNDS, FRAME_RATE_HZ, LAYOUTS, MAX_DROP, MOTIONS, PAN_SECONDS,
+                                   SHAKY_ARC_DEG)
     from ..synthetic.sensor import RESOLUTIONS, SENSOR_PROFILES
     from ..synthetic.untextured import PRESETS
 
@@ -86,7 +87,16 @@ def add_arguments(parser) -> None:
                             "spread along it so that instances enter and leave the view; shaky_pan = hand-held, "
                             f"a {SHAKY_ARC_DEG:g} deg arc about the objects in {PAN_SECONDS:g} s (and back) with "
                             "shake that is new every frame (2.5-3.5 mm, 0.3-0.5 deg mean frame-to-frame); jumps = "
-                            "on a robot arm moving in bursts, 3-8 deg per 1/30 s, still in between")
+                            "on a robot arm moving in bursts, 3-8 deg per 1/30 s, still in between; overhead = "
+                            "from above, tilted 5-30 deg, drifting slowly (0.7-1 m; 0.55-0.75 m over a bin)")
+    scene.add_argument("--layout", choices=LAYOUTS, default="table",
+                       help="how the objects lie: table = free, touching, stacked or leaning (default); flush = boxes "
+                            "packed face to face with no gap, all lying the same way (their tops one plane: outlines "
+                            "only in colour; with --motion overhead: a pallet seen from above); bin = dropped at random "
+                            "orientations into an open bin (all objects, distractors too)")
+    scene.add_argument("--background", choices=BACKGROUNDS, default="wall",
+                       help="behind the table: wall = a brick wall just behind the objects (default); clutter = the "
+                            "table ends there and a room lies 2-3 m behind it: floor, furniture, a brick wall")
     scene.add_argument("--frame-rate", type=float, default=FRAME_RATE_HZ, metavar="HZ",
                        help=f"frames per second, 1-90 (default {FRAME_RATE_HZ:g}; a recorded bag is often throttled to "
                             "5-15): stamps 1/HZ apart, the camera moving as far per frame as the time lets it")
@@ -176,7 +186,8 @@ def run(args) -> int:
                                      depth_noise_correlation_px=args.depth_noise_correlation,
                                      transport=args.image_transport, imu=not args.no_imu,
                                      frame_rate=args.frame_rate, drop=args.drop, loop=args.loop,
-                                     sensor=args.sensor, randomise=args.randomise)
+                                     sensor=args.sensor, randomise=args.randomise, layout=args.layout,
+                                     background=args.background)
     else:
         summary = generate_capture_bag(args.output, object_name=args.object, seed=args.seed, views=args.views,
                                        storage=args.storage, resolution=args.resolution, preview_dir=args.preview,
