@@ -15,7 +15,12 @@ Python API (what tests, the demo and the tools call):
   arm moving in bursts of 3-8 deg per 1/30 s (``jumps_trajectory``); ``frame_rate`` (Hz,
   default 30: the paths are functions of time, so each frame moves further at a lower
   rate), ``drop`` (share of frames left out in runs of 1-3: gaps in the stamps) and ``loop``
-  (the frames twice, the stamps jumping back once; ``frame_timeline``).
+  (the frames twice, the stamps jumping back once; ``frame_timeline``). As real cells look:
+  ``layout="flush"`` boxes packed face to face (the ``flush`` arrangement), ``layout="bin"``
+  everything dropped into a bin at random orientations (``bin_fixtures``, the ``pile``
+  arrangement), ``motion="overhead"`` a camera above them, ``background="clutter"`` a room
+  2-3 m behind the table (``clutter_primitives``), ``sensor="realistic"`` (and
+  ``randomise=True``) the depth of :mod:`.sensor`'s realistic profile.
   ``object_name`` may also be a list of names (a mixed scene): K instances of each, labelled
   object after object (the first object's K, then the next's); ``SyntheticScene.instance_objects``
   names each instance's object, and /ground_truth/object carries it as ``instance_objects``.
@@ -30,7 +35,8 @@ Python API (what tests, the demo and the tools call):
   distractor), ``visibility`` (K,) visible fraction of each instance's silhouette, ``stamp_ns``.
 - ``generate_scene_bag(out_path, object_name=..., instances=..., distractors=..., frames=...,
   seed=..., storage="sqlite3", resolution="640x480", preview_dir=None, motion="sweep",
-  occluder=False, frame_rate=30.0, drop=0.0, loop=False) -> BagSummary`` and
+  occluder=False, frame_rate=30.0, drop=0.0, loop=False, sensor="d455", randomise=False,
+  layout="table", background="wall") -> BagSummary`` and
   ``generate_capture_bag(out_path, object_name, seed=0, views=10, ...)``: the same written as a
   rosbag2 with realsense-ros topics plus /ground_truth/{poses,object,visibility}
   (:mod:`multi_instance_reg.datasets.bag_writer`).
