@@ -289,7 +289,7 @@ def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_
                 if trackers is not None:
                     t0 = time.perf_counter()
                     published = trackers.step(frame.stamp_ns, frame.depth_m, frame.intrinsics,
-                                              result.instances if result is not None else None)
+                                              result.instances if result is not None else None, frame.rgb)
                     timings["tracking"] = (time.perf_counter() - t0) * 1e3
                     timings["total"] += timings["tracking"]
                 else:
