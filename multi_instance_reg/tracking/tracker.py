@@ -39,6 +39,7 @@ from ..params import param
 from ..transforms import invert_transform, rotation_angle_deg
 from ..rgbd.shape import apply_twist as twist_step
 from .icp import ProjectiveICP
+from .odometry import rigid_fit
 
 _log = logging.getLogger(__name__)
 
@@ -60,6 +61,7 @@ class TrackerConfig:
     max_undetected_s: float = param(1.5, "s: a track kept by the depth alone, with no detection for longer than this, ends (0 = never)", 0.0, 3600.0)
     duplicate_distance: float = param(0.015, "m: two tracks whose positions come closer than this, or than half the object's smallest extent (their model volumes overlap), follow one object: the one with the weaker evidence on this frame ends (published before not, confirmed before tentative, then the older)", 0.0, 1.0)
     max_free_share: float = param(0.3, "share of a track's visible model points that may stand where the camera saw through to a surface more than icp_max_distance behind them (space seen empty, which no occlusion explains): above it the depth contradicts the pose and the track has no evidence on that frame, whatever detected it", 0.0, 1.0)
+    odometry: bool = param(True, "measure the camera's motion from one frame to the next by the colour image's features with depth (tracking.odometry: ORB, RANSAC; objects rest, so it moves every track) and predict the tracks by it: a shaking or jumping camera is followed exactly where a velocity would guess; where a frame has too little texture, the prediction below is used")
     camera_motion: bool = param(True, "predict every track by one motion shared by all (the camera's: objects rest and the camera moves), corrected on each frame by one ICP of all confirmed and coasting tracks together against the depth (where that is refused or no such track is in view: the median rotation, then the median translation of the steps of the tracks the depth or a detection saw), plus the track's own residual velocity; an occluded (coasting) track follows the shared motion. Off: each track's own constant velocity, an occluded one follows the nearest seen track")
     velocity_decay: float = param(0.5, "share of a track's own velocity (with camera_motion: what the shared motion does not explain) kept per frame the track is updated by the depth alone (no detection): a velocity the depth does not confirm (a box sliding along the table plane it shares with its neighbours) dies out instead of carrying the track away from a resting object; 1 = constant velocity", 0.0, 1.0)
     smoothing: float = param(0.0, "pose smoothing, 0 = off (the published pose is the measured one) to 0.95 (heavy): the published pose is a constant-velocity (alpha-beta) filter of the measured one with gain 1 - smoothing, so a resting object's pose settles and a steadily moving one does not lag (and, with a still camera, the running mean of a resting object's measured poses: rest_frames); a measurement further than icp_max_step / icp_max_step_deg from the filter restarts it", 0.0, 0.95)
@@ -163,16 +165,6 @@ def smallest_extent(points: np.ndarray) -> float:
     return float(spans.min())
 
 
-def rigid_fit(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    """The rigid transform taking points src onto dst in the least-squares sense (Kabsch)."""
-    cs, cd = src.mean(axis=0), dst.mean(axis=0)
-    U, _, Vt = np.linalg.svd((src - cs).T @ (dst - cd))
-    R = Vt.T @ np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))]) @ U.T
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, cd - R @ cs
-    return T
-
-
 def relative_twist(T_from: np.ndarray, T_to: np.ndarray) -> np.ndarray:
     """(rotvec, translation) of D with T_to = D T_from."""
     D = T_to @ invert_transform(T_from)
@@ -229,6 +221,8 @@ class InstanceTracker:
         self._camera_still = 0                # frames the camera has been judged still in a row
         self.resets = 0                       # times the stamps went back and every track was ended
         self._detections_win = False          # this frame's detections reset their tracks (see _fuse)
+        self._predicted_motion = np.eye(4)    # the camera motion the tracks were predicted by on this frame
+        self._motion_measured = False         # ... measured (odometry), not extrapolated
         self._merge_distance = max(0.5 * smallest_extent(model.points_xyz), 0.0)
         # Rotations (model frame) under which the object looks the same; identity first.
         self.symmetries = [np.eye(3)] + [np.asarray(S, dtype=np.float64)[:3, :3] for S in (symmetries or [])]
@@ -241,13 +235,17 @@ class InstanceTracker:
 
     # ---- per frame -------------------------------------------------------------------
     def step(self, stamp_ns: int, depth_m: np.ndarray | None, intrinsics: CameraIntrinsics | None,
-             detections=None) -> list[TrackedInstance]:
+             detections=None, camera_motion: np.ndarray | None = None) -> list[TrackedInstance]:
         """Advance every track to this frame; ``detections`` (Instances found on this very
         frame, or None when the detector did not run on it) correct them before the depth
-        alignment. Returns what to publish for this frame."""
+        alignment; ``camera_motion``: the camera's motion D since the frame stepped before
+        (X_now = D X_before; ``odometry.CameraOdometry``), None where it is not known.
+        Returns what to publish for this frame."""
         if self.stamp_ns is not None and int(stamp_ns) < self.stamp_ns:
-            self.reset(f"the stamps went back by {(self.stamp_ns - int(stamp_ns)) * 1e-9:.3f} s (a bag played in a loop, a camera restarted)")
-        self._predict(stamp_ns)
+            self.reset(f"the stamps went back by {(self.stamp_ns - int(stamp_ns)) * 1e-9:.3f} s "
+                       "(a bag played in a loop, a camera restarted)")
+            camera_motion = None
+        self._predict(stamp_ns, camera_motion)
         self._align_camera(depth_m, intrinsics)
         if detections is not None:
             self._fuse(stamp_ns, detections)
@@ -270,12 +268,23 @@ class InstanceTracker:
         self._camera_moving, self._camera_still = True, 0
 
     # ---- stages ----------------------------------------------------------------------
-    def _predict(self, stamp_ns: int) -> None:
+    def _predict(self, stamp_ns: int, camera_motion: np.ndarray | None = None) -> None:
+        """Every track moved to this frame: by the camera's measured motion where it is known
+        (objects rest), else by the shared velocity; then by its own residual velocity."""
         stamp_ns = int(stamp_ns)
         shared = self.camera_velocity if self.config.camera_motion else np.zeros(6)
+        dt_frame = (stamp_ns - self.stamp_ns) * 1e-9 if self.stamp_ns is not None else 0.0
+        self._predicted_motion = (proper_pose(camera_motion) if camera_motion is not None
+                                  else apply_twist(np.eye(4), shared, max(dt_frame, 0.0)))
+        self._motion_measured = camera_motion is not None
         for tr in self.tracks:
             dt = (stamp_ns - tr.stamp_ns) * 1e-9
-            if dt > 0:
+            if camera_motion is not None:
+                tr.T = apply_twist(self._predicted_motion @ tr.T, tr.velocity, max(dt, 0.0))
+                tr.T_out_before = tr.T_out
+                tr.T_out = proper_pose(self._predicted_motion @ tr.T_out)
+                tr.stamp_ns = stamp_ns
+            elif dt > 0:
                 tr.T = apply_twist(apply_twist(tr.T, shared, dt), tr.velocity, dt)
                 tr.T_out_before = tr.T_out
                 tr.T_out = local_step(tr.T_out, tr.out_velocity * dt)   # the filter's own velocity
@@ -332,9 +341,11 @@ class InstanceTracker:
         candidates = [(tr, T) for tr, T in candidates if T is not None]
         matched_dets: set[int] = set()
         matched_tracks: set[int] = set()
-        # On this very frame, where the depth did not measure the camera's motion (a jump
-        # beyond the ICP's reach, a gap), the tracks' poses are stale: the detections win.
-        self._detections_win = stamp_ns == self.stamp_ns and self.camera_correction is None
+        # On this very frame, where neither the colour (odometry) nor the depth measured the
+        # camera's motion (a jump beyond the ICP's reach, a gap), the tracks' poses are stale:
+        # the detections win.
+        self._detections_win = (stamp_ns == self.stamp_ns and self.camera_correction is None
+                                and not self._motion_measured)
         if dets and candidates:
             D = self._camera_from_detections([T for _, T in candidates], dets)
             if D is not None and (self._detections_win or stamp_ns != self.stamp_ns):
@@ -525,10 +536,9 @@ class InstanceTracker:
                 if jumped_from is not None:
                     own = self._icp.align(jumped_from, depth_m, intrinsics)
                     # The depth decides: the detection wins where the depth confirms it
-                    # (icp_min_fitness) better than the track. Where the depth cannot tell the
-                    # two apart (a box's yaw seen from its top; an arm hiding most of the
-                    # object) one detection is not enough to move the track: flip_after such
-                    # detections in a row are.
+                    # (icp_min_fitness) better than the track, or confirms neither. Where it
+                    # confirms both alike (a box's yaw seen from its top) one detection is not
+                    # enough to move the track: flip_after such detections in a row are.
                     if tr.state == COASTING:
                         # Not confirmed by the depth on the frame before, mostly because
                         # something covers it: the points hidden behind that are evidence
@@ -537,8 +547,10 @@ class InstanceTracker:
                         own_f, res_f = own.unoccluded_fitness, res.unoccluded_fitness
                     else:
                         own_f, res_f = own.fitness, res.fitness
-                    undecided = own_f == res_f or max(own_f, res_f) < c.icp_min_fitness
-                    if undecided:
+                    if max(own_f, res_f) < c.icp_min_fitness:
+                        # The depth vouches for neither: the detection is the evidence there is.
+                        take_detection = True
+                    elif own_f == res_f:
                         take_detection = tr.far_detections >= c.flip_after
                     else:
                         take_detection = res_f > own_f
@@ -546,7 +558,10 @@ class InstanceTracker:
                         tr.far_detections = 0
                         self._reset_pull(tr, tr.inliers)
                     else:
+                        # The track keeps its pose, which the detection does not vouch for:
+                        # only the depth can (below).
                         tr.T, res = jumped_from, own
+                        seen[tr.track_id] = False
                 # An instance all but out of view is no evidence: a handful of points on the
                 # image border would confirm it while it lags behind.
                 tr.fitness = res.fitness if res.in_view >= c.icp_min_in_view else 0.0
@@ -689,10 +704,13 @@ class InstanceTracker:
         track's position is better known than its orientation, which a lever arm of half a
         metre would turn into millimetres). Updates camera_velocity for the next prediction;
         with no such track the last one stays."""
-        if self.camera_correction is not None and self._frame_dt > 0:
-            # Measured by the joint alignment: the predicted motion, corrected.
+        if (self.camera_correction is not None or self._motion_measured) and self._frame_dt > 0:
+            # Measured by the odometry and / or the joint alignment: the predicted motion,
+            # corrected.
             dt = self._frame_dt
-            M = self.camera_correction @ apply_twist(np.eye(4), self.camera_velocity, dt)
+            M = self._predicted_motion
+            if self.camera_correction is not None:
+                M = self.camera_correction @ M
             measured = relative_twist(np.eye(4), M) / dt
             self.camera_velocity = 0.5 * self.camera_velocity + 0.5 * measured
             return measured
