@@ -1,0 +1,271 @@
+"""BOP scoring (multi_instance_reg/evaluation): known answers for the pose errors, the
+rasteriser, the matching and AR, on meshes and a small BOP dataset written here."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from multi_instance_reg.datasets.bop import (BopDataset, BopEstimate, BopModelInfo, BopWriter, gt_info_from_mask,
+                                             write_results_csv)
+from multi_instance_reg.evaluation.bop_scoring import ScoreSettings, greedy_matches, score_results
+from multi_instance_reg.evaluation.pose_errors import (distance_factor, mspd, mssd, probe_indices, project,
+                                                       symmetry_transforms, vsd)
+from multi_instance_reg.evaluation.render import render_depth, render_scene
+from multi_instance_reg.meshes import box_mesh, cylinder_mesh
+from multi_instance_reg.symmetry import Symmetries, parse_symmetry_text, turn_about
+
+W, H = 320, 240
+K = np.array([[275.0, 0, 158.0], [0, 270.0, 122.0], [0, 0, 1]])
+BOX = box_mesh(0.10, 0.06, 0.04)
+CYL = cylinder_mesh(0.07, 0.12, segments=315)      # its vertices lie on BOP's continuous steps
+
+
+def pose(rx=0.0, ry=0.0, rz=0.0, t=(0, 0, 0.5)) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = turn_about([1, 0, 0], [0, 0, 0], rx)[:3, :3] @ turn_about([0, 1, 0], [0, 0, 0], ry)[:3, :3] \
+        @ turn_about([0, 0, 1], [0, 0, 0], rz)[:3, :3]
+    T[:3, 3] = t
+    return T
+
+
+def info_of(mesh, sym: Symmetries | None) -> BopModelInfo:
+    """A models_info entry as the BOP reader gives it (mm), through the writer's own code."""
+    from multi_instance_reg.datasets.bop import models_info_entry, read_models_info
+    import json
+    import tempfile
+    from pathlib import Path
+
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / "models_info.json"
+        p.write_text(json.dumps({"1": models_info_entry(mesh, sym)}))
+        return read_models_info(p)[1]
+
+
+BOX_SYM = parse_symmetry_text("x:2,y:2", np.zeros(3))          # 180 deg flips about each axis
+CYL_SYM = parse_symmetry_text("z:inf,x:2", np.zeros(3))
+
+
+# --------------------------------------------------------------------------- rasteriser
+
+def test_box_depth_is_its_near_face():
+    r = render_depth(BOX.vertices, BOX.triangles, pose(), K, W, H)
+    on = r.depth > 0
+    assert np.allclose(r.depth[on], 0.48, atol=1e-5)                     # the face 2 cm in front of the centre
+    expected = (0.10 * 275 / 0.48) * (0.06 * 270 / 0.48)                 # its projected area in pixels
+    assert abs(on.sum() - expected) / expected < 0.03
+    rows, cols = np.nonzero(on)
+    assert (r.r0, r.r1, r.c0, r.c1) == (rows.min(), rows.max() + 1, cols.min(), cols.max() + 1)
+
+
+def test_a_mesh_behind_the_camera_or_outside_the_image_draws_nothing():
+    assert render_depth(BOX.vertices, BOX.triangles, pose(t=(0, 0, -0.5)), K, W, H).empty
+    assert not render_depth(BOX.vertices, BOX.triangles, pose(t=(5, 0, 0.5)), K, W, H).depth.any()
+
+
+# --------------------------------------------------------------------------- symmetries
+
+def test_symmetry_transforms_discretise_a_continuous_axis_as_bop_does():
+    cyl = info_of(CYL, CYL_SYM)
+    S = symmetry_transforms(cyl)
+    assert len(S) == 2 * 315                                             # ceil(pi / 0.01) steps x (identity, flip)
+    assert np.allclose(S[0], np.eye(4))
+    box = symmetry_transforms(info_of(BOX, BOX_SYM))
+    assert len(box) == 4 and np.allclose(box[0], np.eye(4))
+    none = symmetry_transforms(BopModelInfo(1, 100.0, np.zeros(3), np.ones(3)))
+    assert len(none) == 1
+
+
+# --------------------------------------------------------------------------- MSSD / MSPD
+
+def test_true_pose_scores_zero_and_a_shift_scores_the_shift():
+    syms = symmetry_transforms(info_of(BOX, BOX_SYM))
+    T = pose(0.3, -0.2, 0.7)
+    assert mssd(T, T, BOX.vertices, syms) < 1e-12
+    assert mspd(T, T, K, BOX.vertices, syms) < 1e-9
+    shifted = T.copy()
+    shifted[:3, 3] += [0.01, 0, 0]
+    assert mssd(shifted, T, BOX.vertices, syms) == pytest.approx(0.01, abs=1e-12)
+    # MSPD: the largest projected shift, at the nearest vertex (u moves by fx * dx / z).
+    p = BOX.vertices @ T[:3, :3].T + T[:3, 3]
+    expected = np.linalg.norm(project(p + [0.01, 0, 0], K) - project(p, K), axis=1).max()
+    assert mspd(shifted, T, K, BOX.vertices, syms) == pytest.approx(expected, rel=1e-9)
+    assert expected == pytest.approx(275 * 0.01 / p[:, 2].min(), rel=1e-9)
+
+
+def test_a_box_flipped_by_its_symmetry_scores_zero_but_not_without_it():
+    syms = symmetry_transforms(info_of(BOX, BOX_SYM))
+    T = pose(0.3, -0.2, 0.7)
+    flipped = T @ turn_about([0, 1, 0], [0, 0, 0], np.pi)
+    assert mssd(flipped, T, BOX.vertices, syms) < 1e-9
+    assert mspd(flipped, T, K, BOX.vertices, syms) < 1e-6
+    assert mssd(flipped, T, BOX.vertices, np.eye(4)[None]) > 0.05
+
+
+def test_a_cylinder_turned_about_its_axis_scores_zero():
+    syms = symmetry_transforms(info_of(CYL, CYL_SYM))
+    probes = probe_indices(len(CYL.vertices))
+    T = pose(0.4, 0.1, 0.0)
+    step = 2 * np.pi / 315
+    on_step = T @ turn_about([0, 0, 1], [0, 0, 0], 37 * step)
+    assert mssd(on_step, T, CYL.vertices, syms, probes) < 1e-9
+    assert mspd(on_step, T, K, CYL.vertices, syms, probes) < 1e-6
+    # Between steps the error is at most the step's arc (BOP's 1 % of the diameter).
+    between = T @ turn_about([0, 0, 1], [0, 0, 0], 37.5 * step)
+    assert 0 < mssd(between, T, CYL.vertices, syms, probes) <= 0.01 * np.linalg.norm([0.07, 0.12])
+    # Upside down is a symmetry of this cylinder (both caps alike).
+    flipped = T @ turn_about([1, 0, 0], [0, 0, 0], np.pi)
+    assert mssd(flipped, T, CYL.vertices, syms, probes) < 1e-9
+
+
+def test_bounded_search_gives_the_exhaustive_answer():
+    syms = symmetry_transforms(info_of(CYL, CYL_SYM))
+    rng = np.random.default_rng(3)
+    probes = probe_indices(len(CYL.vertices))
+    for _ in range(5):
+        T = pose(*rng.uniform(-1, 1, 3))
+        E = pose(*rng.uniform(-1, 1, 3), t=T[:3, 3] + rng.normal(0, 0.01, 3))
+        assert mssd(E, T, CYL.vertices, syms, probes) == pytest.approx(mssd(E, T, CYL.vertices, syms), rel=1e-12)
+        assert mspd(E, T, K, CYL.vertices, syms, probes) == pytest.approx(mspd(E, T, K, CYL.vertices, syms), rel=1e-12)
+    # give_up: a far estimate stops at a bound that is already past it.
+    far = pose(t=(0.2, 0, 0.5))
+    assert mssd(far, pose(), CYL.vertices, syms, probes, give_up=0.05) >= 0.05
+
+
+# --------------------------------------------------------------------------- VSD
+
+def test_vsd_of_the_true_pose_is_zero_and_of_a_far_pose_one():
+    T = pose(0.3, -0.2, 0.7)
+    scene, _, _ = render_scene([BOX], [T], K, W, H)
+    factor = distance_factor(K, W, H)
+    dist_test = scene * factor
+    taus = [0.05, 0.2, 0.5]
+    gt = render_depth(BOX.vertices, BOX.triangles, T, K, W, H)
+    assert np.all(vsd(gt, gt, dist_test, factor, 0.015, taus, 0.12) == 0)
+    far = T.copy()
+    far[:3, 3] += [0.3, 0, 0]
+    est = render_depth(BOX.vertices, BOX.triangles, far, K, W, H)
+    assert np.all(vsd(est, gt, dist_test, factor, 0.015, taus, 0.12) == 1)
+    # 1 cm behind the truth: every shared pixel differs by 1 cm, under the largest tau only.
+    back = T.copy()
+    back[:3, 3] *= 1.02
+    est = render_depth(BOX.vertices, BOX.triangles, back, K, W, H)
+    e = vsd(est, gt, dist_test, factor, 0.015, [0.05, 0.5], 0.12)
+    assert e[0] > 0.9 and e[1] < 0.1
+
+
+# --------------------------------------------------------------------------- matching
+
+def test_greedy_matching_follows_score_order_not_the_best_assignment():
+    # The first (highest score) estimate takes instance 0 (its smallest error), leaving the
+    # second nothing below the threshold; an optimal assignment would have matched both.
+    errors = np.array([[0.1, 0.2], [0.15, 0.9]])
+    assert greedy_matches(errors, np.array([True, True]), 0.5) == 1
+    assert greedy_matches(errors, np.array([True, True]), 1.0) == 2
+    # An instance that does not count cannot be matched.
+    assert greedy_matches(errors, np.array([False, True]), 0.5) == 1
+    assert greedy_matches(np.zeros((0, 2)), np.array([True, True]), 0.5) == 0
+
+
+# --------------------------------------------------------------------------- a dataset
+
+def _write_dataset(root, with_targets: bool = True):
+    """Two boxes and a cylinder in one image, and a fourth object (a box) hidden behind the
+    first box (visib_fract < 0.1); models with their symmetries."""
+    w = BopWriter(root, "test")
+    w.add_model(1, BOX, BOX_SYM)
+    w.add_model(2, CYL, CYL_SYM)
+    poses = [(1, pose(0.2, 0.3, 0.1, (-0.09, -0.02, 0.55))), (1, pose(-0.3, 0.1, 1.2, (0.08, 0.05, 0.6))),
+             (2, pose(1.2, 0.2, 0.0, (0.0, 0.06, 0.5))), (1, pose(0.2, 0.3, 0.1, (-0.096, -0.028, 0.77)))]
+    meshes = {1: BOX, 2: CYL}
+    scene, fractions, masks = render_scene([meshes[o] for o, _ in poses], [T for _, T in poses], K, W, H)
+    assert fractions[3] < 0.1 and min(fractions[:3]) > 0.5
+    depth_mm = np.round(scene * 1000).astype(np.uint16)
+    rgb = np.full((H, W, 3), 128, np.uint8)
+    with w.scene(1) as s:
+        s.add_image(0, rgb, depth_mm, K, gt=poses,
+                    gt_info=[gt_info_from_mask(m, depth_mm, f) for m, f in zip(masks, fractions)])
+    if with_targets:
+        import json
+        (root / "test_targets_bop19.json").write_text(json.dumps(
+            [{"scene_id": 1, "im_id": 0, "obj_id": 1, "inst_count": 2},
+             {"scene_id": 1, "im_id": 0, "obj_id": 2, "inst_count": 1}]))
+    return poses
+
+
+def _rows(poses, scores=None):
+    scores = scores or [1.0] * len(poses)
+    return [BopEstimate.from_pose(1, 0, o, s, T, 0.25) for (o, T), s in zip(poses, scores)]
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    root = tmp_path_factory.mktemp("bop_score") / "tiny"
+    poses = _write_dataset(root)
+    return BopDataset(root, "test"), poses
+
+
+def test_perfect_results_score_one_and_no_results_zero(dataset):
+    ds, poses = dataset
+    perfect = score_results(ds, _rows(poses[:3]))
+    for key in ("AR", "AR_VSD", "AR_MSSD", "AR_MSPD", "MHR", "MHP", "MHF1"):
+        assert perfect[key] == pytest.approx(1.0), key
+    # The hidden box (visib_fract < 0.1) is not counted: 3 instances, and missing it costs nothing.
+    assert perfect["instances"] == 3 and perfect["targets"] == 2
+    assert perfect["per_object"]["1"]["AR"] == pytest.approx(1.0)
+    assert perfect["average_time_per_image_s"] == pytest.approx(0.25)
+    empty = score_results(ds, [])
+    for key in ("AR", "AR_VSD", "AR_MSSD", "AR_MSPD", "MHR"):
+        assert empty[key] == 0.0, key
+
+
+def test_symmetric_estimates_score_as_the_truth(dataset):
+    ds, poses = dataset
+    turned = [(1, poses[0][1] @ turn_about([1, 0, 0], [0, 0, 0], np.pi)),
+              (1, poses[1][1] @ turn_about([0, 0, 1], [0, 0, 0], np.pi)),
+              (2, poses[2][1] @ turn_about([0, 0, 1], [0, 0, 0], 2 * np.pi * 100 / 315))]
+    report = score_results(ds, _rows(turned))
+    for key in ("AR", "AR_VSD", "AR_MSSD", "AR_MSPD", "MHF1"):
+        assert report[key] == pytest.approx(1.0), key
+
+
+def test_only_the_top_inst_count_estimates_are_evaluated(dataset):
+    ds, poses = dataset
+    wrong = pose(t=(0.1, -0.08, 0.45))
+    # A wrong box pose with the highest score takes one of the two slots: one box is lost.
+    high = score_results(ds, _rows(poses[:3] + [(1, wrong)], [0.5, 0.5, 0.5, 0.9]))
+    assert high["per_object"]["1"]["AR_MSSD"] == pytest.approx(0.5)
+    assert high["estimates_evaluated"] == 3
+    # With the lowest score it is never looked at.
+    low = score_results(ds, _rows(poses[:3] + [(1, wrong)], [0.5, 0.5, 0.5, 0.1]))
+    assert low["AR"] == pytest.approx(1.0)
+    # MHP counts every estimate of the image, the extra one included.
+    assert low["MHP"] < 1.0 and low["MHR"] == pytest.approx(1.0)
+
+
+def test_a_known_shift_passes_exactly_the_thresholds_above_it(dataset):
+    ds, poses = dataset
+    shift = 0.012                                  # 10 % of the box's diameter is about 12.3 mm
+    moved = []
+    for o, T in poses[:3]:
+        T = T.copy()
+        T[:3, 3] += [shift, 0, 0]
+        moved.append((o, T))
+    report = score_results(ds, _rows(moved))
+    diam = {o: ds.models_info[o].diameter_mm / 1000 for o in (1, 2)}
+    expected = [sum(shift < f * diam[o] for o, _ in poses[:3]) / 3 for f in ScoreSettings().mssd_thresholds]
+    assert report["recall_mssd"] == pytest.approx(expected)
+
+
+def test_targets_come_from_the_ground_truth_without_a_targets_file(tmp_path):
+    poses = _write_dataset(tmp_path / "nt", with_targets=False)
+    report = score_results(BopDataset(tmp_path / "nt", "test"), _rows(poses[:3]))
+    assert report["targets_from"].startswith("ground truth")
+    assert report["instances"] == 3 and report["AR"] == pytest.approx(1.0)
+
+
+def test_a_missing_depth_image_is_skipped_and_counted(tmp_path):
+    poses = _write_dataset(tmp_path / "bad")
+    (tmp_path / "bad" / "test" / "000001" / "depth" / "000000.png").unlink()
+    report = score_results(BopDataset(tmp_path / "bad", "test"), _rows(poses[:3]))
+    assert report["images_skipped"] == 1 and report["images"] == 0 and report["AR"] == 0.0
+    assert "depth" in next(iter(report["skip_reasons"]))
