@@ -8,7 +8,7 @@ import pytest
 from multi_instance_reg.datasets.bop import (BopDataset, BopEstimate, BopModelInfo, BopWriter, gt_info_from_mask,
                                              write_results_csv)
 from multi_instance_reg.evaluation.bop_scoring import ScoreSettings, greedy_matches, score_results
-from multi_instance_reg.evaluation.pose_errors import (distance_factor, mspd, mssd, probe_indices, project,
+from multi_instance_reg.evaluation.pose_errors import (distance_factor, mspd, mssd, project,
                                                        symmetry_transforms, vsd)
 from multi_instance_reg.evaluation.render import render_depth, render_scene
 from multi_instance_reg.meshes import box_mesh, cylinder_mesh
@@ -103,32 +103,37 @@ def test_a_box_flipped_by_its_symmetry_scores_zero_but_not_without_it():
 
 def test_a_cylinder_turned_about_its_axis_scores_zero():
     syms = symmetry_transforms(info_of(CYL, CYL_SYM))
-    probes = probe_indices(len(CYL.vertices))
     T = pose(0.4, 0.1, 0.0)
     step = 2 * np.pi / 315
     on_step = T @ turn_about([0, 0, 1], [0, 0, 0], 37 * step)
-    assert mssd(on_step, T, CYL.vertices, syms, probes) < 1e-9
-    assert mspd(on_step, T, K, CYL.vertices, syms, probes) < 1e-6
+    assert mssd(on_step, T, CYL.vertices, syms) < 1e-9
+    assert mspd(on_step, T, K, CYL.vertices, syms) < 1e-6
     # Between steps the error is at most the step's arc (BOP's 1 % of the diameter).
     between = T @ turn_about([0, 0, 1], [0, 0, 0], 37.5 * step)
-    assert 0 < mssd(between, T, CYL.vertices, syms, probes) <= 0.01 * np.linalg.norm([0.07, 0.12])
+    assert 0 < mssd(between, T, CYL.vertices, syms) <= 0.01 * np.linalg.norm([0.07, 0.12])
     # Upside down is a symmetry of this cylinder (both caps alike).
     flipped = T @ turn_about([1, 0, 0], [0, 0, 0], np.pi)
-    assert mssd(flipped, T, CYL.vertices, syms, probes) < 1e-9
+    assert mssd(flipped, T, CYL.vertices, syms) < 1e-9
 
 
-def test_bounded_search_gives_the_exhaustive_answer():
+def test_the_early_exits_give_the_exhaustive_answer():
     syms = symmetry_transforms(info_of(CYL, CYL_SYM))
+    V = CYL.vertices
     rng = np.random.default_rng(3)
-    probes = probe_indices(len(CYL.vertices))
-    for _ in range(5):
+    for _ in range(4):
         T = pose(*rng.uniform(-1, 1, 3))
         E = pose(*rng.uniform(-1, 1, 3), t=T[:3, 3] + rng.normal(0, 0.01, 3))
-        assert mssd(E, T, CYL.vertices, syms, probes) == pytest.approx(mssd(E, T, CYL.vertices, syms), rel=1e-12)
-        assert mspd(E, T, K, CYL.vertices, syms, probes) == pytest.approx(mspd(E, T, K, CYL.vertices, syms), rel=1e-12)
-    # give_up: a far estimate stops at a bound that is already past it.
+        placed = [T @ S for S in syms]
+        p_est = V @ E[:3, :3].T + E[:3, 3]
+        ref_mssd = min(np.linalg.norm(V @ G[:3, :3].T + G[:3, 3] - p_est, axis=1).max() for G in placed)
+        ref_mspd = min(np.linalg.norm(project(V @ G[:3, :3].T + G[:3, 3], K) - project(p_est, K), axis=1).max()
+                       for G in placed)
+        assert mssd(E, T, V, syms) == pytest.approx(ref_mssd, rel=1e-12)
+        assert mspd(E, T, K, V, syms) == pytest.approx(ref_mspd, rel=1e-12)
+    # give_up: an error not below it comes back as inf.
     far = pose(t=(0.2, 0, 0.5))
-    assert mssd(far, pose(), CYL.vertices, syms, probes, give_up=0.05) >= 0.05
+    assert mssd(far, pose(), V, syms, give_up=0.05) == np.inf
+    assert mssd(far, pose(), V, syms, give_up=0.5) == pytest.approx(0.2, abs=0.02)
 
 
 # --------------------------------------------------------------------------- VSD

@@ -20,14 +20,13 @@ Each continuous step is combined with each discrete symmetry (the identity inclu
 """
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 from ..symmetry import turn_about
 
 # BOP's discretisation of continuous symmetries: a vertex moves at most 1 % of the diameter.
 MAX_SYMMETRY_STEP = 0.01
-# MSSD / MSPD over many symmetries: vertices probed first to bound the error from below.
-PROBE_SIZES = (16, 256)
 
 
 def symmetry_transforms(info, max_step: float = MAX_SYMMETRY_STEP) -> np.ndarray:
@@ -48,52 +47,85 @@ def symmetry_transforms(info, max_step: float = MAX_SYMMETRY_STEP) -> np.ndarray
     return np.einsum("cij,djk->cdik", np.stack(turns), np.stack(disc)).reshape(-1, 4, 4)
 
 
-def _min_over_symmetries(largest, syms: np.ndarray, n_vertices: int, probes=(), give_up: float = np.inf) -> float:
-    """min over S of ``largest(S_subset, vertex_index or None)`` -> (S,) maxima over vertices.
-    With many symmetries, probes of the vertices (nested, small first) bound each symmetry's
-    maximum from below; symmetries are then tried exactly in the order of their bounds and
-    the search stops once the bound reaches the best exact maximum: the result is exact.
-    When every bound reaches ``give_up`` the smallest bound is returned (the error is at
-    least that: enough to know that it passes no threshold)."""
-    if not len(probes) or len(syms) * n_vertices <= 200_000:
-        return float(largest(syms, None).min())
-    keep = np.arange(len(syms))
-    for idx in probes:
-        bound = largest(syms[keep], idx)
-        if bound.min() >= give_up:
-            return float(bound.min())
-        keep, bound = keep[bound < give_up], bound[bound < give_up]
-    best = np.inf
-    for k in np.argsort(bound, kind="stable"):
-        if bound[k] >= best:
-            break
-        best = min(best, float(largest(syms[keep[k]:keep[k] + 1], None)[0]))
-    return best
-
-
-def probe_indices(n_vertices: int, sizes=PROBE_SIZES, seed: int = 0) -> list[np.ndarray]:
-    """Nested random vertex subsets (small first) that MSSD / MSPD use to bound errors from
-    below; none when the model has few vertices."""
-    order = np.random.default_rng(seed).permutation(n_vertices)
-    return [np.sort(order[:n]) for n in sizes if 2 * n <= n_vertices]
-
-
-def mssd(T_est: np.ndarray, T_gt: np.ndarray, vertices: np.ndarray, syms: np.ndarray,
-         probes=(), give_up: float = np.inf) -> float:
-    """Maximum symmetry-aware surface distance (metres). ``vertices`` may be the convex hull's
-    vertices only: the distance |A v + b| is convex in v, so its maximum over the model is
-    reached at a hull vertex."""
-    T_est = np.asarray(T_est, np.float64)
+def vertex_order(vertices: np.ndarray) -> np.ndarray:
+    """Vertices farthest from the centre first: under a rotation they move the most, so a
+    symmetry that cannot win is usually rejected after a few of them."""
     V = np.asarray(vertices, np.float64)
-    p_est = V @ T_est[:3, :3].T + T_est[:3, 3]
-    G = np.einsum("ij,sjk->sik", np.asarray(T_gt, np.float64), syms)      # (S, 4, 4) true poses
+    return np.argsort(-np.linalg.norm(V - V.mean(axis=0), axis=1), kind="stable").astype(np.int64)
 
-    def largest(Gs, idx):
-        Vs, Ps = (V, p_est) if idx is None else (V[idx], p_est[idx])
-        p_gt = np.einsum("sij,vj->svi", Gs[:, :3, :3], Vs) + Gs[:, None, :3, 3]
-        return np.sqrt(((p_gt - Ps[None]) ** 2).sum(-1)).max(axis=1)
 
-    return _min_over_symmetries(largest, G, len(V), probes, give_up)
+@numba.njit(cache=True, nogil=True)
+def _min_max_distance(V, placed, R, t, order, projected, fx, fy, cx, cy, give_up):
+    """min over s of max over vertices i of |f(R[s] V[i] + t[s]) - placed[i]|, f = identity
+    or the projection; exact, with early exits: symmetries are tried in the order of their
+    first vertex's distance (a lower bound of their maximum), a symmetry is dropped as soon as
+    one vertex reaches the best maximum so far, and the loop ends once the next bound does.
+    ``give_up``: the answer is only wanted below it (inf returned when it is not)."""
+    S = R.shape[0]
+    first = order[0]
+    bound = np.empty(S)
+    for s in range(S):
+        bound[s] = _vertex_distance2(V, placed, R, t, s, first, projected, fx, fy, cx, cy)
+    best = give_up * give_up
+    for s in np.argsort(bound):
+        if bound[s] >= best:
+            break
+        worst = 0.0
+        for i in order:
+            d2 = _vertex_distance2(V, placed, R, t, s, i, projected, fx, fy, cx, cy)
+            if d2 > worst:
+                worst = d2
+                if worst >= best:
+                    break
+        if worst < best:
+            best = worst
+    return np.sqrt(best) if best < give_up * give_up else np.inf
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _vertex_distance2(V, placed, R, t, s, i, projected, fx, fy, cx, cy):
+    x = R[s, 0, 0] * V[i, 0] + R[s, 0, 1] * V[i, 1] + R[s, 0, 2] * V[i, 2] + t[s, 0]
+    y = R[s, 1, 0] * V[i, 0] + R[s, 1, 1] * V[i, 1] + R[s, 1, 2] * V[i, 2] + t[s, 1]
+    z = R[s, 2, 0] * V[i, 0] + R[s, 2, 1] * V[i, 1] + R[s, 2, 2] * V[i, 2] + t[s, 2]
+    if projected:
+        if z <= 0.0:
+            return np.inf
+        du = fx * x / z + cx - placed[i, 0]
+        dv = fy * y / z + cy - placed[i, 1]
+        return du * du + dv * dv
+    dx, dy, dz = x - placed[i, 0], y - placed[i, 1], z - placed[i, 2]
+    return dx * dx + dy * dy + dz * dz
+
+
+def symmetric_poses(T_gt: np.ndarray, syms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The true pose under every symmetry, T_gt @ S, as rotations (S, 3, 3) and translations (S, 3)."""
+    G = np.matmul(np.asarray(T_gt, np.float64), syms)
+    return np.ascontiguousarray(G[:, :3, :3]), np.ascontiguousarray(G[:, :3, 3])
+
+
+def place(T: np.ndarray, vertices: np.ndarray) -> np.ndarray:
+    """(V, 3) vertices moved by the pose T."""
+    T = np.asarray(T, np.float64)
+    return np.ascontiguousarray(np.asarray(vertices, np.float64) @ T[:3, :3].T + T[:3, 3])
+
+
+def mssd(T_est: np.ndarray, T_gt: np.ndarray, vertices: np.ndarray, syms: np.ndarray, order: np.ndarray | None = None,
+         give_up: float = np.inf) -> float:
+    """Maximum symmetry-aware surface distance (metres); inf when it is not below
+    ``give_up``. ``vertices`` may be the convex hull's vertices only: the distance |A v + b|
+    is convex in v, so its maximum over the model is reached at a hull vertex. ``order``:
+    ``vertex_order(vertices)`` (computed when not given)."""
+    V = np.ascontiguousarray(vertices, dtype=np.float64)
+    return mssd_placed(place(T_est, V), symmetric_poses(T_gt, syms), V, order, give_up)
+
+
+def mssd_placed(placed_est: np.ndarray, true_poses, vertices: np.ndarray, order: np.ndarray | None = None,
+                give_up: float = np.inf) -> float:
+    """``mssd`` from the estimate's placed vertices (``place``) and ``symmetric_poses``:
+    what a scorer computes once per estimate and once per true instance."""
+    order = vertex_order(vertices) if order is None else order
+    R, t = true_poses
+    return float(_min_max_distance(vertices, placed_est, R, t, order, False, 0.0, 0.0, 0.0, 0.0, float(give_up)))
 
 
 def project(points: np.ndarray, K: np.ndarray) -> np.ndarray:
@@ -104,26 +136,23 @@ def project(points: np.ndarray, K: np.ndarray) -> np.ndarray:
 
 
 def mspd(T_est: np.ndarray, T_gt: np.ndarray, K: np.ndarray, vertices: np.ndarray, syms: np.ndarray,
-         probes=(), give_up: float = np.inf) -> float:
-    """Maximum symmetry-aware projection distance (pixels) over all model vertices."""
-    T_est = np.asarray(T_est, np.float64)
-    K = np.asarray(K, np.float64)
-    V = np.asarray(vertices, np.float64)
-    p_est = V @ T_est[:3, :3].T + T_est[:3, 3]
-    if np.any(p_est[:, 2] <= 0):
+         order: np.ndarray | None = None, give_up: float = np.inf) -> float:
+    """Maximum symmetry-aware projection distance (pixels) over all model vertices; inf when
+    it is not below ``give_up`` or a vertex lies at or behind the camera."""
+    V = np.ascontiguousarray(vertices, dtype=np.float64)
+    return mspd_placed(place(T_est, V), symmetric_poses(T_gt, syms), K, V, order, give_up)
+
+
+def mspd_placed(placed_est: np.ndarray, true_poses, K: np.ndarray, vertices: np.ndarray,
+                order: np.ndarray | None = None, give_up: float = np.inf) -> float:
+    """``mspd`` from the estimate's placed vertices and ``symmetric_poses`` (see ``mssd_placed``)."""
+    if np.any(placed_est[:, 2] <= 0):
         return np.inf                       # a vertex at or behind the camera has no projection
-    uv_est = project(p_est, K)
-    G = np.einsum("ij,sjk->sik", np.asarray(T_gt, np.float64), syms)
-
-    def largest(Gs, idx):
-        Vs, U = (V, uv_est) if idx is None else (V[idx], uv_est[idx])
-        p_gt = np.einsum("sij,vj->svi", Gs[:, :3, :3], Vs) + Gs[:, None, :3, 3]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            d = np.sqrt(((project(p_gt, K) - U[None]) ** 2).sum(-1))
-        d[p_gt[..., 2] <= 0] = np.inf
-        return d.max(axis=1)
-
-    return _min_over_symmetries(largest, G, len(V), probes, give_up)
+    K = np.asarray(K, np.float64)
+    order = vertex_order(vertices) if order is None else order
+    R, t = true_poses
+    return float(_min_max_distance(vertices, np.ascontiguousarray(project(placed_est, K)), R, t, order, True,
+                                   K[0, 0], K[1, 1], K[0, 2], K[1, 2], float(give_up)))
 
 
 def distance_factor(K: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -142,9 +171,12 @@ def vsd(depth_est, depth_gt, dist_test: np.ndarray, factor: np.ndarray, delta: f
     ``render.DepthRender`` at the two poses; ``dist_test``: the test image's distance image
     (depth x ``factor``, 0 where it has no depth); lengths in metres."""
     taus = np.asarray(taus, np.float64)
-    if depth_gt.empty and depth_est.empty:
+    if depth_est.empty or depth_gt.empty or depth_est.r0 >= depth_gt.r1 or depth_gt.r0 >= depth_est.r1 \
+            or depth_est.c0 >= depth_gt.c1 or depth_gt.c0 >= depth_est.c1:
+        # Apart in the image: no pixel is shared, every visible pixel is a miss (or none is
+        # visible): the error is 1 for every tau.
         return np.ones(len(taus))
-    boxes = [r for r in (depth_est, depth_gt) if not r.empty]
+    boxes = [depth_est, depth_gt]
     r0, r1 = min(b.r0 for b in boxes), max(b.r1 for b in boxes)
     c0, c1 = min(b.c0 for b in boxes), max(b.c1 for b in boxes)
     f = factor[r0:r1, c0:c1]
@@ -166,5 +198,5 @@ def vsd(depth_est, depth_gt, dist_test: np.ndarray, factor: np.ndarray, delta: f
     return np.array([(np.count_nonzero(apart >= tau) + only_one) / union for tau in taus])
 
 
-__all__ = ["symmetry_transforms", "mssd", "mspd", "vsd", "distance_factor", "project", "probe_indices",
+__all__ = ["symmetry_transforms", "mssd", "mspd", "vsd", "distance_factor", "project", "vertex_order", "place", "symmetric_poses", "mssd_placed", "mspd_placed",
            "MAX_SYMMETRY_STEP"]
