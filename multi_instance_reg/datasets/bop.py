@@ -477,21 +477,21 @@ class BopDataset:
 
     def frames(self, scenes: Iterable[int] | None = None, images: Iterable[int] | None = None,
                targets_only: bool = False, skipped: SkipCounter | None = None) -> Iterator[BopFrame]:
-        """The selected images (``images``' arguments) as BopFrames. A bad image is skipped
-        and counted in ``skipped`` (its reason names the file); a bad scene stops (InputError).
-        The selection is made (and the scenes' JSON read) at once, not lazily."""
-        pairs = self.images(scenes, images, targets_only)
+        """The selected images (``images``' arguments) as BopFrames (``read_frames``). The
+        selection is made (and the scenes' JSON read) at once, not lazily."""
+        return self.read_frames(self.images(scenes, images, targets_only), skipped)
 
-        def gen():
-            for s, im in pairs:
-                try:
-                    frame = self.read_frame(s, im)
-                except InputError as exc:
-                    if skipped is not None:
-                        skipped.add(str(exc))
-                    continue
-                yield frame
-        return gen()
+    def read_frames(self, pairs: Iterable[tuple[int, int]], skipped: SkipCounter | None = None) -> Iterator[BopFrame]:
+        """BopFrames of (scene_id, im_id) ``pairs``, in order. A bad image is skipped and
+        counted in ``skipped`` (its reason names the file); a bad scene stops (InputError)."""
+        for s, im in pairs:
+            try:
+                frame = self.read_frame(s, im)
+            except InputError as exc:
+                if skipped is not None:
+                    skipped.add(str(exc))
+                continue
+            yield frame
 
 
 # --------------------------------------------------------------------------- results CSV
