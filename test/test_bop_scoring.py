@@ -274,3 +274,34 @@ def test_a_missing_depth_image_is_skipped_and_counted(tmp_path):
     report = score_results(BopDataset(tmp_path / "bad", "test"), _rows(poses[:3]))
     assert report["images_skipped"] == 1 and report["images"] == 0 and report["AR"] == 0.0
     assert "depth" in next(iter(report["skip_reasons"]))
+
+
+# --------------------------------------------------------------------------- the command
+
+def test_mireg_bop_score_prints_and_writes_the_scores(tmp_path, capsys):
+    import json
+
+    from multi_instance_reg.tools.cli import main
+
+    poses = _write_dataset(tmp_path / "ds")
+    csv = write_results_csv(tmp_path / "res.csv", _rows(poses[:2]))          # the boxes, not the cylinder
+    assert main(["bop", "score", str(csv), "--dataset", str(tmp_path / "ds"), "--quiet"]) == 0
+    out = capsys.readouterr().out
+    report = json.loads((tmp_path / "res.scores.json").read_text())
+    assert report["AR"] == pytest.approx(2 / 3) and report["per_object"]["2"]["AR"] == 0.0
+    assert "AR 0.667" in out and "MHF1" in out
+    assert report["MHR"] == pytest.approx(2 / 3) and report["MHP"] == pytest.approx(1.0)
+
+
+def test_mireg_bop_score_bad_input_is_one_line(tmp_path, capsys):
+    from multi_instance_reg.tools.cli import main
+
+    _write_dataset(tmp_path / "ds")
+    bad = tmp_path / "bad.csv"
+    bad.write_text("scene,image\n1,2\n")
+    assert main(["bop", "score", str(bad), "--dataset", str(tmp_path / "ds")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and err.startswith("mireg bop: error: ") and "bad.csv" in err
+    good = write_results_csv(tmp_path / "good.csv", [])
+    assert main(["bop", "score", str(good), "--dataset", str(tmp_path / "nowhere")]) == 2
+    assert "nowhere" in capsys.readouterr().err

@@ -5,6 +5,7 @@
                   [--overlays N] [--method NAME] [--csv FILE]
     mireg bop model DATASET --obj ID -o MODEL.npz
     mireg bop to-bag DATASET --scene ID -o BAG [--split test] [--images 0,5] [--rate 30] [--storage sqlite3|mcap]
+    mireg bop score RESULTS.csv --dataset DATASET [--split test] [-o SCORES.json]   (tools/bop_score.py)
 
 ``run`` writes the BOP results CSV (``OUT/<method>_<dataset>-<split>.csv``: one row per pose,
 time = the image's seconds), ``OUT/summary.json`` (per image: poses per object, seconds, and
@@ -391,14 +392,27 @@ SUBCOMMANDS = {
     "model": ("build an object's model (npz) from the dataset's mesh and models_info symmetries",
               add_model_arguments, run_model),
     "to-bag": ("write a scene as a realsense-ros rosbag2 with ground truth", add_to_bag_arguments, run_to_bag),
+    "score": ("score a results CSV: AR over VSD, MSSD, MSPD as the BOP challenge; MHR/MHP/MHF1 at 10 deg / 2 cm",
+              lambda p: _score().add_arguments(p), lambda args: _score().run(args)),
 }
+# Sub-commands whose first argument is another file take the dataset as --dataset.
+DATASET_AS_OPTION = {"score"}
+
+
+def _score():
+    from . import bop_score      # the scoring lives in evaluation/; its command line in bop_score.py
+
+    return bop_score
 
 
 def add_arguments(parser) -> None:
     sub = parser.add_subparsers(dest="bop_command", metavar="{" + ",".join(SUBCOMMANDS) + "}", required=True)
     for name, (help_text, add, _) in SUBCOMMANDS.items():
         p = sub.add_parser(name, help=help_text, description=help_text)
-        p.add_argument("dataset", help="BOP dataset folder (camera.json, models/, the splits)")
+        if name in DATASET_AS_OPTION:
+            p.add_argument("--dataset", required=True, help="BOP dataset folder (camera.json, models/, the splits)")
+        else:
+            p.add_argument("dataset", help="BOP dataset folder (camera.json, models/, the splits)")
         p.add_argument("--split", default="test", help="split folder (default test)")
         add(p)
 
