@@ -305,3 +305,14 @@ def test_mireg_bop_score_bad_input_is_one_line(tmp_path, capsys):
     good = write_results_csv(tmp_path / "good.csv", [])
     assert main(["bop", "score", str(good), "--dataset", str(tmp_path / "nowhere")]) == 2
     assert "nowhere" in capsys.readouterr().err
+
+
+def test_errors_use_models_eval_when_the_dataset_has_it(tmp_path):
+    from multi_instance_reg.evaluation.bop_scoring import load_eval_model
+    from multi_instance_reg.meshes import save_mesh
+
+    _write_dataset(tmp_path / "ds")
+    ds = BopDataset(tmp_path / "ds", "test")
+    assert np.allclose(np.abs(load_eval_model(ds, 1).hull).max(axis=0), [0.05, 0.03, 0.02])
+    save_mesh(box_mesh(0.2, 0.06, 0.04), tmp_path / "ds" / "models_eval" / "obj_000001.ply", "mm")
+    assert np.allclose(np.abs(load_eval_model(ds, 1).hull).max(axis=0), [0.1, 0.03, 0.02])

@@ -67,17 +67,22 @@ class EvalModel:
 
 
 def load_eval_model(dataset, obj_id: int, max_symmetry_step: float = 0.01) -> EvalModel:
-    """The dataset's mesh (models/obj_NNNNNN.ply, mm) and models_info entry of ``obj_id``."""
+    """The dataset's mesh of ``obj_id`` (models_eval/obj_NNNNNN.ply when the dataset has it,
+    else models/; mm) and its models_info entry."""
     from scipy.spatial import ConvexHull
     from scipy.spatial import QhullError
 
+    from ..datasets.bop import model_file_name
     from ..meshes import load_mesh
 
     info = dataset.models_info.get(int(obj_id))
     if info is None:
         raise InputError(f"object {obj_id} is not in {dataset.root / 'models' / 'models_info.json'}: "
                          f"scoring needs its diameter and symmetries")
-    mesh = load_mesh(dataset.model_path(obj_id), "mm")
+    # BOP datasets ship models_eval/ (vertices resampled evenly) for computing pose errors;
+    # the display models in models/ when there are none.
+    path = dataset.root / "models_eval" / model_file_name(obj_id)
+    mesh = load_mesh(path if path.is_file() else dataset.model_path(obj_id), "mm")
     used = mesh.vertices[np.unique(mesh.triangles)]
     try:
         hull = used[ConvexHull(used).vertices]
