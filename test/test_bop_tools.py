@@ -178,3 +178,18 @@ def test_run_skips_and_counts_a_bad_image(mixed_scene, tmp_path):
     assert summary["skipped"] == 1 and summary["tracking"] is True
     assert {r.im_id for r in read_results_csv(tmp_path / "r.csv")} <= {0}
     assert len(summary["objects"]) == 2                      # both objects of the ground truth looked for
+
+
+def test_converted_scene_reads_in_mireg_offline(cylinders_bop, tmp_path):
+    """to-bag, then mireg offline with the model `mireg bop model` built: the ground truth
+    travels with the bag (objects named as the model) and is scored."""
+    ds = BopDataset(cylinders_bop)
+    obj = next(iter(ds.models_info))
+    assert cli("bop", "model", cylinders_bop, "--obj", obj, "-o", tmp_path / "m.npz").returncode == 0
+    assert cli("bop", "to-bag", cylinders_bop, "--scene", 7, "-o", tmp_path / "bag").returncode == 0
+    res = cli("offline", tmp_path / "bag", "--model", tmp_path / "m.npz", "--no-tracking", "-o", tmp_path / "off",
+              "--quiet")
+    assert res.returncode == 0, res.stderr
+    metrics = json.loads((tmp_path / "off" / "metrics.json").read_text())
+    assert metrics["frames_with_ground_truth"] == 1
+    assert metrics["objects"][object_name(obj)]["MHR"] >= 2 / 3, metrics
