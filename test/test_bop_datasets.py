@@ -224,3 +224,16 @@ def test_models_info_entry_continuous(tmp_path):
     assert entry["symmetries_continuous"] == [{"axis": [0.0, 0.0, 1.0], "offset": [0.0, 0.0, 1.0]}]
     assert len(entry["symmetries_discrete"]) == 1                            # the flip, not the identity
     assert entry["diameter"] == pytest.approx(np.hypot(50, 100), rel=1e-3)
+
+
+def test_unreadable_or_missing_images_are_skipped_and_named(tmp_path):
+    root = lay_out(tmp_path / "ds")
+    scene = root / "test" / "000003"
+    (scene / "rgb" / "000000.png").write_bytes(b"not a png")
+    (scene / "depth" / "000005.png").unlink()
+    skipped = SkipCounter()
+    assert list(BopDataset(root).frames(skipped=skipped)) == []
+    assert skipped.count == 2
+    text = skipped.summary()
+    assert "cannot read image" in text and "rgb/000000.png" in text
+    assert "has no image 000005" in text and "depth" in text

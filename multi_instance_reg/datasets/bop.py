@@ -343,9 +343,10 @@ def read_colour(path: Path) -> np.ndarray:
     raise InputError(f"image {path} has shape {img.shape}; expected grey, BGR or BGRA")
 
 
-def read_depth_mm(path: Path, depth_scale: float, size: tuple[int, int]) -> np.ndarray:
-    """(H, W) float32 millimetres from a uint16 depth image (value x ``depth_scale``);
-    ``size`` = (width, height) it must have."""
+def read_depth_m(path: Path, depth_scale: float, size: tuple[int, int]) -> np.ndarray:
+    """(H, W) float32 metres from a uint16 depth image (value x ``depth_scale`` = mm), computed
+    as the bag reader does (``messages.depth_to_metres``: one float32 product), so that the
+    same PNG gives the same metres either way; ``size`` = (width, height) it must have."""
     import cv2
 
     raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
@@ -356,7 +357,7 @@ def read_depth_mm(path: Path, depth_scale: float, size: tuple[int, int]) -> np.n
     if (raw.shape[1], raw.shape[0]) != tuple(size):
         raise InputError(f"depth image {path} is {raw.shape[1]}x{raw.shape[0]} but the colour image is "
                          f"{size[0]}x{size[1]}; BOP depth must be registered to colour at the same size")
-    return raw.astype(np.float32) * np.float32(depth_scale)
+    return raw.astype(np.float32) * np.float32(depth_scale / 1000.0)
 
 
 # --------------------------------------------------------------------------- the dataset
@@ -463,7 +464,7 @@ class BopDataset:
                 and (int(self.camera["width"]), int(self.camera["height"])) != size:
             raise InputError(f"image {colour_path} is {size[0]}x{size[1]} but {self.root / 'camera.json'} says "
                              f"{self.camera['width']}x{self.camera['height']}")
-        depth_m = read_depth_mm(depth_path, scene.depth_scale[im_id], size) / np.float32(1000.0)
+        depth_m = read_depth_m(depth_path, scene.depth_scale[im_id], size)
         intr = CameraIntrinsics(K=scene.cam_K[im_id].copy(), width=size[0], height=size[1])
         gt_poses = vis = obj_ids = None
         if scene.gt is not None:

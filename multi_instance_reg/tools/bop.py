@@ -120,8 +120,8 @@ def chosen_objects(dataset, pairs, objects: list[int] | None, given: dict[int, s
 
 
 def load_bop_models(dataset, obj_ids: list[int], given: dict[int, str], save_dir: Path | None = None):
-    """(models, obj_id of each): given model files, the rest built from the dataset's meshes
-    (and saved in ``save_dir`` for reuse with --model)."""
+    """The models of ``obj_ids``, in order: the given model files, the rest built from the
+    dataset's meshes (and saved in ``save_dir`` for reuse with --model)."""
     from ..datasets.bop import object_name
     from ..rgbd.model import load_model, save_model
     from ..rgbd.multi_model import check_model_names
@@ -141,7 +141,9 @@ def load_bop_models(dataset, obj_ids: list[int], given: dict[int, str], save_dir
         t0 = time.perf_counter()
         model = model_from_bop_mesh(dataset, obj)
         if save_dir is not None:
-            save_model(model, save_dir / f"{object_name(obj)}.npz")
+            # Run with the model as saved (float32 arrays), so that giving the file back with
+            # --model, or to mireg offline, gives the same poses.
+            model = load_model(save_model(model, save_dir / f"{object_name(obj)}.npz"))
         print(f"mireg bop: built the model of object {obj} from {dataset.model_path(obj)} in "
               f"{time.perf_counter() - t0:.1f} s (symmetries: "
               f"{model.symmetries.describe() if model.symmetries is not None else 'none'})", file=sys.stderr)
@@ -361,6 +363,10 @@ def run_to_bag(args) -> int:
 
     if not args.rate > 0:
         raise InputError(f"--rate must be positive, got {args.rate}")
+    if Path(args.output).suffix.lower() in (".bag", ".db3", ".mcap"):
+        # rosbags (and so mireg offline) reads a path ending in .bag as a ROS 1 bag file.
+        raise InputError(f"output {args.output}: a rosbag2 is a folder; name it without {Path(args.output).suffix} "
+                         f"(a name ending in .bag is read as a ROS 1 bag file)")
     ds = _open(args)
     pairs = ds.images([args.scene], parse_ids(args.images, "images"))
     if not pairs:
