@@ -285,12 +285,13 @@ def test_mireg_bop_score_prints_and_writes_the_scores(tmp_path, capsys):
 
     poses = _write_dataset(tmp_path / "ds")
     csv = write_results_csv(tmp_path / "res.csv", _rows(poses[:2]))          # the boxes, not the cylinder
-    assert main(["bop", "score", str(csv), "--dataset", str(tmp_path / "ds"), "--quiet"]) == 0
+    assert main(["bop", "score", str(csv), "--dataset", str(tmp_path / "ds"), "--quiet", "--vsd-thetas", "0.3"]) == 0
     out = capsys.readouterr().out
     report = json.loads((tmp_path / "res.scores.json").read_text())
     assert report["AR"] == pytest.approx(2 / 3) and report["per_object"]["2"]["AR"] == 0.0
     assert "AR 0.667" in out and "MHF1" in out
     assert report["MHR"] == pytest.approx(2 / 3) and report["MHP"] == pytest.approx(1.0)
+    assert report["settings"]["vsd_thetas"] == [0.3] and len(report["recall_vsd"][0]) == 1
 
 
 def test_mireg_bop_score_bad_input_is_one_line(tmp_path, capsys):
@@ -303,6 +304,8 @@ def test_mireg_bop_score_bad_input_is_one_line(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and err.startswith("mireg bop: error: ") and "bad.csv" in err
     good = write_results_csv(tmp_path / "good.csv", [])
+    assert main(["bop", "score", str(good), "--dataset", str(tmp_path / "ds"), "--vsd-thetas", "0.3,x"]) == 2
+    assert "--vsd-thetas" in capsys.readouterr().err
     assert main(["bop", "score", str(good), "--dataset", str(tmp_path / "nowhere")]) == 2
     assert "nowhere" in capsys.readouterr().err
 

@@ -1,4 +1,4 @@
-"""``mireg bop score RESULTS.csv --dataset DIR [--split test] [-o SCORES.json]``: a BOP results
+"""``mireg bop score RESULTS.csv --dataset DIR [--split test] [-o SCORES.json] [--vsd-thetas 0.3]``: a BOP results
 CSV scored as the BOP challenge scores the ViVo task (AR over VSD, MSSD, MSPD) and with the
 project's MHR / MHP / MHF1 at 10 deg / 2 cm; the scoring itself is ``evaluation.bop_scoring``.
 Prints the figures overall and per object and writes them as JSON (default: beside the CSV,
@@ -15,6 +15,9 @@ def add_arguments(p) -> None:
     p.add_argument("-o", "--output", default=None, help="scores JSON (default: RESULTS with .scores.json)")
     p.add_argument("--vsd-delta-mm", type=float, default=15.0,
                    help="VSD visibility tolerance in mm (default 15; BOP uses 5 for ITODD)")
+    p.add_argument("--vsd-thetas", default=None, metavar="0.3",
+                   help="VSD correctness thresholds, comma-separated (default BOP 2019-2022's 0.05,0.10,...,0.50; "
+                        "BOP 2018 used 0.3)")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
 
 
@@ -25,6 +28,15 @@ def run(args) -> int:
 
     if not args.vsd_delta_mm > 0:
         raise InputError(f"--vsd-delta-mm must be positive, got {args.vsd_delta_mm}")
+    settings = ScoreSettings(vsd_delta_m=args.vsd_delta_mm / 1000.0)
+    if args.vsd_thetas is not None:
+        try:
+            thetas = tuple(float(v) for v in args.vsd_thetas.split(",") if v.strip())
+        except ValueError:
+            thetas = ()
+        if not thetas or not all(0 < t <= 1 for t in thetas):
+            raise InputError(f"--vsd-thetas must be comma-separated numbers in (0, 1] like 0.3, got '{args.vsd_thetas}'")
+        settings = ScoreSettings(vsd_delta_m=args.vsd_delta_mm / 1000.0, vsd_thetas=thetas)
     estimates = read_results_csv(args.results)
     dataset = BopDataset(args.dataset, args.split)
     out = Path(args.output) if args.output else Path(args.results).with_suffix(".scores.json")
@@ -33,7 +45,7 @@ def run(args) -> int:
         if not args.quiet and (done == total or done % 10 == 0):
             print(f"\rscored {done}/{total} images", end="\n" if done == total else "", file=sys.stderr, flush=True)
 
-    report = score_results(dataset, estimates, ScoreSettings(vsd_delta_m=args.vsd_delta_mm / 1000.0), progress)
+    report = score_results(dataset, estimates, settings, progress)
     report["results"] = str(args.results)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(report, indent=1) + "\n")
