@@ -344,3 +344,13 @@ def test_renders_agree_with_the_synthetic_scenes_depth(tmp_path):
         assert on.sum() > 500 and np.median(gap) < 0.003 and (gap < 0.015).mean() > 0.98, (obj, k)
         checked += 1
     assert checked >= 2
+
+
+def test_a_row_with_nan_is_a_wrong_estimate_not_a_crash(dataset):
+    ds, poses = dataset
+    broken = poses[0][1].copy()
+    broken[0, 3] = np.nan
+    report = score_results(ds, _rows([(1, broken)] + poses[1:3], [0.9, 0.5, 0.5]))
+    assert report["estimates_not_finite"] == 1
+    assert report["per_object"]["1"]["AR"] == pytest.approx(0.5) and report["per_object"]["2"]["AR"] == 1.0
+    assert report["MHP"] == pytest.approx(2 / 3) and report["MHR"] == pytest.approx(2 / 3)

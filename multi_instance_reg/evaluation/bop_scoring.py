@@ -289,10 +289,13 @@ class BopScorer:
                 gi = [k for k, (o, _) in enumerate(entries) if o == obj]
                 T_gt = np.array([entries[k][1] for k in gi]).reshape(-1, 4, 4)
                 T_est = np.array([e.T_m for e in rows.get(key, []) if e.obj_id == obj]).reshape(-1, 4, 4)
+                broken = ~np.isfinite(T_est).all(axis=(1, 2))       # NaN in a row: an estimate that hits nothing
                 info = self.dataset.models_info.get(obj)
                 sym = None if info is None else info.symmetries()
                 v = None if vis is None else np.asarray(vis)[gi]
-                s, _ = match_frame(T_gt, T_est, v, st.min_visib_fract, st.mh_max_rre_deg, st.mh_max_rte_m, sym)
+                s, _ = match_frame(T_gt, T_est[~broken], v, st.min_visib_fract, st.mh_max_rre_deg, st.mh_max_rte_m,
+                                   sym)
+                s.n_est += int(broken.sum())
                 per_obj.append(s)
                 mh_objects.setdefault(obj, []).append(s)
             mh_images.append(combine_scores(per_obj))
@@ -320,6 +323,7 @@ class BopScorer:
             "images": len(by_image) - skipped.count, "targets": len(errors),
             "estimates_in_file": len(estimates), "estimates_evaluated": int(sum(len(t.mssd) for t in errors)),
             "estimates_outside_targets": ignored,
+            "estimates_not_finite": int(sum(not np.all(np.isfinite(e.T_m)) for e in estimates)),
             "images_skipped": skipped.count, "skip_reasons": skipped.reasons,
             # BOP's time: the mean of the images' times when every row gives one, else -1.
             "average_time_per_image_s": float(np.mean(list(times.values())))

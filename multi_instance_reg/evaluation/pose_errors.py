@@ -123,6 +123,8 @@ def mssd_placed(placed_est: np.ndarray, true_poses, vertices: np.ndarray, order:
                 give_up: float = np.inf) -> float:
     """``mssd`` from the estimate's placed vertices (``place``) and ``symmetric_poses``:
     what a scorer computes once per estimate and once per true instance."""
+    if not np.all(np.isfinite(placed_est)):
+        return np.inf                       # a broken pose (NaN in the results) is no pose
     order = vertex_order(vertices) if order is None else order
     R, t = true_poses
     return float(_min_max_distance(vertices, placed_est, R, t, order, False, 0.0, 0.0, 0.0, 0.0, float(give_up)))
@@ -146,8 +148,8 @@ def mspd(T_est: np.ndarray, T_gt: np.ndarray, K: np.ndarray, vertices: np.ndarra
 def mspd_placed(placed_est: np.ndarray, true_poses, K: np.ndarray, vertices: np.ndarray,
                 order: np.ndarray | None = None, give_up: float = np.inf) -> float:
     """``mspd`` from the estimate's placed vertices and ``symmetric_poses`` (see ``mssd_placed``)."""
-    if np.any(placed_est[:, 2] <= 0):
-        return np.inf                       # a vertex at or behind the camera has no projection
+    if not np.all(np.isfinite(placed_est)) or np.any(placed_est[:, 2] <= 0):
+        return np.inf                       # a broken pose, or a vertex at or behind the camera (no projection)
     K = np.asarray(K, np.float64)
     order = vertex_order(vertices) if order is None else order
     R, t = true_poses

@@ -43,6 +43,8 @@ def render_depth(vertices: np.ndarray, triangles: np.ndarray, T: np.ndarray, K: 
     """Depth (float32, metres; 0 = background) of the mesh ``vertices`` (V, 3) metres,
     ``triangles`` (F, 3) placed by ``T`` (4, 4) model -> camera, camera matrix ``K``."""
     T = np.asarray(T, np.float64)
+    if not np.all(np.isfinite(T)):
+        return DepthRender(np.zeros((int(height), int(width)), np.float32), 0, 0, 0, 0)     # a broken pose draws nothing
     P = np.ascontiguousarray(np.asarray(vertices, np.float64) @ T[:3, :3].T + T[:3, 3])
     K = np.asarray(K, np.float64)
     depth = np.zeros((int(height), int(width)), np.float32)
