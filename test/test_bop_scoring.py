@@ -158,6 +158,19 @@ def test_vsd_of_the_true_pose_is_zero_and_of_a_far_pose_one():
     assert e[0] > 0.9 and e[1] < 0.1
 
 
+def test_vsd_of_a_sideways_shift_is_one_minus_the_overlap():
+    # Face-on box, estimate 1 cm to the side at the same depth: shared pixels agree, the rest
+    # are seen by one pose only, so e_VSD = 1 - IoU of two equal rectangles = 2 s / (w + s).
+    T = pose()
+    scene, _, _ = render_scene([BOX], [T], K, W, H)
+    factor = distance_factor(K, W, H)
+    gt = render_depth(BOX.vertices, BOX.triangles, T, K, W, H)
+    est = render_depth(BOX.vertices, BOX.triangles, pose(t=(0.01, 0, 0.5)), K, W, H)
+    w, s = 0.10 * 275 / 0.48, 0.01 * 275 / 0.48
+    e = vsd(est, gt, scene * factor, factor, 0.015, [0.05], 0.12)
+    assert e[0] == pytest.approx(2 * s / (w + s), abs=0.01)
+
+
 # --------------------------------------------------------------------------- matching
 
 def test_greedy_matching_follows_score_order_not_the_best_assignment():
