@@ -7,8 +7,11 @@ the dataset has none, one per object with ground truth in each image, inst_count
 instances at least 10 % visible, as BOP makes its targets):
 1. the ``inst_count`` estimates of that object in that image with the highest score are kept
    (ties in file order);
-2. their errors against each ground-truth instance of the object that counts (visib_fract
-   >= 0.1) are computed: VSD for each tau, MSSD, MSPD (``pose_errors``);
+2. their errors against each ground-truth instance of the object that counts are computed:
+   VSD for each tau, MSSD, MSPD (``pose_errors``). What counts: with a targets file, the
+   ``inst_count`` most visible instances (the BOP toolkit's rule; BOP's targets files count
+   the instances at least 10 % visible, so these are they); without one, the instances at
+   least 10 % visible;
 3. for each error function and threshold, estimates are matched greedily in order of
    decreasing score, each to the unmatched counted instance with the smallest error below
    the threshold;
@@ -161,9 +164,12 @@ class BopScorer:
 
     # ----------------------------------------------------------------------- errors
 
-    def image_errors(self, frame, targets: list, estimates: list) -> list[TargetErrors]:
+    def image_errors(self, frame, targets: list, estimates: list, most_visible: bool = True) -> list[TargetErrors]:
         """Errors of one image's targets. ``frame``: the image (``BopDataset.read_frame``);
-        ``estimates``: its BopEstimate rows."""
+        ``estimates``: its BopEstimate rows. Which instances count: ``most_visible``, the
+        target's ``inst_count`` most visible ones (the BOP toolkit's rule with a targets
+        file, whose inst_count BOP made by counting the instances at least 10 % visible: the
+        same instances); else those at least ``min_visib_fract`` visible."""
         st = self.settings
         scene_id, im_id = frame.scene_id, frame.im_id
         scene = self.dataset.scene(scene_id)
@@ -177,7 +183,13 @@ class BopScorer:
         for target in targets:
             model = self.model(target.obj_id)
             gt_index = [k for k, (obj, _) in enumerate(entries) if obj == target.obj_id]
-            counted = np.array([vis is None or vis[k] >= st.min_visib_fract for k in gt_index], bool)
+            seen = [1.0 if vis is None else float(vis[k]) for k in gt_index]
+            if most_visible:
+                counted = np.zeros(len(gt_index), bool)
+                # Stable: equally visible instances in ground-truth order.
+                counted[sorted(range(len(seen)), key=lambda g: -seen[g])[:max(0, target.inst_count)]] = True
+            else:
+                counted = np.array([v >= st.min_visib_fract for v in seen], bool)
             mine = [e for e in estimates if e.obj_id == target.obj_id]
             # Highest scores first; Python's sort is stable, so ties keep the file's order.
             top = sorted(mine, key=lambda e: -e.score)[:max(0, target.inst_count)]
@@ -278,7 +290,7 @@ class BopScorer:
                 skipped.add(str(exc))
                 continue
             self.seconds["read"] += time.perf_counter() - t_img
-            errors += self.image_errors(frame, image_targets, rows.get(key, []))
+            errors += self.image_errors(frame, image_targets, rows.get(key, []), targets_from == "test_targets file")
             t_mh = time.perf_counter()
             # The project's MHF1 on every estimate of the image, object by object.
             scene = self.dataset.scene(key[0])
