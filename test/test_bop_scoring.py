@@ -2,6 +2,8 @@
 rasteriser, the matching and AR, on meshes and a small BOP dataset written here."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -317,6 +319,10 @@ def test_mireg_bop_score_bad_input_is_one_line(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and err.startswith("mireg bop: error: ") and "bad.csv" in err
     good = write_results_csv(tmp_path / "good.csv", [])
+    icbin = Path(__file__).resolve().parents[1].parent / "shared" / "foreign" / "icbin"
+    if icbin.is_dir():                                   # real frames without ground truth
+        assert main(["bop", "score", str(good), "--dataset", str(icbin)]) == 2
+        assert "no ground truth" in capsys.readouterr().err
     assert main(["bop", "score", str(good), "--dataset", str(tmp_path / "ds"), "--vsd-thetas", "0.3,x"]) == 2
     assert "--vsd-thetas" in capsys.readouterr().err
     assert main(["bop", "score", str(good), "--dataset", str(tmp_path / "nowhere")]) == 2

@@ -263,6 +263,10 @@ class BopScorer:
         targets_from = "test_targets file"
         if targets is None:
             targets, targets_from = derived_targets(self.dataset, st.min_visib_fract), "ground truth (no targets file)"
+            if not targets:
+                raise InputError(f"{self.dataset.split_dir} has no ground truth (scene_gt.json) with an instance at least "
+                                 f"{st.min_visib_fract:g} visible, and the dataset no test_targets_bop19.json: "
+                                 f"nothing to score against")
         by_image: dict[tuple[int, int], list] = {}
         for t in targets:
             by_image.setdefault((t.scene_id, t.im_id), []).append(t)
