@@ -238,7 +238,8 @@ def run_run(args) -> int:
 
             if trackers is None or tracked_scene != frame.scene_id:
                 trackers, tracked_scene = ObjectTrackers(models, tracker_config), frame.scene_id
-            published = trackers.step(frame.stamp_ns, frame.depth_m, frame.intrinsics, result.instances)
+            published = trackers.step(frame.stamp_ns, frame.depth_m, frame.intrinsics, result.instances,
+                                      rgb=frame.rgb)      # the colour image: the camera's motion
         seconds = time.perf_counter() - t0
         by_object: dict[int, int] = {}
         for inst in published:
