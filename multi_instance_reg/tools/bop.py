@@ -1,7 +1,7 @@
 """``mireg bop``: datasets in the BOP layout (bop.felk.cvut.cz) through the pipeline.
 
     mireg bop run DATASET -o OUT [--split test] [--model ID=MODEL.npz ...] [--objects 1,2]
-                  [--scenes 1,2] [--images 0,5] [--all-images] [--tracking] [--params FILE.yaml]
+                  [--scenes 1,2] [--images 0,5] [--all-images] [--tracking | --no-tracking] [--params FILE.yaml]
                   [--overlays N] [--method NAME] [--csv FILE]
     mireg bop model DATASET --obj ID -o MODEL.npz
     mireg bop to-bag DATASET --scene ID -o BAG [--split test] [--images 0,5] [--rate 30] [--storage sqlite3|mcap]
@@ -164,8 +164,12 @@ def add_run_arguments(p) -> None:
     p.add_argument("--images", default=None, metavar="0,5", help="image ids to run, in every chosen scene (default all)")
     p.add_argument("--all-images", action="store_true",
                    help="run every image, not only those the targets file (test_targets_bop19.json) names")
-    p.add_argument("--tracking", action="store_true",
-                   help="run each scene's images in id order through the tracker (default: every image alone)")
+    tracking = p.add_mutually_exclusive_group()
+    tracking.add_argument("--tracking", action="store_true",
+                          help="run each scene's images in id order through the tracker (default: every image alone)")
+    tracking.add_argument("--no-tracking", action="store_false", dest="tracking",
+                          help="every image alone, as mireg offline --no-tracking (the default here: BOP images are "
+                               "single images, not a video)")
     p.add_argument("--params", default=None, help="the node's parameter YAML (frontend.*, ecc.*, tracking.* are used)")
     p.add_argument("--overlays", type=int, default=20, metavar="N", help="overlay pictures of the first N images (default 20)")
     p.add_argument("--method", default="mireg", help="method name in the CSV's file name (default mireg)")
