@@ -107,6 +107,7 @@ def test_run_writes_csv_summary_and_overlays(cylinders_bop, tmp_path):
     (image,) = summary["images"]
     assert (image["scene_id"], image["im_id"]) == (7, 0)
     assert image["poses"] == len(rows) > 0
+    assert 0 < image["cpu_seconds"] and summary["cpu_seconds_per_image"]["max"] == pytest.approx(image["cpu_seconds"])
     assert image["gt_instances"] == 3
     assert image["hits"] >= 2, summary            # the pipeline finds these cylinders (3 of 3 when written)
     for r in rows:
