@@ -194,7 +194,7 @@ def run_run(args) -> int:
     from ..datasets.rgbd_bag import SkipCounter
     from ..rgbd.multi_model import MultiModelRegistration
     from ..rgbd.pipeline import check_frame
-    from .offline import (Progress, draw_overlay, estimates_in_object_frame, load_config, load_tracker_config,
+    from .offline import (Progress, estimates_in_object_frame, load_config, load_tracker_config,
                           object_frame_symmetries)
 
     ds = _open(args)
@@ -263,7 +263,7 @@ def run_run(args) -> int:
         if len(images) <= args.overlays:
             overlay_dir.mkdir(parents=True, exist_ok=True)
             cv2.imwrite(str(overlay_dir / f"{frame.scene_id:06d}_{frame.im_id:06d}.png"),
-                        draw_overlay(frame.rgb, frame.intrinsics, models, published, frame.gt_poses, owners))
+                        overlay(frame, models, published, owners))
         bar.update(n + 1)
     bar.close()
     if not images:
@@ -292,6 +292,28 @@ def run_run(args) -> int:
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
     print(f"mireg bop run: {line}; wrote {csv_path} and {out_dir / 'summary.json'}", file=sys.stderr)
     return 0
+
+
+OVERLAY_POINTS = 2000       # model surface points drawn per pose
+
+
+def overlay(frame, models, published, owners):
+    """offline's overlay (boxes, ground truth in grey) with each pose's model surface points
+    in a colour of its own over it: whether a pose sits on its object (a cup lid on lid) is
+    judged from the surface, not from the box."""
+    import cv2
+
+    from ..rgbd.overlay import draw_points
+    from .offline import draw_overlay
+
+    img = draw_overlay(frame.rgb, frame.intrinsics, models, published, frame.gt_poses, owners)
+    by_name = {m.name: m for m in models}
+    for k, inst in enumerate(published):
+        pts = by_name[inst.object].points_xyz
+        hue = np.uint8([[(k * 47) % 180]])
+        colour = cv2.applyColorMap(hue, cv2.COLORMAP_HSV)[0, 0]
+        draw_points(img, inst.T, pts[::max(1, len(pts) // OVERLAY_POINTS)], frame.intrinsics, colour)
+    return img
 
 
 def _hits(frame, owners, models, symmetries, published) -> dict:
