@@ -194,3 +194,17 @@ def test_converted_scene_reads_in_mireg_offline(cylinders_bop, tmp_path):
     metrics = json.loads((tmp_path / "off" / "metrics.json").read_text())
     assert metrics["frames_with_ground_truth"] == 1
     assert metrics["objects"][object_name(obj)]["MHR"] >= 2 / 3, metrics
+
+
+def test_draw_points_puts_model_points_where_the_pose_projects_them():
+    from multi_instance_reg.messages import CameraIntrinsics
+    from multi_instance_reg.rgbd.overlay import draw_points
+
+    intr = CameraIntrinsics(K=np.array([[100.0, 0, 20], [0, 100.0, 10], [0, 0, 1]]), width=40, height=30)
+    img = np.zeros((30, 40, 3), np.uint8)
+    T = np.eye(4)
+    T[:3, 3] = [0.0, 0.0, 1.0]
+    pts = np.array([[0.0, 0.0, 0.0], [0.05, -0.03, 0.0], [0.0, 0.0, -2.0], [5.0, 0.0, 0.0]])   # centre, off-centre, behind, outside
+    assert draw_points(img, T, pts, intr, (1, 2, 3)) == 2
+    assert img[10, 20].tolist() == [1, 2, 3] and img[7, 25].tolist() == [1, 2, 3]
+    assert int(img.sum()) == 2 * 6

@@ -6,7 +6,9 @@ mesh (``objects.object_mesh``, mm; its frame is the ground truth's). Symmetries 
 models_info.json: found from the mesh for the untextured objects; none for the textured ones
 (their print tells every pose apart, and BOP's symmetries are those of the appearance).
 Each frame: rgb/ and depth/ PNGs (depth the bag's 16UC1 mm, depth_scale 1), cam_K, the
-ground-truth poses with the frame's visible fractions and visible boxes. Image id = frame index.
+ground-truth poses with the frame's visible fractions and visible boxes. Image id = frame index
+(unique even where a scene drops frames or loops; BopDataset stamps image i at i / 30 s, so the
+stamps are the bag's only for a 30 Hz scene without dropped frames or loops).
 """
 from __future__ import annotations
 

@@ -1,21 +1,22 @@
 """``mireg bop``: datasets in the BOP layout (bop.felk.cvut.cz) through the pipeline.
 
     mireg bop run DATASET -o OUT [--split test] [--model ID=MODEL.npz ...] [--objects 1,2]
-                  [--scenes 1,2] [--images 0,5] [--all-images] [--tracking | --no-tracking] [--params FILE.yaml]
-                  [--overlays N] [--method NAME] [--csv FILE]
+                  [--scenes 1,2] [--images 0,5] [--all-images] [--tracking | --no-tracking]
+                  [--params FILE.yaml] [--overlays N] [--method NAME] [--csv FILE]
     mireg bop model DATASET --obj ID -o MODEL.npz
     mireg bop to-bag DATASET --scene ID -o BAG [--split test] [--images 0,5] [--rate 30] [--storage sqlite3|mcap]
     mireg bop score RESULTS.csv --dataset DATASET [--split test] [-o SCORES.json]   (tools/bop_score.py)
 
 ``run`` writes the BOP results CSV (``OUT/<method>_<dataset>-<split>.csv``: one row per pose,
-time = the image's seconds), ``OUT/summary.json`` (per image: poses per object, seconds, and
-with ground truth hits at 10 deg / 2 cm over the object's symmetries, instances under 10 %
-visible not counted) and overlays ``OUT/overlays/SSSSSS_IIIIII.png`` (models' boxes green,
-ground truth grey). Models: ``--model ID=FILE.npz`` (BOP object id = a model from ``mireg
-build-model``, whose object frame must be the BOP mesh's) or, for every object without one,
-built from the dataset's ``models/obj_NNNNNN.ply`` (mm) as ``mireg build-model --mesh`` does,
-with the symmetries ``models_info.json`` lists (kept in ``OUT/models/``). Which objects: those
-given, else the targets' (``test_targets_bop19.json``), else the ground truth's, else all in
+time = the image's seconds), ``OUT/summary.json`` (per image: poses per object, wall-clock
+and CPU seconds, and with ground truth hits at 10 deg / 2 cm over the object's symmetries,
+instances under 10 % visible not counted) and overlays ``OUT/overlays/SSSSSS_IIIIII.png``
+(models' boxes green, ground truth grey, each pose's model surface points in a colour of its
+own). Models: ``--model ID=FILE.npz`` (BOP object id = a model from ``mireg build-model``,
+whose object frame must be the BOP mesh's) or, for every object without one, built from the
+dataset's ``models/obj_NNNNNN.ply`` (mm) as ``mireg build-model --mesh`` does, with the
+symmetries ``models_info.json`` lists (kept in ``OUT/models/``). Which objects: those given,
+else the targets' (``test_targets_bop19.json``), else the ground truth's, else all in
 ``models_info.json``. Images are solved alone (BOP images are not a video) unless
 ``--tracking``, which runs each scene's images in id order through the tracker.
 
@@ -195,7 +196,8 @@ def run_run(args) -> int:
     from ..datasets.rgbd_bag import SkipCounter
     from ..rgbd.multi_model import MultiModelRegistration
     from ..rgbd.pipeline import check_frame
-    from .offline import (Progress, draw_overlay, estimates_in_object_frame, load_config, load_tracker_config,
+    from ..tracking import ObjectTrackers
+    from .offline import (Progress, estimates_in_object_frame, load_config, load_tracker_config,
                           object_frame_symmetries)
 
     ds = _open(args)
@@ -225,8 +227,6 @@ def run_run(args) -> int:
     symmetries = [object_frame_symmetries(m) for m in models]
     reg = MultiModelRegistration(models, config)
     reg.warm_up()
-    if tracker_config is not None:
-        from ..tracking import ObjectTrackers
     overlay_dir = out_dir / "overlays"
     estimates, images = [], []
     trackers, tracked_scene = None, None
@@ -264,7 +264,7 @@ def run_run(args) -> int:
         if len(images) <= args.overlays:
             overlay_dir.mkdir(parents=True, exist_ok=True)
             cv2.imwrite(str(overlay_dir / f"{frame.scene_id:06d}_{frame.im_id:06d}.png"),
-                        draw_overlay(frame.rgb, frame.intrinsics, models, published, frame.gt_poses, owners))
+                        overlay(frame, models, published, owners))
         bar.update(n + 1)
     bar.close()
     if not images:
@@ -293,6 +293,28 @@ def run_run(args) -> int:
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
     print(f"mireg bop run: {line}; wrote {csv_path} and {out_dir / 'summary.json'}", file=sys.stderr)
     return 0
+
+
+OVERLAY_POINTS = 2000       # model surface points drawn per pose
+
+
+def overlay(frame, models, published, owners):
+    """offline's overlay (boxes, ground truth in grey) with each pose's model surface points
+    in a colour of its own over it: whether a pose sits on its object (a cup lid on lid) is
+    judged from the surface, not from the box."""
+    import cv2
+
+    from ..rgbd.overlay import draw_points
+    from .offline import draw_overlay
+
+    img = draw_overlay(frame.rgb, frame.intrinsics, models, published, frame.gt_poses, owners)
+    by_name = {m.name: m for m in models}
+    for k, inst in enumerate(published):
+        pts = by_name[inst.object].points_xyz
+        hue = np.uint8([[(k * 47) % 180]])
+        colour = cv2.applyColorMap(hue, cv2.COLORMAP_HSV)[0, 0]
+        draw_points(img, inst.T, pts[::max(1, len(pts) // OVERLAY_POINTS)], frame.intrinsics, colour)
+    return img
 
 
 def _hits(frame, owners, models, symmetries, published) -> dict:
