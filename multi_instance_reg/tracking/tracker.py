@@ -2,22 +2,34 @@
 
     tracker = InstanceTracker(model, TrackerConfig())
     for frame in frames:                                       # in order, every frame
-        out = tracker.step(stamp_ns, depth_m, intrinsics, detections)   # detections may be None
+        out = tracker.step(stamp_ns, depth_m, intrinsics, detections, camera_motion)
         for inst in out:                                       # by track_id
             inst.track_id, inst.state, inst.source, inst.T
 
-Each frame, every live track is first predicted (constant velocity), then corrected by the
-detections of that frame if there are any (one-to-one assignment, gated on position and
-orientation), then aligned to the depth image by projective ICP (``icp.py``). A detection
-found on an older frame (the live node's detector runs behind the camera) is fused with
-``add_detections(stamp_ns, detections)``: it is compared with each track's pose on that
-frame and moved forward by the motion the track has made since.
+Objects rest and the camera moves. Each frame every track is first moved by the camera's
+motion, measured where it can be (``camera_motion`` from ``odometry.py``: the static scene's
+features; else the tracks' shared velocity), corrected by one ICP of all tracks together
+against the depth; then the frame's detections are assigned to the tracks (one to one within
+``gate_distance``, after moving the tracks by the camera motion the detections themselves
+show where nothing else measured it; a detection left over within a track's volume corrects
+that track); then each track is aligned to the depth by projective ICP (``icp.py``). A
+detection found on an older frame (the live node's detector runs behind the camera) is fused
+with ``add_detections(stamp_ns, detections)`` against each track's pose on that frame.
 
-Life of a track: born *tentative* from a detection no track claims; *confirmed* after
-``confirm_detections`` detections, or at once when the depth confirms the detection's pose
-(ICP fitness at least ``confirm_fitness``); a confirmed track neither detected nor confirmed by the
-depth on a frame is *coasting*, and ends when that lasts ``coast_s``. A tentative track ends
-at its first miss. Ids count up from 0 and are never reused.
+What is published is what has evidence on the frame: a track the depth confirms (ICP
+fitness), or one a detection continues that the depth does not contradict (no more than
+``max_free_share`` of its visible model points standing where the camera saw through to a
+surface behind them). A prediction is not evidence: a track with neither is kept, coasting,
+for its object's next detection, and not published. Where the depth vouches for neither a
+track's pose nor its detection's, the detection wins. Two tracks whose model volumes overlap
+are one object: the one with the better evidence stays. Stamps that go back (a bag played in
+a loop, a camera restarted) end every track, and the tracker says so in the log.
+
+Life of a track: born *tentative* from a detection no track claims (published at once where
+the depth confirms it); *confirmed* after ``confirm_detections`` detections, or at once when
+the depth confirms the detection's pose (``confirm_fitness``); a confirmed track without
+evidence on a frame is *coasting*, and ends when that lasts ``coast_s``. A tentative track
+ends at its first miss. Ids count up from 0 and are never reused.
 
 A detection whose position matches a track but whose orientation does not is the same object
 seen in one of its symmetric poses (a box turned 180 deg looks the same on its plain faces):
@@ -249,7 +261,7 @@ class InstanceTracker:
         if detections is not None:
             self._fuse(stamp_ns, detections)
         self._align(stamp_ns, depth_m, intrinsics)
-        return self.output(intrinsics)
+        return self.output()
 
     def add_detections(self, stamp_ns: int, detections) -> None:
         """Detections found on an earlier frame (at most HISTORY frames back)."""
@@ -810,7 +822,7 @@ class InstanceTracker:
         return sorted(keep, key=lambda t: t.track_id)
 
     # ---- output ----------------------------------------------------------------------
-    def output(self, intrinsics: CameraIntrinsics | None = None) -> list[TrackedInstance]:
+    def output(self) -> list[TrackedInstance]:
         """The tracks to publish on the latest frame, by track_id: those with evidence on it
         (a detection or the depth vouched for them; see ``_align``). A coasting track is kept
         for its object's next detection, not published."""
@@ -831,15 +843,6 @@ class InstanceTracker:
 def matched_tracks_idx(candidates, track_ids: set) -> list[int]:
     """Rows of ``candidates`` whose track is among ``track_ids``."""
     return [r for r, (tr, _) in enumerate(candidates) if tr.track_id in track_ids]
-
-
-def _in_image(T: np.ndarray, intrinsics: CameraIntrinsics) -> bool:
-    x, y, z = T[:3, 3]
-    if z <= 0:
-        return False
-    K = intrinsics.K
-    u, v = K[0, 0] * x / z + K[0, 2], K[1, 1] * y / z + K[1, 2]
-    return 0 <= u < intrinsics.width and 0 <= v < intrinsics.height
 
 
 __all__ = ["TrackerConfig", "InstanceTracker", "TrackedInstance", "Track", "TENTATIVE", "CONFIRMED", "COASTING",
