@@ -47,16 +47,17 @@ def run(tr, frames):
 
 
 def test_birth_confirmation_and_ids():
-    tr = tracker(confirm_detections=2)
+    tr = tracker(confirm_detections=2, publish_tentative=False)
     out = run(tr, [[det_at(0.0), det_at(0.2)], [det_at(0.0), det_at(0.2)], [det_at(0.0), det_at(0.2)]])
-    assert out[0] == []                                   # tentative ones are not published
+    assert out[0] == []                                   # tentative ones are not published when asked
     assert [i.track_id for i in out[1]] == [0, 1]
     assert all(i.state == "confirmed" and i.source == "detection" for i in out[2])
 
 
-def test_tentative_published_on_request():
-    out = run(tracker(publish_tentative=True), [[det_at(0.0)]])
+def test_a_new_track_is_published_on_its_first_detection_unless_asked_not_to():
+    out = run(tracker(), [[det_at(0.0)]])
     assert [(i.track_id, i.state) for i in out[0]] == [(0, "tentative")]
+    assert run(tracker(publish_tentative=False), [[det_at(0.0)]]) == [[]]
 
 
 def test_tentative_track_ends_at_first_miss_and_ids_are_not_reused():
@@ -401,7 +402,7 @@ def test_the_depth_confirms_a_new_track_at_once_but_not_a_false_detection():
     # Off: two detections confirm it, but the depth vouching for it publishes it at once.
     out = box_tracker(confirm_fitness=0.0).step(0, depth, BOX_INTR, [box_det(0.0)])
     assert [(o.track_id, o.state) for o in out] == [(0, "tentative")]
-    # Nothing but the detection vouching for it: published only with publish_tentative.
+    # The depth contradicting it (the camera sees the table through it): not published.
     assert box_tracker(confirm_fitness=0.0).step(0, table, BOX_INTR, [box_det(0.0)]) == []
 
 
@@ -630,7 +631,7 @@ def test_the_stamps_going_back_end_every_track_and_say_so(caplog):
     with caplog.at_level("WARNING"):
         out = tr.step(0, None, None, [det_at(0.05)])
     assert tr.resets == 1 and "stamps went back" in caplog.text
-    assert [t.track_id for t in tr.tracks] == [2] and out == []      # a new track, ids go on counting
+    assert [t.track_id for t in tr.tracks] == [2] and [o.track_id for o in out] == [2]   # ids go on counting
     assert [o.track_id for o in tr.step(FRAME_NS, None, None, [det_at(0.05)])] == [2]
 
 
