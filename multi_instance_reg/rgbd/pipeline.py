@@ -504,8 +504,7 @@ class InstanceRegistration:
             search = self._search_mask(depth_m, intrinsics)
         t3 = time.perf_counter()
         t["lifting"] = (t3 - t0) * 1e3
-        cloud = self._shape.frame_cloud(depth_m, intrinsics, None if search is None else search > 0, gravity,
-                                        within=within)
+        cloud = self._shape.frame_cloud(depth_m, intrinsics, None if search is None else search > 0, gravity, within)
         self._shape.keep_frame(depth_m, intrinsics)        # the acceptance passes redraw the same poses
         t4 = time.perf_counter()
         # ECC does not need the vote clusters' poses (ppf): it runs in the shared pool as
