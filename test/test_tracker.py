@@ -704,3 +704,25 @@ def test_a_measured_camera_motion_carries_every_track_across_a_jump():
         expected = before if motion is None else [motion @ T for T in before]
         for t, T in zip(tr.tracks, expected):
             assert np.allclose(t.T, T, atol=1e-9)
+
+
+def test_a_loop_played_a_hundred_times_keeps_its_tracks_bounded():
+    # 3,000 frames: a 30-frame recording of three objects played 100 times (the stamps go back
+    # at every pass). Every pass ends the tracks of the one before: never more tracks than
+    # objects, one reset per pass, and after the last pass the tracks are where the first
+    # pass left them (nothing drifts or piles up from pass to pass).
+    from multi_instance_reg.tracking import LiveConfig, LiveTracker
+
+    model = Model(np.random.default_rng(0).uniform(-0.005, 0.005, (200, 3)))
+    live = LiveTracker(model, TrackerConfig(icp=False), LiveConfig())
+    most = 0
+    for rep in range(100):
+        for k in range(30):
+            live.step(k * FRAME_NS, None, None)
+            live.add_detections(k * FRAME_NS, [det_at(x + 0.001 * k) for x in (-0.1, 0.0, 0.1)])
+            most = max(most, live.counts()["tracks_live"])
+        if rep == 0:
+            first = sorted(t.T[0, 3] for t in live._tracker.tracks)
+    last = sorted(t.T[0, 3] for t in live._tracker.tracks)
+    assert most == 3 and live.counts()["tracking_resets"] == 99          # at the start of every pass but the first
+    assert len(last) == 3 and np.allclose(first, last)
