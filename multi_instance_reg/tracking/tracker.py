@@ -296,7 +296,10 @@ class InstanceTracker:
             if camera_motion is not None:
                 tr.T = apply_twist(self._predicted_motion @ tr.T, tr.velocity, max(dt, 0.0))
                 tr.T_out_before = tr.T_out
-                tr.T_out = proper_pose(self._predicted_motion @ tr.T_out)
+                if self._camera_moving:
+                    # (A still camera's measured motion is noise: the published pose of a
+                    # resting object is held, as rest_frames averages it.)
+                    tr.T_out = proper_pose(self._predicted_motion @ tr.T_out)
                 tr.stamp_ns = stamp_ns
             elif dt > 0:
                 tr.T = apply_twist(apply_twist(tr.T, shared, dt), tr.velocity, dt)
