@@ -71,7 +71,7 @@ class TrackerConfig:
     confirm_detections: int = param(2, "detections that confirm a new (tentative) track; a tentative track ends at its first miss", 1, 100)
     confirm_fitness: float = param(0.9, "a new track is confirmed at once, on its first detection, when the ICP from that detection's pose confirms at least this share of the visible model points not hidden behind something nearer (and icp_min_fitness and icp_min_in_view hold): the depth then vouches for the detection as a second detection would; 0 = off (only detections confirm)", 0.0, 1.0)
     coast_s: float = param(1.0, "s: a confirmed track that is neither detected nor confirmed by the depth for longer than this ends; meanwhile it is kept (coasting, carried by the camera's motion) so that the object's next detection continues it, but not published: a prediction is not evidence", 0.0, 60.0)
-    max_undetected_s: float = param(1.5, "s: a track kept by the depth alone, with no detection for longer than this, ends (0 = never)", 0.0, 3600.0)
+    max_undetected_s: float = param(1.5, "s: a track kept by the depth alone, with no detection for longer than this and not found by the last two detection rounds that ran on frames it lived in, ends (0 = never): the detector's verdict, not the clock's (a detector running seconds behind on a loaded host leaves that long between its rounds)", 0.0, 3600.0)
     duplicate_distance: float = param(0.015, "m: two tracks whose positions come closer than this, or than half the object's smallest extent (their model volumes overlap), follow one object: the one with the weaker evidence on this frame ends (published before not, confirmed before tentative, then the older)", 0.0, 1.0)
     min_hidden_share: float = param(0.6, "share of a track's visible model points that must be hidden behind a surface more than icp_max_distance in front of them (an arm, an object in front) for an undetected track whose pose the camera's measured motion carried to be published as hidden (state coasting): the depth agrees with it without confirming it; 1 = never", 0.0, 1.0)
     max_free_share: float = param(0.3, "share of a track's visible model points that may stand where the camera saw through to a surface more than icp_max_distance behind them (space seen empty, which no occlusion explains): above it the depth contradicts the pose and the track has no evidence on that frame, whatever detected it", 0.0, 1.0)
@@ -144,6 +144,7 @@ class Track:
     frames_since_pull: int = 0
     pulled: float = 0.0                       # share of the way a detection moved it on this frame (0: none, or reset to it)
     evidence: bool = False                    # a detection or the depth vouched for it on its latest frame (published then)
+    missed_rounds: int = 0                    # detection rounds in a row, on frames it lived in, that did not find it
 
     def pose_at(self, stamp_ns: int) -> np.ndarray | None:
         for s, T in reversed(self.history):
@@ -164,6 +165,7 @@ def proper_pose(T) -> np.ndarray:
 
 
 _ORIGIN = np.zeros(3)
+MISSED_ROUNDS = 2                # detection rounds in a row that must miss a track before max_undetected_s ends it
 MAX_CAMERA_TURN_DEG = 45.0       # a camera motion between two frames taken from the detections turns at most this
 
 
@@ -388,6 +390,8 @@ class InstanceTracker:
                     self._correct(tr, T_then, dets[k], stamp_ns)
                     matched_dets.add(k)
                     matched_tracks.add(tr.track_id)
+        for tr, _ in candidates:
+            tr.missed_rounds = 0 if tr.track_id in matched_tracks else tr.missed_rounds + 1
         # A tentative track that a detection round (on a frame it lived in) did not find ends.
         missed = {tr.track_id for tr, _ in candidates if tr.state == TENTATIVE and tr.track_id not in matched_tracks}
         self.ended += len(missed)
@@ -700,7 +704,8 @@ class InstanceTracker:
                 else:
                     tr.T_out = tr.T.copy()
                 tr.out_velocity = np.zeros(6)
-            if c.max_undetected_s > 0 and (stamp_ns - tr.last_detected_ns) * 1e-9 > c.max_undetected_s:
+            if (c.max_undetected_s > 0 and (stamp_ns - tr.last_detected_ns) * 1e-9 > c.max_undetected_s
+                    and tr.missed_rounds >= MISSED_ROUNDS):
                 self.ended += 1
                 continue
             tr.history[-1] = (stamp_ns, tr.T.copy())
