@@ -213,4 +213,73 @@ def parse_symmetry_text(text: str, centre: np.ndarray) -> Symmetries:
                       np.asarray(centre, np.float64) if axis is not None else None)
 
 
-__all__ = ["Symmetries", "detect_symmetries", "closest_symmetric_pose", "parse_symmetry_text"]
+# --------------------------------------------------------------------------- BOP models_info.json
+
+def symmetries_from_bop(entry: dict, where: str) -> Symmetries:
+    """An object's symmetries from its BOP ``models_info.json`` entry (NOTES.md section 14):
+    ``symmetries_discrete``, each 16 numbers (4 x 4 row-major, translation in mm), and
+    ``symmetries_continuous``, each ``{axis, offset}`` (a point on the axis, mm); metres out.
+    No key, no symmetry (BOP leaves them out for an asymmetric object). ``Symmetries`` holds
+    one continuous axis: of several (a sphere) the first is kept. ``where`` names the entry
+    in errors."""
+    if not isinstance(entry, dict):
+        raise InputError(f"{where} must be an object with the keys diameter, min_x, ..., got {type(entry).__name__}")
+
+    def numbers(value, count, what):
+        try:
+            arr = np.asarray(value, np.float64).reshape(-1)
+        except (TypeError, ValueError):
+            arr = np.zeros(0)
+        if arr.size != count or not np.all(np.isfinite(arr)):
+            raise InputError(f"{where}: {what} must be {count} finite numbers, got {value!r}")
+        return arr
+
+    disc = [np.eye(4)]
+    for k, item in enumerate(entry.get("symmetries_discrete", [])):
+        S = numbers(item, 16, f"symmetries_discrete[{k}]").reshape(4, 4)
+        R = S[:3, :3]
+        # BOP's files round to a few decimals: a loose test still tells a rotation from a typo.
+        if (not np.allclose(R @ R.T, np.eye(3), atol=1e-3) or np.linalg.det(R) < 0
+                or not np.allclose(S[3], [0, 0, 0, 1], atol=1e-9)):
+            raise InputError(f"{where}: symmetries_discrete[{k}] is not a rigid transform (a rotation, a translation "
+                             f"in mm, last row 0 0 0 1)")
+        S = S.copy()
+        S[:3, 3] /= 1000.0
+        if not any(np.allclose(S, Q, atol=1e-6) for Q in disc):
+            disc.append(S)
+    axis = point = None
+    continuous = entry.get("symmetries_continuous", [])
+    if continuous:
+        first = continuous[0]
+        if not isinstance(first, dict) or "axis" not in first:
+            raise InputError(f"{where}: symmetries_continuous entries must be {{\"axis\": [x, y, z], \"offset\": [x, y, z]}}")
+        axis = numbers(first["axis"], 3, "symmetries_continuous[0].axis")
+        if np.linalg.norm(axis) < 1e-9:
+            raise InputError(f"{where}: symmetries_continuous[0].axis is zero")
+        axis = axis / np.linalg.norm(axis)
+        point = numbers(first.get("offset", [0, 0, 0]), 3, "symmetries_continuous[0].offset") / 1000.0
+    return Symmetries(np.stack(disc), axis, point)
+
+
+def read_bop_symmetries(path, obj_id: int) -> Symmetries:
+    """Object ``obj_id``'s symmetries from a BOP ``models_info.json`` (keyed by object id)."""
+    import json
+    from pathlib import Path
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"models info file {path} does not exist")
+    try:
+        info = json.loads(path.read_text())
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise InputError(f"models info file {path} is not valid JSON ({exc})") from None
+    if not isinstance(info, dict):
+        raise InputError(f"models info file {path} must map object ids to entries (BOP's models_info.json)")
+    if str(obj_id) not in info:
+        raise InputError(f"models info file {path} has no object {obj_id} (it lists {', '.join(sorted(info, key=str)) or 'none'}); "
+                         f"give the mesh's id with --obj-id")
+    return symmetries_from_bop(info[str(obj_id)], f"models info file {path}, object {obj_id}")
+
+
+__all__ = ["Symmetries", "detect_symmetries", "closest_symmetric_pose", "parse_symmetry_text", "symmetries_from_bop",
+           "read_bop_symmetries"]

@@ -102,3 +102,70 @@ def test_vertex_colours_read_with_mixed_polygons(tmp_path, fmt, colour_type):
     # Without colours: none made up.
     write_ply(path, PYRAMID, PYRAMID_FACES, fmt)
     assert load_mesh(path).vertex_colours is None and not load_mesh(path).has_colour
+
+
+# --------------------------------------------------------------------------- symmetries from models_info.json
+
+FLIP_X_MM = [1, 0, 0, 0, 0, -1, 0, 0, 0, 0, -1, 20, 0, 0, 0, 1]      # 180 deg about x through z = 10 mm
+HALF_Z = [-1, 0, 0, 0, 0, -1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]
+
+
+def models_info(tmp_path, entries, name="models_info.json"):
+    import json
+
+    base = {"diameter": 100.0, "min_x": -50, "min_y": -50, "min_z": -50, "size_x": 100, "size_y": 100, "size_z": 100}
+    path = tmp_path / name
+    path.write_text(json.dumps({str(k): {**base, **v} for k, v in entries.items()}, indent=1))
+    return path
+
+
+def test_symmetries_read_from_models_info(tmp_path):
+    from multi_instance_reg.symmetry import read_bop_symmetries
+
+    path = models_info(tmp_path, {3: {"symmetries_discrete": [FLIP_X_MM, HALF_Z]},
+                                  7: {"symmetries_continuous": [{"axis": [0, 0, 2], "offset": [1, 2, 3]}],
+                                      "symmetries_discrete": [FLIP_X_MM]},
+                                  9: {}})
+    box = read_bop_symmetries(path, 3)
+    assert len(box.discrete) == 3 and np.allclose(box.discrete[0], np.eye(4)) and box.axis is None
+    flip = box.discrete[1]
+    assert np.allclose(flip[:3, 3], [0, 0, 0.02])              # mm -> m
+    assert np.allclose(flip @ [0.01, 0.02, 0.01, 1], [0.01, -0.02, 0.01, 1])   # a point on the axis' plane
+    cyl = read_bop_symmetries(path, 7)
+    assert np.allclose(cyl.axis, [0, 0, 1]) and np.allclose(cyl.point, [0.001, 0.002, 0.003])
+    assert len(cyl.discrete) == 2
+    assert read_bop_symmetries(path, 9).is_trivial                # no keys: asymmetric (BOP leaves them out)
+    with pytest.raises(InputError, match="no object 4"):
+        read_bop_symmetries(path, 4)
+    bad = models_info(tmp_path, {1: {"symmetries_discrete": [[2, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]]}}, "bad.json")
+    with pytest.raises(InputError, match="not a rigid transform"):
+        read_bop_symmetries(bad, 1)
+    short = models_info(tmp_path, {1: {"symmetries_discrete": [[1, 0, 0]]}}, "short.json")
+    with pytest.raises(InputError, match="16 finite numbers"):
+        read_bop_symmetries(short, 1)
+
+
+def test_build_model_takes_symmetries_from_models_info(tmp_path):
+    from multi_instance_reg.meshes import box_mesh, save_mesh
+    from multi_instance_reg.rgbd.model import load_model
+
+    mesh = save_mesh(box_mesh(0.06, 0.04, 0.03), tmp_path / "obj_000003.ply", "mm")
+    models_info(tmp_path, {3: {"symmetries_continuous": [{"axis": [0, 1, 0], "offset": [0, 0, 5]}]}})
+    # Found beside the mesh, the id from BOP's file name: BOP's word over the shape's (a box has 4 discrete).
+    run = build(tmp_path, "--mesh", mesh, "--units", "mm")
+    assert run.returncode == 0, run.stderr
+    sym = load_model(tmp_path / "m.npz").symmetries
+    assert np.allclose(sym.axis, [0, 1, 0]) and np.allclose(sym.point, [0, 0, 0.005]) and len(sym.discrete) == 1
+    assert "models_info.json, object 3" in run.stderr
+    # Given, for a mesh named otherwise, with its id.
+    other = save_mesh(box_mesh(0.06, 0.04, 0.03), tmp_path / "sub" / "carton.ply", "mm")
+    info = models_info(tmp_path, {8: {"symmetries_discrete": [HALF_Z]}}, "info8.json")
+    run = build(tmp_path, "--mesh", other, "--units", "mm", "--models-info", info, "--obj-id", 8)
+    assert run.returncode == 0, run.stderr
+    sym = load_model(tmp_path / "m.npz").symmetries
+    assert sym.axis is None and len(sym.discrete) == 2 and np.allclose(sym.discrete[1], np.reshape(HALF_Z, (4, 4)))
+    # Without the id, and with both sources: one line each.
+    for args, says in [(("--models-info", info), "--obj-id"), (("--models-info", info, "--obj-id", 4), "no object 4"),
+                       (("--models-info", info, "--obj-id", 8, "--symmetry", "none"), "not both")]:
+        run = build(tmp_path, "--mesh", other, "--units", "mm", *args)
+        assert run.returncode == 2 and says in run.stderr and len(run.stderr.strip().splitlines()) == 1, run.stderr

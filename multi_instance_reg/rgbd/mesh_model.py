@@ -51,9 +51,10 @@ def view_descriptors(dense: np.ndarray, dense_normals: np.ndarray, voxel: float,
     return tuple(np.concatenate(v) for v in out)
 
 
-def build_model_from_mesh(mesh: TriangleMesh, name: str = "", symmetry: str | None = None,
+def build_model_from_mesh(mesh: TriangleMesh, name: str = "", symmetry: "str | Symmetries | None" = None,
                           voxel: float | None = None, seed: int = 0, views: int = 20) -> ObjectModel:
-    """``symmetry``: None = find from the mesh; else text for ``parse_symmetry_text``."""
+    """``symmetry``: None = find from the mesh; text for ``parse_symmetry_text``; or the
+    ``Symmetries`` themselves (e.g. from a BOP models_info.json)."""
     lo, hi = mesh.bounds
     extent = hi - lo
     centre = (lo + hi) / 2.0
@@ -61,7 +62,9 @@ def build_model_from_mesh(mesh: TriangleMesh, name: str = "", symmetry: str | No
     dense, dense_normals = sample_surface(mesh, voxel / 4.0, seed=seed)
     pts, normals, variation, desc = view_descriptors(dense, dense_normals, voxel, centre, views)
     diameter = float(np.linalg.norm(extent))
-    if symmetry is None:
+    if isinstance(symmetry, Symmetries):
+        symmetries = symmetry
+    elif symmetry is None:
         spacing = diameter / 100.0
         sym_pts, _ = sample_surface(mesh, spacing, seed=seed + 1)
         symmetries = detect_symmetries(sym_pts, 1.5 * spacing)

@@ -2,7 +2,8 @@
 
     mireg build-model CAPTURE_BAG [MORE_BAGS ...] -o MODEL.npz [--frames 0,10,20 | 0:60:10] [--roi x,y,w,h] [--depth-range 0.2 1.5]
     mireg build-model --rgb colour.png --depth depth.png --intrinsics fx,fy,cx,cy -o MODEL.npz
-    mireg build-model --mesh FILE.ply|.stl|.obj [--units m|mm] [--name N] [--symmetry auto|none|z:inf,x:2] [CAPTURE_BAG ...] -o MODEL.npz
+    mireg build-model --mesh FILE.ply|.stl|.obj [--units m|mm] [--name N] [--symmetry auto|none|z:inf,x:2]
+                      [--models-info models_info.json --obj-id N] [CAPTURE_BAG ...] -o MODEL.npz
 
 The object is isolated by the ROI and depth range, the removal of the dominant (table) plane
 and the blob nearest the image centre. Several frames are merged with their ground-truth
@@ -50,7 +51,13 @@ def add_arguments(parser) -> None:
     mesh.add_argument("--units", choices=("m", "mm"), default="m", help="units of the mesh's coordinates (default m)")
     mesh.add_argument("--symmetry", default="auto",
                       help="the object's symmetries: auto (found from the mesh), none, or items AXIS:N / AXIS:inf about "
-                           "the mesh's axes through its box centre, e.g. 'x:2,y:2' (a box), 'z:inf,x:2' (a cylinder)")
+                           "the mesh's axes through its box centre, e.g. 'x:2,y:2' (a box), 'z:inf,x:2' (a cylinder); "
+                           "auto takes them from a BOP models_info.json instead when there is one (--models-info)")
+    mesh.add_argument("--models-info", default=None,
+                      help="BOP models_info.json holding the object's symmetries (symmetries_discrete / "
+                           "symmetries_continuous); default: models_info.json beside the mesh, if any")
+    mesh.add_argument("--obj-id", type=int, default=None,
+                      help="the mesh's object id in --models-info (default: from a BOP file name, obj_000002.ply -> 2)")
     png = parser.add_argument_group("from PNG files instead of a bag")
     png.add_argument("--rgb", help="colour PNG (8-bit)")
     png.add_argument("--depth", help="depth PNG (16-bit, millimetres by default)")
@@ -209,6 +216,46 @@ def check_name(name: str) -> None:
                          f"e.g. instances/<name>/poses); give one with --name")
 
 
+def mesh_symmetry(mesh_path, symmetry_text: str, models_info, obj_id) -> tuple:
+    """What ``build_model_from_mesh`` is to take as the symmetries (``Symmetries``, text, or
+    None: find them from the mesh), and where they come from (said in the build's line):
+    --symmetry text; else a BOP models_info.json (given, or beside a mesh named obj_NNNNNN
+    and listing it); else the mesh's shape."""
+    import re
+
+    from ..symmetry import read_bop_symmetries
+
+    if models_info and symmetry_text != "auto":
+        raise InputError("give the symmetries either as --symmetry or from --models-info, not both")
+    if symmetry_text != "auto":
+        return symmetry_text, "from --symmetry"
+    mesh_path = Path(mesh_path)
+    path = Path(models_info) if models_info else mesh_path.parent / "models_info.json"
+    if not models_info and not path.is_file():
+        if obj_id is not None:
+            raise InputError(f"--obj-id {obj_id} names an object of a BOP models_info.json, and there is none beside "
+                             f"{mesh_path}; give one with --models-info")
+        return None, "found from the mesh"
+    if obj_id is None:
+        m = re.fullmatch(r"obj_0*(\d+)", mesh_path.stem)
+        if m is None:
+            if models_info:
+                raise InputError(f"which object of {path} is {mesh_path.name}? its name is not BOP's obj_NNNNNN.ply: "
+                                 f"give --obj-id")
+            return None, "found from the mesh"
+        obj_id = int(m.group(1))
+    if not models_info:
+        import json
+
+        try:
+            listed = str(obj_id) in json.loads(path.read_text())
+        except (ValueError, UnicodeDecodeError, TypeError):
+            listed = True           # let the reader say what is wrong with the file
+        if not listed:
+            return None, f"found from the mesh ({path} beside it does not list object {obj_id})"
+    return read_bop_symmetries(path, obj_id), f"from {path}, object {obj_id}"
+
+
 def run(args) -> int:
     from ..rgbd.model import BuildSettings, CaptureView, build_model, model_name, save_model
 
@@ -217,6 +264,8 @@ def run(args) -> int:
         raise InputError(f"output {out} must end in .npz")
     if args.mesh:
         return run_mesh(args, out)
+    if args.models_info or args.obj_id is not None:
+        raise InputError("--models-info and --obj-id give a mesh's symmetries: use them with --mesh")
     lo, hi = args.depth_range
     if not 0 <= lo < hi:
         raise InputError(f"--depth-range {lo} {hi}: need 0 <= MIN < MAX (metres)")
@@ -272,7 +321,8 @@ def run_mesh(args, out: Path) -> int:
     mesh = load_mesh(args.mesh, args.units)
     name = args.name or model_name("", args.mesh)
     check_name(name)
-    model = build_model_from_mesh(mesh, name, None if args.symmetry == "auto" else args.symmetry)
+    symmetry, symmetry_source = mesh_symmetry(args.mesh, args.symmetry, args.models_info, args.obj_id)
+    model = build_model_from_mesh(mesh, name, symmetry)
     views = []
     for bag in args.bag:
         # Placed on the mesh view by view (by ground truth or by shape): spread frames by default.
@@ -297,5 +347,5 @@ def run_mesh(args, out: Path) -> int:
     print(f"model {out} ('{model.name}'): from mesh {args.mesh} ({len(mesh.vertices)} vertices, {len(mesh.triangles)} triangles) in "
           f"{time.perf_counter() - t0:.2f} s: {len(model.shape_points)} shape points at voxel {model.shape_voxel * 1000:.1f} mm, "
           f"{model.num_keypoints} SIFT keypoints from {len(views)} view(s){placed}, extent {np.round(model.extent, 3).tolist()} m, "
-          f"symmetries: {model.symmetries.describe() if model.symmetries is not None else 'none'}", file=sys.stderr)
+          f"symmetries: {model.symmetries.describe() if model.symmetries is not None else 'none'} ({symmetry_source})", file=sys.stderr)
     return 0
