@@ -164,8 +164,196 @@ def test_build_model_takes_symmetries_from_models_info(tmp_path):
     assert run.returncode == 0, run.stderr
     sym = load_model(tmp_path / "m.npz").symmetries
     assert sym.axis is None and len(sym.discrete) == 2 and np.allclose(sym.discrete[1], np.reshape(HALF_Z, (4, 4)))
-    # Without the id, and with both sources: one line each.
-    for args, says in [(("--models-info", info), "--obj-id"), (("--models-info", info, "--obj-id", 4), "no object 4"),
-                       (("--models-info", info, "--obj-id", 8, "--symmetry", "none"), "not both")]:
-        run = build(tmp_path, "--mesh", other, "--units", "mm", *args)
-        assert run.returncode == 2 and says in run.stderr and len(run.stderr.strip().splitlines()) == 1, run.stderr
+    # Without the id, with an id it does not list, with both sources, an id and no file: refused.
+    from multi_instance_reg.tools.build_model import mesh_symmetry
+
+    for args, says in [((info, None), "--obj-id"), ((info, 4), "no object 4"), ((None, 8), "none beside")]:
+        with pytest.raises(InputError, match=says):
+            mesh_symmetry(other, "auto", *args)
+    run = build(tmp_path, "--mesh", other, "--units", "mm", "--models-info", info, "--obj-id", 8, "--symmetry", "none")
+    assert run.returncode == 2 and "not both" in run.stderr and len(run.stderr.strip().splitlines()) == 1, run.stderr
+
+
+# --------------------------------------------------------------------------- rendering coloured meshes
+
+BOX = np.array([0.10, 0.08, 0.06])
+# Each face of a box: its outward axis, and its 4 corners counter-clockwise seen from outside.
+FACES = {"+x": [(1, -1, -1), (1, 1, -1), (1, 1, 1), (1, -1, 1)], "-x": [(-1, 1, -1), (-1, -1, -1), (-1, -1, 1), (-1, 1, 1)],
+         "+y": [(1, 1, -1), (-1, 1, -1), (-1, 1, 1), (1, 1, 1)], "-y": [(-1, -1, -1), (1, -1, -1), (1, -1, 1), (-1, -1, 1)],
+         "+z": [(-1, -1, 1), (1, -1, 1), (1, 1, 1), (-1, 1, 1)], "-z": [(-1, 1, -1), (1, 1, -1), (1, -1, -1), (-1, -1, -1)]}
+RED, BLUE = (220, 30, 20), (20, 40, 200)
+
+
+def box_faces(size=BOX):
+    """24 vertices (4 a face, so that each face has its own colour or texture corners) and 12 triangles."""
+    verts = np.array([c for corners in FACES.values() for c in corners], np.float64) * size / 2
+    tris = [[4 * f, 4 * f + 1, 4 * f + 2] for f in range(6)] + [[4 * f, 4 * f + 2, 4 * f + 3] for f in range(6)]
+    return verts, tris
+
+
+def write_two_coloured_box(path):
+    verts, tris = box_faces()
+    colours = [RED if name == "+z" else BLUE for name in FACES for _ in range(4)]
+    write_ply(path, verts, tris, "binary_little_endian", colours)
+
+
+def photo_texture(size=384):
+    """A photograph that ships with scikit-image (astronaut): the detail SIFT needs."""
+    import cv2
+    from skimage import data
+
+    return cv2.resize(data.astronaut(), (size, size), interpolation=cv2.INTER_AREA)
+
+
+def write_textured_box(path, texture, per_corner: bool):
+    """Each face maps to its own cell of a 3 x 2 grid over the picture: per vertex (texture_u/v)
+    or per face corner (a face 'texcoord' list, as MeshLab writes)."""
+    import cv2
+
+    verts, tris = box_faces()
+    cell = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float64) * [1 / 3, 1 / 2] * 0.96 + 0.02 / 3
+    uv = np.concatenate([cell + [f % 3 / 3, f // 3 / 2] for f in range(6)])
+    cv2.imwrite(str(path.parent / "box_texture.png"), texture[:, :, ::-1])
+    head = f"ply\nformat ascii 1.0\ncomment TextureFile box_texture.png\nelement vertex {len(verts)}\n"
+    head += "property float x\nproperty float y\nproperty float z\n"
+    if not per_corner:
+        head += "property float texture_u\nproperty float texture_v\n"
+    head += f"element face {len(tris)}\nproperty list uchar int vertex_indices\n"
+    if per_corner:
+        head += "property list uchar float texcoord\n"
+    head += "end_header\n"
+    rows = [" ".join(map(str, list(v) + ([] if per_corner else list(t)))) for v, t in zip(verts, uv)]
+    for t in tris:
+        row = f"3 {t[0]} {t[1]} {t[2]}"
+        if per_corner:
+            row += " 6 " + " ".join(str(x) for k in t for x in uv[k])
+        rows.append(row)
+    path.write_text(head + "\n".join(rows) + "\n")
+    return uv
+
+
+def camera(width=320, height=240, f=300.0):
+    from multi_instance_reg.messages import CameraIntrinsics
+
+    return CameraIntrinsics(np.array([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1.0]]), width, height)
+
+
+def pixel_of(T, K, point):
+    p = T[:3, :3] @ point + T[:3, 3]
+    return int(round(K[0, 0] * p[0] / p[2] + K[0, 2])), int(round(K[1, 1] * p[1] / p[2] + K[1, 2])), p[2]
+
+
+def depth_on_face(T, K, u, v, normal, offset):
+    """Camera z where the ray of pixel (u, v) meets the plane normal . x = offset (mesh frame)."""
+    ray = np.array([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], 1.0])     # camera frame, z = 1
+    centre = -T[:3, :3].T @ T[:3, 3]                                            # the camera, mesh frame
+    return (offset - normal @ centre) / ((T[:3, :3] @ normal) @ ray)
+
+
+def test_rendered_two_coloured_box_has_its_colours_where_expected(tmp_path):
+    from multi_instance_reg.mesh_render import BACKGROUND_RGB, look_at, render_mesh
+
+    path = tmp_path / "box.ply"
+    write_two_coloured_box(path)
+    mesh = load_mesh(path)
+    intr = camera()
+    T = look_at(np.zeros(3), [0.6, -0.5, 0.8], 0.5)          # sees +z (red), +x and -y (blue)
+    r = render_mesh(mesh, T, intr)
+    h = BOX / 2
+    for point, colour, axis in [((0, 0, h[2]), RED, 2), ((0.02, -0.01, h[2]), RED, 2), ((h[0], 0, 0), BLUE, 0),
+                                ((0.01, -h[1], -0.01), BLUE, 1)]:
+        u, v, _ = pixel_of(T, intr.K, np.array(point, np.float64))
+        assert tuple(r.rgb[v, u]) == colour, (point, r.rgb[v, u])
+        normal = np.sign(point[axis]) * np.eye(3)[axis]
+        assert r.depth_m[v, u] == pytest.approx(depth_on_face(T, intr.K, u, v, normal, h[axis]), abs=2e-5)
+    # The z-buffer: the bottom's centre (blue) is hidden behind the top (red), nearer.
+    u, v, z_bottom = pixel_of(T, intr.K, np.array([0, 0, -h[2]]))
+    assert tuple(r.rgb[v, u]) == RED and r.depth_m[v, u] < z_bottom - 0.03
+    assert tuple(r.rgb[0, 0]) == BACKGROUND_RGB and r.depth_m[0, 0] == 0 and r.triangle[0, 0] == -1
+    # Colours blend inside a face only between its own corners: no red on the blue sides.
+    side = r.mask & (np.abs(r.rgb.astype(int) - BLUE).sum(axis=2) < 6)
+    top = r.mask & (np.abs(r.rgb.astype(int) - RED).sum(axis=2) < 6)
+    assert side.sum() > 1000 and top.sum() > 1000 and (side | top).sum() > 0.97 * r.mask.sum()
+
+
+@pytest.mark.parametrize("per_corner", [False, True])
+def test_textured_box_read_and_rendered(tmp_path, per_corner):
+    from multi_instance_reg.mesh_render import look_at, render_mesh
+
+    texture = np.zeros((64, 96, 3), np.uint8)
+    cells = [(255, 0, 0), (0, 255, 0), (0, 0, 255), (255, 255, 0), (0, 255, 255), (255, 0, 255)]
+    for f, c in enumerate(cells):       # cell f: columns f % 3, rows from the bottom f // 3 (v up)
+        col, row = f % 3, 1 - f // 3
+        texture[row * 32:(row + 1) * 32, col * 32:(col + 1) * 32] = c
+    write_textured_box(tmp_path / "box.ply", texture, per_corner)
+    mesh = load_mesh(tmp_path / "box.ply")
+    assert mesh.has_colour and mesh.texture.shape == (64, 96, 3) and mesh.corner_uv.shape == (12, 3, 2)
+    intr = camera()
+    for f, (name, direction) in enumerate([("+x", (1, 0, 0)), ("-x", (-1, 0, 0)), ("+y", (0, 1, 0)),
+                                           ("-y", (0, -1, 0)), ("+z", (0, 0, 1)), ("-z", (0, 0, -1))]):
+        d = np.array(direction, np.float64)
+        T = look_at(np.zeros(3), d + [0.2, 0.1, 0.15], 0.5)
+        r = render_mesh(mesh, T, intr)
+        u, v, _ = pixel_of(T, intr.K, d * BOX / 2)
+        assert tuple(r.rgb[v, u]) == cells[f], (name, r.rgb[v, u])
+    # The picture it names must be there: one line naming it.
+    (tmp_path / "box_texture.png").unlink()
+    with pytest.raises(InputError, match="box_texture.png"):
+        load_mesh(tmp_path / "box.ply")
+
+
+def box_surface_distance(p, size=BOX):
+    """Distance of points from the surface of a box centred at the origin."""
+    q = np.abs(p) - size / 2
+    outside = np.linalg.norm(np.maximum(q, 0), axis=1)
+    inside = np.minimum(q.max(axis=1), 0)
+    return np.abs(outside + inside)
+
+
+def test_keypoints_of_a_textured_mesh_sit_at_their_3d_places(tmp_path):
+    from multi_instance_reg.mesh_render import look_at, render_mesh
+    from multi_instance_reg.rgbd.features import extract_sift
+    from multi_instance_reg.rgbd.matching import DescriptorMatcher, prepare_descriptors
+    from multi_instance_reg.rgbd.mesh_model import add_rendered_keypoints, build_model_from_mesh, view_directions
+    from multi_instance_reg.rgbd.model import BuildSettings
+
+    write_textured_box(tmp_path / "box.ply", photo_texture(), per_corner=False)
+    mesh = load_mesh(tmp_path / "box.ply")
+    model = build_model_from_mesh(mesh, "box", "none", views=6)
+    model, per_view = add_rendered_keypoints(model, mesh, BuildSettings(tilts=()), count=10, distance=0.45)
+    assert len(per_view) == 10 and model.num_keypoints == sum(per_view) and min(per_view) >= 20
+    # Every keypoint lies on the box's surface (lifted by the rendered depth, in the mesh frame).
+    d = box_surface_distance(model.keypoints_xyz.astype(np.float64))
+    assert np.percentile(d, 95) < 0.0015 and d.max() < 0.01
+    # A view it was not built from (12 deg and 5 cm away from one: SIFT bears about 30 deg):
+    # SIFT there, matched to the model; the matched model points project back onto the
+    # keypoints' pixels.
+    intr = camera(640, 480, 550.0)
+    d = view_directions(10)[3]
+    turned = d + 0.21 * np.cross(d, [0.0, 0.0, 1.0]) / np.linalg.norm(np.cross(d, [0.0, 0.0, 1.0]))
+    T = look_at(np.zeros(3), turned, 0.5)
+    r = render_mesh(mesh, T, intr)
+    uv, desc = extract_sift(r.rgb, BuildSettings().sift, r.mask)
+    # The pipeline's matcher: a point seen in several views is one point to the ratio test.
+    matcher = DescriptorMatcher(prepare_descriptors(model.descriptors), model.keypoints_xyz, ratio=0.8, separation=0.01)
+    s_idx, m_idx, _ = matcher.match(prepare_descriptors(desc))
+    assert len(s_idx) >= 30
+    xyz = model.keypoints_xyz[m_idx].astype(np.float64) @ T[:3, :3].T + T[:3, 3]
+    proj = xyz[:, :2] / xyz[:, 2:] * [intr.K[0, 0], intr.K[1, 1]] + intr.K[:2, 2]
+    err = np.linalg.norm(proj - uv[s_idx], axis=1)
+    assert np.mean(err < 2.0) > 0.85, np.percentile(err, [50, 80, 95])
+
+
+def test_build_model_from_coloured_mesh_takes_the_sift_path(tmp_path):
+    from multi_instance_reg.rgbd.model import load_model
+    from multi_instance_reg.rgbd.shape_frontend import resolve_correspondences
+
+    write_textured_box(tmp_path / "box.ply", photo_texture(), per_corner=True)
+    run = build(tmp_path, "--mesh", tmp_path / "box.ply", "--render-views", 6, "--symmetry", "none")
+    assert run.returncode == 0, run.stderr
+    assert "rendered from its texture" in run.stderr
+    model = load_model(tmp_path / "m.npz")
+    assert model.num_keypoints > 100 and model.has_shape
+    assert resolve_correspondences("auto", model) == "both" and resolve_correspondences("sift", model) == "sift"
+    run = build(tmp_path, "--mesh", tmp_path / "box.ply", "--render-views", 0, "--symmetry", "none")
+    assert run.returncode == 0 and load_model(tmp_path / "m.npz").num_keypoints == 0

@@ -93,24 +93,68 @@ def add_capture_keypoints(model: ObjectModel, views, settings, T_mesh_object: np
     """SIFT keypoints of capture views brought into the mesh frame. Each view needs its
     object pose (``T_camera_object``, e.g. a synthetic capture's ground truth); the object
     frame of the captures is the mesh frame unless ``T_mesh_object`` says otherwise."""
-    from ..transforms import apply_transform, invert_transform
-    from .model import object_mask, view_keypoints
+    from .model import object_mask
 
     if not all(v.T_camera_object is not None for v in views):
         raise InputError("capture views given with --mesh need their object poses (ground truth) to be placed "
                          "in the mesh frame; these bags have none")
     T_mo = np.eye(4) if T_mesh_object is None else np.asarray(T_mesh_object, np.float64)
+    _keypoints_in_mesh_frame(model, views, [object_mask(v, settings)[0] for v in views], settings, T_mo)
+    return model
+
+
+def _keypoints_in_mesh_frame(model: ObjectModel, views, masks, settings, T_mesh_object: np.ndarray) -> list[int]:
+    """Gives ``model`` the SIFT keypoints of ``views`` on their object ``masks`` (lifted by
+    the views' depth), brought into the mesh frame by the views' object poses; returns how
+    many each view gave."""
+    from ..transforms import apply_transform, invert_transform
+    from .model import view_keypoints
+
     xyz_all, desc_all = [], []
-    for view in views:
-        mask, _ = object_mask(view, settings)
+    for view, mask in zip(views, masks):
         xyz, desc = view_keypoints(view, mask, settings)
-        T_mesh_cam = T_mo @ invert_transform(view.T_camera_object)
+        T_mesh_cam = T_mesh_object @ invert_transform(view.T_camera_object)
         xyz_all.append(apply_transform(T_mesh_cam, xyz.astype(np.float64)))
         desc_all.append(desc)
     xyz = np.concatenate(xyz_all) if xyz_all else np.zeros((0, 3))
     model.keypoints_xyz = xyz.astype(np.float32)
     model.descriptors = (np.concatenate(desc_all) if desc_all else np.zeros((0, 128))).astype(np.float32)
-    return model
+    return [len(x) for x in xyz_all]
+
+
+# Rendered views of a coloured mesh: a Primesense-like camera (IC-BIN's K is fx 550, fy 540 at
+# 640 x 480) at the distance objects are seen from in a bin or on a table.
+RENDER_FOCAL_PX = 550.0
+RENDER_SIZE = (640, 480)
+RENDER_DISTANCE_M = 0.6
+RENDER_VIEWS = 30
+
+
+def render_views(mesh: TriangleMesh, count: int = RENDER_VIEWS, distance: float = RENDER_DISTANCE_M,
+                 focal_px: float = RENDER_FOCAL_PX, size: tuple[int, int] = RENDER_SIZE) -> list:
+    """``count`` renders (``mesh_render.MeshRender``) of the coloured mesh from directions
+    spread over the sphere, ``distance`` from its box centre, looking at it."""
+    from ..mesh_render import look_at, render_mesh
+    from ..messages import CameraIntrinsics
+
+    w, h = size
+    K = np.array([[focal_px, 0.0, (w - 1) / 2.0], [0.0, focal_px, (h - 1) / 2.0], [0.0, 0.0, 1.0]])
+    intrinsics = CameraIntrinsics(K, w, h)
+    lo, hi = mesh.bounds
+    return [render_mesh(mesh, look_at((lo + hi) / 2.0, d, distance), intrinsics) for d in view_directions(count)]
+
+
+def add_rendered_keypoints(model: ObjectModel, mesh: TriangleMesh, settings, count: int = RENDER_VIEWS,
+                           distance: float = RENDER_DISTANCE_M) -> tuple[ObjectModel, list[int]]:
+    """SIFT keypoints of a coloured mesh (vertex colours or texture) from ``count`` renders
+    around it (``render_views``), lifted by the rendered depth into the mesh frame: the model
+    then takes the SIFT path with no capture bag. Returns the model and the keypoints per view."""
+    from .model import CaptureView
+
+    renders = render_views(mesh, count, distance)
+    views = [CaptureView(r.rgb, r.depth_m, r.intrinsics, r.T_camera_object) for r in renders]
+    per_view = _keypoints_in_mesh_frame(model, views, [r.mask for r in renders], settings, np.eye(4))
+    return model, per_view
 
 
 def add_placed_keypoints(model: ObjectModel, objects, poses) -> ObjectModel:

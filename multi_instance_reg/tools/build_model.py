@@ -53,6 +53,12 @@ def add_arguments(parser) -> None:
                       help="the object's symmetries: auto (found from the mesh), none, or items AXIS:N / AXIS:inf about "
                            "the mesh's axes through its box centre, e.g. 'x:2,y:2' (a box), 'z:inf,x:2' (a cylinder); "
                            "auto takes them from a BOP models_info.json instead when there is one (--models-info)")
+    mesh.add_argument("--render-views", type=int, default=None,
+                      help="a mesh with colour (PLY vertex colours or a texture) and no capture bags gets SIFT keypoints "
+                           "from this many renders around it (default 30; 0 = none: the model is found by shape alone)")
+    mesh.add_argument("--render-distance", type=float, default=None,
+                      help="metres from the object's centre to the rendering camera (default 0.6: the distance the "
+                           "object is seen from; a Primesense-like camera, fx 550 px at 640 x 480)")
     mesh.add_argument("--models-info", default=None,
                       help="BOP models_info.json holding the object's symmetries (symmetries_discrete / "
                            "symmetries_continuous); default: models_info.json beside the mesh, if any")
@@ -312,7 +318,8 @@ def run_mesh(args, out: Path) -> int:
 
     from ..meshes import load_mesh
     from ..rgbd.capture_alignment import place_capture_keypoints
-    from ..rgbd.mesh_model import add_capture_keypoints, build_model_from_mesh
+    from ..rgbd.mesh_model import (RENDER_DISTANCE_M, RENDER_VIEWS, add_capture_keypoints, add_rendered_keypoints,
+                                   build_model_from_mesh)
     from ..rgbd.model import BuildSettings, model_name, save_model
 
     if args.rgb or args.depth:
@@ -328,7 +335,24 @@ def run_mesh(args, out: Path) -> int:
         # Placed on the mesh view by view (by ground truth or by shape): spread frames by default.
         more, _ = views_from_bag(bag, args.frames, args.topics, spread=True)
         views += more
-    placed = ""
+    placed, rendered = "", 0
+    render_views = RENDER_VIEWS if args.render_views is None else args.render_views
+    distance = RENDER_DISTANCE_M if args.render_distance is None else args.render_distance
+    if render_views < 0 or not 0.05 <= distance <= 20.0:
+        raise InputError(f"--render-views must be 0 or more and --render-distance 0.05-20 m; got {render_views} "
+                         f"and {distance}")
+    if views and (args.render_views or args.render_distance is not None):
+        raise InputError("--render-views and --render-distance give a coloured mesh keypoints when there are no capture "
+                         "bags; with capture bags the keypoints come from those")
+    if not views and mesh.has_colour and render_views:
+        _, per_view = add_rendered_keypoints(model, mesh, BuildSettings(), render_views, distance)
+        rendered = len(per_view)
+        colour = "its texture" if mesh.texture is not None else "its vertex colours"
+        placed = (f" (rendered from {colour} at {distance:g} m: {min(per_view)}-{max(per_view)} a view, "
+                  f"median {int(np.median(per_view))})")
+    elif not views and (args.render_views or args.render_distance is not None):
+        raise InputError(f"--render-views and --render-distance need a mesh with colour; {args.mesh} has neither vertex "
+                         f"colours nor a texture")
     if views:
         lo, hi = args.depth_range
         settings = BuildSettings(roi=parse_roi(args.roi), depth_range=(lo, hi))
@@ -346,6 +370,6 @@ def run_mesh(args, out: Path) -> int:
     save_model(model, out)
     print(f"model {out} ('{model.name}'): from mesh {args.mesh} ({len(mesh.vertices)} vertices, {len(mesh.triangles)} triangles) in "
           f"{time.perf_counter() - t0:.2f} s: {len(model.shape_points)} shape points at voxel {model.shape_voxel * 1000:.1f} mm, "
-          f"{model.num_keypoints} SIFT keypoints from {len(views)} view(s){placed}, extent {np.round(model.extent, 3).tolist()} m, "
+          f"{model.num_keypoints} SIFT keypoints from {len(views) or rendered} view(s){placed}, extent {np.round(model.extent, 3).tolist()} m, "
           f"symmetries: {model.symmetries.describe() if model.symmetries is not None else 'none'} ({symmetry_source})", file=sys.stderr)
     return 0
