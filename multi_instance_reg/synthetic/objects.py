@@ -123,7 +123,22 @@ PROPS: dict[str, ObjectSpec] = {spec.name: spec for spec in (
     ObjectSpec("forearm", "cylinder", (0.09, 0.09, 0.45),
                (("side", "grass"), ("+z", "moon"), ("-z", "grass")),
                resting=(("+x", 1.0),), tint=(95, 120, 175)),
+    # The walls and floor of a plastic bin (layout "bin"): flat grey-blue, each panel a box
+    # of its own size (the flat texture stretches to any size).
+    ObjectSpec("bin_panel", "box", (0.4, 0.3, 0.012), _box_faces("flat", "flat", ("flat",) * 4),
+               resting=(("+z", 1.0),), tint=(88, 112, 140)),
+    # Furniture 2-3 m behind the table (background "clutter"): a cupboard, a bookshelf seen
+    # from the front (print on its front: book spines and papers), a desk, a stack of boxes.
+    ObjectSpec("cupboard", "box", (0.9, 0.45, 1.1), _box_faces("gravel", "gravel", ("gravel", "gravel", "gravel", "coins")),
+               resting=(("+z", 1.0),), tint=(160, 120, 80)),
+    ObjectSpec("bookshelf", "box", (0.9, 0.32, 1.8), _box_faces("gravel", "gravel", ("gravel", "gravel", "gravel", "text")),
+               resting=(("+z", 1.0),), tint=(205, 180, 140)),
+    ObjectSpec("desk", "box", (1.2, 0.7, 0.75), _box_faces("page", "gravel", ("gravel", "gravel", "gravel", "gravel")),
+               resting=(("+z", 1.0),), tint=(190, 170, 140)),
+    ObjectSpec("box_stack", "box", (0.6, 0.4, 0.8), _box_faces("astronaut", "gravel", ("chelsea", "coffee", "rocket", "camera")),
+               resting=(("+z", 1.0),), tint=(225, 205, 175)),
 )}
+FURNITURE = ("cupboard", "bookshelf", "desk", "box_stack")
 
 
 # Objects without texture, flat-coloured all over ("flat" faces), for the shape front end.
@@ -353,7 +368,7 @@ def object_textures(name: str) -> dict[str, np.ndarray]:
 
 
 # Environment surfaces: (metres covered along rows, along columns, texels per metre).
-ENVIRONMENT_SIZE = {"table": (3.2, 3.2, 800.0), "wall": (6.0, 2.8, 512.0)}
+ENVIRONMENT_SIZE = {"table": (3.2, 3.2, 800.0), "wall": (6.0, 2.8, 512.0), "floor": (6.0, 6.0, 200.0)}
 
 
 @functools.lru_cache(maxsize=None)
@@ -365,6 +380,10 @@ def environment_texture(kind: str) -> np.ndarray:
         tile = load_picture("gravel").astype(np.float32)
         tile = 0.55 * tile + 0.45 * 150.0
         tile = (tile * (np.array([200, 175, 150], np.float32) / 255.0)).astype(np.uint8)
+    elif kind == "floor":  # a darker grey floor (the room behind the table, background "clutter")
+        tile = load_picture("gravel").astype(np.float32)
+        tile = (0.7 * tile + 0.3 * 90.0) * (np.array([150, 150, 160], np.float32) / 255.0)
+        tile = tile.astype(np.uint8)
     elif kind == "wall":  # painted brick
         tile = load_picture("brick").astype(np.float32)
         tile = (0.6 * tile + 0.4 * 200.0) * (np.array([235, 225, 215], np.float32) / 255.0)

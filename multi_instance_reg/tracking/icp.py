@@ -31,6 +31,14 @@ class IcpResult:
     rmse: float             # metres, point-to-plane, over the confirmed points
     in_view: float = 1.0    # share of the model points facing the camera that project into the image
     occluded: int = 0       # visible model points behind the measured surface (something in front of them)
+    free: int = 0           # visible model points in front of the measured surface by more than the first pairing
+                            # distance: the camera saw through where the model says there is surface
+
+    @property
+    def free_share(self) -> float:
+        '''Share of the visible model points standing in space the camera saw to be empty:
+        evidence against the pose that no occlusion can explain.'''
+        return self.free / self.visible if self.visible else 0.0
 
     @property
     def unoccluded_fitness(self) -> float:
@@ -63,19 +71,21 @@ def sample_model(points: np.ndarray, count: int, seed: int = 0) -> tuple[np.ndar
 
 
 @numba.njit(cache=True, fastmath=True, nogil=True)
-def _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, max_dist, centre, A, b):
+def _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, max_dist, free_dist, centre, A, b):
     """One projective association pass; fills the normal equations A x = b of the twist
     x = (omega, tau), q -> q + omega x (q - centre) + tau (the rotation about the object's
     centre, so that rotation and translation are nearly decoupled), and returns (pairs used,
     visible, squared error). Visible: facing the camera, inside the image and with a depth
     measurement there (a pixel without one, e.g. a side face seen at a grazing angle, is no
-    evidence for or against the pose)."""
+    evidence for or against the pose). Free: visible, facing the camera within 60 deg,
+    more than ``free_dist`` in front of the measured surface."""
     H, W = depth.shape
     used = 0
     visible = 0
     facing = 0
     inside = 0
     occluded = 0
+    free = 0
     sq = 0.0
     for i in range(6):
         b[i] = 0.0
@@ -108,6 +118,10 @@ def _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, max_dist, centre, A, b):
         if abs(z - qz) > max_dist:
             if z < qz:
                 occluded += 1
+            elif z > qz + free_dist and -(nx * qx + ny * qy + nz * qz) > 0.5 * np.sqrt(qx * qx + qy * qy + qz * qz):
+                # Only a face the camera looks at (within 60 deg): one seen at a grazing angle
+                # lands a pixel beside where it should for the slightest error in the pose.
+                free += 1
             continue
         s = z / qz                                   # the depth pixel lifted along q's ray
         r = nx * (qx * s - qx) + ny * (qy * s - qy) + nz * (qz * s - qz)
@@ -127,7 +141,7 @@ def _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, max_dist, centre, A, b):
     for i in range(6):
         for j in range(i):
             A[i, j] = A[j, i]
-    return used, visible, sq, facing, inside, occluded
+    return used, visible, sq, facing, inside, occluded, free
 
 
 @numba.njit(cache=True, nogil=True)
@@ -176,7 +190,7 @@ def _icp(T0, pts, nrm, depth, fx, fy, cx, cy, iterations, max_dist, inlier_dist,
         frac = it / max(iterations - 1, 1)
         gate = max_dist + (inlier_dist - max_dist) * frac
         centre = np.ascontiguousarray(T[:3, :3]) @ centroid + T[:3, 3]   # contiguous: numba warns on the slice
-        used, _, _, _, _, _ = _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, gate, centre, A, b)
+        used, _, _, _, _, _, _ = _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, gate, max_dist, centre, A, b)
         if used < 6:
             break
         x = _constrained_step(A, b, radius, damping, min_information)
@@ -184,9 +198,9 @@ def _icp(T0, pts, nrm, depth, fx, fy, cx, cy, iterations, max_dist, inlier_dist,
         if np.abs(x[:3]).max() < 1e-6 and np.abs(x[3:]).max() < 1e-6:
             break
     centre = np.ascontiguousarray(T[:3, :3]) @ centroid + T[:3, 3]
-    used, visible, sq, facing, inside, occluded = _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, inlier_dist, centre,
-                                                             A, b)
-    return T, used, visible, sq, facing, inside, occluded
+    used, visible, sq, facing, inside, occluded, free = _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, inlier_dist,
+                                                                   max_dist, centre, A, b)
+    return T, used, visible, sq, facing, inside, occluded, free
 
 
 def align_projective(T_init: np.ndarray, points: np.ndarray, normals: np.ndarray, depth_m: np.ndarray,
@@ -203,14 +217,14 @@ def align_projective(T_init: np.ndarray, points: np.ndarray, normals: np.ndarray
         radius = float(np.sqrt(np.mean(np.sum((points - centroid) ** 2, axis=1)))) or 1.0
     K = intrinsics.K
     depth = np.ascontiguousarray(depth_m, dtype=np.float32)
-    T, used, visible, sq, facing, inside, occluded = _icp(
+    T, used, visible, sq, facing, inside, occluded, free = _icp(
         np.ascontiguousarray(T_init, dtype=np.float64), points, np.ascontiguousarray(normals, np.float64), depth,
         float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), int(iterations), float(max_distance),
         float(inlier_distance), float(damping), float(min_information), np.ascontiguousarray(centroid, np.float64),
         float(radius))
     return IcpResult(T, used / visible if visible else 0.0, int(visible),
                      float(np.sqrt(sq / used)) if used else float("nan"), inside / facing if facing else 0.0,
-                     int(occluded))
+                     int(occluded), int(free))
 
 
 class ProjectiveICP:
