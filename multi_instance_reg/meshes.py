@@ -312,12 +312,12 @@ def _read_ply(data: bytes, path: Path) -> TriangleMesh:
         if any(len(t) != len(p) for t, p in zip(per_poly, polys)):
             raise InputError("a face's texcoord list does not give 2 numbers per corner")
         mesh.corner_uv = _corner_data(per_poly, corners)
-    if mesh.corner_uv is not None or texture_file is not None:
-        if mesh.corner_uv is None or texture_file is None:
-            raise InputError("it names a texture but has no texture coordinates (texture_u/texture_v or texcoord)"
-                             if mesh.corner_uv is None else
-                             "it has texture coordinates but names no texture picture ('comment TextureFile NAME')")
+    # A texture needs both its coordinates and its picture; either alone says nothing of the
+    # colour (writers leave stray TextureFile comments), so the mesh is read without it.
+    if mesh.corner_uv is not None and texture_file is not None:
         mesh.texture = _read_texture(path.parent / texture_file)
+    else:
+        mesh.corner_uv = None
     return mesh
 
 

@@ -296,6 +296,12 @@ def test_textured_box_read_and_rendered(tmp_path, per_corner):
         r = render_mesh(mesh, T, intr)
         u, v, _ = pixel_of(T, intr.K, d * BOX / 2)
         assert tuple(r.rgb[v, u]) == cells[f], (name, r.rgb[v, u])
+    # Coordinates without a picture named, or the other way round: read without colour.
+    text = (tmp_path / "box.ply").read_text()
+    (tmp_path / "no_name.ply").write_text(text.replace("comment TextureFile box_texture.png\n", ""))
+    (tmp_path / "no_uv.ply").write_text(text.replace("texture_u", "quality_u").replace(" texcoord", " quality"))
+    for name in ("no_name.ply", "no_uv.ply"):
+        assert not load_mesh(tmp_path / name).has_colour and load_mesh(tmp_path / name).corner_uv is None
     # The picture it names must be there: one line naming it.
     (tmp_path / "box_texture.png").unlink()
     with pytest.raises(InputError, match="box_texture.png"):

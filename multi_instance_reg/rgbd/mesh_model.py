@@ -5,7 +5,8 @@ shape data is sampled at the voxel the frames will be sampled at (``shape.shape_
 the mesh's box), from a surface sampled four times denser, so that model and frame
 descriptors describe the same neighbourhoods. A model built this way has no SIFT
 keypoints; ``add_capture_keypoints`` adds them from capture views whose object poses are
-known in the mesh frame (texture and shape in one model).
+known in the mesh frame (texture and shape in one model), and ``add_rendered_keypoints``
+from renders of the mesh itself when it has colour (vertex colours or a texture).
 """
 from __future__ import annotations
 
@@ -171,4 +172,5 @@ def add_placed_keypoints(model: ObjectModel, objects, poses) -> ObjectModel:
     return model
 
 
-__all__ = ["build_model_from_mesh", "add_capture_keypoints", "add_placed_keypoints", "Symmetries"]
+__all__ = ["build_model_from_mesh", "add_capture_keypoints", "add_placed_keypoints", "add_rendered_keypoints",
+           "render_views", "Symmetries"]
