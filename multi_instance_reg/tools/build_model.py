@@ -46,7 +46,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--topics", nargs=3, metavar=("COLOUR", "DEPTH", "INFO"), default=None,
                         help="colour, aligned depth and camera_info topics, raw or compressed (default: realsense-ros names; "
                              "their /compressed and /compressedDepth topics when the raw ones are absent)")
-    mesh = parser.add_argument_group("from a CAD mesh (shape; texture too when capture bags are given)")
+    mesh = parser.add_argument_group("from a mesh (shape; texture too from capture bags, or from the mesh's own colours)")
     mesh.add_argument("--mesh", default=None, help="triangle mesh of the object: .ply, .stl or .obj; the model frame is the mesh's")
     mesh.add_argument("--units", choices=("m", "mm"), default="m", help="units of the mesh's coordinates (default m)")
     mesh.add_argument("--symmetry", default="auto",
