@@ -129,6 +129,7 @@ RENDER_FOCAL_PX = 550.0
 RENDER_SIZE = (640, 480)
 RENDER_DISTANCE_M = 0.6
 RENDER_VIEWS = 30
+CROP_MARGIN_PX = 32
 
 
 def render_views(mesh: TriangleMesh, count: int = RENDER_VIEWS, distance: float = RENDER_DISTANCE_M,
@@ -150,11 +151,28 @@ def add_rendered_keypoints(model: ObjectModel, mesh: TriangleMesh, settings, cou
     """SIFT keypoints of a coloured mesh (vertex colours or texture) from ``count`` renders
     around it (``render_views``), lifted by the rendered depth into the mesh frame: the model
     then takes the SIFT path with no capture bag. Returns the model and the keypoints per view."""
+    from ..messages import CameraIntrinsics
     from .model import CaptureView
 
     renders = render_views(mesh, count, distance)
-    views = [CaptureView(r.rgb, r.depth_m, r.intrinsics, r.T_camera_object) for r in renders]
-    per_view = _keypoints_in_mesh_frame(model, views, [r.mask for r in renders], settings, np.eye(4))
+    views, masks = [], []
+    for r in renders:
+        # SIFT on the object's box (plus a margin for the descriptors' support) rather than the
+        # whole picture: the pyramid of a 640 x 480 picture costs several times the object's.
+        ys, xs = np.nonzero(r.mask)
+        if len(xs) == 0:
+            continue
+        h, w = r.mask.shape
+        x0, y0 = max(int(xs.min()) - CROP_MARGIN_PX, 0), max(int(ys.min()) - CROP_MARGIN_PX, 0)
+        x1, y1 = min(int(xs.max()) + CROP_MARGIN_PX + 1, w), min(int(ys.max()) + CROP_MARGIN_PX + 1, h)
+        K = np.array(r.intrinsics.K, np.float64)
+        K[0, 2] -= x0
+        K[1, 2] -= y0
+        crop = (slice(y0, y1), slice(x0, x1))
+        views.append(CaptureView(np.ascontiguousarray(r.rgb[crop]), np.ascontiguousarray(r.depth_m[crop]),
+                                 CameraIntrinsics(K, x1 - x0, y1 - y0), r.T_camera_object))
+        masks.append(r.mask[crop])
+    per_view = _keypoints_in_mesh_frame(model, views, masks, settings, np.eye(4))
     return model, per_view
 
 
