@@ -52,6 +52,15 @@ def view_descriptors(dense: np.ndarray, dense_normals: np.ndarray, voxel: float,
     return tuple(np.concatenate(v) for v in out)
 
 
+def mesh_symmetries(mesh: TriangleMesh, seed: int = 1) -> Symmetries:
+    """The mesh's symmetries (``symmetry.detect_symmetries``) from its surface sampled every
+    1 % of its box diagonal, 1.5 samples' spacing allowed."""
+    lo, hi = mesh.bounds
+    spacing = float(np.linalg.norm(hi - lo)) / 100.0
+    sym_pts, _ = sample_surface(mesh, spacing, seed=seed)
+    return detect_symmetries(sym_pts, 1.5 * spacing)
+
+
 def build_model_from_mesh(mesh: TriangleMesh, name: str = "", symmetry: "str | Symmetries | None" = None,
                           voxel: float | None = None, seed: int = 0, views: int = 20) -> ObjectModel:
     """``symmetry``: None = find from the mesh; text for ``parse_symmetry_text``; or the
@@ -66,9 +75,7 @@ def build_model_from_mesh(mesh: TriangleMesh, name: str = "", symmetry: "str | S
     if isinstance(symmetry, Symmetries):
         symmetries = symmetry
     elif symmetry is None:
-        spacing = diameter / 100.0
-        sym_pts, _ = sample_surface(mesh, spacing, seed=seed + 1)
-        symmetries = detect_symmetries(sym_pts, 1.5 * spacing)
+        symmetries = mesh_symmetries(mesh, seed + 1)
     else:
         symmetries = parse_symmetry_text(symmetry, centre)
     markers, _ = sample_surface(mesh, max(MARKER_SPACING_M, diameter / 150.0), seed=seed + 2)
@@ -190,5 +197,5 @@ def add_placed_keypoints(model: ObjectModel, objects, poses) -> ObjectModel:
     return model
 
 
-__all__ = ["build_model_from_mesh", "add_capture_keypoints", "add_placed_keypoints", "add_rendered_keypoints",
-           "render_views", "Symmetries"]
+__all__ = ["build_model_from_mesh", "mesh_symmetries", "add_capture_keypoints", "add_placed_keypoints",
+           "add_rendered_keypoints", "render_views", "Symmetries"]

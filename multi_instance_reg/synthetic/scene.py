@@ -1374,12 +1374,21 @@ class BagSummary:
 
 
 def write_scene_bag(scene: SyntheticScene, out_path, storage: str = "sqlite3", preview_dir=None,
-                    preview_frames=None, transport: str = "raw", imu: bool = True) -> BagSummary:
+                    preview_frames=None, transport: str = "raw", imu: bool = True, bop_dir=None,
+                    bop_scene: int | None = None) -> BagSummary:
     """Render every frame of ``scene`` into a new rosbag2 at ``out_path``, its images raw or,
     with ``transport`` "compressed", as image_transport's compressed topics; with ``imu``,
-    the accelerometer's samples before each frame (``SyntheticScene.accel_samples``)."""
+    the accelerometer's samples before each frame (``SyntheticScene.accel_samples``); with
+    ``bop_dir``, the same frames also as scene ``bop_scene`` (default: the seed) of a BOP
+    dataset there (``bop_export.SceneBopExport``)."""
     from ..datasets.bag_writer import RealSenseBagWriter
     from .preview import write_preview
+
+    bop = None
+    if bop_dir is not None:
+        from .bop_export import SceneBopExport
+
+        bop = SceneBopExport(bop_dir, scene, scene.seed if bop_scene is None else bop_scene)
 
     n = scene.num_frames
     if preview_frames is None:
@@ -1396,8 +1405,12 @@ def write_scene_bag(scene: SyntheticScene, out_path, storage: str = "sqlite3", p
                                         log_offset_ns=log_time - frame.stamp_ns)
             bag.write_frame(frame.stamp_ns, frame.rgb, frame.depth_mm, scene.intrinsics,
                             poses=frame.poses, visibility=frame.visibility, log_time_ns=log_time)
+            if bop is not None:
+                bop.add(frame)
             if preview_dir is not None and frame.index in preview_frames:
                 write_preview(preview_dir, frame, scene)
+    if bop is not None:
+        bop.close()
     return BagSummary(Path(out_path), n, time.perf_counter() - t0, len(scene.instances), storage)
 
 
@@ -1407,19 +1420,25 @@ def generate_scene_bag(out_path, object_name: str | list[str] = DEFAULT_OBJECT, 
                        occluder: bool = False, depth_noise_correlation_px: float = 0.0,
                        transport: str = "raw", imu: bool = True, frame_rate: float = FRAME_RATE_HZ,
                        drop: float = 0.0, loop: bool = False, sensor: str = "d455",
-                       randomise: bool = False, layout: str = "table", background: str = "wall") -> BagSummary:
-    """Make a tabletop scene (see ``make_tabletop_scene``) and write it as a rosbag2."""
+                       randomise: bool = False, layout: str = "table", background: str = "wall",
+                       bop_dir=None, bop_scene: int | None = None) -> BagSummary:
+    """Make a tabletop scene (see ``make_tabletop_scene``) and write it as a rosbag2 (and, with
+    ``bop_dir``, as a BOP scene: ``write_scene_bag``)."""
     scene = make_tabletop_scene(object_name, instances, distractors, frames, seed, resolution,
                                 motion=motion, occluder=occluder, frame_rate=frame_rate, drop=drop, loop=loop,
                                 sensor=sensor, randomise=randomise, layout=layout, background=background)
     scene.set_depth_noise_correlation(depth_noise_correlation_px)
-    return write_scene_bag(scene, out_path, storage, preview_dir, transport=transport, imu=imu)
+    return write_scene_bag(scene, out_path, storage, preview_dir, transport=transport, imu=imu,
+                           bop_dir=bop_dir, bop_scene=bop_scene)
 
 
 def generate_capture_bag(out_path, object_name: str = DEFAULT_OBJECT, seed: int = 0, views: int = 10,
                          storage: str = "sqlite3", resolution: str = "640x480", preview_dir=None,
-                         transport: str = "raw", imu: bool = True) -> BagSummary:
-    """Make a capture sequence (see ``make_capture_scene``) and write it as a rosbag2."""
+                         transport: str = "raw", imu: bool = True, bop_dir=None,
+                         bop_scene: int | None = None) -> BagSummary:
+    """Make a capture sequence (see ``make_capture_scene``) and write it as a rosbag2 (and, with
+    ``bop_dir``, as a BOP scene: ``write_scene_bag``)."""
     scene = make_capture_scene(object_name, seed, views, resolution)
     return write_scene_bag(scene, out_path, storage, preview_dir,
-                           preview_frames=list(range(min(views, 4))), transport=transport, imu=imu)
+                           preview_frames=list(range(min(views, 4))), transport=transport, imu=imu,
+                           bop_dir=bop_dir, bop_scene=bop_scene)

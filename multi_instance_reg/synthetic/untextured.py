@@ -136,11 +136,12 @@ def generate_untextured_bag(out_path, preset: str, instances: int = 8, distracto
                             seed: int = 0, storage: str = "sqlite3", resolution: str = "640x480",
                             preview_dir=None, mesh_path=None, mesh_units: str = "m",
                             depth_noise_correlation_px: float = 0.0, transport: str = "raw", imu: bool = True,
-                            sensor: str = "d455", randomise: bool = False):
+                            sensor: str = "d455", randomise: bool = False, bop_dir=None, bop_scene: int | None = None):
     """Make an untextured scene and write it as a rosbag2; with ``mesh_path`` also the
     target object's mesh (.ply, .stl or .obj) in its object frame. ``depth_noise_correlation_px``:
-    see ``sensor.simulate_depth``. ``imu``: with the accelerometer's samples (``write_scene_bag``).
-    ``sensor``, ``randomise``: the depth's sensor profile (``SyntheticScene.set_sensor``)."""
+    see ``sensor.simulate_depth``. ``imu``: with the accelerometer's samples; ``bop_dir``: also
+    as a BOP scene (both: ``write_scene_bag``). ``sensor``, ``randomise``: the depth's sensor
+    profile (``SyntheticScene.set_sensor``)."""
     from ..meshes import save_mesh
     from .objects import object_mesh
     from .scene import write_scene_bag
@@ -153,7 +154,8 @@ def generate_untextured_bag(out_path, preset: str, instances: int = 8, distracto
     scene = make_untextured_scene(preset, instances, distractors, frames, seed, resolution)
     scene.set_depth_noise_correlation(depth_noise_correlation_px)
     scene.set_sensor(sensor, randomise)
-    summary = write_scene_bag(scene, out_path, storage, preview_dir, transport=transport, imu=imu)
+    summary = write_scene_bag(scene, out_path, storage, preview_dir, transport=transport, imu=imu,
+                              bop_dir=bop_dir, bop_scene=bop_scene)
     if mesh_path is not None:
         save_mesh(object_mesh(scene.target), mesh_path, mesh_units)
     return summary

@@ -22,6 +22,8 @@ COMMANDS = {
     "demo": ("multi_instance_reg.tools.demo", "the end-to-end demo: synthetic bags, model, node, live replay, MHF1 and latency"),
     "listen": ("multi_instance_reg.tools.listen", "print the node's instances per frame; MHF1 against a bag's ground truth"),
     "synth": ("multi_instance_reg.tools.synth", "make synthetic D455 tabletop bags with ground truth (scene, capture)"),
+    "bop": ("multi_instance_reg.tools.bop", "BOP datasets: run the pipeline (results CSV, overlays), build a model from "
+                                            "its mesh, convert a scene to a bag"),
     "param-docs": ("multi_instance_reg.tools.param_docs", "write the parameter reference (docs/parameters.md) from the declared parameters"),
 }
 

@@ -270,9 +270,13 @@ def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_
         total = bag.num_colour_messages if not max_frames else min(max_frames, bag.num_colour_messages)
         bar = Progress(total, progress)
         try:
+            stream, last_stamp = 0, None          # streams: runs of frames whose stamps do not go back
             for index, frame in enumerate(bag):
                 if max_frames and index >= max_frames:
                     break
+                if last_stamp is not None and frame.stamp_ns < last_stamp:
+                    stream += 1
+                last_stamp = frame.stamp_ns
                 cpu0 = time.process_time()
                 detect = trackers is None or index % detect_every == 0
                 try:
@@ -316,7 +320,10 @@ def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_
                         out.object_scores[m.name].append(score)
                         hit_estimates |= {est[e] for _, e in hits}
                         if trackers is not None:
-                            matches = [((m.name, int(gt[g])), (m.name, published[est[e]].track_id)) for g, e in hits]
+                            # Identity is kept within a stream: where the stamps went back (a
+                            # loop) the tracker starts again, and so does the identity count.
+                            matches = [((m.name, stream, int(gt[g])), (m.name, published[est[e]].track_id))
+                                       for g, e in hits]
                             out.identity.add_frame(matches, score.n_gt, score.n_est)
                             out.object_identity[m.name].add_frame(matches, score.n_gt, score.n_est)
                             if result is not None:

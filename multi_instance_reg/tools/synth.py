@@ -5,7 +5,7 @@
                       [--motion sweep|static|pan|shaky_pan|jumps|overhead] [--frame-rate HZ] [--drop SHARE] [--loop]
                       [--occluder]
                       [--seed S] [--storage sqlite3|mcap] [--image-transport raw|compressed]
-                      [--resolution 640x480|1280x720] [--preview DIR]
+                      [--resolution 640x480|1280x720] [--preview DIR] [--bop DIR [--bop-scene ID]]
     mireg synth capture -o OUT --object NAME [--seed S] [--views N] [...]
     mireg synth untextured -o OUT --preset pallet|cylinders|bracket|channel|stairs|tee [--instances K] [--distractors D]
                       [--frames F] [--seed S] [--mesh FILE.ply|.stl|.obj [--units m|mm]]
@@ -45,9 +45,18 @@ def add_arguments(parser) -> None:
         p.add_argument("--storage", choices=("sqlite3", "mcap"), default="sqlite3", help="rosbag2 storage (default sqlite3)")
         image_transport(p)
         no_imu(p)
+        bop(p)
         p.add_argument("--resolution", choices=RESOLUTIONS, default="640x480", help="colour/depth size (default 640x480)")
         p.add_argument("--preview", metavar="DIR", default=None,
                        help="also write PNGs of a few frames: colour, colourised depth, ground-truth boxes")
+
+    def bop(p):
+        p.add_argument("--bop", metavar="DIR", default=None,
+                       help="also write the frames as a BOP dataset in DIR (camera.json, models/ from the objects' meshes "
+                            "in mm, test/<scene>/ with ground truth), for BOP tools and `mireg bop`; DIR may hold "
+                            "other scenes (object ids are the catalogue's)")
+        p.add_argument("--bop-scene", type=int, default=None, metavar="ID",
+                       help="BOP scene id of the frames (default: the seed)")
 
     def no_imu(p):
         p.add_argument("--no-imu", action="store_true",
@@ -137,6 +146,7 @@ def add_arguments(parser) -> None:
     untextured.add_argument("--storage", choices=("sqlite3", "mcap"), default="sqlite3", help="rosbag2 storage (default sqlite3)")
     image_transport(untextured)
     no_imu(untextured)
+    bop(untextured)
     untextured.add_argument("--resolution", choices=RESOLUTIONS, default="640x480", help="colour/depth size (default 640x480)")
     untextured.add_argument("--preview", metavar="DIR", default=None, help="also write PNGs of a few frames")
     depth_noise(untextured)
@@ -173,8 +183,10 @@ def run(args) -> int:
         summary = generate_untextured_bag(args.output, args.preset, args.instances, args.distractors, args.frames,
                                           args.seed, args.storage, args.resolution, args.preview, args.mesh, args.units,
                                           args.depth_noise_correlation, args.image_transport, imu=not args.no_imu,
-                                          sensor=args.sensor, randomise=args.randomise)
-        print(f"mireg synth untextured: {summary.line()}" + (f"; mesh {args.mesh}" if args.mesh else ""))
+                                          sensor=args.sensor, randomise=args.randomise,
+                                          bop_dir=args.bop, bop_scene=args.bop_scene)
+        print(f"mireg synth untextured: {summary.line()}" + (f"; mesh {args.mesh}" if args.mesh else "")
+              + (f"; BOP scene in {args.bop}" if args.bop else ""))
         return 0
     if args.synth_command == "scene":
         objects = args.object or [DEFAULT_OBJECT]
@@ -187,10 +199,11 @@ def run(args) -> int:
                                      transport=args.image_transport, imu=not args.no_imu,
                                      frame_rate=args.frame_rate, drop=args.drop, loop=args.loop,
                                      sensor=args.sensor, randomise=args.randomise, layout=args.layout,
-                                     background=args.background)
+                                     background=args.background, bop_dir=args.bop, bop_scene=args.bop_scene)
     else:
         summary = generate_capture_bag(args.output, object_name=args.object, seed=args.seed, views=args.views,
                                        storage=args.storage, resolution=args.resolution, preview_dir=args.preview,
-                                       transport=args.image_transport, imu=not args.no_imu)
-    print(f"mireg synth {args.synth_command}: {summary.line()}")
+                                       transport=args.image_transport, imu=not args.no_imu,
+                                       bop_dir=args.bop, bop_scene=args.bop_scene)
+    print(f"mireg synth {args.synth_command}: {summary.line()}" + (f"; BOP scene in {args.bop}" if args.bop else ""))
     return 0
