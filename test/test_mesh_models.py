@@ -120,7 +120,10 @@ def models_info(tmp_path, entries, name="models_info.json"):
 
 
 def test_symmetries_read_from_models_info(tmp_path):
-    from multi_instance_reg.symmetry import read_bop_symmetries
+    from multi_instance_reg.datasets.bop import read_models_info
+
+    def read_bop_symmetries(path, obj_id):
+        return read_models_info(path)[obj_id].symmetries()
 
     path = models_info(tmp_path, {3: {"symmetries_discrete": [FLIP_X_MM, HALF_Z]},
                                   7: {"symmetries_continuous": [{"axis": [0, 0, 2], "offset": [1, 2, 3]}],
@@ -134,14 +137,12 @@ def test_symmetries_read_from_models_info(tmp_path):
     cyl = read_bop_symmetries(path, 7)
     assert np.allclose(cyl.axis, [0, 0, 1]) and np.allclose(cyl.point, [0.001, 0.002, 0.003])
     assert len(cyl.discrete) == 2
-    assert read_bop_symmetries(path, 9).is_trivial                # no keys: asymmetric (BOP leaves them out)
-    with pytest.raises(InputError, match="no object 4"):
-        read_bop_symmetries(path, 4)
+    assert read_bop_symmetries(path, 9) is None                   # no keys: asymmetric (BOP leaves them out)
     bad = models_info(tmp_path, {1: {"symmetries_discrete": [[2, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]]}}, "bad.json")
     with pytest.raises(InputError, match="not a rigid transform"):
         read_bop_symmetries(bad, 1)
     short = models_info(tmp_path, {1: {"symmetries_discrete": [[1, 0, 0]]}}, "short.json")
-    with pytest.raises(InputError, match="16 finite numbers"):
+    with pytest.raises(InputError, match="must be 16 finite numbers"):
         read_bop_symmetries(short, 1)
 
 
@@ -205,12 +206,13 @@ def photo_texture(size=384):
     return cv2.resize(data.astronaut(), (size, size), interpolation=cv2.INTER_AREA)
 
 
-def write_textured_box(path, texture, per_corner: bool):
+def write_textured_box(path, texture, per_corner: bool, scale: float = 1.0):
     """Each face maps to its own cell of a 3 x 2 grid over the picture: per vertex (texture_u/v)
-    or per face corner (a face 'texcoord' list, as MeshLab writes)."""
+    or per face corner (a face 'texcoord' list, as MeshLab writes); coordinates x ``scale``."""
     import cv2
 
     verts, tris = box_faces()
+    verts = verts * scale
     cell = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float64) * [1 / 3, 1 / 2] * 0.96 + 0.02 / 3
     uv = np.concatenate([cell + [f % 3 / 3, f // 3 / 2] for f in range(6)])
     cv2.imwrite(str(path.parent / "box_texture.png"), texture[:, :, ::-1])
@@ -363,3 +365,16 @@ def test_build_model_from_coloured_mesh_takes_the_sift_path(tmp_path):
     assert resolve_correspondences("auto", model) == "both" and resolve_correspondences("sift", model) == "sift"
     run = build(tmp_path, "--mesh", tmp_path / "box.ply", "--render-views", 0, "--symmetry", "none")
     assert run.returncode == 0 and load_model(tmp_path / "m.npz").num_keypoints == 0
+
+
+def test_bop_model_of_a_coloured_mesh_has_keypoints_and_the_listed_symmetries(tmp_path):
+    from multi_instance_reg.datasets.bop import BopDataset
+    from multi_instance_reg.tools.bop import model_from_bop_mesh
+
+    (tmp_path / "test").mkdir()
+    (tmp_path / "models").mkdir()
+    write_textured_box(tmp_path / "models" / "obj_000001.ply", photo_texture(), per_corner=False, scale=1000.0)
+    models_info(tmp_path / "models", {1: {"symmetries_discrete": [HALF_Z]}})
+    model = model_from_bop_mesh(BopDataset(tmp_path), 1)
+    assert model.num_keypoints > 300 and model.has_shape and np.allclose(model.extent, BOX)
+    assert len(model.symmetries.discrete) == 2 and np.allclose(model.symmetries.discrete[1], np.reshape(HALF_Z, (4, 4)))

@@ -229,7 +229,8 @@ def mesh_symmetry(mesh_path, symmetry_text: str, models_info, obj_id) -> tuple:
     and listing it); else the mesh's shape."""
     import re
 
-    from ..symmetry import read_bop_symmetries
+    from ..datasets.bop import read_models_info
+    from ..symmetry import Symmetries
 
     if models_info and symmetry_text != "auto":
         raise InputError("give the symmetries either as --symmetry or from --models-info, not both")
@@ -250,16 +251,14 @@ def mesh_symmetry(mesh_path, symmetry_text: str, models_info, obj_id) -> tuple:
                                  f"give --obj-id")
             return None, "found from the mesh"
         obj_id = int(m.group(1))
-    if not models_info:
-        import json
-
-        try:
-            listed = str(obj_id) in json.loads(path.read_text())
-        except (ValueError, UnicodeDecodeError, TypeError):
-            listed = True           # let the reader say what is wrong with the file
-        if not listed:
+    info = read_models_info(path)
+    if obj_id not in info:
+        if not models_info:
             return None, f"found from the mesh ({path} beside it does not list object {obj_id})"
-    return read_bop_symmetries(path, obj_id), f"from {path}, object {obj_id}"
+        raise InputError(f"{path} has no object {obj_id} (it lists {', '.join(map(str, sorted(info))) or 'none'}); "
+                         f"give the mesh's id with --obj-id")
+    # An entry without symmetries: the object has none (BOP leaves the keys out).
+    return info[obj_id].symmetries() or Symmetries(), f"from {path}, object {obj_id}"
 
 
 def run(args) -> int:
