@@ -345,7 +345,7 @@ def test_keypoints_of_a_textured_mesh_sit_at_their_3d_places(tmp_path):
     # The pipeline's matcher: a point seen in several views is one point to the ratio test.
     matcher = DescriptorMatcher(prepare_descriptors(model.descriptors), model.keypoints_xyz, ratio=0.8, separation=0.01)
     s_idx, m_idx, _ = matcher.match(prepare_descriptors(desc))
-    assert len(s_idx) >= 30
+    assert len(s_idx) >= 15
     xyz = model.keypoints_xyz[m_idx].astype(np.float64) @ T[:3, :3].T + T[:3, 3]
     proj = xyz[:, :2] / xyz[:, 2:] * [intr.K[0, 0], intr.K[1, 1]] + intr.K[:2, 2]
     err = np.linalg.norm(proj - uv[s_idx], axis=1)
@@ -378,3 +378,17 @@ def test_bop_model_of_a_coloured_mesh_has_keypoints_and_the_listed_symmetries(tm
     model = model_from_bop_mesh(BopDataset(tmp_path), 1)
     assert model.num_keypoints > 300 and model.has_shape and np.allclose(model.extent, BOX)
     assert len(model.symmetries.discrete) == 2 and np.allclose(model.symmetries.discrete[1], np.reshape(HALF_Z, (4, 4)))
+
+
+def test_a_plain_coloured_mesh_gets_no_keypoints_from_its_outline():
+    # One colour all over: its renders have nothing but the outline, which a real scene does
+    # not show against the same background; the model stays shape only.
+    from multi_instance_reg.meshes import cylinder_mesh
+    from multi_instance_reg.rgbd.mesh_model import add_rendered_keypoints, build_model_from_mesh
+    from multi_instance_reg.rgbd.model import BuildSettings
+
+    mesh = cylinder_mesh(0.08, 0.12)
+    mesh.vertex_colours = np.full((len(mesh.vertices), 3), 200, np.uint8)
+    model = build_model_from_mesh(mesh, "can", "none", views=4)
+    model, per_view = add_rendered_keypoints(model, mesh, BuildSettings(tilts=()), count=8)
+    assert sum(per_view) == 0 and model.num_keypoints == 0

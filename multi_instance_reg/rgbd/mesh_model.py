@@ -161,6 +161,8 @@ def add_rendered_keypoints(model: ObjectModel, mesh: TriangleMesh, settings, cou
     from ..messages import CameraIntrinsics
     from .model import CaptureView
 
+    from scipy.ndimage import distance_transform_edt
+
     renders = render_views(mesh, count, distance)
     views, masks = [], []
     for r in renders:
@@ -176,9 +178,15 @@ def add_rendered_keypoints(model: ObjectModel, mesh: TriangleMesh, settings, cou
         K[0, 2] -= x0
         K[1, 2] -= y0
         crop = (slice(y0, y1), slice(x0, x1))
-        views.append(CaptureView(np.ascontiguousarray(r.rgb[crop]), np.ascontiguousarray(r.depth_m[crop]),
+        mask = r.mask[crop]
+        # The outline against the render's background would give keypoints (a plain object
+        # hundreds) that describe that background as much as the object, and a real scene
+        # has other things around it: the background continues the object's own border
+        # colours, so that only the object's print makes keypoints.
+        _, (iy, ix) = distance_transform_edt(~mask, return_indices=True)
+        views.append(CaptureView(np.ascontiguousarray(r.rgb[crop][iy, ix]), np.ascontiguousarray(r.depth_m[crop]),
                                  CameraIntrinsics(K, x1 - x0, y1 - y0), r.T_camera_object))
-        masks.append(r.mask[crop])
+        masks.append(mask)
     per_view = _keypoints_in_mesh_frame(model, views, masks, settings, np.eye(4))
     return model, per_view
 
