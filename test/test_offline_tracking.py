@@ -28,7 +28,7 @@ def test_poses_json_carries_tracks(pan_run):
     assert insts
     for i in insts:
         assert {"id", "T", "inliers", "score", "track_id", "state", "source"} <= set(i)
-        assert i["state"] in ("confirmed", "coasting")          # tentative ones are not published by default
+        assert i["state"] in ("tentative", "confirmed")         # a coasting track (a prediction) is not published
         assert i["source"] in ("detection", "tracking")
     for f in frames:                                             # id keeps its meaning: rank in the frame
         assert sorted(i["id"] for i in f["instances"]) == list(range(len(f["instances"])))

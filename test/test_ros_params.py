@@ -68,7 +68,7 @@ def test_every_tracker_setting_is_a_ranged_node_parameter():
             assert (d.floating_point_range[0].from_value, d.floating_point_range[0].to_value) == (spec.low, spec.high)
         elif spec.type is int:
             assert (d.integer_range[0].from_value, d.integer_range[0].to_value) == (spec.low, spec.high)
-    assert specs["tracking.publish_tentative"].default is False        # only confirmed/coasting by default
+    assert specs["tracking.publish_tentative"].default is True         # a fresh detection is evidence
     assert specs["tracking.enabled"].default is True and "tracking.enabled" in READ_ONLY
     assert "tracking.catch_up_frames" in READ_ONLY and specs["tracking.catch_up_frames"].high == 90
     assert descriptor(specs["tracking.enabled"], read_only=True).read_only
