@@ -299,10 +299,11 @@ def _read_ply(data: bytes, path: Path) -> TriangleMesh:
         if all(types["vertex"][k].startswith("f") for k in names) and rgb.max(initial=0) <= 1.0:
             rgb = rgb * 255.0       # float colours are 0..1
         mesh.vertex_colours = np.clip(np.round(rgb), 0, 255).astype(np.uint8)
-    texture_file = next((c.split(None, 1)[1] for c in comments
-                         if c.split(None, 1)[0].lower() == "texturefile" and len(c.split(None, 1)) == 2), None)
+    texture_file = next((words[1] for words in (c.split(None, 1) for c in comments)
+                         if len(words) == 2 and words[0].lower() == "texturefile"), None)
     uv_names = next((n for n in _UV_NAMES if all(k in vert for k in n)), None)
-    if uv_names is not None:
+    in_range = len(triangles) == 0 or (triangles.min() >= 0 and triangles.max() < len(vertices))
+    if uv_names is not None and in_range:       # out of range: _check_mesh says so
         uv = np.stack([np.asarray(vert[k], np.float64) for k in uv_names], axis=1)
         mesh.corner_uv = uv[triangles].astype(np.float32)
     elif "texcoord" in face:

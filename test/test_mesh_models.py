@@ -66,7 +66,7 @@ PYRAMID_RGB = np.array([[255, 0, 0], [0, 255, 0], [0, 0, 255], [10, 20, 30], [20
 
 def write_ply(path, vertices, faces, fmt, colours=None, colour_type="uchar"):
     """A PLY as writers lay it out: x y z [red green blue] per vertex, one index list per face."""
-    head = f"ply\nformat {fmt} 1.0\ncomment test\nelement vertex {len(vertices)}\n"
+    head = f"ply\nformat {fmt} 1.0\ncomment\ncomment test\nelement vertex {len(vertices)}\n"
     head += "property float x\nproperty float y\nproperty float z\n"
     if colours is not None:
         head += "".join(f"property {colour_type} {c}\n" for c in ("red", "green", "blue"))
