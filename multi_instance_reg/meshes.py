@@ -377,19 +377,38 @@ def _read_obj(data: bytes):
 # --------------------------------------------------------------------------- writing
 
 def save_mesh(mesh: TriangleMesh, path, units: str = "m") -> Path:
-    """Write a mesh as binary PLY, binary STL or ASCII OBJ (by suffix), coordinates in ``units``."""
+    """Write a mesh as binary PLY, binary STL or ASCII OBJ (by suffix), coordinates in ``units``;
+    a PLY keeps the mesh's colour (vertex colours, or a texture: NAME_texture.png beside it)."""
     path = Path(path)
     v = mesh.vertices / UNIT_SCALE[units]
     f = mesh.triangles
     suffix = path.suffix.lower()
     path.parent.mkdir(parents=True, exist_ok=True)
     if suffix == ".ply":
+        # Colour goes along as readers expect it: vertex colours, or texture coordinates per
+        # face corner (MeshLab's texcoord list) and the picture beside the file.
+        textured = mesh.texture is not None and mesh.corner_uv is not None
+        picture = path.with_name(path.stem + "_texture.png")
+        vert_fields = [("xyz", "<f4", 3)] + ([("rgb", "u1", 3)] if mesh.vertex_colours is not None else [])
+        face_fields = [("n", "u1"), ("i", "<i4", 3)] + ([("m", "u1"), ("uv", "<f4", 6)] if textured else [])
         head = (f"ply\nformat binary_little_endian 1.0\ncomment multi_instance_reg, units {units}\n"
-                f"element vertex {len(v)}\nproperty float x\nproperty float y\nproperty float z\n"
-                f"element face {len(f)}\nproperty list uchar int vertex_indices\nend_header\n").encode()
-        faces = np.zeros(len(f), np.dtype([("n", "u1"), ("i", "<i4", 3)]))
+                + (f"comment TextureFile {picture.name}\n" if textured else "")
+                + f"element vertex {len(v)}\nproperty float x\nproperty float y\nproperty float z\n"
+                + ("property uchar red\nproperty uchar green\nproperty uchar blue\n" if len(vert_fields) > 1 else "")
+                + f"element face {len(f)}\nproperty list uchar int vertex_indices\n"
+                + ("property list uchar float texcoord\n" if textured else "") + "end_header\n").encode()
+        verts = np.zeros(len(v), np.dtype(vert_fields))
+        verts["xyz"] = v
+        if mesh.vertex_colours is not None:
+            verts["rgb"] = mesh.vertex_colours
+        faces = np.zeros(len(f), np.dtype(face_fields))
         faces["n"], faces["i"] = 3, f
-        path.write_bytes(head + v.astype("<f4").tobytes() + faces.tobytes())
+        if textured:
+            import cv2
+
+            faces["m"], faces["uv"] = 6, np.asarray(mesh.corner_uv, np.float32).reshape(-1, 6)
+            cv2.imwrite(str(picture), np.ascontiguousarray(mesh.texture[:, :, ::-1]))
+        path.write_bytes(head + verts.tobytes() + faces.tobytes())
     elif suffix == ".stl":
         normals, _ = mesh.face_normals_areas()
         rec = np.zeros(len(f), np.dtype([("n", "<f4", 3), ("v", "<f4", (3, 3)), ("a", "<u2")]))
