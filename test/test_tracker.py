@@ -690,6 +690,14 @@ def test_the_depth_seeing_through_a_track_takes_its_evidence_away():
         tr.step(k * FRAME_NS, depth, BOX_INTR, [box_det(0.0)])
     assert tr.step(5 * FRAME_NS, cover, BOX_INTR, None) == [] and [t.state for t in tr.tracks] == ["coasting"]
     assert [o.track_id for o in tr.step(6 * FRAME_NS, depth, BOX_INTR, None)] == [0]
+    # ... but where the camera's motion was measured (odometry), its pose is carried exactly,
+    # and being hidden by something well in front of it is evidence enough: published as coasting.
+    out = tr.step(7 * FRAME_NS, cover, BOX_INTR, None, camera_motion=np.eye(4))
+    assert [(o.track_id, o.state) for o in out] == [(0, "coasting")]
+    # The box gone (the table where its top was): carried exactly or not, it stands in space
+    # the camera sees through, which is no hiding.
+    carried = tr.step(8 * FRAME_NS, table, BOX_INTR, None, camera_motion=np.eye(4))
+    assert carried == [] and [t.state for t in tr.tracks] == ["coasting"]
 
 
 def test_a_measured_camera_motion_carries_every_track_across_a_jump():

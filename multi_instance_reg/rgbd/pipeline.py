@@ -35,6 +35,7 @@ from .model import ObjectModel
 from .guided import GuidedMatcher, guide_instances
 from .shape_frontend import ShapeFrontEnd, best_per_place, resolve_correspondences
 from .verify import free_space_share, surface_samples, texture_agreement
+from .workspace import Workspace, WorkspaceConfig
 from ..threads import limit_blas_threads, map_each, submit_each
 
 STAGES = ("sift", "matching", "lifting", "ecc", "refinement", "total")
@@ -113,6 +114,8 @@ class FrontEndConfig:
     shape_merged_clusters: int = param(6, "shape ppf, non-convex models, with shape_merged_reach: the segments of several objects are voted over the whole diameter as well, and each one's best this-many clusters of those votes are checked too (those not among the frame's and the segments' own): a plate's pose is told by pairs reaching the other plate, farther than the short reach; 0 = off", 0, 100)
     shape_support_area: float = param(3.0, "shape ppf: a connected piece of a dominant plane is a support surface (floor, pallet, table) and removed when its area exceeds this many times the object's largest box side", 1.0, 1000.0)
     shape_keep_object_tops: bool = param(True, "shape ppf, with shape_support_area: a large plane piece stays in the cloud when its points stand, above a larger removed plane, at a height where the object resting on it shows a flat face up, and nothing stands on it within its outline: the flush tops of objects lying side by side, larger together than shape_support_area faces, not a support (a pallet's top, as high as a carton, carries the cartons)", None, None)
+    shape_deadline_ms: float = param(180.0, "shape: the search's budget, milliseconds from when the pose hypotheses are taken up (after the frame's points, votes and ECC): no further hypothesis is refined nor acceptance pass run once it is spent. The hypotheses are refined best first (ECC's clusters by size, then the vote clusters by their votes), so a cluttered frame returns the instances verified by then instead of taking seconds (IC-BIN frames with a room behind the bin: refinement 10-36 s on a loaded host). Wall-clock time: on a loaded host it cuts more. FrameResult.deadline_cut (mireg offline: metrics.json deadline_cut_frames) says when it did; 0 = no deadline", 0.0, 100000.0)
+    shape_max_noise_share: float = param(0.125, "shape: look for the object only where the depth check's tolerance there, 3 sigma of the depth noise (shape_depth_noise), is at most this share of its diameter (its box diagonal): z <= sqrt(this x diameter / (3 shape_depth_noise)). Beyond, any surface of the object's size agrees with it: IC-BIN frames (a room 2-3 m behind a bin of cups) gave 46-60 poses a frame on clutter at 2.0-3.1 m, support 0.8-1.0 at tolerances of 30-56 mm against a cup's 45 mm radius. 0.125 with the D4xx noise: cup (17 cm diagonal) 1.9 m, grey cylinder 1.65 m, bracket 1.8 m, carton 2.85 m; 0 = no limit", 0.0, 1.0)
     shape_depth_noise: float = param(0.002, "shape ppf: depth noise sigma per squared metre of distance (stereo: sigma_z = this x z^2; D4xx about 0.002); plane points lie within plane_thresh + 3 sigma_z", 0.0, 0.1)
     both_min_shown_keypoints: int = param(10, "both: a shape instance whose pose shows at least this many of the model's SIFT keypoints (facing the camera, not hidden) is a textured view, and kept only with both_min_agreeing matches; fewer: plain faces, kept on the depth evidence alone", 0, 100000)
     both_min_agreeing: int = param(3, "both: SIFT matches that must agree with a shape instance showing textured faces", 0, 100000)
@@ -154,6 +157,7 @@ class PipelineConfig:
     """All settings of the per-frame pipeline; the ROS node declares one parameter per leaf."""
     frontend: FrontEndConfig = field(default_factory=FrontEndConfig)
     ecc: ECCConfig = field(default_factory=rgbd_ecc_config)
+    workspace: WorkspaceConfig = field(default_factory=WorkspaceConfig)
 
 
 @dataclass
@@ -187,6 +191,7 @@ class FrameResult:
     scene_xyz: np.ndarray               # (N, 3) float32 lifted scene keypoints, camera frame
     labels: np.ndarray                  # (N,) int64: instance id or -1 (outlier)
     num_keypoints: int = 0              # SIFT keypoints detected in the frame
+    deadline_cut: bool = False          # the shape search stopped at frontend.shape_deadline_ms
 
     @staticmethod
     def empty(timings_ms: dict[str, float], num_keypoints: int = 0) -> "FrameResult":
@@ -255,9 +260,27 @@ class InstanceRegistration:
         # supports (support_planes); several models searched with one detect: the largest.
         self.object_reach = float(np.linalg.norm(model.extent))
         self._rays, self._rays_key = None, None
+        self.workspace = Workspace.from_config(self.config.workspace)
+        self._region = None           # workspace_pixels' last (depth, intrinsics, pixels)
+
+    def workspace_pixels(self, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> np.ndarray | None:
+        """(H, W) bool, read-only: the pixels inside the workspace (``rgbd/workspace.py``), or
+        None without one. The one place the workspace applies: every front end keeps only
+        these of its keypoints and points (after finding the frame's support planes on the
+        whole depth range, which a box cut through a table would hide from it), so nothing
+        is hypothesised outside it. Kept for the frame (both front ends of ``both`` ask)."""
+        if self.workspace is None:
+            return None
+        kept = self._region
+        if kept is not None and kept[0] is depth_m and kept[1] is intrinsics:
+            return kept[2]
+        inside = self.workspace.pixels(depth_m, intrinsics)
+        inside.flags.writeable = False
+        self._region = (depth_m, intrinsics, inside)
+        return inside
 
     def _search_mask(self, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> np.ndarray:
-        """(H, W) uint8: pixels with depth in range that are not on a removed plane, dilated
+        """(H, W) uint8: pixels with depth in range, inside the workspace, that are not on a removed plane, dilated
         by the depth window so that keypoints next to a hole keep their chance."""
         fe = self.config.frontend
         valid = (depth_m >= fe.depth_min) & (depth_m <= fe.depth_max)
@@ -271,6 +294,9 @@ class InstanceRegistration:
                 # n . (u, v, 1) z + d, the ray's dot product separable into a row and a column.
                 along = (np.float32(n[0]) * u)[None, :] + (np.float32(n[1]) * v + np.float32(n[2]))[:, None]
                 valid &= along * depth_m + np.float32(d) > fe.plane_thresh
+        inside = self.workspace_pixels(depth_m, intrinsics)
+        if inside is not None:
+            valid &= inside
         r = max(fe.depth_window // 2, 1)
         return cv2.dilate(valid.astype(np.uint8), np.ones((2 * r + 1, 2 * r + 1), np.uint8))
 
@@ -310,7 +336,11 @@ class InstanceRegistration:
             free_space_share(T, *self._free_surface, depth, intrinsics, T[:3, 3], fe.free_tolerance, 0.1)
         if self._shape is not None:
             depth, intrinsics, _ = self._shape.warm_up_frame()
-            self._register_frame_shape(depth, intrinsics)
+            workspace, self.workspace = self.workspace, None     # the made-up frame lies anywhere
+            try:
+                self._register_frame_shape(depth, intrinsics)
+            finally:
+                self.workspace = workspace
 
     def register_frame(self, rgb: np.ndarray, depth_m: np.ndarray, intrinsics: CameraIntrinsics,
                        gravity: np.ndarray | None = None) -> FrameResult:
@@ -467,11 +497,14 @@ class InstanceRegistration:
         t = {s: 0.0 for s in STAGES}
         t["shape"] = 0.0
         t0 = time.perf_counter()
-        if search is None and fe.shape_features != "ppf":
-            search = self._search_mask(depth_m, intrinsics)      # ppf finds its own region
+        within = None
+        if fe.shape_features == "ppf":
+            within = self.workspace_pixels(depth_m, intrinsics)     # ppf removes its own planes first
+        elif search is None:
+            search = self._search_mask(depth_m, intrinsics)
         t3 = time.perf_counter()
         t["lifting"] = (t3 - t0) * 1e3
-        cloud = self._shape.frame_cloud(depth_m, intrinsics, None if search is None else search > 0, gravity)
+        cloud = self._shape.frame_cloud(depth_m, intrinsics, None if search is None else search > 0, gravity, within)
         self._shape.keep_frame(depth_m, intrinsics)        # the acceptance passes redraw the same poses
         t4 = time.perf_counter()
         # ECC does not need the vote clusters' poses (ppf): it runs in the shared pool as
@@ -510,6 +543,8 @@ class InstanceRegistration:
             hypotheses += recover_small_instances(src, tgt, leftover, self._shape.diameter, self._shape.voxel,
                                                   fe.recover_min_inliers, thresh)
         rejected, second = [], []
+        # The search's budget: from here, where the hypotheses are taken up best first.
+        self._shape.set_deadline(time.perf_counter() + fe.shape_deadline_ms / 1e3 if fe.shape_deadline_ms > 0 else None)
         checked = self._shape.refine_and_check(hypotheses, cloud, depth_m, intrinsics, started, offset, rejected,
                                                second, overlaps=self._overlapping)
         chosen = self._one_per_box(checked, frame=(depth_m, intrinsics))
@@ -518,39 +553,44 @@ class InstanceRegistration:
             # no instance is: ranked with the rest, a wrong one polished onto a bracket took
             # the place of its right pose left 4 deg off (seed 0).
             chosen = self._one_per_box(chosen + second, first=len(chosen), frame=(depth_m, intrinsics))
-        chosen = self._accept_rejected(chosen, rejected, hypotheses, cloud, depth_m, intrinsics)
+        if not self._shape.past_deadline():
+            chosen = self._accept_rejected(chosen, rejected, hypotheses, cloud, depth_m, intrinsics)
         self._shape.keep_frame(None)
+        cut = self._shape.deadline_cut
+        self._shape.set_deadline(None)
         instances = [Instance(i, c[0], c[2], float(c[1]), self.model.name) for i, c in enumerate(chosen)]
         labels, _ = assign_nearest(src, tgt, [c[0] for c in chosen], self._shape_ecc.config.inlier_thresh)
         t["refinement"] = (time.perf_counter() - t6) * 1e3
         t["total"] = (time.perf_counter() - t0) * 1e3
         uv = project_points(tgt, intrinsics)
-        return FrameResult(instances, t, uv, src.astype(np.float32), tgt.astype(np.float32), labels, 0)
+        return FrameResult(instances, t, uv, src.astype(np.float32), tgt.astype(np.float32), labels, 0,
+                           deadline_cut=cut)
 
     def _accept_rejected(self, chosen, rejected, hypotheses, cloud, depth_m, intrinsics) -> list:
         """``chosen`` (the instances the refinement keeps) and what the acceptance passes add
         of the ``rejected`` poses (and of the residual votes over ``hypotheses``' segments)."""
         fe = self.config.frontend
+        late = self._shape.past_deadline      # each pass only while the frame's deadline has not passed
         if fe.shape_hidden_by_instances and chosen and rejected:
             # Poses rejected for too little support, perhaps for what the instances found
             # hide of them, or by the outline, where a found one is flush with them: judged
             # again with those points and pixels left out, added where no instance is.
             chosen, rejected = self._accept_behind(chosen, rejected, cloud, depth_m, intrinsics)
         judged_with = {id(c) for c in chosen}
-        if fe.shape_hidden_by_instances and fe.shape_rejected_pairs and len(rejected) >= 2:
+        if fe.shape_hidden_by_instances and fe.shape_rejected_pairs and len(rejected) >= 2 and not late():
             chosen = self._accept_pairs(chosen, rejected, cloud, depth_m, intrinsics)
-            if fe.shape_rejected_groups:
+            if fe.shape_rejected_groups and not late():
                 chosen = self._accept_groups(chosen, rejected, cloud, depth_m, intrinsics)
         provisional = []
-        if fe.shape_hidden_by_instances and fe.shape_hidden_by_any and rejected:
+        if fe.shape_hidden_by_instances and fe.shape_hidden_by_any and rejected and not late():
             before = chosen
             chosen = self._accept_hidden(chosen, rejected, cloud, depth_m, intrinsics)
             provisional = chosen[len(before):]
-        if fe.shape_hidden_by_instances and self._shape.non_convex and rejected:
+        if fe.shape_hidden_by_instances and self._shape.non_convex and rejected and not late():
             chosen = self._accept_turned(chosen, rejected, cloud, depth_m, intrinsics)
-        if fe.shape_residual_votes and self._shape.non_convex and chosen:
+        if fe.shape_residual_votes and self._shape.non_convex and chosen and not late():
             chosen = self._accept_residual(chosen, hypotheses, cloud, depth_m, intrinsics, provisional, rejected)
-        if fe.shape_hidden_by_instances and rejected and any(id(c) not in judged_with for c in chosen):
+        if fe.shape_hidden_by_instances and rejected and any(id(c) not in judged_with for c in chosen) and not late():
             # The rejected poses judged again with the instances the later passes found (those
             # whose checks look where one of them is seen): a channel rejected on its outline
             # onto a flush neighbour found only by the residual votes (channel seed 2251 frames
@@ -907,7 +947,7 @@ class InstanceRegistration:
         t = {s: textured.timings_ms.get(s, 0.0) + shaped.timings_ms.get(s, 0.0) for s in textured.timings_ms}
         t["shape"] = shaped.timings_ms.get("shape", 0.0)
         return FrameResult(instances, t, textured.keypoints_uv, textured.model_xyz, textured.scene_xyz,
-                           textured.labels, textured.num_keypoints)
+                           textured.labels, textured.num_keypoints, deadline_cut=shaped.deadline_cut)
 
     def _finalise(self, src, tgt, transforms, depth_m=None, intrinsics=None) -> tuple[list[Instance], np.ndarray]:
         """Assign correspondences to their nearest instance; drop instances that end up too

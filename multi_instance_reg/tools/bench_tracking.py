@@ -19,7 +19,7 @@ replay, tracker on:
 Per sequence: IDF1, ID switches per 1,000 object-frames, MOTA, per-frame MHF1 and MHP with
 the tracker and of the detector alone on the same frames, and the invariant the tracker
 keeps: MHF1 and MHP with tracking at least the detector's - 1 point, and on no frame more
-poses published than objects in view (a coasting track is not published).
+poses published than objects in view and hidden tracks (state coasting, within coast_s).
 """
 from __future__ import annotations
 
@@ -176,7 +176,10 @@ def recorded_sequences(tmp: Path, model, config, tracker_config, args) -> dict:
                    tracker_config=tracker_config)
         ident = r.identity.summary()
         tracked, detected = summarize(r.scores), summarize(r.detection_scores)
-        excess = max((f - v for f, v in zip(r.found, r.in_view) if v >= 0), default=0)
+        # Published beyond the objects in view: a hidden track (state coasting) may be, while
+        # coast_s lasts; any other is one too many.
+        coasting = [sum(i["state"] == "coasting" for i in f["instances"]) for f in r.frames]
+        excess = max((f - c - v for f, c, v in zip(r.found, coasting, r.in_view) if v >= 0), default=0)
         entry = {**{key: ident[key] for key in ("IDF1", "id_switches", "id_switches_per_1000", "MOTA", "object_frames")},
                  "MHF1_tracked": tracked["MHF1"], "MHP_tracked": tracked["MHP"],
                  "MHF1_detector": detected["MHF1"], "MHP_detector": detected["MHP"],
@@ -187,7 +190,7 @@ def recorded_sequences(tmp: Path, model, config, tracker_config, args) -> dict:
         out[name] = entry
         _print_line(name, entry)
         print(f"{'':16s} MHP tracked {entry['MHP_tracked']:.3f} / detector alone {entry['MHP_detector']:.3f}  "
-              f"most poses beyond those in view {excess}  tracking p50 {entry['tracking_ms_p50']:.1f} ms  "
+              f"most poses beyond those in view and hidden {excess}  tracking p50 {entry['tracking_ms_p50']:.1f} ms  "
               f"invariant {'holds' if entry['invariant'] else 'BROKEN'}")
     return out
 

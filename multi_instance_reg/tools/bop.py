@@ -198,6 +198,7 @@ def run_run(args) -> int:
     from ..datasets.rgbd_bag import SkipCounter
     from ..rgbd.multi_model import MultiModelRegistration
     from ..rgbd.pipeline import check_frame
+    from ..rgbd.workspace import Workspace
     from ..tracking import ObjectTrackers
     from .offline import (Progress, estimates_in_object_frame, load_config, load_tracker_config,
                           object_frame_symmetries)
@@ -229,6 +230,7 @@ def run_run(args) -> int:
     symmetries = [object_frame_symmetries(m) for m in models]
     reg = MultiModelRegistration(models, config)
     reg.warm_up()
+    workspace = Workspace.from_config(config.workspace)      # drawn in the overlays
     overlay_dir = out_dir / "overlays"
     estimates, images = [], []
     trackers, tracked_scene = None, None
@@ -257,7 +259,8 @@ def run_run(args) -> int:
             by_object[obj] = by_object.get(obj, 0) + 1
         entry = {"scene_id": frame.scene_id, "im_id": frame.im_id, "seconds": round(seconds, 4),
                  "cpu_seconds": round(cpu_seconds, 4),       # this process, all threads: less swayed by a loaded host
-                 "poses": len(published), "poses_by_object": {str(o): c for o, c in sorted(by_object.items())}}
+                 "poses": len(published), "poses_by_object": {str(o): c for o, c in sorted(by_object.items())},
+                 "deadline_cut": bool(result.deadline_cut)}     # frontend.shape_deadline_ms stopped the search
         owners = None
         if frame.gt_poses is not None:
             owners = np.array([index_of.get(int(o), -1) for o in frame.gt_obj_ids], np.int64)
@@ -266,7 +269,7 @@ def run_run(args) -> int:
         if len(images) <= args.overlays:
             overlay_dir.mkdir(parents=True, exist_ok=True)
             cv2.imwrite(str(overlay_dir / f"{frame.scene_id:06d}_{frame.im_id:06d}.png"),
-                        overlay(frame, models, published, owners))
+                        overlay(frame, models, published, owners, workspace))
         bar.update(n + 1)
     bar.close()
     if not images:
@@ -279,6 +282,7 @@ def run_run(args) -> int:
     summary = {"dataset": str(ds.root), "split": ds.split, "csv": str(csv_path), "objects": obj_ids,
                "models": [m.name for m in models], "tracking": bool(args.tracking), "images": images,
                "skipped": skipped.count, "skip_reasons": skipped.reasons,
+               "deadline_cut_images": sum(e["deadline_cut"] for e in images),
                "seconds_per_image": {"mean": float(secs.mean()), "p50": float(np.median(secs)), "max": float(secs.max())},
                "cpu_seconds_per_image": {"mean": float(cpu.mean()), "p50": float(np.median(cpu)), "max": float(cpu.max())}}
     line = (f"{len(images)} image(s), {len(estimates)} pose(s), {secs.mean():.2f} s per image (p50 {np.median(secs):.2f}, "
@@ -290,6 +294,8 @@ def run_run(args) -> int:
         summary["hits"] = {"gt_instances": gt_n, "hits": hits, "poses": sum(e["poses"] for e in with_gt),
                            "max_rre_deg": HIT_RRE_DEG, "max_rte_m": HIT_RTE_M, "min_visib_fract": MIN_VISIB_FRACT}
         line += f"; {hits} of {gt_n} ground-truth instances hit ({HIT_RRE_DEG:g} deg / {HIT_RTE_M * 1000:g} mm)"
+    if summary["deadline_cut_images"]:
+        line += f"; the shape search's deadline cut {summary['deadline_cut_images']} image(s)"
     if skipped.count:
         line += f"; {skipped.count} skipped ({skipped.summary()})"
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
@@ -300,8 +306,8 @@ def run_run(args) -> int:
 OVERLAY_POINTS = 2000       # model surface points drawn per pose
 
 
-def overlay(frame, models, published, owners):
-    """offline's overlay (boxes, ground truth in grey) with each pose's model surface points
+def overlay(frame, models, published, owners, workspace=None):
+    """offline's overlay (boxes, ground truth in grey, the ``workspace`` if any) with each pose's model surface points
     in a colour of its own over it: whether a pose sits on its object (a cup lid on lid) is
     judged from the surface, not from the box."""
     import cv2
@@ -309,7 +315,7 @@ def overlay(frame, models, published, owners):
     from ..rgbd.overlay import draw_points
     from .offline import draw_overlay
 
-    img = draw_overlay(frame.rgb, frame.intrinsics, models, published, frame.gt_poses, owners)
+    img = draw_overlay(frame.rgb, frame.intrinsics, models, published, frame.gt_poses, owners, workspace)
     by_name = {m.name: m for m in models}
     for k, inst in enumerate(published):
         pts = by_name[inst.object].points_xyz

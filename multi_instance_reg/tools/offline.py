@@ -63,10 +63,10 @@ def add_arguments(parser) -> None:
 
 
 def load_config(params_path):
-    """PipelineConfig with the frontend.* and ecc.* entries of a node parameter file applied."""
+    """PipelineConfig with the frontend.*, ecc.* and workspace.* entries of a node parameter file applied."""
     from ..rgbd.pipeline import PipelineConfig
 
-    return _config_from_params(PipelineConfig(), params_path, ("frontend", "ecc"))
+    return _config_from_params(PipelineConfig(), params_path, ("frontend", "ecc", "workspace"))
 
 
 def load_tracker_config(params_path):
@@ -140,6 +140,7 @@ class ReplayResult:
     skip_reasons: str = ""
     has_ground_truth: bool = False
     gravity_frames: int = 0                                   # frames given the direction of gravity (IMU)
+    deadline_cuts: int = 0                                    # frames whose shape search its deadline cut
 
     def latency_summary(self) -> dict:
         out = {}
@@ -307,6 +308,7 @@ def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_
                 out.cpu_ms.append((time.process_time() - cpu0) * 1e3)
                 out.found.append(len(published))
                 out.gravity_frames += frame.gravity is not None
+                out.deadline_cuts += bool(result is not None and result.deadline_cut)
                 if frame.gt_poses is not None:
                     owners = ground_truth_owners(models, bag.instance_objects(len(frame.gt_poses)))
                     scores, detection_scores, hit_estimates = [], [], set()
@@ -386,23 +388,28 @@ def metrics_dict(result: ReplayResult, max_rre_deg: float, max_rte: float, min_v
     extra["confusions"] = result.confusions
     return {**summary, **extra, "max_rre_deg": max_rre_deg, "max_rte": max_rte, "min_visibility": min_visibility,
             "frames": len(result.frames), "frames_with_ground_truth": len(result.scores),
-            "skipped_frames": result.skipped, "latency_ms": result.latency_summary(),
+            "skipped_frames": result.skipped, "deadline_cut_frames": result.deadline_cuts,
+            "latency_ms": result.latency_summary(),
             "cpu_ms_per_frame": {"p50": float(np.percentile(result.cpu_ms, 50)) if result.cpu_ms else None,
                                  "p95": float(np.percentile(result.cpu_ms, 95)) if result.cpu_ms else None}}
 
 
 # --------------------------------------------------------------------------- pictures
 
-def draw_overlay(rgb: np.ndarray, intrinsics, models, instances, gt_poses=None, gt_owners=None) -> np.ndarray:
+def draw_overlay(rgb: np.ndarray, intrinsics, models, instances, gt_poses=None, gt_owners=None,
+                 workspace=None) -> np.ndarray:
     """BGR picture: each instance's model box projected (green) with its id (and its object's
     name when there are several models); ground truth in grey (``gt_owners``: the model index
-    of each ground-truth instance, default all the first's)."""
+    of each ground-truth instance, default all the first's); the ``workspace`` (a
+    ``rgbd.workspace.Workspace``, or None) in orange."""
     from ..rgbd.model import ObjectModel
     from ..rgbd.overlay import draw_box
 
     models = [models] if isinstance(models, ObjectModel) else list(models)
     by_name = {m.name: m for m in models}
     img = np.ascontiguousarray(rgb[:, :, ::-1]).copy()
+    if workspace is not None:
+        workspace.draw(img, intrinsics, (0, 140, 255))
     if gt_poses is not None:
         owners = np.zeros(len(gt_poses), np.int64) if gt_owners is None else gt_owners
         for T, k in zip(gt_poses, owners):
@@ -454,8 +461,11 @@ def run(args) -> int:
 
     from ..rgbd.multi_model import load_models
 
+    from ..rgbd.workspace import Workspace
+
     models = load_models(args.model)
     config = load_config(args.params)
+    workspace = Workspace.from_config(config.workspace)
     out_dir = Path(args.output)
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"output {out_dir} exists and is not a directory")
@@ -474,7 +484,7 @@ def run(args) -> int:
     def on_frame(index, frame, instances):
         if index in picks:
             owners = None if frame.gt_poses is None else ground_truth_owners(models, gt_names(len(frame.gt_poses)))
-            img = draw_overlay(frame.rgb, frame.intrinsics, models, instances, frame.gt_poses, owners)
+            img = draw_overlay(frame.rgb, frame.intrinsics, models, instances, frame.gt_poses, owners, workspace)
             cv2.imwrite(str(out_dir / f"overlay_{index:05d}.png"), img)
 
     result = replay(args.bag, models, config, args.topics, args.max_rre_deg, args.max_rte, args.max_frames,
@@ -488,6 +498,8 @@ def run(args) -> int:
         line += f", {result.skipped} skipped ({result.skip_reasons})"
     if result.gravity_frames:
         line += f", {result.gravity_frames} of them with gravity from the IMU"
+    if result.deadline_cuts:
+        line += f", the shape search's deadline (frontend.shape_deadline_ms) cut {result.deadline_cuts} of them"
     if result.scores:
         metrics = metrics_dict(result, args.max_rre_deg, args.max_rte, args.min_visibility)
         (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))

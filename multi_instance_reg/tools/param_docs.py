@@ -36,6 +36,9 @@ _GROUPS = [
     ("ECC in the pipeline: `ecc.*`", "ecc.",
      "The clustering as the RGB-D pipeline runs it, in metres (`core/config.py` `ECCConfig`; "
      "defaults here are the pipeline's, see the core's presets below)."),
+    ("Workspace: `workspace.*`", "workspace.",
+     "Where objects may be: a box in the camera optical frame and / or an image mask; nothing is "
+     "looked for outside it (`rgbd/workspace.py` `WorkspaceConfig`; docs/workspace.md)."),
     ("Tracking: `tracking.*`", "tracking.",
      "Identity over frames and the per-frame ICP (`tracking/live.py` `LiveConfig`, "
      "`tracking/tracker.py` `TrackerConfig`)."),

@@ -20,7 +20,9 @@ What is published is what has evidence on the frame: a track the depth confirms 
 fitness), or one a detection continues that the depth does not contradict (no more than
 ``max_free_share`` of its visible model points standing where the camera saw through to a
 surface behind them). A prediction is not evidence: a track with neither is kept, coasting,
-for its object's next detection, and not published. Where the depth vouches for neither a
+for its object's next detection, and not published, unless the depth shows it hidden (most
+of it behind a surface well in front of it, nothing seen through it) where the camera's
+motion was measured: then it is published as coasting. Where the depth vouches for neither a
 track's pose nor its detection's, the detection wins. Two tracks whose model volumes overlap
 are one object: the one with the better evidence stays. Stamps that go back (a bag played in
 a loop, a camera restarted) end every track, and the tracker says so in the log.
@@ -71,6 +73,7 @@ class TrackerConfig:
     coast_s: float = param(1.0, "s: a confirmed track that is neither detected nor confirmed by the depth for longer than this ends; meanwhile it is kept (coasting, carried by the camera's motion) so that the object's next detection continues it, but not published: a prediction is not evidence", 0.0, 60.0)
     max_undetected_s: float = param(1.5, "s: a track kept by the depth alone, with no detection for longer than this, ends (0 = never)", 0.0, 3600.0)
     duplicate_distance: float = param(0.015, "m: two tracks whose positions come closer than this, or than half the object's smallest extent (their model volumes overlap), follow one object: the one with the weaker evidence on this frame ends (published before not, confirmed before tentative, then the older)", 0.0, 1.0)
+    min_hidden_share: float = param(0.6, "share of a track's visible model points that must be hidden behind a surface more than icp_max_distance in front of them (an arm, an object in front) for an undetected track whose pose the camera's measured motion carried to be published as hidden (state coasting): the depth agrees with it without confirming it; 1 = never", 0.0, 1.0)
     max_free_share: float = param(0.3, "share of a track's visible model points that may stand where the camera saw through to a surface more than icp_max_distance behind them (space seen empty, which no occlusion explains): above it the depth contradicts the pose and the track has no evidence on that frame, whatever detected it", 0.0, 1.0)
     odometry: bool = param(True, "measure the camera's motion from one frame to the next by the colour image's features with depth (tracking.odometry: ORB, RANSAC; objects rest, so it moves every track) and predict the tracks by it: a shaking or jumping camera is followed exactly where a velocity would guess; where a frame has too little texture, the prediction below is used")
     camera_motion: bool = param(True, "predict every track by one motion shared by all (the camera's: objects rest and the camera moves), corrected on each frame by one ICP of all confirmed and coasting tracks together against the depth (where that is refused or no such track is in view: the median rotation, then the median translation of the steps of the tracks the depth or a detection saw), plus the track's own residual velocity; an occluded (coasting) track follows the shared motion. Off: each track's own constant velocity, an occluded one follows the nearest seen track")
@@ -293,7 +296,10 @@ class InstanceTracker:
             if camera_motion is not None:
                 tr.T = apply_twist(self._predicted_motion @ tr.T, tr.velocity, max(dt, 0.0))
                 tr.T_out_before = tr.T_out
-                tr.T_out = proper_pose(self._predicted_motion @ tr.T_out)
+                if self._camera_moving:
+                    # (A still camera's measured motion is noise: the published pose of a
+                    # resting object is held, as rest_frames averages it.)
+                    tr.T_out = proper_pose(self._predicted_motion @ tr.T_out)
                 tr.stamp_ns = stamp_ns
             elif dt > 0:
                 tr.T = apply_twist(apply_twist(tr.T, shared, dt), tr.velocity, dt)
@@ -543,6 +549,10 @@ class InstanceTracker:
         seen: dict[int, bool] = {}
         jumped: set[int] = set()         # moved by a detection's correction, not by motion
         depth_ok: set[int] = set()      # confirmed by the depth on this frame
+        hidden: set[int] = set()        # mostly behind something well in front of it, nothing seen through it
+        # A hidden track's pose is the prediction: evidence only where the camera's motion was
+        # measured on this frame (odometry, or the tracks' joint alignment).
+        carried = self._motion_measured or self.camera_correction is not None
         for tr in self.tracks:
             seen[tr.track_id] = tr.last_seen_ns == stamp_ns     # detected on this frame
             tr.fitness = 0.0
@@ -607,6 +617,13 @@ class InstanceTracker:
                     if (tr.state == TENTATIVE and c.confirm_fitness > 0 and tr.fitness > 0
                             and res.unoccluded_fitness >= c.confirm_fitness):
                         tr.state = CONFIRMED
+                elif (not seen[tr.track_id] and carried and tr.state != TENTATIVE and res.visible
+                      and c.min_hidden_share < 1.0 and res.occluded >= c.min_hidden_share * res.visible):
+                    # Hidden: where the model stands the camera sees something more than
+                    # icp_max_distance in front of it (an arm, a box in front), not the
+                    # surface it sits in, and nowhere through it: the depth agrees with the
+                    # pose without confirming it.
+                    hidden.add(tr.track_id)
         movers = [tr for tr in self.tracks if seen[tr.track_id] and len(tr.history) >= 2 and tr.track_id not in jumped
                   and stamp_ns > tr.history[-2][0]]
         shared = self._shared_motion(movers, stamp_ns) if c.camera_motion else None
@@ -620,7 +637,8 @@ class InstanceTracker:
             # Evidence on this frame: the depth confirms it, or a detection does and the depth
             # does not contradict it (a new track that only its detection vouches for is
             # published with publish_tentative).
-            tr.evidence = seen[tr.track_id] and (tr.state != TENTATIVE or tr.track_id in depth_ok or c.publish_tentative)
+            tr.evidence = ((seen[tr.track_id] and (tr.state != TENTATIVE or tr.track_id in depth_ok or c.publish_tentative))
+                           or tr.track_id in hidden)
             if seen[tr.track_id]:
                 tr.last_seen_ns = stamp_ns
                 if tr.state == COASTING:
