@@ -161,6 +161,13 @@ def read_models_info(path) -> dict[int, BopModelInfo]:
             raise InputError(f"{path}: object {obj_id} needs min_x/y/z and size_x/y/z numbers") from None
         disc = np.array([_numbers(s, 16, path, f"object {obj_id} symmetries_discrete entry").reshape(4, 4)
                          for s in entry.get("symmetries_discrete", [])]).reshape(-1, 4, 4)
+        for k, S in enumerate(disc):
+            # BOP's files round to a few decimals: a loose test still tells a rotation from a typo.
+            R = S[:3, :3]
+            if not (np.allclose(R @ R.T, np.eye(3), atol=1e-3) and np.linalg.det(R) > 0
+                    and np.allclose(S[3], [0, 0, 0, 1], atol=1e-9)):
+                raise InputError(f"{path}: object {obj_id} symmetries_discrete entry {k} is not a rigid transform "
+                                 f"(a rotation, a translation in mm, last row 0 0 0 1)")
         cont = []
         for s in entry.get("symmetries_continuous", []):
             if not isinstance(s, dict):

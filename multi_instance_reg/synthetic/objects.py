@@ -272,6 +272,41 @@ def object_mesh(spec: ObjectSpec):
     return mesh
 
 
+def textured_object_mesh(spec: ObjectSpec):
+    """A box object's mesh with its faces' pictures, as the renderer draws them: 4 vertices a
+    face, the face pictures side by side in one texture (an atlas), texture coordinates per
+    triangle corner. Other shapes: ``object_mesh`` (no colour)."""
+    mesh = object_mesh(spec)
+    if spec.shape != "box" or spec.parts:
+        return mesh
+    textures = object_textures(spec.name)
+    half = spec.half_extents
+    atlas_h = max(textures[f].shape[0] for f, _, _ in BOX_FACES)
+    atlas_w = sum(textures[f].shape[1] for f, _, _ in BOX_FACES)
+    atlas = np.zeros((atlas_h, atlas_w, 3), np.uint8)
+    verts, tris, uv, col = [], [], [], 0
+    for face, normal, up in BOX_FACES:
+        tex = textures[face]
+        th, tw = tex.shape[:2]
+        atlas[:th, col:col + tw] = tex
+        n, upv = np.asarray(normal, np.float64), np.asarray(up, np.float64)
+        right = np.cross(upv, n)            # the picture's rows run along it, seen from outside
+        width, height = 2 * np.abs(right) @ half, 2 * np.abs(upv) @ half
+        centre = n * (np.abs(n) @ half)
+        # Corners at picture (column, row) = (0, 0), (w, 0), (w, h), (0, h): top left first.
+        base = len(verts)
+        for s_, t_ in ((0, 0), (1, 0), (1, 1), (0, 1)):
+            verts.append(centre + (s_ - 0.5) * width * right - (t_ - 0.5) * height * upv)
+        corner_uv = [((col + s_ * tw) / atlas_w, 1.0 - t_ * th / atlas_h) for s_, t_ in ((0, 0), (1, 0), (1, 1), (0, 1))]
+        for a, b, c in ((0, 2, 1), (0, 3, 2)):      # counter-clockwise seen from outside
+            tris.append([base + a, base + b, base + c])
+            uv.append([corner_uv[a], corner_uv[b], corner_uv[c]])
+        col += tw
+    from ..meshes import TriangleMesh
+
+    return TriangleMesh(np.array(verts), np.array(tris, np.int64), corner_uv=np.array(uv, np.float32), texture=atlas)
+
+
 # --------------------------------------------------------------------------------------------
 # Textures
 

@@ -87,18 +87,20 @@ def _open(args):
 def model_from_bop_mesh(dataset, obj_id: int):
     """The object's model from the dataset's mesh (mm), as ``mireg build-model --mesh``
     builds it, named ``obj_NNNNNN``; symmetries from models_info.json (none when its entry
-    lists none; found from the mesh when the dataset has no entry)."""
+    lists none; found from the mesh when the dataset has no entry); SIFT keypoints from
+    renders of the mesh when it has colour (vertex colours or a texture)."""
     from ..datasets.bop import object_name
     from ..meshes import load_mesh
-    from ..rgbd.mesh_model import build_model_from_mesh
+    from ..rgbd.mesh_model import add_rendered_keypoints, build_model_from_mesh
+    from ..rgbd.model import BuildSettings
     from ..symmetry import Symmetries
 
     mesh = load_mesh(dataset.model_path(obj_id), "mm")
     info = dataset.models_info.get(int(obj_id))
-    if info is None:
-        return build_model_from_mesh(mesh, object_name(obj_id), None)
-    model = build_model_from_mesh(mesh, object_name(obj_id), "none")
-    model.symmetries = info.symmetries() or Symmetries()
+    symmetries = None if info is None else (info.symmetries() or Symmetries())
+    model = build_model_from_mesh(mesh, object_name(obj_id), symmetries)
+    if mesh.has_colour:
+        add_rendered_keypoints(model, mesh, BuildSettings())
     return model
 
 

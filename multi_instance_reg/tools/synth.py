@@ -157,7 +157,8 @@ def add_arguments(parser) -> None:
 
     mesh = sub.add_parser("mesh", help="write a catalogue object's mesh (PLY, STL or OBJ)",
                           description="The surface of a catalogue object as a triangle mesh in its object frame "
-                                      "(the frame of the bags' ground truth).")
+                                      "(the frame of the bags' ground truth); a textured box as PLY comes with its "
+                                      "pictures (a texture beside it), as the renders show it.")
     mesh.add_argument("--object", required=True, metavar="NAME",
                       help="one of: " + ", ".join(list(OBJECTS) + list(UNTEXTURED_OBJECTS)))
     mesh.add_argument("-o", "--output", required=True, help="mesh file to write (.ply, .stl or .obj)")
@@ -170,12 +171,13 @@ def run(args) -> int:
 
     if args.synth_command == "mesh":
         from ..meshes import save_mesh
-        from ..synthetic.objects import get_object, object_mesh
+        from ..synthetic.objects import get_object, textured_object_mesh
 
-        mesh = object_mesh(get_object(args.object))
-        save_mesh(mesh, args.output, args.units)
+        mesh = textured_object_mesh(get_object(args.object))
+        path = save_mesh(mesh, args.output, args.units)
+        textured = mesh.texture is not None and path.suffix.lower() == ".ply"
         print(f"mireg synth mesh: wrote {args.object} ({len(mesh.vertices)} vertices, {len(mesh.triangles)} triangles, "
-              f"{args.units}) to {args.output}")
+              f"{args.units}) to {args.output}" + (f" with its texture {path.stem}_texture.png" if textured else ""))
         return 0
     if args.synth_command == "untextured":
         from ..synthetic.untextured import generate_untextured_bag
