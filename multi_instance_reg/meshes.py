@@ -2,8 +2,10 @@
 
 Own small readers rather than a library: the three formats' geometry parts are short to read
 (vertices, triangles or polygons fanned into triangles), and a mesh library would add a
-large dependency for a few dozen lines. What is read: vertex positions and faces; colours,
-texture coordinates and normals in the files are ignored (normals come from the faces).
+large dependency for a few dozen lines. What is read: vertex positions and faces, and of a
+PLY its vertex colours or its texture (per-vertex ``texture_u/v`` or a face ``texcoord``
+list, the picture named by ``comment TextureFile``); normals in the files are ignored
+(normals come from the faces).
 
 Every problem with a file raises InputError naming the file and what is wrong with it.
 """
@@ -28,6 +30,15 @@ MIN_SIZE_M, MAX_SIZE_M = 0.005, 5.0
 class TriangleMesh:
     vertices: np.ndarray     # (V, 3) float64, metres
     triangles: np.ndarray    # (F, 3) int64
+    # Colour, when the file has it (PLY): per vertex, or a texture picture with texture
+    # coordinates per triangle corner (u to the right, v up from the picture's bottom, 0..1).
+    vertex_colours: np.ndarray | None = None    # (V, 3) uint8 RGB
+    corner_uv: np.ndarray | None = None         # (F, 3, 2) float32
+    texture: np.ndarray | None = None           # (H, W, 3) uint8 RGB
+
+    @property
+    def has_colour(self) -> bool:
+        return self.vertex_colours is not None or (self.texture is not None and self.corner_uv is not None)
 
     @property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
@@ -45,7 +56,9 @@ class TriangleMesh:
 # --------------------------------------------------------------------------- reading
 
 def load_mesh(path, units: str = "m") -> TriangleMesh:
-    """Read a PLY, STL or OBJ file; ``units`` are those of the file's coordinates (m or mm)."""
+    """Read a PLY, STL or OBJ file; ``units`` are those of the file's coordinates (m or mm).
+    A PLY's vertex colours and texture (``texture_u/v`` or a face ``texcoord`` list, and a
+    ``comment TextureFile`` picture beside it) come with the mesh."""
     path = Path(path)
     if units not in UNIT_SCALE:
         raise InputError(f"--units must be one of {', '.join(UNIT_SCALE)}, got '{units}'")
@@ -56,16 +69,27 @@ def load_mesh(path, units: str = "m") -> TriangleMesh:
         raise InputError(f"mesh file {path}: unknown format '{path.suffix}'; give a .ply, .stl or .obj file")
     data = path.read_bytes()
     try:
-        reader = {".ply": _read_ply, ".stl": _read_stl, ".obj": _read_obj}[suffix]
-        vertices, triangles = reader(data)
+        if suffix == ".ply":
+            mesh = _read_ply(data, path)
+        else:
+            vertices, triangles = (_read_stl if suffix == ".stl" else _read_obj)(data)
+            mesh = TriangleMesh(np.asarray(vertices, np.float64), np.asarray(triangles, np.int64))
     except InputError as exc:
         raise InputError(f"mesh file {path} is broken: {exc}") from None
     except (ValueError, IndexError, struct.error, UnicodeDecodeError) as exc:
         raise InputError(f"mesh file {path} is broken: cannot parse it as {suffix[1:].upper()} "
                          f"({type(exc).__name__}: {exc})") from None
-    mesh = TriangleMesh(np.asarray(vertices, np.float64) * UNIT_SCALE[units], np.asarray(triangles, np.int64))
+    mesh.vertices = np.asarray(mesh.vertices, np.float64) * UNIT_SCALE[units]
+    mesh.triangles = np.asarray(mesh.triangles, np.int64).reshape(-1, 3)
     _check_mesh(mesh, path, units)
     return mesh
+
+
+# What a model needs of a mesh, said whenever one is refused.
+USABLE_MESH = ("a usable mesh is the object's outer surface: at least 4 triangles that enclose a solid, "
+               "not all in one plane")
+# Thinner than this share of its largest side (and than 1 mm) a mesh is a sheet, not a solid.
+FLAT_SHARE = 0.01
 
 
 def _check_mesh(mesh: TriangleMesh, path, units: str) -> None:
@@ -87,103 +111,234 @@ def _check_mesh(mesh: TriangleMesh, path, units: str) -> None:
         other = "mm" if units == "m" else "m"
         raise InputError(f"mesh file {path} read in {units} is {size:.4g} m across, outside "
                          f"{MIN_SIZE_M}-{MAX_SIZE_M} m; are its units {other}? (--units {other})")
+    solid = int(np.count_nonzero(areas > 0))
+    if solid < 4:
+        raise InputError(f"mesh file {path} has {solid} triangle(s) with an area: it cannot bound an object; {USABLE_MESH}")
+    # Thickness along the used vertices' principal axes (a sheet may lie at any slant).
+    used = v[np.unique(f)]
+    thickness = float(np.ptp((used - used.mean(axis=0)) @ np.linalg.svd(used - used.mean(axis=0),
+                                                                          full_matrices=False)[2][2]))
+    if thickness < min(FLAT_SHARE * size, 0.001):
+        raise InputError(f"mesh file {path} is flat ({thickness * 1000:.3g} mm thick, {size * 1000:.4g} mm across): "
+                         f"it cannot bound an object; {USABLE_MESH}")
+    for name, arr, n in (("vertex colours", mesh.vertex_colours, len(v)), ("texture coordinates", mesh.corner_uv, len(f))):
+        if arr is not None and len(arr) != n:
+            raise InputError(f"mesh file {path} is broken: {len(arr)} {name} for {n} {'vertices' if n == len(v) else 'faces'}")
 
 
-def _fan(polygons: list[list[int]]) -> np.ndarray:
-    """Triangles from polygons (fan from each polygon's first vertex)."""
-    tris = [(p[0], p[i], p[i + 1]) for p in polygons for i in range(1, len(p) - 1)]
+def _fan(polygons: list[list[int]]) -> tuple[np.ndarray, np.ndarray]:
+    """Triangles from polygons (fan from each polygon's first vertex), and for each triangle
+    (polygon index, corner k in the polygon) x 3, to carry per-corner data along."""
     if any(len(p) < 3 for p in polygons):
         raise InputError("a face has fewer than 3 vertices")
-    return np.array(tris, np.int64).reshape(-1, 3)
+    tris = [(p[0], p[i], p[i + 1]) for p in polygons for i in range(1, len(p) - 1)]
+    corners = [(j, 0, i, i + 1) for j, p in enumerate(polygons) for i in range(1, len(p) - 1)]
+    return np.array(tris, np.int64).reshape(-1, 3), np.array(corners, np.int64).reshape(-1, 4)
 
 
 _PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
               "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
               "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
+_PLY_TYPE_NAMES = "char, uchar, short, ushort, int, uint, float, double (or int8 ... float64)"
 
 
-def _read_ply(data: bytes):
+def _ply_type(name: str, prop: str, element: str) -> str:
+    if name not in _PLY_TYPES:
+        raise InputError(f"property '{prop}' of element '{element}' has the unknown type '{name}' "
+                         f"(PLY's types: {_PLY_TYPE_NAMES}); convert the file, e.g. re-save it with MeshLab")
+    return _PLY_TYPES[name]
+
+
+def _ply_header(data: bytes):
+    """(format, [(element, count, [(property, type, list count type or None)])], comments, body start)."""
     end = data.find(b"end_header")
     if not data.startswith(b"ply") or end < 0:
         raise InputError("not a PLY file (no 'ply' magic or no 'end_header')")
     body_start = data.index(b"\n", end) + 1
     header = data[:end].decode("ascii", errors="replace").splitlines()
-    fmt = None
-    elements: list[tuple[str, int, list]] = []      # (name, count, [(prop, type, list count type)])
+    fmt, elements, comments = None, [], []
     for line in header[1:]:
         parts = line.split()
-        if not parts or parts[0] in ("comment", "obj_info"):
+        if not parts or parts[0] == "obj_info":
             continue
-        if parts[0] == "format":
-            fmt = parts[1]
+        if parts[0] == "comment":
+            comments.append(line.strip()[len("comment"):].strip())
+        elif parts[0] == "format":
+            fmt = parts[1] if len(parts) > 1 else None
         elif parts[0] == "element":
+            if len(parts) != 3 or not parts[2].isdigit():
+                raise InputError(f"header line '{line.strip()}' is not 'element NAME COUNT'")
             elements.append((parts[1], int(parts[2]), []))
         elif parts[0] == "property":
             if not elements:
                 raise InputError("a property before any element in the header")
-            if parts[1] == "list":
-                elements[-1][2].append((parts[4], _PLY_TYPES[parts[3]], _PLY_TYPES[parts[2]]))
+            el = elements[-1][0]
+            if len(parts) == 5 and parts[1] == "list":
+                elements[-1][2].append((parts[4], _ply_type(parts[3], parts[4], el), _ply_type(parts[2], parts[4], el)))
+            elif len(parts) == 3:
+                elements[-1][2].append((parts[2], _ply_type(parts[1], parts[2], el), None))
             else:
-                elements[-1][2].append((parts[2], _PLY_TYPES[parts[1]], None))
+                raise InputError(f"header line '{line.strip()}' is not 'property TYPE NAME' or "
+                                 f"'property list COUNT_TYPE TYPE NAME'")
     if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
         raise InputError(f"unknown PLY format '{fmt}'")
-    vertices, polygons = None, []
-    if fmt == "ascii":
-        tokens = data[body_start:].split()
-        pos = 0
-        for name, count, props in elements:
-            rows = []
-            for _ in range(count):
-                row = {}
-                for pname, _, list_type in props:
-                    if list_type is None:
-                        row[pname] = float(tokens[pos])
-                        pos += 1
-                    else:
-                        n = int(tokens[pos])
-                        row[pname] = [int(float(t)) for t in tokens[pos + 1:pos + 1 + n]]
-                        if len(row[pname]) != n:
-                            raise InputError("the file ends inside a face list")
-                        pos += 1 + n
-                rows.append(row)
-            if name == "vertex":
-                vertices = np.array([[r["x"], r["y"], r["z"]] for r in rows], np.float64).reshape(-1, 3)
-            elif name == "face":
-                key = next((p[0] for p in props if p[2] is not None), None)
-                polygons = [r[key] for r in rows] if key else []
-    else:
-        order = "<" if fmt == "binary_little_endian" else ">"
-        pos = body_start
-        for name, count, props in elements:
-            if all(p[2] is None for p in props):
-                dtype = np.dtype([(p[0], order + p[1]) for p in props])
-                arr = np.frombuffer(data, dtype, count, pos)
-                pos += dtype.itemsize * count
-                if name == "vertex":
-                    vertices = np.stack([arr["x"], arr["y"], arr["z"]], axis=1).astype(np.float64)
-                continue
-            rows = []
-            for _ in range(count):
-                row = {}
-                for pname, ptype, list_type in props:
-                    if list_type is None:
-                        dt = np.dtype(order + ptype)
-                        row[pname] = np.frombuffer(data, dt, 1, pos)[0]
-                        pos += dt.itemsize
-                    else:
-                        lt = np.dtype(order + list_type)
-                        n = int(np.frombuffer(data, lt, 1, pos)[0])
-                        pos += lt.itemsize
-                        it = np.dtype(order + ptype)
-                        row[pname] = np.frombuffer(data, it, n, pos).astype(np.int64).tolist()
-                        pos += it.itemsize * n
-                rows.append(row)
-            if name == "face":
-                key = next((p[0] for p in props if p[2] is not None), None)
-                polygons = [r[key] for r in rows] if key else []
-    if vertices is None:
+    return fmt, elements, comments, body_start
+
+
+def _ascii_element(tokens: np.ndarray, pos: int, count: int, props) -> tuple[dict, int]:
+    """One element's rows from the file's numbers: {property: (count,) array, or for a list
+    (count, n) array when every row has n entries, else a list of arrays}, and the new position."""
+    # Most files have one list length throughout (triangles): read all rows at once.
+    width, at = 0, pos
+    lengths = []
+    for _, _, list_type in props:
+        if list_type is None:
+            width, at = width + 1, at + 1
+        else:
+            n = int(tokens[at]) if at < len(tokens) else 0
+            lengths.append((width, n))
+            width, at = width + 1 + n, at + 1 + n
+    if pos + count * width <= len(tokens):
+        block = tokens[pos:pos + count * width].reshape(count, width)
+        if all(np.all(block[:, col] == n) for col, n in lengths):
+            out, col = {}, 0
+            for name, _, list_type in props:
+                if list_type is None:
+                    out[name], col = block[:, col], col + 1
+                else:
+                    n = int(block[0, col]) if count else 0
+                    out[name], col = block[:, col + 1:col + 1 + n], col + 1 + n
+            return out, pos + count * width
+    out = {name: [] for name, _, _ in props}
+    for _ in range(count):
+        for name, _, list_type in props:
+            if list_type is None:
+                out[name].append(tokens[pos])
+                pos += 1
+            else:
+                n = int(tokens[pos])
+                if pos + 1 + n > len(tokens):
+                    raise InputError(f"the file ends inside element rows ('{name}' lists)")
+                out[name].append(tokens[pos + 1:pos + 1 + n])
+                pos += 1 + n
+    if pos > len(tokens):
+        raise InputError("the file ends before its last element row")
+    return {name: (np.array(out[name]) if list_type is None else out[name]) for name, _, list_type in props}, pos
+
+
+def _binary_element(data: bytes, pos: int, count: int, props, order: str) -> tuple[dict, int]:
+    """As ``_ascii_element`` for a binary body."""
+    # Fixed layout from the first row's list lengths, checked on every row.
+    fields, at = [], pos
+    for name, ptype, list_type in props:
+        if list_type is None:
+            fields.append((name, order + ptype))
+            at += np.dtype(ptype).itemsize
+        else:
+            n = int(np.frombuffer(data, order + list_type, 1, at)[0]) if count else 0
+            fields.append((name + "\0n", order + list_type))
+            fields.append((name, order + ptype, (n,)))
+            at += np.dtype(list_type).itemsize + n * np.dtype(ptype).itemsize
+    dtype = np.dtype(fields)
+    if pos + count * dtype.itemsize <= len(data):
+        arr = np.frombuffer(data, dtype, count, pos)
+        if all(np.all(arr[f[0]] == arr[f[0]][0]) for f in fields if f[0].endswith("\0n")):
+            return {name: arr[name] for name, _, _ in props}, pos + count * dtype.itemsize
+    out = {name: [] for name, _, _ in props}
+    for _ in range(count):
+        for name, ptype, list_type in props:
+            if list_type is None:
+                out[name].append(np.frombuffer(data, order + ptype, 1, pos)[0])
+                pos += np.dtype(ptype).itemsize
+            else:
+                n = int(np.frombuffer(data, order + list_type, 1, pos)[0])
+                pos += np.dtype(list_type).itemsize
+                out[name].append(np.frombuffer(data, order + ptype, n, pos))
+                pos += n * np.dtype(ptype).itemsize
+    return {name: (np.array(out[name]) if list_type is None else out[name]) for name, _, list_type in props}, pos
+
+
+# Property names for colours and texture coordinates, as writers spell them.
+_COLOUR_NAMES = (("red", "green", "blue"), ("diffuse_red", "diffuse_green", "diffuse_blue"), ("r", "g", "b"))
+_UV_NAMES = (("texture_u", "texture_v"), ("s", "t"), ("u", "v"), ("texture_s", "texture_t"))
+
+
+def _read_ply(data: bytes, path: Path) -> TriangleMesh:
+    fmt, elements, comments, body_start = _ply_header(data)
+    tokens = np.array(data[body_start:].split(), np.float64) if fmt == "ascii" else None
+    order = "<" if fmt == "binary_little_endian" else ">"
+    columns, types, pos = {}, {}, 0 if fmt == "ascii" else body_start
+    for name, count, props in elements:
+        if fmt == "ascii":
+            cols, pos = _ascii_element(tokens, pos, count, props)
+        else:
+            cols, pos = _binary_element(data, pos, count, props, order)
+        columns.setdefault(name, cols)
+        types.setdefault(name, {p[0]: p[1] for p in props})
+    vert = columns.get("vertex")
+    if vert is None:
         raise InputError("no 'vertex' element")
-    return vertices, _fan(polygons)
+    if not all(k in vert for k in "xyz"):
+        raise InputError("the vertex element has no x, y, z properties")
+    vertices = np.stack([np.asarray(vert[k], np.float64) for k in "xyz"], axis=1)
+    face = columns.get("face", {})
+    key = next((k for k in ("vertex_indices", "vertex_index") if k in face), None)
+    if key is None:
+        key = next((k for k, v in face.items() if isinstance(v, list) or np.ndim(v) == 2), None)
+    polys = face.get(key, []) if key else []
+    if not isinstance(polys, list) and polys.ndim == 2 and polys.shape[1] == 3:
+        triangles = polys.astype(np.int64)
+        corners = np.column_stack([np.arange(len(triangles)), np.zeros(len(triangles), np.int64),
+                                   np.ones(len(triangles), np.int64), np.full(len(triangles), 2)])
+    else:
+        triangles, corners = _fan([np.asarray(p).astype(np.int64).tolist() for p in polys])
+    mesh = TriangleMesh(vertices, triangles)
+    names = next((n for n in _COLOUR_NAMES if all(k in vert for k in n)), None)
+    if names is not None:
+        rgb = np.stack([np.asarray(vert[k], np.float64) for k in names], axis=1)
+        if all(types["vertex"][k].startswith("f") for k in names) and rgb.max(initial=0) <= 1.0:
+            rgb = rgb * 255.0       # float colours are 0..1
+        mesh.vertex_colours = np.clip(np.round(rgb), 0, 255).astype(np.uint8)
+    texture_file = next((words[1] for words in (c.split(None, 1) for c in comments)
+                         if len(words) == 2 and words[0].lower() == "texturefile"), None)
+    uv_names = next((n for n in _UV_NAMES if all(k in vert for k in n)), None)
+    in_range = len(triangles) == 0 or (triangles.min() >= 0 and triangles.max() < len(vertices))
+    if uv_names is not None and in_range:       # out of range: _check_mesh says so
+        uv = np.stack([np.asarray(vert[k], np.float64) for k in uv_names], axis=1)
+        mesh.corner_uv = uv[triangles].astype(np.float32)
+    elif "texcoord" in face:
+        tc = face["texcoord"]
+        per_poly = [np.asarray(t, np.float64).reshape(-1, 2) for t in tc] if isinstance(tc, list) else \
+            np.asarray(tc, np.float64).reshape(len(tc), -1, 2)
+        if any(len(t) != len(p) for t, p in zip(per_poly, polys)):
+            raise InputError("a face's texcoord list does not give 2 numbers per corner")
+        mesh.corner_uv = _corner_data(per_poly, corners)
+    # A texture needs both its coordinates and its picture; either alone says nothing of the
+    # colour (writers leave stray TextureFile comments), so the mesh is read without it.
+    if mesh.corner_uv is not None and texture_file is not None:
+        mesh.texture = _read_texture(path.parent / texture_file)
+    else:
+        mesh.corner_uv = None
+    return mesh
+
+
+def _corner_data(per_polygon, corners: np.ndarray) -> np.ndarray:
+    """(T, 3, 2) float32: per-corner data of the polygons gathered for their fanned triangles."""
+    if not isinstance(per_polygon, list):
+        return np.asarray(per_polygon)[corners[:, :1], corners[:, 1:]].astype(np.float32)
+    return np.array([[per_polygon[j][k] for k in c] for j, *c in corners.tolist()], np.float32).reshape(-1, 3, 2)
+
+
+def _read_texture(path: Path) -> np.ndarray:
+    import cv2
+
+    if not path.is_file():
+        raise InputError(f"its texture picture {path} does not exist (put it beside the mesh, as "
+                         f"'comment TextureFile' names it)")
+    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise InputError(f"its texture picture {path} cannot be read as an image")
+    return np.ascontiguousarray(bgr[:, :, ::-1])
 
 
 def _read_stl(data: bytes):
@@ -216,25 +371,44 @@ def _read_obj(data: bytes):
             idx = [int(p.split("/")[0]) for p in parts[1:]]
             # OBJ counts from 1; negative indices count back from the latest vertex.
             polygons.append([i - 1 if i > 0 else len(verts) + i for i in idx])
-    return np.array(verts, np.float64).reshape(-1, 3), _fan(polygons)
+    return np.array(verts, np.float64).reshape(-1, 3), _fan(polygons)[0]
 
 
 # --------------------------------------------------------------------------- writing
 
 def save_mesh(mesh: TriangleMesh, path, units: str = "m") -> Path:
-    """Write a mesh as binary PLY, binary STL or ASCII OBJ (by suffix), coordinates in ``units``."""
+    """Write a mesh as binary PLY, binary STL or ASCII OBJ (by suffix), coordinates in ``units``;
+    a PLY keeps the mesh's colour (vertex colours, or a texture: NAME_texture.png beside it)."""
     path = Path(path)
     v = mesh.vertices / UNIT_SCALE[units]
     f = mesh.triangles
     suffix = path.suffix.lower()
     path.parent.mkdir(parents=True, exist_ok=True)
     if suffix == ".ply":
+        # Colour goes along as readers expect it: vertex colours, or texture coordinates per
+        # face corner (MeshLab's texcoord list) and the picture beside the file.
+        textured = mesh.texture is not None and mesh.corner_uv is not None
+        picture = path.with_name(path.stem + "_texture.png")
+        vert_fields = [("xyz", "<f4", 3)] + ([("rgb", "u1", 3)] if mesh.vertex_colours is not None else [])
+        face_fields = [("n", "u1"), ("i", "<i4", 3)] + ([("m", "u1"), ("uv", "<f4", 6)] if textured else [])
         head = (f"ply\nformat binary_little_endian 1.0\ncomment multi_instance_reg, units {units}\n"
-                f"element vertex {len(v)}\nproperty float x\nproperty float y\nproperty float z\n"
-                f"element face {len(f)}\nproperty list uchar int vertex_indices\nend_header\n").encode()
-        faces = np.zeros(len(f), np.dtype([("n", "u1"), ("i", "<i4", 3)]))
+                + (f"comment TextureFile {picture.name}\n" if textured else "")
+                + f"element vertex {len(v)}\nproperty float x\nproperty float y\nproperty float z\n"
+                + ("property uchar red\nproperty uchar green\nproperty uchar blue\n" if len(vert_fields) > 1 else "")
+                + f"element face {len(f)}\nproperty list uchar int vertex_indices\n"
+                + ("property list uchar float texcoord\n" if textured else "") + "end_header\n").encode()
+        verts = np.zeros(len(v), np.dtype(vert_fields))
+        verts["xyz"] = v
+        if mesh.vertex_colours is not None:
+            verts["rgb"] = mesh.vertex_colours
+        faces = np.zeros(len(f), np.dtype(face_fields))
         faces["n"], faces["i"] = 3, f
-        path.write_bytes(head + v.astype("<f4").tobytes() + faces.tobytes())
+        if textured:
+            import cv2
+
+            faces["m"], faces["uv"] = 6, np.asarray(mesh.corner_uv, np.float32).reshape(-1, 6)
+            cv2.imwrite(str(picture), np.ascontiguousarray(mesh.texture[:, :, ::-1]))
+        path.write_bytes(head + verts.tobytes() + faces.tobytes())
     elif suffix == ".stl":
         normals, _ = mesh.face_normals_areas()
         rec = np.zeros(len(f), np.dtype([("n", "<f4", 3), ("v", "<f4", (3, 3)), ("a", "<u2")]))

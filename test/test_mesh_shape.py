@@ -28,12 +28,15 @@ def test_mesh_round_trip(tmp_path, suffix, units):
 
 
 def test_ascii_ply_with_quads_and_wrong_units(tmp_path):
-    text = ("ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\n"
-            "element face 1\nproperty list uchar int vertex_indices\nend_header\n"
-            "0 0 0\n100 0 0\n100 50 0\n0 50 0\n4 0 1 2 3\n")
+    # A box of six quads, 100 x 50 x 20 mm (a single flat quad is refused: it bounds nothing).
+    corners = "".join(f"{x} {y} {z}\n" for z in (0, 20) for y in (0, 50) for x in (0, 100))
+    quads = "".join(f"4 {a} {b} {c} {d}\n" for a, b, c, d in
+                    [(0, 2, 3, 1), (4, 5, 7, 6), (0, 1, 5, 4), (2, 6, 7, 3), (0, 4, 6, 2), (1, 3, 7, 5)])
+    text = ("ply\nformat ascii 1.0\nelement vertex 8\nproperty float x\nproperty float y\nproperty float z\n"
+            "element face 6\nproperty list uchar int vertex_indices\nend_header\n" + corners + quads)
     (tmp_path / "q.ply").write_text(text)
     mesh = load_mesh(tmp_path / "q.ply", "mm")
-    assert len(mesh.triangles) == 2 and np.allclose(mesh.bounds[1], [0.1, 0.05, 0])
+    assert len(mesh.triangles) == 12 and np.allclose(mesh.bounds[1], [0.1, 0.05, 0.02])
     with pytest.raises(InputError, match="--units mm"):
         load_mesh(tmp_path / "q.ply", "m")     # 100 m across: the units are wrong
 
@@ -128,7 +131,7 @@ def test_untextured_offline_replay(tmp_path):
     assert len(poses["frames"]) == 2
     # PPF per segment with the outline check reaches MHF1 0.75 on these two frames (3 of 5
     # instances each, no false one; before PPF: 4 hits of 10); the MHF1 >= 0.90 is
-    # not met here (README: "Untextured objects"); a margin below.
+    # not met here (docs/frontends.md, the shape path); a margin below.
     assert metrics["MHF1"] >= 0.65
     assert metrics["median_rte"] <= 0.01 and metrics["median_rre_deg"] <= 3.0
 

@@ -32,7 +32,7 @@ def test_params_file_is_the_generated_one():
 
 
 def test_the_faster_shape_setting_changes_known_parameters_within_their_ranges():
-    # config/shape_fast.yaml (README, "A faster setting"): read as the node and the tools read it.
+    # config/shape_fast.yaml (docs/frontends.md, "A faster setting"): read as the node and the tools read it.
     from multi_instance_reg.tools.offline import load_config
 
     fast = read_params_yaml(PARAMS_FILE.parent / "shape_fast.yaml")
@@ -68,7 +68,7 @@ def test_every_tracker_setting_is_a_ranged_node_parameter():
             assert (d.floating_point_range[0].from_value, d.floating_point_range[0].to_value) == (spec.low, spec.high)
         elif spec.type is int:
             assert (d.integer_range[0].from_value, d.integer_range[0].to_value) == (spec.low, spec.high)
-    assert specs["tracking.publish_tentative"].default is False        # only confirmed/coasting by default
+    assert specs["tracking.publish_tentative"].default is True         # a fresh detection is evidence
     assert specs["tracking.enabled"].default is True and "tracking.enabled" in READ_ONLY
     assert "tracking.catch_up_frames" in READ_ONLY and specs["tracking.catch_up_frames"].high == 90
     assert descriptor(specs["tracking.enabled"], read_only=True).read_only

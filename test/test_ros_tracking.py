@@ -57,7 +57,7 @@ def test_tracked_poster_at_30hz_has_a_pose_per_frame_one_track_id_and_its_marker
         assert wait_until(lambda: len(details) == len(poses) and len(markers) == len(poses), 10)
         tracked = [i for _, m in details for i in json.loads(m.data)["instances"]]
         assert {i["track_id"] for i in tracked} == {0}                        # one object, one id throughout
-        assert {i["state"] for i in tracked} <= {"confirmed", "coasting"}     # tentative not published by default
+        assert {i["state"] for i in tracked} <= {"tentative", "confirmed"}    # a prediction (coasting) is not published
         info = json.loads(details[-1][1].data)
         detected, processed = info["counters"]["detected"], info["counters"]["processed"]
         # Frames the detector did not see are published from the tracks. How many there are

@@ -131,11 +131,13 @@ class RealSenseBagWriter:
         self._writer.set_custom_data(CUSTOM_DATA_OBJECT_KEY, text)
 
     def write_accel_samples(self, stamp_ns: int, offsets_ns: np.ndarray, accel: np.ndarray,
-                            topic: str = ACCEL_TOPIC) -> None:
+                            topic: str = ACCEL_TOPIC, log_offset_ns: int = 0) -> None:
         """Accelerometer samples as realsense-ros publishes them (``enable_accel:=true``):
         sensor_msgs/Imu on /camera/camera/accel/sample in camera_accel_optical_frame, only
         linear_acceleration filled in (orientation_covariance[0] = -1: no orientation), each
-        at ``stamp_ns + offsets_ns[i]``. ``topic``: another, e.g. the united IMU topic."""
+        at ``stamp_ns + offsets_ns[i]``. ``topic``: another, e.g. the united IMU topic.
+        ``log_offset_ns``: bag time minus stamp (a replayed loop: the stamps run back, bag time
+        does not)."""
         T = self._types
         V = T["geometry_msgs/msg/Vector3"]
         no_orientation = np.zeros(9)
@@ -149,14 +151,15 @@ class RealSenseBagWriter:
                 angular_velocity_covariance=np.zeros(9),
                 linear_acceleration=V(x=float(a[0]), y=float(a[1]), z=float(a[2])),
                 linear_acceleration_covariance=np.diag([0.01, 0.01, 0.01]).reshape(-1))
-            self._write(topic, msg, stamp)
+            self._write(topic, msg, stamp + int(log_offset_ns))
 
     def write_frame(self, stamp_ns: int, rgb: np.ndarray, depth_mm: np.ndarray,
                     intrinsics: CameraIntrinsics, poses: np.ndarray | None = None,
-                    visibility: np.ndarray | None = None) -> None:
+                    visibility: np.ndarray | None = None, log_time_ns: int | None = None) -> None:
         """One RGB-D frame at ``stamp_ns``: colour (rgb8), aligned depth (16UC1 mm) (each
         compressed with ``transport`` "compressed"), both camera_infos, and, when given, ground-truth poses ((K, 4, 4) object -> colour optical
-        frame, metres) and per-instance visibility."""
+        frame, metres) and per-instance visibility. ``log_time_ns``: the bag time, when it is
+        not the stamp (a replayed loop)."""
         T = self._types
         rgb = np.asarray(rgb)
         depth_mm = np.asarray(depth_mm)
@@ -166,6 +169,7 @@ class RealSenseBagWriter:
             raise InputError(f"depth must be HxW uint16 millimetres matching colour {rgb.shape[:2]}, "
                              f"got {depth_mm.shape} {depth_mm.dtype}")
         header = self._header(stamp_ns)
+        bag_time = stamp_ns if log_time_ns is None else int(log_time_ns)
         if self.transport == "compressed":
             Compressed = T["sensor_msgs/msg/CompressedImage"]
             colour = (TOPIC_COLOUR + "/compressed", Compressed(header=header, **compressed_colour_fields(rgb)))
@@ -174,10 +178,10 @@ class RealSenseBagWriter:
             Image = T["sensor_msgs/msg/Image"]
             colour = (TOPIC_COLOUR, Image(header=header, **array_to_image_fields(rgb, "rgb8")))
             depth = (TOPIC_DEPTH, Image(header=header, **array_to_image_fields(depth_mm, "16UC1")))
-        self._write(*colour, stamp_ns)
-        self._write(TOPIC_COLOUR_INFO, self._camera_info(header, intrinsics), stamp_ns)
-        self._write(*depth, stamp_ns)
-        self._write(TOPIC_DEPTH_INFO, self._camera_info(header, intrinsics), stamp_ns)
+        self._write(*colour, bag_time)
+        self._write(TOPIC_COLOUR_INFO, self._camera_info(header, intrinsics), bag_time)
+        self._write(*depth, bag_time)
+        self._write(TOPIC_DEPTH_INFO, self._camera_info(header, intrinsics), bag_time)
         if poses is not None:
             P = T["geometry_msgs/msg/Pose"]
             pose_msgs = []
@@ -186,10 +190,10 @@ class RealSenseBagWriter:
                 pose_msgs.append(P(position=T["geometry_msgs/msg/Point"](x=float(xyz[0]), y=float(xyz[1]), z=float(xyz[2])),
                                    orientation=T["geometry_msgs/msg/Quaternion"](x=float(q[0]), y=float(q[1]),
                                                                                  z=float(q[2]), w=float(q[3]))))
-            self._write(TOPIC_GT_POSES, T["geometry_msgs/msg/PoseArray"](header=header, poses=pose_msgs), stamp_ns)
+            self._write(TOPIC_GT_POSES, T["geometry_msgs/msg/PoseArray"](header=header, poses=pose_msgs), bag_time)
         if visibility is not None:
             vis = np.asarray(visibility, dtype=np.float32).reshape(-1)
             dim = T["std_msgs/msg/MultiArrayDimension"](label="instance", size=len(vis), stride=len(vis))
             layout = T["std_msgs/msg/MultiArrayLayout"](dim=[dim], data_offset=0)
-            self._write(TOPIC_GT_VISIBILITY, T["std_msgs/msg/Float32MultiArray"](layout=layout, data=vis), stamp_ns)
+            self._write(TOPIC_GT_VISIBILITY, T["std_msgs/msg/Float32MultiArray"](layout=layout, data=vis), bag_time)
         self.frames_written += 1

@@ -156,7 +156,8 @@ class RGBDBag:
         depth_q: deque = deque()
         gt: dict[int, np.ndarray] = {}
         visibility: dict[int, np.ndarray] = {}
-        state = {"info": None, "gt_latest": -1, "vis_latest": -1}
+        gt_stamp_at: dict[int, int] = {}      # bag time of a ground-truth pose message -> its stamp
+        state = {"info": None, "gt_latest": -1, "vis_latest": -1, "colour_latest": -1}
 
         def decode(raw, conn):
             return reader.deserialize(raw, conn.msgtype)
@@ -204,9 +205,11 @@ class RGBDBag:
                     self.skipped.add(str(exc))
                 continue
             if conn.topic == GT_VISIBILITY_TOPIC:
-                # Float32MultiArray has no header: it shares the bag time of its frame's poses.
-                visibility[int(bag_time)] = np.asarray(msg.data, dtype=np.float32)
-                state["vis_latest"] = max(state["vis_latest"], int(bag_time))
+                # Float32MultiArray has no header: it shares the bag time of its frame's poses,
+                # and so their stamp (the same as the bag time, but in a replayed loop).
+                stamp = gt_stamp_at.pop(int(bag_time), int(bag_time))
+                visibility[stamp] = np.asarray(msg.data, dtype=np.float32)
+                state["vis_latest"] = max(state["vis_latest"], stamp)
                 yield from emit_ready(flush=False)
                 continue
             stamp = _stamp_ns(msg)
@@ -214,6 +217,14 @@ class RGBDBag:
                 accel.add(stamp, imu_accel(msg))
                 continue
             if conn.topic == self.colour_topic:
+                if stamp < state["colour_latest"]:
+                    # The stamps jumped back (a bag recorded from a loop): finish the frames
+                    # before it and wait for the ground truth of the new ones again.
+                    yield from emit_ready(flush=True)
+                    gt.clear()
+                    visibility.clear()
+                    state["gt_latest"] = state["vis_latest"] = -1
+                state["colour_latest"] = stamp
                 colour_q.append((stamp, msg))
             elif conn.topic == self.depth_topic:
                 depth_q.append((stamp, msg))
@@ -222,6 +233,8 @@ class RGBDBag:
                                                      (p.orientation.x, p.orientation.y, p.orientation.z,
                                                       p.orientation.w)) for p in msg.poses]).reshape(-1, 4, 4)
                 state["gt_latest"] = max(state["gt_latest"], stamp)
+                if self.has_visibility:
+                    gt_stamp_at[int(bag_time)] = stamp
             yield from emit_ready(flush=False)
         yield from emit_ready(flush=True)
         for _ in colour_q:

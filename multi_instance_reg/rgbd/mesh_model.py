@@ -5,7 +5,8 @@ shape data is sampled at the voxel the frames will be sampled at (``shape.shape_
 the mesh's box), from a surface sampled four times denser, so that model and frame
 descriptors describe the same neighbourhoods. A model built this way has no SIFT
 keypoints; ``add_capture_keypoints`` adds them from capture views whose object poses are
-known in the mesh frame (texture and shape in one model).
+known in the mesh frame (texture and shape in one model), and ``add_rendered_keypoints``
+from renders of the mesh itself when it has colour (vertex colours or a texture).
 """
 from __future__ import annotations
 
@@ -51,9 +52,19 @@ def view_descriptors(dense: np.ndarray, dense_normals: np.ndarray, voxel: float,
     return tuple(np.concatenate(v) for v in out)
 
 
-def build_model_from_mesh(mesh: TriangleMesh, name: str = "", symmetry: str | None = None,
+def mesh_symmetries(mesh: TriangleMesh, seed: int = 1) -> Symmetries:
+    """The mesh's symmetries (``symmetry.detect_symmetries``) from its surface sampled every
+    1 % of its box diagonal, 1.5 samples' spacing allowed."""
+    lo, hi = mesh.bounds
+    spacing = float(np.linalg.norm(hi - lo)) / 100.0
+    sym_pts, _ = sample_surface(mesh, spacing, seed=seed)
+    return detect_symmetries(sym_pts, 1.5 * spacing)
+
+
+def build_model_from_mesh(mesh: TriangleMesh, name: str = "", symmetry: "str | Symmetries | None" = None,
                           voxel: float | None = None, seed: int = 0, views: int = 20) -> ObjectModel:
-    """``symmetry``: None = find from the mesh; else text for ``parse_symmetry_text``."""
+    """``symmetry``: None = find from the mesh; text for ``parse_symmetry_text``; or the
+    ``Symmetries`` themselves (e.g. from a BOP models_info.json)."""
     lo, hi = mesh.bounds
     extent = hi - lo
     centre = (lo + hi) / 2.0
@@ -61,10 +72,10 @@ def build_model_from_mesh(mesh: TriangleMesh, name: str = "", symmetry: str | No
     dense, dense_normals = sample_surface(mesh, voxel / 4.0, seed=seed)
     pts, normals, variation, desc = view_descriptors(dense, dense_normals, voxel, centre, views)
     diameter = float(np.linalg.norm(extent))
-    if symmetry is None:
-        spacing = diameter / 100.0
-        sym_pts, _ = sample_surface(mesh, spacing, seed=seed + 1)
-        symmetries = detect_symmetries(sym_pts, 1.5 * spacing)
+    if isinstance(symmetry, Symmetries):
+        symmetries = symmetry
+    elif symmetry is None:
+        symmetries = mesh_symmetries(mesh, seed + 1)
     else:
         symmetries = parse_symmetry_text(symmetry, centre)
     markers, _ = sample_surface(mesh, max(MARKER_SPACING_M, diameter / 150.0), seed=seed + 2)
@@ -90,24 +101,94 @@ def add_capture_keypoints(model: ObjectModel, views, settings, T_mesh_object: np
     """SIFT keypoints of capture views brought into the mesh frame. Each view needs its
     object pose (``T_camera_object``, e.g. a synthetic capture's ground truth); the object
     frame of the captures is the mesh frame unless ``T_mesh_object`` says otherwise."""
-    from ..transforms import apply_transform, invert_transform
-    from .model import object_mask, view_keypoints
+    from .model import object_mask
 
     if not all(v.T_camera_object is not None for v in views):
         raise InputError("capture views given with --mesh need their object poses (ground truth) to be placed "
                          "in the mesh frame; these bags have none")
     T_mo = np.eye(4) if T_mesh_object is None else np.asarray(T_mesh_object, np.float64)
+    _keypoints_in_mesh_frame(model, views, [object_mask(v, settings)[0] for v in views], settings, T_mo)
+    return model
+
+
+def _keypoints_in_mesh_frame(model: ObjectModel, views, masks, settings, T_mesh_object: np.ndarray) -> list[int]:
+    """Gives ``model`` the SIFT keypoints of ``views`` on their object ``masks`` (lifted by
+    the views' depth), brought into the mesh frame by the views' object poses; returns how
+    many each view gave."""
+    from ..transforms import apply_transform, invert_transform
+    from .model import view_keypoints
+
     xyz_all, desc_all = [], []
-    for view in views:
-        mask, _ = object_mask(view, settings)
+    for view, mask in zip(views, masks):
         xyz, desc = view_keypoints(view, mask, settings)
-        T_mesh_cam = T_mo @ invert_transform(view.T_camera_object)
+        T_mesh_cam = T_mesh_object @ invert_transform(view.T_camera_object)
         xyz_all.append(apply_transform(T_mesh_cam, xyz.astype(np.float64)))
         desc_all.append(desc)
     xyz = np.concatenate(xyz_all) if xyz_all else np.zeros((0, 3))
     model.keypoints_xyz = xyz.astype(np.float32)
     model.descriptors = (np.concatenate(desc_all) if desc_all else np.zeros((0, 128))).astype(np.float32)
-    return model
+    return [len(x) for x in xyz_all]
+
+
+# Rendered views of a coloured mesh: a Primesense-like camera (IC-BIN's K is fx 550, fy 540 at
+# 640 x 480) at the distance objects are seen from in a bin or on a table.
+RENDER_FOCAL_PX = 550.0
+RENDER_SIZE = (640, 480)
+RENDER_DISTANCE_M = 0.6
+RENDER_VIEWS = 30
+CROP_MARGIN_PX = 32
+
+
+def render_views(mesh: TriangleMesh, count: int = RENDER_VIEWS, distance: float = RENDER_DISTANCE_M,
+                 focal_px: float = RENDER_FOCAL_PX, size: tuple[int, int] = RENDER_SIZE) -> list:
+    """``count`` renders (``mesh_render.MeshRender``) of the coloured mesh from directions
+    spread over the sphere, ``distance`` from its box centre, looking at it."""
+    from ..mesh_render import look_at, render_mesh
+    from ..messages import CameraIntrinsics
+
+    w, h = size
+    K = np.array([[focal_px, 0.0, (w - 1) / 2.0], [0.0, focal_px, (h - 1) / 2.0], [0.0, 0.0, 1.0]])
+    intrinsics = CameraIntrinsics(K, w, h)
+    lo, hi = mesh.bounds
+    return [render_mesh(mesh, look_at((lo + hi) / 2.0, d, distance), intrinsics) for d in view_directions(count)]
+
+
+def add_rendered_keypoints(model: ObjectModel, mesh: TriangleMesh, settings, count: int = RENDER_VIEWS,
+                           distance: float = RENDER_DISTANCE_M) -> tuple[ObjectModel, list[int]]:
+    """SIFT keypoints of a coloured mesh (vertex colours or texture) from ``count`` renders
+    around it (``render_views``), lifted by the rendered depth into the mesh frame: the model
+    then takes the SIFT path with no capture bag. Returns the model and the keypoints per view."""
+    from ..messages import CameraIntrinsics
+    from .model import CaptureView
+
+    from scipy.ndimage import distance_transform_edt
+
+    renders = render_views(mesh, count, distance)
+    views, masks = [], []
+    for r in renders:
+        # SIFT on the object's box (plus a margin for the descriptors' support) rather than the
+        # whole picture: the pyramid of a 640 x 480 picture costs several times the object's.
+        ys, xs = np.nonzero(r.mask)
+        if len(xs) == 0:
+            continue
+        h, w = r.mask.shape
+        x0, y0 = max(int(xs.min()) - CROP_MARGIN_PX, 0), max(int(ys.min()) - CROP_MARGIN_PX, 0)
+        x1, y1 = min(int(xs.max()) + CROP_MARGIN_PX + 1, w), min(int(ys.max()) + CROP_MARGIN_PX + 1, h)
+        K = np.array(r.intrinsics.K, np.float64)
+        K[0, 2] -= x0
+        K[1, 2] -= y0
+        crop = (slice(y0, y1), slice(x0, x1))
+        mask = r.mask[crop]
+        # The outline against the render's background would give keypoints (a plain object
+        # hundreds) that describe that background as much as the object, and a real scene
+        # has other things around it: the background continues the object's own border
+        # colours, so that only the object's print makes keypoints.
+        _, (iy, ix) = distance_transform_edt(~mask, return_indices=True)
+        views.append(CaptureView(np.ascontiguousarray(r.rgb[crop][iy, ix]), np.ascontiguousarray(r.depth_m[crop]),
+                                 CameraIntrinsics(K, x1 - x0, y1 - y0), r.T_camera_object))
+        masks.append(mask)
+    per_view = _keypoints_in_mesh_frame(model, views, masks, settings, np.eye(4))
+    return model, per_view
 
 
 def add_placed_keypoints(model: ObjectModel, objects, poses) -> ObjectModel:
@@ -124,4 +205,5 @@ def add_placed_keypoints(model: ObjectModel, objects, poses) -> ObjectModel:
     return model
 
 
-__all__ = ["build_model_from_mesh", "add_capture_keypoints", "add_placed_keypoints", "Symmetries"]
+__all__ = ["build_model_from_mesh", "mesh_symmetries", "add_capture_keypoints", "add_placed_keypoints",
+           "add_rendered_keypoints", "render_views", "Symmetries"]

@@ -131,6 +131,7 @@ class MultiModelRegistration:
                     t[stage] = t.get(stage, 0.0) + ms
         t2 = time.perf_counter()
         result = self._select([per_model[k] for k in range(len(self.models))], n_kp)
+        result.deadline_cut = any(res.deadline_cut for res in per_model.values())
         t["refinement"] += (time.perf_counter() - t2) * 1e3
         t["total"] = (time.perf_counter() - t0) * 1e3
         result.timings_ms = t

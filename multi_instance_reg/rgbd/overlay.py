@@ -42,6 +42,19 @@ def draw_box(img: np.ndarray, T: np.ndarray, box_corners: np.ndarray, intrinsics
     return True
 
 
+def draw_points(img: np.ndarray, T: np.ndarray, points: np.ndarray, intrinsics: CameraIntrinsics, colour) -> int:
+    """Draw ``points`` (N, 3, model frame) posed by ``T`` as single pixels into ``img`` in
+    place (a model's surface shows where a pose puts it better than its box); returns how
+    many fell inside the image."""
+    uv = project(apply_transform(np.asarray(T, dtype=np.float64), np.asarray(points, np.float64)), intrinsics)
+    h, w = img.shape[:2]
+    ok = np.all(np.isfinite(uv), axis=1)
+    px = np.round(uv[ok]).astype(np.int64)
+    px = px[(px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)]
+    img[px[:, 1], px[:, 0]] = colour
+    return len(px)
+
+
 def draw_overlay(rgb: np.ndarray, result, intrinsics: CameraIntrinsics, box_corners: np.ndarray,
                  colour_of, instances=None) -> np.ndarray:
     """A copy of ``rgb`` with ``result.keypoints_uv`` as dots coloured by ``result.labels``

@@ -35,6 +35,7 @@ from .model import ObjectModel
 from .guided import GuidedMatcher, guide_instances
 from .shape_frontend import ShapeFrontEnd, best_per_place, resolve_correspondences
 from .verify import free_space_share, surface_samples, texture_agreement
+from .workspace import Workspace, WorkspaceConfig
 from ..threads import limit_blas_threads, map_each, submit_each
 
 STAGES = ("sift", "matching", "lifting", "ecc", "refinement", "total")
@@ -56,8 +57,8 @@ class FrontEndConfig:
     ratio: float = param(0.8, "ratio test: best descriptor distance / second-best (second among model points more than ratio_separation away in 3D) must be below this", 0.1, 1.0)
     ratio_separation: float = param(0.01, "metres: model points closer than this to the best match count as the same physical point in the ratio test", 0.0, 1.0)
     matcher: str = param("flann", "descriptor search: flann (approximate kd-trees, about twice as fast) or brute_force (exact)", choices=("flann", "brute_force"))
-    flann_checks: int = param(32, "flann: leaves the kd-tree search visits per query (each model has its own index); fewer is faster (16: matching 15 -> 9 ms a frame, MHF1 0.962 -> 0.952 on the held-out synthetic scenes)", 1, 4096)
-    multi_model_index: str = param("joint", "several models (flann): joint (one index over every model's descriptors, each knowing its model, searched once a frame; the ratio test within each model) or per_model (each model's own index, searched as with that model alone). Mixed scenes of 3 objects (seeds 0-2, 7, 11, 13): the boxes' mean MHF1 the same as per_model's, the can's about 2 points lower (two draws of the trees each); 3 models / 1 model latency 1.32 / 1.36 -> 1.19 / 1.24 x (seeds 7 / 1, loaded host)", choices=("joint", "per_model"))
+    flann_checks: int = param(32, "flann: leaves the kd-tree search visits per query (each model has its own index); fewer is faster and finds fewer of the exact nearest neighbours", 1, 4096)
+    multi_model_index: str = param("joint", "several models (flann): joint (one index over every model's descriptors, each knowing its model, searched once a frame; the ratio test within each model) or per_model (each model's own index, searched as with that model alone). joint is faster with several models, at a small loss of matches for objects with few keypoints", choices=("joint", "per_model"))
     joint_flann_checks: int = param(48, "flann, multi_model_index joint: leaves the search visits per query over all models' descriptors (it needs more than one model's index for the same matches: 32 lost the can's matches)", 1, 4096)
     root_sift: bool = param(True, "compare descriptors as RootSIFT (Hellinger kernel) instead of plain L2")
     # Lifting.
@@ -86,7 +87,7 @@ class FrontEndConfig:
     recover_tolerance: float = param(0.01, "metres: two correspondences are consistent when their model and scene distances differ by less than this", 0.001, 0.1)
     min_score: float = param(0.7, "drop an instance whose score (mean of 1 - residual / ecc.inlier_thresh over its inliers) is below this; mirrored fits score 0.6-0.65, true ones 0.8-0.95 on the synthetic scenes (0 = keep all)", 0.0, 1.0)
     max_overlap: float = param(0.3, "drop an instance when more than this share of its box volume lies inside a stronger instance's box (1 = keep all)", 0.0, 1.0)
-    max_free: float = param(0.15, "SIFT instances: drop one when more than this share of its visible model surface (the model's dense cloud at its pose, facing the camera, on valid depth) lies in front of the measured depth by more than free_tolerance + tan(free_tilt_deg) x its distance from the inliers' centre: space the camera sees to be empty. Development sets (mixed seeds 0-2, bench frames seed 0): instances that hit nothing 11 -> 3, the one reported as the wrong object among those dropped, no hit lost (1 = off)", 0.0, 1.0)
+    max_free: float = param(0.15, "SIFT instances: drop one when more than this share of its visible model surface (the model's dense cloud at its pose, facing the camera, on valid depth) lies in front of the measured depth by more than free_tolerance + tan(free_tilt_deg) x its distance from the inliers' centre: space the camera sees to be empty (1 = off)", 0.0, 1.0)
     free_tolerance: float = param(0.008, "metres: max_free's margin at the inliers (depth noise)", 0.0, 0.2)
     free_tilt_deg: float = param(10.0, "degrees: max_free's margin grows by tan(this) per metre from the inliers, so that a pose a few close matches tilt by up to this is not taken for one in empty space", 0.0, 60.0)
     # Correspondences from shape (rgbd/shape_frontend.py; models built from a mesh).
@@ -95,12 +96,12 @@ class FrontEndConfig:
     shape_neighbours: int = param(3, "shape: each scene point is matched to this many nearest model descriptors (one-to-many)", 1, 20)
     shape_max_points: int = param(30000, "shape: at most this many voxel-downsampled search-region points per frame (a random subset beyond, which thins the cloud and weakens the descriptors)", 100, 1000000)
     shape_icp_iterations: int = param(15, "shape: point-to-plane ICP rounds per instance", 0, 100)
-    shape_icp_association: str = param("nearest", "shape: how ICP pairs model and scene points: nearest (the nearest point of the frame's downsampled cloud within 2 voxels, then 1.5) or projective (the depth pixel each model point projects to, within the same distance shrinking to half: the tracker's ICP, tracking/icp.py, no search). Untextured scenes seed 0 / held-out 5, measured before the session-5 outline and plane changes: projective MHF1 pallet 0.72 -> 0.80 / 0.70 -> 0.76, bracket 0.43 -> 0.46 / 0.36 -> 0.37, cylinders 0.99 -> 0.985 / 0.92 -> 0.92, median RTE 2-5x smaller, but false positives on distractor-only frames 7 -> 7 / 4 -> 6", choices=("nearest", "projective"))
+    shape_icp_association: str = param("nearest", "shape: how ICP pairs model and scene points: nearest (the nearest point of the frame's downsampled cloud within 2 voxels, then 1.5) or projective (the depth pixel each model point projects to, within the same distance shrinking to half: the tracker's ICP, tracking/icp.py, no search)", choices=("nearest", "projective"))
     shape_depth_tolerance: float = param(0.008, "metres: a model point agrees with the depth image when within this (or 0.8 voxel, whichever is larger)", 0.001, 0.2)
     shape_min_support: float = param(0.75, "shape: keep an instance when at least this share of its visible model surface agrees with the depth image", 0.0, 1.0)
-    shape_min_evidence: float = param(0.8, "shape: keep an instance when support - free - 2 x outline continuation is at least this (support and free as in shape_min_support / shape_max_free; outline continuation: share of the depth pixels in a band just outside the model's outline where its nearest face continues within 3 sigma of the depth noise: a piece of a larger surface). Distractor-only frames of the three untextured presets: false positives 42 -> 5 (seed 0), 46 -> 4 (held-out seed 5)", 0.0, 1.0)
-    shape_outline_rounds: int = param(1, "shape: a pose the depth supports (shape_min_support) but that is rejected (free space, outline continuation) is moved up to this many times onto the patch of depth surface its outline bounds, along the directions its visible normals leave ICP free (a face seen alone: along its plane, and turned about its normal to the patch's long axis), ICP'd and judged again; 0 = off. Untextured MHF1 pallet seed 0 / held-out 5 / 9: 0.786 -> 0.895 / 0.741 -> 0.920 / 0.791 -> 0.942 (2 rounds: 0.895 / 0.932 / 0.942); cylinders unchanged, bracket 0.804 -> 0.810 / unchanged / unchanged; false positives on distractor-only frames unchanged; refinement p50 on the pallet 64 -> 157 ms", 0, 10)
-    shape_min_in_view: float = param(0.5, "shape: drop an instance when less than this share of its model surface facing the camera projects inside the image: the depth and outline checks judge only that part (seed 0 pallet: cartons fitted to the strip of a wall at the image's edge, 0.21-0.35 of them in view). Not every true instance is wholly in view: channel seed 2141 frames 3-5 has one cut by the image edge, 0.33-0.38 of it in view, support 1.0, rejected by this alone (session 21). 0 = off", 0.0, 1.0)
+    shape_min_evidence: float = param(0.8, "shape: keep an instance when support - free - 2 x outline continuation is at least this (support and free as in shape_min_support / shape_max_free; outline continuation: share of the depth pixels in a band just outside the model's outline where its nearest face continues within 3 sigma of the depth noise: a piece of a larger surface)", 0.0, 1.0)
+    shape_outline_rounds: int = param(1, "shape: a pose the depth supports (shape_min_support) but that is rejected (free space, outline continuation) is moved up to this many times onto the patch of depth surface its outline bounds, along the directions its visible normals leave ICP free (a face seen alone: along its plane, and turned about its normal to the patch's long axis), ICP'd and judged again; 0 = off", 0, 10)
+    shape_min_in_view: float = param(0.5, "shape: drop an instance when less than this share of its model surface facing the camera projects inside the image: the depth and outline checks judge only that part, and a pose mostly outside the image fits a strip of wall at its edge as well as an object. A true instance cut by the image edge can fall below it. 0 = off", 0.0, 1.0)
     shape_max_free: float = param(0.15, "shape: drop an instance when more than this share of its visible model surface lies in front of the measured depth (space seen to be empty)", 0.0, 1.0)
     shape_recover_max: int = param(0, "shape: look for small consistent groups among at most this many matches no ECC transform explains (a random subset; quadratic in it); 0 = off. Measured on a 2-frame grey-cylinder bag: 1500 lifts recall 0 -> 0.30 at precision 1.0 but latency 240 -> 1120 ms", 0, 100000)
     shape_features: str = param("ppf", "shape: ppf (point pairs voted per connected segment of the depth off large planes; Drost et al. 2010) or fpfh (FPFH on the search region, one-to-many)", choices=("ppf", "fpfh"))
@@ -108,35 +109,37 @@ class FrontEndConfig:
     shape_ref_step: int = param(5, "shape ppf: every this-many-th point of a segment is a reference point that votes", 1, 100)
     shape_max_partners: int = param(60, "shape ppf: each reference point is paired with at most this many points of its segment within the object's diameter (evenly spread)", 5, 100000)
     shape_pose_clusters: int = param(30, "shape ppf: besides ECC's transforms, check this many pose hypotheses clustered straight from the reference points' votes (Drost et al.; 24 deg, a tenth of the object's diagonal); 0 = ECC's only", 0, 1000)
-    shape_segment_clusters: int = param(6, "shape ppf, non-convex models only: besides the frame's best shape_pose_clusters, each connected segment's best this-many clusters of its own references' poses are checked too (those not among the frame's): ranked over the frame, a bracket in a small segment, or whose plate's votes are mostly blurred or turned over, had its right cluster 33rd-96th of 50-130, yet 1st-6th in its segment; 0 = off. Bracket MHF1 seeds 13 / 151 / 5 (tuned): 0.879 / 0.841 / 0.829 -> 0.883 / 0.846 / 0.834 with 3, 0.883 / 0.855 / 0.834 with 6; pallet, cylinders (seeds 0 / 5) the same with it on for them too, but 12-20 ms more refinement a pallet frame, hence non-convex only; tee and channel (seed 0) better (session 14)", 0, 100)
-    shape_merged_reach: bool = param(True, "shape ppf: in a segment that holds more than one object (two of its points farther apart than the object's diameter: touching instances whose surfaces meet within the segment link), each reference point pairs only with points within the radius of the smallest ball about a point of the object's surface that holds the whole object (0.49-0.61 of the diameter for the objects here), not the whole diameter: most of its partners then lie on its own instance (open-side-down channels side by side, their tops flush: 0-5 right references of 70-100 each, 10-60 voted over their own points); off: the diameter, as in a segment of one object. Channel MHF1 seeds 9 / 5 (tuned) 0.772 / 0.910 -> 0.878 / 0.948, held out 13 / 33 / 317 / 331 / 419 0.991 / 0.937 / 0.927 / 0.916 / 0.861 -> 0.996 / 0.953 / 0.946 / 0.923 / 0.872; tee 0 / 61 0.920 / 0.957 -> 0.939 / 0.972; stairs 0 0.930 -> 0.942; bracket 41 / 443 0.863 / 0.881 -> 0.880 / 0.917, 0 / 5 0.959 / 0.829 -> 0.955 / 0.826; pallet, cylinders the same or better; no false positive (session 15)")
+    shape_segment_clusters: int = param(6, "shape ppf, non-convex models only: besides the frame's best shape_pose_clusters, each connected segment's best this-many clusters of its own references' poses are checked too (those not among the frame's): an instance in a small segment, or whose votes are mostly blurred or turned over, ranks low over the frame yet high in its segment; 0 = off", 0, 100)
+    shape_merged_reach: bool = param(True, "shape ppf: in a segment that holds more than one object (two of its points farther apart than the object's diameter: touching instances whose surfaces meet within the segment link), each reference point pairs only with points within the radius of the smallest ball about a point of the object's surface that holds the whole object, not the whole diameter, so that most of its partners lie on its own instance; off: the diameter, as in a segment of one object")
     shape_merged_clusters: int = param(6, "shape ppf, non-convex models, with shape_merged_reach: the segments of several objects are voted over the whole diameter as well, and each one's best this-many clusters of those votes are checked too (those not among the frame's and the segments' own): a plate's pose is told by pairs reaching the other plate, farther than the short reach; 0 = off", 0, 100)
     shape_support_area: float = param(3.0, "shape ppf: a connected piece of a dominant plane is a support surface (floor, pallet, table) and removed when its area exceeds this many times the object's largest box side", 1.0, 1000.0)
-    shape_keep_object_tops: bool = param(True, "shape ppf, with shape_support_area: a large plane piece stays in the cloud when its points stand, above a larger removed plane, at a height where the object resting on it shows a flat face up, and nothing stands on it within its outline: the flush tops of objects lying side by side, larger together than shape_support_area faces, not a support (a pallet's top, as high as a carton, carries the cartons). Channel seed 2251 (two and three channels open side down, flush, no hypothesis for them and their neighbours rejected on their outlines onto them): MHF1 0.864 -> 0.946, channel 631 0.969 -> 0.988; the 10 of channel seeds 2300-2349 where it fires: 9 better, 1 the same (hits 810 -> 870, 2324 0.834 -> 0.984, with the re-judge); held-out channel 2311 / 2333 / 2357 / 2381, bracket 2323 / 2347, and pallet 0 / 5, cylinders 0, bracket 0, channel 0, tee 0, stairs 0 unchanged, no false positive; support_mask 0.6-1.7 ms more a frame (pallet: its top checked), thread CPU (session 22)", None, None)
+    shape_keep_object_tops: bool = param(True, "shape ppf, with shape_support_area: a large plane piece stays in the cloud when its points stand, above a larger removed plane, at a height where the object resting on it shows a flat face up, and nothing stands on it within its outline: the flush tops of objects lying side by side, larger together than shape_support_area faces, not a support (a pallet's top, as high as a carton, carries the cartons)", None, None)
+    shape_deadline_ms: float = param(180.0, "shape: the search's budget, milliseconds from when the pose hypotheses are taken up (after the frame's points, votes and ECC): no further hypothesis is refined nor acceptance pass run once it is spent. The hypotheses are refined best first (ECC's clusters by size, then the vote clusters by their votes), so a cluttered frame returns the instances verified by then instead of taking seconds (IC-BIN frames with a room behind the bin: refinement 10-36 s on a loaded host). Wall-clock time: on a loaded host it cuts more. FrameResult.deadline_cut (mireg offline: metrics.json deadline_cut_frames) says when it did; 0 = no deadline", 0.0, 100000.0)
+    shape_max_noise_share: float = param(0.125, "shape: look for the object only where the depth check's tolerance there, 3 sigma of the depth noise (shape_depth_noise), is at most this share of its diameter (its box diagonal): z <= sqrt(this x diameter / (3 shape_depth_noise)). Beyond, any surface of the object's size agrees with it: IC-BIN frames (a room 2-3 m behind a bin of cups) gave 46-60 poses a frame on clutter at 2.0-3.1 m, support 0.8-1.0 at tolerances of 30-56 mm against a cup's 45 mm radius. 0.125 with the D4xx noise: cup (17 cm diagonal) 1.9 m, grey cylinder 1.65 m, bracket 1.8 m, carton 2.85 m; 0 = no limit", 0.0, 1.0)
     shape_depth_noise: float = param(0.002, "shape ppf: depth noise sigma per squared metre of distance (stereo: sigma_z = this x z^2; D4xx about 0.002); plane points lie within plane_thresh + 3 sigma_z", 0.0, 0.1)
     both_min_shown_keypoints: int = param(10, "both: a shape instance whose pose shows at least this many of the model's SIFT keypoints (facing the camera, not hidden) is a textured view, and kept only with both_min_agreeing matches; fewer: plain faces, kept on the depth evidence alone", 0, 100000)
     both_min_agreeing: int = param(3, "both: SIFT matches that must agree with a shape instance showing textured faces", 0, 100000)
-    shape_plane_thresh: float = param(0.004, "shape ppf: metres: a point is on a support plane within this + 3 sigma_z of it (plane_thresh, 1 cm, would take the top of a 12 mm plate lying on the table for the table: bracket seed 0, right reference poses for 50 -> 87 of 96 instances); a point in that band is still off the plane where the band points of the 5 x 5 sampled pixels about it lie on average more than this + 3 sigma of such means off it (sigma measured on the plane): a channel's 8 mm floor at 0.8-1 m went with the table; channel MHF1 seed 0 0.838 -> 0.923, fresh seeds 317 / 331 0.789 / 0.832 -> 0.927 / 0.916; held-out tee 0 / 61 0.928 / 0.976 -> 0.920 / 0.957", 0.0, 0.1)
+    shape_plane_thresh: float = param(0.004, "shape ppf: metres: a point is on a support plane within this + 3 sigma_z of it (the SIFT path's plane_thresh, 1 cm, would take the top of a 12 mm plate lying on the table for the table); a point in that band is still off the plane where the band points of the 5 x 5 sampled pixels about it lie on average more than this + 3 sigma of such means off it (sigma measured on the plane): a tray's or a channel's thin floor is not the table", 0.0, 0.1)
     shape_segment_link: float = param(2.0, "shape ppf: points closer than this many voxels are in one segment", 1.0, 10.0)
     shape_min_segment: int = param(15, "shape ppf: segments with fewer voxel points are ignored", 3, 100000)
-    shape_hidden_by_instances: bool = param(True, "shape: a pose rejected for too little support is judged again with its model points hidden behind the instances found in the frame left out (not those inside a found instance's box; at least shape_min_in_view of its points must remain), and added where no instance is. Untextured MHF1 seed 0 / 5 (tuned), 9 / 13 / 33 (held out), with the bracket's self-hiding before: bracket 0.815 -> 0.827 / 0.752 -> 0.752 / 0.742 -> 0.797 / 0.780 -> 0.780, 33: 0.805 (main 0.762); cylinders 0.985 -> 0.993 / 0.922 -> 0.964 / 0.900 -> 0.932 / 0.948 -> 0.996 / 0.964 -> 0.987; pallet 0.913 -> 0.919 / 0.920 -> 0.930 / same / same / same; false positives on distractor-only frames unchanged. Judging every rejected pose again, not only those short of support: bracket 0.850 / 0.805 on seeds 0 / 9, cylinders 0.996 / 0.959, but pallet latency p50 +8-13 ms", None, None)
-    shape_joined_clusters: int = param(1, "shape ppf, non-convex models only (an L bracket; boxes and cylinders show one connected surface): two segments side by side in the image across a depth step, that one object could span, also vote together, and their best this-many pose clusters are checked as hypotheses (not given to ECC); 0 = off. Bracket MHF1 seed 0 / 5 (tuned): 0.827 -> 0.890 / 0.752 -> 0.811 alone, 0.866 -> 0.925 / 0.773 -> 0.833 with shape_outline_by_instances; both, seeds 0 / 5 / held-out 9 / 13 / 33 / 41 / 47: 0.827 / 0.752 / 0.797 / 0.780 / 0.805 / 0.805 / 0.729 -> 0.925 / 0.833 / 0.852 / 0.849 / 0.923 / 0.839 / 0.811", 0, 100)
-    shape_rejected_pairs: bool = param(True, "shape (with shape_hidden_by_instances), non-convex models only (on pallet seed 9's distractor-only frames two carton-sized boxes, one flush against and partly hiding the other, passed as a pair just as two true brackets do): poses still rejected after that are judged again two at a time, each with the other taken as found besides the instances found (its pixels hide the other's points and leave its outline band); a pair is added when both pass and neither overlaps an instance kept. Two instances hiding each other or lying flush, neither found alone (bracket seed 5: one at support 1.0 whose outline runs onto its flush neighbour, the neighbour at 0.74 for what the first hides)", None, None)
-    shape_rejected_groups: bool = param(True, "shape, with shape_rejected_pairs (non-convex models only): the poses still rejected after the pairs, clear of every instance kept, are judged in groups of three or more whose pixels meet one another (a row of touching instances with flush tops, each rejected on its outline unless its neighbours on both sides are taken as found: channel seed 307 frame 9), each member with all the others taken as found; those that fail leave the group and the rest are judged again; added when three or more pass", None, None)
-    shape_hidden_by_any: bool = param(True, "shape (with shape_hidden_by_instances): poses still rejected after that (and shape_rejected_pairs) are judged again with every point behind a nearer measured surface left out, whatever it is, when the depth steps clearly in front of them where they go out of sight (in the depth image: at the hidden points next to the agreeing ones the depth at least 2 tolerances nearer than at those, median), and added where no instance is. Instances behind a distractor (bracket seeds 13 / 151: support 0.65-0.79 at the ground-truth pose, nothing else wrong); where a pose is sunk into a distractor its surface goes on smoothly instead (9-15 mm there against 23-113 mm)", None, None)
-    shape_residual_votes: bool = param(True, "shape ppf, non-convex models only: after the acceptance passes, the segments the instances found touch are voted again without those instances' points (cut into connected segments anew), and each new segment's best shape_segment_clusters clusters are refined and judged (also with the instances found hiding them), added where no instance is. A bracket in one segment with its neighbours pairs its references with their points: missed brackets that pass every check at their true pose had 0-3 right references of 40-60 in the frame's votes, 11-32 voted over their own points alone (bracket seed 157). Bracket MHF1 seeds 5 / 9 / 157 / 163 / 211 (tuned) 0.850 / 0.891 / 0.868 / 0.892 / 0.889 -> 0.874 / 0.903 / 0.887 / 0.911 / 0.904, fresh 701 / 709 / 719 / 727 / 733 / 739: 484 -> 493 hits; channel 0 / 5 / 9 / 743 +3 / +1 / +2 / +3 hits, tee, stairs the same or better; no false positive; about 9 ms CPU a bracket frame (session 16)", None, None)
-    shape_outline_by_instances: bool = param(True, "shape (with shape_hidden_by_instances): a pose rejected by the free-space or outline check is judged again too, its outline band's pixels on the instances found left out (a neighbour flush with it continues its face there: no larger surface), and added where no instance is. MHF1 seed 0 / 5 with the bracket's joined votes: bracket 0.890 -> 0.925 / 0.811 -> 0.833, cylinders 0.993 -> 0.996 / same, pallet 0.919 -> 0.927 / same; false positives on distractor-only frames unchanged", None, None)
-    shape_faces: bool = param(True, "shape ppf, convex models with a face that has a long axis (a box; not a cylinder): the segments' flat patches whose outline (second moments) is that of a model face (a carton's top seen whole) give pose hypotheses, and a hypothesis near such a patch is moved onto it before ICP (a face seen alone holds ICP in its plane nowhere, and its point pairs differ only in their distance; rgbd/faces.py). Pallet hits seeds 0 / 5 / 9 / 13 / 33 / 41: 75 / 76 / 74 / 72 / 63 / 77 -> 83 / 82 / 84 / 84 / 79 / 83 (with the selection by evidence: 83 / 83 / 84 / 84 / 81 / 83); cylinders and bracket unchanged", None, None)
-    shape_rescues_per_place: int = param(3, "shape: of the refined poses the checks reject (none of them on a kept pose's place), only this many on one place (their boxes overlapping beyond max_overlap; those overhanging space seen empty, free >= 0.02, and the others each this many), the best fits (support - free), get the further tries (moved onto their outline's patch; for non-convex models the second look, turned starts and held look); 0 = all. Several hypotheses refined onto one distractor, or onto one instance they all miss, find there what the best of them finds: bracket seed 0 had 36 such poses a frame on 7 places, channel seed 1607 34 on 10. With 3: the tries' CPU a frame bracket 0 / 5 48 -> 38 / 51 -> 40 ms, channel 0 / 631 / 1607 65 -> 56 / 98 -> 89 / 179 -> 158 ms (3-4 % of a frame's CPU); MHF1 the same on 40 runs (the 24 seeds of session 20, 16 fresh bracket and channel seeds; session 21)", 0, 1000)
-    shape_second_look: bool = param(True, "shape, non-convex models only (an L bracket): a refined pose rejected while overhanging space seen empty (free >= 0.02, support and support - free >= 0.6) is aligned again by projective point-to-plane ICP (each model point with the depth pixel on its ray: no pairs across the two plates where they meet, which left nearest-point ICP 4-6 deg off), judged again when the depth agrees better, and added where no instance is. Bracket MHF1, with shape_reject_through_support off, seeds 5 / 9 / 13 (tuned), 0, 113 / 127 / 139 (held out), 151 / 157 / 163 (fresh): 0.833 / 0.852 / 0.849 / 0.925 / 0.824 / 0.932 / 0.913 / 0.714 / 0.808 / 0.882 -> 0.829 / 0.885 / 0.867 / 0.946 / 0.862 / 0.944 / 0.913 / 0.764 / 0.832 / 0.887", None, None)
-    shape_residual_rejected: bool = param(True, "shape ppf, with shape_residual_votes: the residual votes also leave out the points of the rejected poses the depth supports (shape_min_support), the most evident first, each clear of those before it (max_overlap): an instance in one segment with flush neighbours that were all rejected (on their outlines onto it) had no hypothesis, its references paired with the neighbours' points (channel seed 2251 frame 6: 2 right of 64; voted over its own points, 12 of 65); voted besides the votes over the found instances' leftovers, not instead (in place of them: channel 0 -2 hits, bracket 2366 -2). Channel seed 2251 0.965 -> 0.985, held-out 2363 0.972 -> 0.991, 12 other seeds the same, no false positive; 5-11 ms CPU a frame (session 22)", None, None)
-    shape_climbed_pairs: bool = param(True, "shape ppf, with shape_residual_rejected and shape_rejected_pairs: of the poses the residual votes give beside a supported rejected pose that does not overhang space seen empty (free < 0.02: rejected for what a neighbour explains), refined and rejected, the best fit on each place with that pose's pixels hiding them, when those hide some of it and the rest agrees or overhangs (the held look's gate), is climbed by turned starts (shape_turned_starts, halved twice when none is better; within the vote clusters' bounds) while the depth agrees better with it so hidden, then judged in a pair with that pose. A channel half hidden by its flush neighbour (rejected on its outline onto it) had fits 2-12 deg off about its top's normal that nearest-point ICP neither turns nor holds along its length: channel seed 2141 0.894 -> 0.977 (79 -> 85 hits), held-out 2433 0.980 -> 0.988, 13 other held-out channel and bracket seeds (2402-2449) and 8 others the same, no false positive (without the overhang gate channel 2404 gained a pose slid 27 mm); the step's CPU 0-14 ms a frame (session 23)", None, None)
-    shape_turned_starts: float = param(10.0, "shape, with shape_second_look (non-convex models): a pose still rejected after its second look, though the depth supports it (shape_min_support), is started again from itself turned by +- this many degrees about each of the model's axes (through its visible surface's centre), 3 ICP rounds each; the start the depth agrees with best gets the remaining rounds, is judged and added where no instance is. Standing brackets that nearest-point ICP left 4-12 deg / 1 cm off in the base plate's plane (free 0.1-0.2): replayed, 3 of 4 of seed 13's reached their pose from one of the six starts. Bracket MHF1 seeds 13 / 151 / 5 (tuned), every round from every start and no support gate: alone 0.879 / 0.841 / 0.829 -> 0.883 / 0.841 / 0.829, with shape_segment_clusters 6 0.887 / 0.855 / 0.834 (refinement p50 on seed 0 22 -> 57-66 ms; as now 38 ms); 0 = off (session 14)", 0.0, 90.0)
-    shape_reject_through_support: bool = param(True, "shape ppf: drop a pose whose model reaches more than 2 voxels through the frame's largest support plane (the plane piece with the largest area removed, taken as unbounded: the table or floor): the depth check counts what lies behind the table's surface as hidden, and a bracket turned over with its upright plate sunk into the table, or a bracket's upright fitted onto a block's top, passed. Bracket false positives on distractor-only frames, seed 0: 1 -> 0; cylinders seed 9 MHF1 0.959 -> 0.982 (MHP 1.0), cylinders and pallet seeds 0 / 5 / 13, pallet 9 unchanged. Off where the largest plane is not what objects stand on and objects lie beyond its extension", None, None)
-    shape_pierce_every_plane: bool = param(True, "shape ppf, with shape_reject_through_support: the model may reach through none of the support planes a large piece of which the frame shows (the floor and a pallet's top on it, a table and a wall), not only the largest: a carton fitted (tilted 2.5 deg) onto a crate's top on a pallet reached 4 cm through the pallet's top, where the crate on it is seen", None, None)
-    shape_min_noise_agreement: float = param(0.5, "shape: of the model points that agree with the depth (within the depth tolerance, whose floor of shape_depth_tolerance or 0.8 voxel is many sigma near the camera), at least this share must agree within the depth noise (3 sigma at the object's distance, at least 2 mm): the object's surface is where the depth is, not a shape that passes near it (a cylinder's side laid over a block's top and front: 0.35; true cylinders and brackets of seeds 0 / 5: 0.59-1.0); 0 = off", 0.0, 1.0)
+    shape_hidden_by_instances: bool = param(True, "shape: a pose rejected for too little support is judged again with its model points hidden behind the instances found in the frame left out (not those inside a found instance's box; at least shape_min_in_view of its points must remain), and added where no instance is", None, None)
+    shape_joined_clusters: int = param(1, "shape ppf, non-convex models only (an L bracket; boxes and cylinders show one connected surface): two segments side by side in the image across a depth step, that one object could span, also vote together, and their best this-many pose clusters are checked as hypotheses (not given to ECC); 0 = off", 0, 100)
+    shape_rejected_pairs: bool = param(True, "shape (with shape_hidden_by_instances), non-convex models only: poses still rejected after that are judged again two at a time, each with the other taken as found besides the instances found (its pixels hide the other's points and leave its outline band); a pair is added when both pass and neither overlaps an instance kept: two instances hiding each other or lying flush, neither found alone. Not for convex models: two carton-sized distractor boxes, one flush against the other, pass as a pair too", None, None)
+    shape_rejected_groups: bool = param(True, "shape, with shape_rejected_pairs (non-convex models only): the poses still rejected after the pairs, clear of every instance kept, are judged in groups of three or more whose pixels meet one another (a row of touching instances with flush tops, each rejected on its outline unless its neighbours on both sides are taken as found), each member with all the others taken as found; those that fail leave the group and the rest are judged again; added when three or more pass", None, None)
+    shape_hidden_by_any: bool = param(True, "shape (with shape_hidden_by_instances): poses still rejected after that (and shape_rejected_pairs) are judged again with every point behind a nearer measured surface left out, whatever it is, when the depth steps clearly in front of them where they go out of sight (in the depth image: at the hidden points next to the agreeing ones the depth at least 2 tolerances nearer than at those, median), and added where no instance is: an instance behind a distractor that is not found. Where a pose is sunk into a surface, that surface goes on smoothly instead", None, None)
+    shape_residual_votes: bool = param(True, "shape ppf, non-convex models only: after the acceptance passes, the segments the instances found touch are voted again without those instances' points (cut into connected segments anew), and each new segment's best shape_segment_clusters clusters are refined and judged (also with the instances found hiding them), added where no instance is: an instance in one segment with its neighbours pairs most of its references with their points", None, None)
+    shape_outline_by_instances: bool = param(True, "shape (with shape_hidden_by_instances): a pose rejected by the free-space or outline check is judged again too, its outline band's pixels on the instances found left out (a neighbour flush with it continues its face there: no larger surface), and added where no instance is", None, None)
+    shape_faces: bool = param(True, "shape ppf, convex models with a face that has a long axis (a box; not a cylinder): the segments' flat patches whose outline (second moments) is that of a model face (a carton's top seen whole) give pose hypotheses, and a hypothesis near such a patch is moved onto it before ICP (a face seen alone holds ICP in its plane nowhere, and its point pairs differ only in their distance; rgbd/faces.py)", None, None)
+    shape_rescues_per_place: int = param(3, "shape: of the refined poses the checks reject (none of them on a kept pose's place), only this many on one place (their boxes overlapping beyond max_overlap; those overhanging space seen empty, free >= 0.02, and the others each this many), the best fits (support - free), get the further tries (moved onto their outline's patch; for non-convex models the second look, turned starts and held look); 0 = all. Several hypotheses refined onto one distractor, or onto one instance they all miss, find there what the best of them finds", 0, 1000)
+    shape_second_look: bool = param(True, "shape, non-convex models only (an L bracket): a refined pose rejected while overhanging space seen empty (free >= 0.02, support and support - free >= 0.6) is aligned again by projective point-to-plane ICP (each model point with the depth pixel on its ray: no pairs across the two plates where they meet, which leave nearest-point ICP a few degrees off), judged again when the depth agrees better, and added where no instance is", None, None)
+    shape_residual_rejected: bool = param(True, "shape ppf, with shape_residual_votes: the residual votes also leave out the points of the rejected poses the depth supports (shape_min_support), the most evident first, each clear of those before it (max_overlap): an instance in one segment with flush neighbours that were all rejected (on their outlines onto it) has no hypothesis otherwise, its references paired with the neighbours' points. Voted besides the votes over the found instances' leftovers, not instead", None, None)
+    shape_climbed_pairs: bool = param(True, "shape ppf, with shape_residual_rejected and shape_rejected_pairs: of the poses the residual votes give beside a supported rejected pose that does not overhang space seen empty (free < 0.02: rejected for what a neighbour explains), refined and rejected, the best fit on each place with that pose's pixels hiding them, when those hide some of it and the rest agrees or overhangs (the held look's gate), is climbed by turned starts (shape_turned_starts, halved twice when none is better; within the vote clusters' bounds) while the depth agrees better with it so hidden, then judged in a pair with that pose: an instance half hidden by its flush neighbour has fits a few degrees off about its top's normal that nearest-point ICP neither turns nor holds along its length", None, None)
+    shape_turned_starts: float = param(10.0, "shape, with shape_second_look (non-convex models): a pose still rejected after its second look, though the depth supports it (shape_min_support), is started again from itself turned by +- this many degrees about each of the model's axes (through its visible surface's centre), 3 ICP rounds each; the start the depth agrees with best gets the remaining rounds, is judged and added where no instance is; 0 = off", 0.0, 90.0)
+    shape_reject_through_support: bool = param(True, "shape ppf: drop a pose whose model reaches more than 2 voxels through the frame's largest support plane (the plane piece with the largest area removed, taken as unbounded: the table or floor): the depth check counts what lies behind the table's surface as hidden, so a bracket turned over with its upright plate sunk into the table would pass it. Off where the largest plane is not what objects stand on and objects lie beyond its extension", None, None)
+    shape_pierce_every_plane: bool = param(True, "shape ppf, with shape_reject_through_support: the model may reach through none of the support planes a large piece of which the frame shows (the floor and a pallet's top on it, a table and a wall), not only the largest: a carton fitted onto a crate's top on a pallet can reach through the pallet's top while the largest plane is the floor", None, None)
+    shape_min_noise_agreement: float = param(0.5, "shape: of the model points that agree with the depth (within the depth tolerance, whose floor of shape_depth_tolerance or 0.8 voxel is many sigma near the camera), at least this share must agree within the depth noise (3 sigma at the object's distance, at least 2 mm): the object's surface is where the depth is, not a shape that passes near it; 0 = off", 0.0, 1.0)
     shape_min_visible: int = param(20, "shape: an instance needs at least this many model points visible in the image with valid depth", 3, 100000)
-    shape_gravity_tolerance_deg: float = param(20.0, "shape ppf, when the frame comes with the direction of gravity (the camera's accelerometer, or TF): the support \"below\" the objects (the outline check leaves out what lies no higher than an object's lowest point; shape_reject_through_support without every plane) is the largest removed plane whose normal is within this of up, not a larger wall; none within it: the largest, as without gravity. 20 deg: a hand-held camera's accelerometer averaged over 0.1 s is 2-5 deg off (bias, the hand's motion), up to ~14 deg on a sharp turn of the synthetic sweep; level supports lie within a degree or two, walls 70-90 deg off. Pallet seed 269: false positives on distractor-only frames 3 -> 0; seeds 0 / 5 / 283 / 293 / 301 / 307 of pallet, cylinders and bracket unchanged", 1.0, 60.0)
+    shape_gravity_tolerance_deg: float = param(20.0, "shape ppf, when the frame comes with the direction of gravity (the camera's accelerometer, or TF): the support \"below\" the objects (the outline check leaves out what lies no higher than an object's lowest point; shape_reject_through_support without every plane) is the largest removed plane whose normal is within this of up, not a larger wall; none within it: the largest, as without gravity. A hand-held camera's accelerometer averaged over 0.1 s is a few degrees off, more on a sharp turn; level supports lie within a degree or two, walls 70-90 deg off", 1.0, 60.0)
 
 
 def rgbd_ecc_config() -> ECCConfig:
@@ -154,6 +157,7 @@ class PipelineConfig:
     """All settings of the per-frame pipeline; the ROS node declares one parameter per leaf."""
     frontend: FrontEndConfig = field(default_factory=FrontEndConfig)
     ecc: ECCConfig = field(default_factory=rgbd_ecc_config)
+    workspace: WorkspaceConfig = field(default_factory=WorkspaceConfig)
 
 
 @dataclass
@@ -187,6 +191,7 @@ class FrameResult:
     scene_xyz: np.ndarray               # (N, 3) float32 lifted scene keypoints, camera frame
     labels: np.ndarray                  # (N,) int64: instance id or -1 (outlier)
     num_keypoints: int = 0              # SIFT keypoints detected in the frame
+    deadline_cut: bool = False          # the shape search stopped at frontend.shape_deadline_ms
 
     @staticmethod
     def empty(timings_ms: dict[str, float], num_keypoints: int = 0) -> "FrameResult":
@@ -256,9 +261,27 @@ class InstanceRegistration:
         # supports (support_planes); several models searched with one detect: the largest.
         self.object_reach = float(np.linalg.norm(model.extent))
         self._rays, self._rays_key = None, None
+        self.workspace = Workspace.from_config(self.config.workspace)
+        self._region = None           # workspace_pixels' last (depth, intrinsics, pixels)
+
+    def workspace_pixels(self, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> np.ndarray | None:
+        """(H, W) bool, read-only: the pixels inside the workspace (``rgbd/workspace.py``), or
+        None without one. The one place the workspace applies: every front end keeps only
+        these of its keypoints and points (after finding the frame's support planes on the
+        whole depth range, which a box cut through a table would hide from it), so nothing
+        is hypothesised outside it. Kept for the frame (both front ends of ``both`` ask)."""
+        if self.workspace is None:
+            return None
+        kept = self._region
+        if kept is not None and kept[0] is depth_m and kept[1] is intrinsics:
+            return kept[2]
+        inside = self.workspace.pixels(depth_m, intrinsics)
+        inside.flags.writeable = False
+        self._region = (depth_m, intrinsics, inside)
+        return inside
 
     def _search_mask(self, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> np.ndarray:
-        """(H, W) uint8: pixels with depth in range that are not on a removed plane, dilated
+        """(H, W) uint8: pixels with depth in range, inside the workspace, that are not on a removed plane, dilated
         by the depth window so that keypoints next to a hole keep their chance."""
         fe = self.config.frontend
         valid = (depth_m >= fe.depth_min) & (depth_m <= fe.depth_max)
@@ -272,6 +295,9 @@ class InstanceRegistration:
                 # n . (u, v, 1) z + d, the ray's dot product separable into a row and a column.
                 along = (np.float32(n[0]) * u)[None, :] + (np.float32(n[1]) * v + np.float32(n[2]))[:, None]
                 valid &= along * depth_m + np.float32(d) > fe.plane_thresh
+        inside = self.workspace_pixels(depth_m, intrinsics)
+        if inside is not None:
+            valid &= inside
         r = max(fe.depth_window // 2, 1)
         return cv2.dilate(valid.astype(np.uint8), np.ones((2 * r + 1, 2 * r + 1), np.uint8))
 
@@ -311,7 +337,11 @@ class InstanceRegistration:
             free_space_share(T, *self._free_surface, depth, intrinsics, T[:3, 3], fe.free_tolerance, 0.1)
         if self._shape is not None:
             depth, intrinsics, _ = self._shape.warm_up_frame()
-            self._register_frame_shape(depth, intrinsics)
+            workspace, self.workspace = self.workspace, None     # the made-up frame lies anywhere
+            try:
+                self._register_frame_shape(depth, intrinsics)
+            finally:
+                self.workspace = workspace
 
     def register_frame(self, rgb: np.ndarray, depth_m: np.ndarray, intrinsics: CameraIntrinsics,
                        gravity: np.ndarray | None = None) -> FrameResult:
@@ -468,11 +498,14 @@ class InstanceRegistration:
         t = {s: 0.0 for s in STAGES}
         t["shape"] = 0.0
         t0 = time.perf_counter()
-        if search is None and fe.shape_features != "ppf":
-            search = self._search_mask(depth_m, intrinsics)      # ppf finds its own region
+        within = None
+        if fe.shape_features == "ppf":
+            within = self.workspace_pixels(depth_m, intrinsics)     # ppf removes its own planes first
+        elif search is None:
+            search = self._search_mask(depth_m, intrinsics)
         t3 = time.perf_counter()
         t["lifting"] = (t3 - t0) * 1e3
-        cloud = self._shape.frame_cloud(depth_m, intrinsics, None if search is None else search > 0, gravity)
+        cloud = self._shape.frame_cloud(depth_m, intrinsics, None if search is None else search > 0, gravity, within)
         self._shape.keep_frame(depth_m, intrinsics)        # the acceptance passes redraw the same poses
         t4 = time.perf_counter()
         # ECC does not need the vote clusters' poses (ppf): it runs in the shared pool as
@@ -511,6 +544,8 @@ class InstanceRegistration:
             hypotheses += recover_small_instances(src, tgt, leftover, self._shape.diameter, self._shape.voxel,
                                                   fe.recover_min_inliers, thresh)
         rejected, second = [], []
+        # The search's budget: from here, where the hypotheses are taken up best first.
+        self._shape.set_deadline(time.perf_counter() + fe.shape_deadline_ms / 1e3 if fe.shape_deadline_ms > 0 else None)
         checked = self._shape.refine_and_check(hypotheses, cloud, depth_m, intrinsics, started, offset, rejected,
                                                second, overlaps=self._overlapping)
         chosen = self._one_per_box(checked, frame=(depth_m, intrinsics))
@@ -519,39 +554,44 @@ class InstanceRegistration:
             # no instance is: ranked with the rest, a wrong one polished onto a bracket took
             # the place of its right pose left 4 deg off (seed 0).
             chosen = self._one_per_box(chosen + second, first=len(chosen), frame=(depth_m, intrinsics))
-        chosen = self._accept_rejected(chosen, rejected, hypotheses, cloud, depth_m, intrinsics)
+        if not self._shape.past_deadline():
+            chosen = self._accept_rejected(chosen, rejected, hypotheses, cloud, depth_m, intrinsics)
         self._shape.keep_frame(None)
+        cut = self._shape.deadline_cut
+        self._shape.set_deadline(None)
         instances = [Instance(i, c[0], c[2], float(c[1]), self.model.name) for i, c in enumerate(chosen)]
         labels, _ = assign_nearest(src, tgt, [c[0] for c in chosen], self._shape_ecc.config.inlier_thresh)
         t["refinement"] = (time.perf_counter() - t6) * 1e3
         t["total"] = (time.perf_counter() - t0) * 1e3
         uv = project_points(tgt, intrinsics)
-        return FrameResult(instances, t, uv, src.astype(np.float32), tgt.astype(np.float32), labels, 0)
+        return FrameResult(instances, t, uv, src.astype(np.float32), tgt.astype(np.float32), labels, 0,
+                           deadline_cut=cut)
 
     def _accept_rejected(self, chosen, rejected, hypotheses, cloud, depth_m, intrinsics) -> list:
         """``chosen`` (the instances the refinement keeps) and what the acceptance passes add
         of the ``rejected`` poses (and of the residual votes over ``hypotheses``' segments)."""
         fe = self.config.frontend
+        late = self._shape.past_deadline      # each pass only while the frame's deadline has not passed
         if fe.shape_hidden_by_instances and chosen and rejected:
             # Poses rejected for too little support, perhaps for what the instances found
             # hide of them, or by the outline, where a found one is flush with them: judged
             # again with those points and pixels left out, added where no instance is.
             chosen, rejected = self._accept_behind(chosen, rejected, cloud, depth_m, intrinsics)
         judged_with = {id(c) for c in chosen}
-        if fe.shape_hidden_by_instances and fe.shape_rejected_pairs and len(rejected) >= 2:
+        if fe.shape_hidden_by_instances and fe.shape_rejected_pairs and len(rejected) >= 2 and not late():
             chosen = self._accept_pairs(chosen, rejected, cloud, depth_m, intrinsics)
-            if fe.shape_rejected_groups:
+            if fe.shape_rejected_groups and not late():
                 chosen = self._accept_groups(chosen, rejected, cloud, depth_m, intrinsics)
         provisional = []
-        if fe.shape_hidden_by_instances and fe.shape_hidden_by_any and rejected:
+        if fe.shape_hidden_by_instances and fe.shape_hidden_by_any and rejected and not late():
             before = chosen
             chosen = self._accept_hidden(chosen, rejected, cloud, depth_m, intrinsics)
             provisional = chosen[len(before):]
-        if fe.shape_hidden_by_instances and self._shape.non_convex and rejected:
+        if fe.shape_hidden_by_instances and self._shape.non_convex and rejected and not late():
             chosen = self._accept_turned(chosen, rejected, cloud, depth_m, intrinsics)
-        if fe.shape_residual_votes and self._shape.non_convex and chosen:
+        if fe.shape_residual_votes and self._shape.non_convex and chosen and not late():
             chosen = self._accept_residual(chosen, hypotheses, cloud, depth_m, intrinsics, provisional, rejected)
-        if fe.shape_hidden_by_instances and rejected and any(id(c) not in judged_with for c in chosen):
+        if fe.shape_hidden_by_instances and rejected and any(id(c) not in judged_with for c in chosen) and not late():
             # The rejected poses judged again with the instances the later passes found (those
             # whose checks look where one of them is seen): a channel rejected on its outline
             # onto a flush neighbour found only by the residual votes (channel seed 2251 frames
@@ -908,7 +948,7 @@ class InstanceRegistration:
         t = {s: textured.timings_ms.get(s, 0.0) + shaped.timings_ms.get(s, 0.0) for s in textured.timings_ms}
         t["shape"] = shaped.timings_ms.get("shape", 0.0)
         return FrameResult(instances, t, textured.keypoints_uv, textured.model_xyz, textured.scene_xyz,
-                           textured.labels, textured.num_keypoints)
+                           textured.labels, textured.num_keypoints, deadline_cut=shaped.deadline_cut)
 
     def _finalise(self, src, tgt, transforms, depth_m=None, intrinsics=None) -> tuple[list[Instance], np.ndarray]:
         """Assign correspondences to their nearest instance; drop instances that end up too

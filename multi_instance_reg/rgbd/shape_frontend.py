@@ -11,6 +11,7 @@ refinement and depth check of the poses ECC finds from them. No ROS, no colour.
 from __future__ import annotations
 
 import threading
+import time
 from dataclasses import dataclass, replace
 from typing import NamedTuple
 
@@ -122,6 +123,8 @@ class ShapeFrontEnd:
     def __init__(self, model: ObjectModel, fe):
         self._frame_memo = None       # keep_frame's (depth, intrinsics, {poses: image}, {(pose, occluders): check})
         self._found_test = None       # _on_found's last (poses' bytes, test)
+        self._deadline = None         # set_deadline's time.perf_counter() bound, or None
+        self.deadline_cut = False     # whether past_deadline turned work away since set_deadline
         if not model.has_shape:
             raise InputError("the object model has no shape data (frontend.correspondences shape/both); "
                              "build it from a mesh with `mireg build-model --mesh FILE`")
@@ -137,6 +140,13 @@ class ShapeFrontEnd:
         # and the depth check.
         self._surface, self._surface_normals = oriented_downsample(self._model_pts, model.shape_normals, self.voxel)
         self.diameter = float(np.linalg.norm(model.extent))
+        # Metres: the farthest the depth check can tell the object's shape from any surface
+        # there: its tolerance (3 sigma of the depth noise, sigma = shape_depth_noise x z^2)
+        # at most shape_max_noise_share of the object's diameter. Beyond, every surface of
+        # its size agrees (IC-BIN, a room 2-3 m behind a bin of cups: 30-56 mm against a
+        # cup's 45 mm radius, support 0.8-1.0 on clutter). No points from there.
+        k, share = fe.shape_depth_noise, fe.shape_max_noise_share
+        self.resolvable_depth = float(np.sqrt(share * self.diameter / (3.0 * k))) if k > 0 and share > 0 else np.inf
         # The radius of the smallest ball about a point of the surface that holds the whole
         # object (0.49-0.61 of the box diagonal for the cartons, cylinders, brackets, channels,
         # tees and stairs): what a reference in a segment of several objects pairs with
@@ -243,13 +253,23 @@ class ShapeFrontEnd:
                        sampling_tolerance=max(base.sampling_tolerance, 0.6 * self.voxel),
                        spatial_sigma=1.2 * self.diameter, sampling="consistency")
 
-    def frame_cloud(self, depth_m: np.ndarray, intrinsics: CameraIntrinsics, search: np.ndarray,
-                    gravity: np.ndarray | None = None) -> FrameCloud:
-        """The frame's points where objects can be. ``search``: the pipeline's search region
-        (fpfh); ppf builds its own from the depth in range (``segment_cloud``). ``gravity``:
-        see ``segment_cloud``."""
+    def frame_cloud(self, depth_m: np.ndarray, intrinsics: CameraIntrinsics, search: np.ndarray | None,
+                    gravity: np.ndarray | None = None, within: np.ndarray | None = None) -> FrameCloud:
+        """The frame's points where objects can be, no farther than the depth where the
+        object's shape can be told (``resolvable_depth``). ``search``: (H, W) bool, the
+        pipeline's search region (fpfh: its planes removed, inside the workspace); None: the
+        depth within [depth_min, depth_max] (ppf: it removes the planes itself,
+        ``segment_cloud``). ``within``: (H, W) bool, the workspace's pixels (or None: no
+        workspace), kept of what is left once the planes are removed. ``gravity``: see
+        ``segment_cloud``."""
+        if search is None:
+            search = (depth_m >= self.fe.depth_min) & (depth_m <= self.fe.depth_max)
+        if np.isfinite(self.resolvable_depth):
+            search = search & (depth_m <= self.resolvable_depth)
         if self.features == "ppf":
-            return self.segment_cloud(depth_m, intrinsics, gravity)
+            return self.segment_cloud(depth_m, intrinsics, search, gravity, within)
+        if within is not None:
+            search = search & within
         # Every second pixel is plenty: the voxel is several pixel footprints wide.
         pts = scene_cloud(depth_m, intrinsics, search, self.voxel, stride=2)
         if len(pts) > self.fe.shape_max_points:
@@ -261,15 +281,15 @@ class ShapeFrontEnd:
         return FrameCloud(pts, normals, salient, desc[salient], cKDTree(pts),
                           grid=PointGrid(pts, normals, ICP_REACH * self.voxel))
 
-    def segment_cloud(self, depth_m: np.ndarray, intrinsics: CameraIntrinsics,
-                      gravity: np.ndarray | None = None) -> FrameCloud:
-        """Depth in range, minus the large pieces of dominant planes (floor, pallet top,
-        table), voxel-downsampled, with normals, cut into connected segments. ``gravity``
+    def segment_cloud(self, depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.ndarray,
+                      gravity: np.ndarray | None = None, within: np.ndarray | None = None) -> FrameCloud:
+        """The ``valid`` pixels' points minus the large pieces of dominant planes (floor,
+        pallet top, table), those of them ``within`` the workspace (pixels; None: all),
+        voxel-downsampled, with normals, cut into connected segments. ``gravity``
         (unit "up", camera frame; None: not known): the support "below" the objects
         (``cloud.up``) is the largest removed plane within ``shape_gravity_tolerance_deg`` of
         it, not a larger wall (``support_mask``)."""
         fe = self.fe
-        valid = (depth_m >= fe.depth_min) & (depth_m <= fe.depth_max)
         ground, planes, rest = [], [], []
         # Every second pixel's point off the supports (lifted once, in support_mask).
         support_mask(depth_m, intrinsics, valid, fe.shape_support_area * self._max_face_area,
@@ -277,6 +297,8 @@ class ShapeFrontEnd:
                      up=gravity, up_tolerance_deg=fe.shape_gravity_tolerance_deg, rest=rest,
                      face_heights=self._face_heights if fe.shape_keep_object_tops else None)
         pts = rest[0]
+        if within is not None:
+            pts = pts[within[rest[1][:, 0], rest[1][:, 1]]]
         pts = voxel_downsample(np.asarray(pts, np.float64), self.voxel)
         empty = FrameCloud(pts, np.zeros_like(pts), np.zeros(0, np.int64), np.zeros((0, 33), np.float32), None,
                            np.full(len(pts), -1, np.int64))
@@ -720,6 +742,10 @@ class ShapeFrontEnd:
         yet the checks reject (``_rescue``): ``_Plain``, or ``_refine``'s result when dropped
         before the judgement."""
         fe = self.fe
+        if self.past_deadline():
+            # Hypotheses are refined best first (ECC's clusters by size, then the vote
+            # clusters by their votes): past the frame's deadline the rest are left.
+            return None, None, 0.0, None
         first = min(3, fe.shape_icp_iterations)
         fit = lambda T: self._fit(T, depth_m, intrinsics)
 
@@ -763,7 +789,7 @@ class ShapeFrontEnd:
         first = min(3, fe.shape_icp_iterations)
         fit = lambda T: self._fit(T, depth_m, intrinsics)
         kept, T, support, free, T0, start = plain
-        if kept is not None:
+        if kept is not None or self.past_deadline():
             return _unrescued(plain)
         support0, free0 = support, free
         if support >= fe.shape_min_support:
@@ -987,6 +1013,18 @@ class ShapeFrontEnd:
             out.flags.writeable = False
             memo[2][key] = out
         return out
+
+    def set_deadline(self, at: float | None) -> None:
+        """Refine no further hypothesis once ``time.perf_counter()`` passes ``at`` (None: no
+        bound); ``deadline_cut`` says afterwards whether that turned any away."""
+        self._deadline, self.deadline_cut = at, False
+
+    def past_deadline(self) -> bool:
+        """Whether the frame's deadline has passed (and so work is turned away: counted)."""
+        if self._deadline is None or time.perf_counter() < self._deadline:
+            return False
+        self.deadline_cut = True
+        return True
 
     def keep_frame(self, depth_m: np.ndarray | None, intrinsics: CameraIntrinsics | None = None) -> None:
         """``instance_pixels``, ``every_pixel`` and ``depth_check`` of this depth image (and

@@ -111,6 +111,7 @@ class FrameCounters:
     no_camera_info: int = 0   # pairs skipped because no camera_info had arrived yet
     failed: int = 0           # pipeline raised on a frame, skipped
     detected: int = 0         # frames the detector (the full pipeline) ran on
+    deadline_cut: int = 0     # of those, frames whose shape search frontend.shape_deadline_ms stopped
     model_swaps: int = 0      # run-time changes of the models, done
     accel_received: int = 0   # accelerometer samples
     with_gravity: int = 0     # frames given the direction of gravity (the rest go without)
@@ -498,6 +499,8 @@ class InstanceRegistrationNode(Node):
             self.get_logger().error(f"the pipeline failed on a frame: {exc}", throttle_duration_sec=2.0)
             return None
         self._count("detected")
+        if result.deadline_cut:
+            self._count("deadline_cut")
         return result
 
     def _process(self, pair: _Pair, index: int) -> None:
@@ -521,7 +524,8 @@ class InstanceRegistrationNode(Node):
             return
         rgb, depth, intrinsics = frame
         t0 = time.perf_counter()
-        tracks = self._tracker.step(stamp_to_ns(pair.colour.header.stamp), depth, intrinsics)
+        # (The tracker logs it when the stamps go back and it ends every track.)
+        tracks = self._tracker.step(stamp_to_ns(pair.colour.header.stamp), depth, intrinsics, rgb)
         tracking_ms = round((time.perf_counter() - t0) * 1e3, 2)
         self._slot.put(_Frame(pair, rgb, depth, intrinsics, self._gravity(stamp_to_ns(pair.colour.header.stamp))))
         if self._publish(pair, tracks, timings_ms={"tracking": tracking_ms, "total": tracking_ms},

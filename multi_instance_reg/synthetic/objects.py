@@ -123,7 +123,22 @@ PROPS: dict[str, ObjectSpec] = {spec.name: spec for spec in (
     ObjectSpec("forearm", "cylinder", (0.09, 0.09, 0.45),
                (("side", "grass"), ("+z", "moon"), ("-z", "grass")),
                resting=(("+x", 1.0),), tint=(95, 120, 175)),
+    # The walls and floor of a plastic bin (layout "bin"): flat grey-blue, each panel a box
+    # of its own size (the flat texture stretches to any size).
+    ObjectSpec("bin_panel", "box", (0.4, 0.3, 0.012), _box_faces("flat", "flat", ("flat",) * 4),
+               resting=(("+z", 1.0),), tint=(88, 112, 140)),
+    # Furniture 2-3 m behind the table (background "clutter"): a cupboard, a bookshelf seen
+    # from the front (print on its front: book spines and papers), a desk, a stack of boxes.
+    ObjectSpec("cupboard", "box", (0.9, 0.45, 1.1), _box_faces("gravel", "gravel", ("gravel", "gravel", "gravel", "coins")),
+               resting=(("+z", 1.0),), tint=(160, 120, 80)),
+    ObjectSpec("bookshelf", "box", (0.9, 0.32, 1.8), _box_faces("gravel", "gravel", ("gravel", "gravel", "gravel", "text")),
+               resting=(("+z", 1.0),), tint=(205, 180, 140)),
+    ObjectSpec("desk", "box", (1.2, 0.7, 0.75), _box_faces("page", "gravel", ("gravel", "gravel", "gravel", "gravel")),
+               resting=(("+z", 1.0),), tint=(190, 170, 140)),
+    ObjectSpec("box_stack", "box", (0.6, 0.4, 0.8), _box_faces("astronaut", "gravel", ("chelsea", "coffee", "rocket", "camera")),
+               resting=(("+z", 1.0),), tint=(225, 205, 175)),
 )}
+FURNITURE = ("cupboard", "bookshelf", "desk", "box_stack")
 
 
 # Objects without texture, flat-coloured all over ("flat" faces), for the shape front end.
@@ -257,6 +272,41 @@ def object_mesh(spec: ObjectSpec):
     return mesh
 
 
+def textured_object_mesh(spec: ObjectSpec):
+    """A box object's mesh with its faces' pictures, as the renderer draws them: 4 vertices a
+    face, the face pictures side by side in one texture (an atlas), texture coordinates per
+    triangle corner. Other shapes: ``object_mesh`` (no colour)."""
+    mesh = object_mesh(spec)
+    if spec.shape != "box" or spec.parts:
+        return mesh
+    textures = object_textures(spec.name)
+    half = spec.half_extents
+    atlas_h = max(textures[f].shape[0] for f, _, _ in BOX_FACES)
+    atlas_w = sum(textures[f].shape[1] for f, _, _ in BOX_FACES)
+    atlas = np.zeros((atlas_h, atlas_w, 3), np.uint8)
+    verts, tris, uv, col = [], [], [], 0
+    for face, normal, up in BOX_FACES:
+        tex = textures[face]
+        th, tw = tex.shape[:2]
+        atlas[:th, col:col + tw] = tex
+        n, upv = np.asarray(normal, np.float64), np.asarray(up, np.float64)
+        right = np.cross(upv, n)            # the picture's rows run along it, seen from outside
+        width, height = 2 * np.abs(right) @ half, 2 * np.abs(upv) @ half
+        centre = n * (np.abs(n) @ half)
+        # Corners at picture (column, row) = (0, 0), (w, 0), (w, h), (0, h): top left first.
+        base = len(verts)
+        for s_, t_ in ((0, 0), (1, 0), (1, 1), (0, 1)):
+            verts.append(centre + (s_ - 0.5) * width * right - (t_ - 0.5) * height * upv)
+        corner_uv = [((col + s_ * tw) / atlas_w, 1.0 - t_ * th / atlas_h) for s_, t_ in ((0, 0), (1, 0), (1, 1), (0, 1))]
+        for a, b, c in ((0, 2, 1), (0, 3, 2)):      # counter-clockwise seen from outside
+            tris.append([base + a, base + b, base + c])
+            uv.append([corner_uv[a], corner_uv[b], corner_uv[c]])
+        col += tw
+    from ..meshes import TriangleMesh
+
+    return TriangleMesh(np.array(verts), np.array(tris, np.int64), corner_uv=np.array(uv, np.float32), texture=atlas)
+
+
 # --------------------------------------------------------------------------------------------
 # Textures
 
@@ -353,7 +403,7 @@ def object_textures(name: str) -> dict[str, np.ndarray]:
 
 
 # Environment surfaces: (metres covered along rows, along columns, texels per metre).
-ENVIRONMENT_SIZE = {"table": (3.2, 3.2, 800.0), "wall": (6.0, 2.8, 512.0)}
+ENVIRONMENT_SIZE = {"table": (3.2, 3.2, 800.0), "wall": (6.0, 2.8, 512.0), "floor": (6.0, 6.0, 200.0)}
 
 
 @functools.lru_cache(maxsize=None)
@@ -365,6 +415,10 @@ def environment_texture(kind: str) -> np.ndarray:
         tile = load_picture("gravel").astype(np.float32)
         tile = 0.55 * tile + 0.45 * 150.0
         tile = (tile * (np.array([200, 175, 150], np.float32) / 255.0)).astype(np.uint8)
+    elif kind == "floor":  # a darker grey floor (the room behind the table, background "clutter")
+        tile = load_picture("gravel").astype(np.float32)
+        tile = (0.7 * tile + 0.3 * 90.0) * (np.array([150, 150, 160], np.float32) / 255.0)
+        tile = tile.astype(np.uint8)
     elif kind == "wall":  # painted brick
         tile = load_picture("brick").astype(np.float32)
         tile = (0.6 * tile + 0.4 * 200.0) * (np.array([235, 225, 215], np.float32) / 255.0)

@@ -10,6 +10,17 @@ Python API (what tests, the demo and the tools call):
   some are occluded or leave the view. For tracking, ``motion="static"`` holds the camera
   still, ``motion="pan"`` pans it slowly along objects spread in a strip (instances enter and
   leave the view), and ``occluder=True`` passes an arm in front (``occluder_path``).
+  As recorded bags are (tracker benchmark, issue 35): ``motion="shaky_pan"`` a hand-held
+  30 deg arc in 5 s with shake new in every frame (``ShakyPanPlan``), ``motion="jumps"`` an
+  arm moving in bursts of 3-8 deg per 1/30 s (``jumps_trajectory``); ``frame_rate`` (Hz,
+  default 30: the paths are functions of time, so each frame moves further at a lower
+  rate), ``drop`` (share of frames left out in runs of 1-3: gaps in the stamps) and ``loop``
+  (the frames twice, the stamps jumping back once; ``frame_timeline``). As real cells look:
+  ``layout="flush"`` boxes packed face to face (the ``flush`` arrangement), ``layout="bin"``
+  everything dropped into a bin at random orientations (``bin_fixtures``, the ``pile``
+  arrangement), ``motion="overhead"`` a camera above them, ``background="clutter"`` a room
+  2-3 m behind the table (``clutter_primitives``), ``sensor="realistic"`` (and
+  ``randomise=True``) the depth of :mod:`.sensor`'s realistic profile.
   ``object_name`` may also be a list of names (a mixed scene): K instances of each, labelled
   object after object (the first object's K, then the next's); ``SyntheticScene.instance_objects``
   names each instance's object, and /ground_truth/object carries it as ``instance_objects``.
@@ -24,7 +35,8 @@ Python API (what tests, the demo and the tools call):
   distractor), ``visibility`` (K,) visible fraction of each instance's silhouette, ``stamp_ns``.
 - ``generate_scene_bag(out_path, object_name=..., instances=..., distractors=..., frames=...,
   seed=..., storage="sqlite3", resolution="640x480", preview_dir=None, motion="sweep",
-  occluder=False) -> BagSummary`` and
+  occluder=False, frame_rate=30.0, drop=0.0, loop=False, sensor="d455", randomise=False,
+  layout="table", background="wall") -> BagSummary`` and
   ``generate_capture_bag(out_path, object_name, seed=0, views=10, ...)``: the same written as a
   rosbag2 with realsense-ros topics plus /ground_truth/{poses,object,visibility}
   (:mod:`multi_instance_reg.datasets.bag_writer`).
@@ -36,20 +48,21 @@ from __future__ import annotations
 
 import functools
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from ..errors import InputError
 from ..messages import CameraIntrinsics
 from ..transforms import invert_transform, make_transform
-from .objects import (BOX_FACES, DEFAULT_OBJECT, ENVIRONMENT_SIZE, OBJECTS, PROPS, ObjectSpec,
+from .objects import (BOX_FACES, DEFAULT_OBJECT, ENVIRONMENT_SIZE, FURNITURE, OBJECTS, PROPS, ObjectSpec,
                       environment_texture, get_object, object_textures)
 from .preview import box_corners
 from .render import AMBIENT, DIFFUSE, LIGHT_DIR_WORLD, CylinderSide, Quad, Renderer, Texture
-from .sensor import d455_intrinsics, simulate_colour, simulate_depth
+from .sensor import SENSOR_PROFILES, SensorProfile, d455_intrinsics, sensor_profile, simulate_colour, simulate_depth
 
 FRAME_RATE_HZ = 30.0
 START_STAMP_NS = 1_700_000_000 * 1_000_000_000
@@ -60,7 +73,11 @@ _DISTRACTOR_LABEL0 = 1000        # internal render labels of distractors (and of
 TABLE_HALF_X = 1.6
 TABLE_FRONT_Y = -2.4
 MIN_CAMERA_CLEARANCE_M = 0.32    # camera to any object surface (the depth minimum is 0.3 m)
-MOTIONS = ("sweep", "static", "pan")
+MOTIONS = ("sweep", "static", "pan", "shaky_pan", "jumps", "overhead")
+LAYOUTS = ("table", "flush", "bin")
+BACKGROUNDS = ("wall", "clutter")
+MIN_FRAME_RATE_HZ, MAX_FRAME_RATE_HZ = 1.0, 90.0
+MAX_DROP = 0.5                   # share of the frames that ``drop`` may leave out
 # The accelerometer (sensor_msgs/Imu on realsense-ros' accel/sample topic): a D455 samples it
 # at 100 or 200 Hz (63 / 250 on units made before mid 2022). 200 Hz: 6-7 messages of ~330
 # bytes per frame, nothing beside a frame's 1.5 MB of images.
@@ -103,12 +120,16 @@ class Placement:
     """One object on the table: ``pose`` maps the object frame to the world frame."""
     spec: ObjectSpec
     pose: np.ndarray
-    label: int                      # 0..K-1 for instances, >= 1000 for distractors
-    arrangement: str = "free"       # free | touching | stacked | leaning
+    label: int                      # 0..K-1 for instances, >= 1000 for distractors, -1 fixtures (a bin)
+    arrangement: str = "free"       # free | touching | stacked | leaning | flush | pile | fixture
 
     @property
     def is_instance(self) -> bool:
         return 0 <= self.label < _DISTRACTOR_LABEL0
+
+    @property
+    def is_distractor(self) -> bool:
+        return self.label >= _DISTRACTOR_LABEL0
 
 
 def _obb_overlap(pa: np.ndarray, ha: np.ndarray, pb: np.ndarray, hb: np.ndarray, margin: float = 5e-4) -> bool:
@@ -163,8 +184,8 @@ class _Table:
     def __init__(self):
         self.placed: list[Placement] = []
 
-    def collides(self, pose, half) -> bool:
-        return any(_obb_overlap(pose, half, p.pose, p.spec.half_extents) for p in self.placed)
+    def collides(self, pose, half, margin: float = 5e-4) -> bool:
+        return any(_obb_overlap(pose, half, p.pose, p.spec.half_extents, margin) for p in self.placed)
 
     def slide_to_contact(self, pose, half, target: np.ndarray, direction: np.ndarray, other: Placement):
         """Move ``pose`` along -``direction`` from far away towards ``target`` until it just
@@ -193,17 +214,25 @@ def footprint_area(specs) -> float:
     return sum(s.dimensions_m[0] * max(s.dimensions_m[1], s.dimensions_m[2]) for s in specs)
 
 
+ARRANGEMENTS = ("free", "touching", "stacked", "leaning", "flush", "pile")
+
+
 def place_objects(target: ObjectSpec, instances: int, distractor_specs: list[ObjectSpec], rng,
                   arrangement_probs=(0.62, 0.2, 0.09, 0.09), region_half=None,
-                  more_targets: tuple[ObjectSpec, ...] = ()) -> list[Placement]:
+                  more_targets: tuple[ObjectSpec, ...] = (), fixtures: tuple[Placement, ...] = ()) -> list[Placement]:
     """Place ``instances`` copies of ``target`` (and of each of ``more_targets``, labelled
     after them) and the distractors on the table.
 
     Each object is placed free (anywhere in the region), touching a neighbour, stacked on a
-    flat top or leaning against a taller object, with probabilities ``arrangement_probs``;
-    if its arrangement fails it is placed free. No two objects interpenetrate. The region is
+    flat top, leaning against a taller object, flush against a copy of itself (same
+    orientation, face to face with a hairline gap: boxes packed on a pallet) or dropped onto a
+    pile at a random orientation (in a bin), with probabilities ``arrangement_probs`` in
+    the order of ``ARRANGEMENTS`` (fewer probabilities: the later kinds not drawn); if its
+    arrangement fails it is placed free. No two objects interpenetrate. The region is
     centred on the origin, 4:3 and about 2.4 times the summed footprints, unless
-    ``region_half`` gives its (x, y) half sizes (e.g. a strip along a camera pan).
+    ``region_half`` gives its (x, y) half sizes (e.g. a strip along a camera pan, a bin's
+    inside). ``fixtures`` (e.g. a bin's walls and floor) are there before the first object
+    and are returned with the objects.
     """
     items = [(spec, k) for k, spec in enumerate(s for s in (target,) + tuple(more_targets) for _ in range(instances))] + \
             [(spec, _DISTRACTOR_LABEL0 + j) for j, spec in enumerate(distractor_specs)]
@@ -214,11 +243,12 @@ def place_objects(target: ObjectSpec, instances: int, distractor_specs: list[Obj
     if region_half is not None:
         half = np.asarray(region_half, dtype=np.float64)
     table = _Table()
+    table.placed.extend(fixtures)
     for idx in order:
         spec, label = items[idx]
         placement = None
         up = _choose_up(spec, rng)      # once: retrying must not favour small footprints
-        arrangement = ["free", "touching", "stacked", "leaning"][int(rng.choice(4, p=arrangement_probs))]
+        arrangement = ARRANGEMENTS[int(rng.choice(len(arrangement_probs), p=arrangement_probs))]
         if arrangement != "free" and table.placed:
             placement = _try_arrangement(arrangement, spec, up, label, table, half, rng)
         grow = 1.0
@@ -242,10 +272,77 @@ def _place_free(spec, up, label, table, half, rng) -> Placement | None:
     return Placement(spec, pose, label, "free")
 
 
+FLUSH_GAP_M = 5e-4              # at most, between boxes packed flush (a hairline step in depth: none)
+PILE_STEP_M = 0.01              # how far a dropped object falls between collision checks
+PILE_SPOTS = 8                  # spots tried for each object dropped onto a pile
+
+
+def _drop(pose: np.ndarray, half: np.ndarray, reach_z: float, placed: list[Placement]) -> np.ndarray:
+    """``pose`` moved down from above everything near it until it touches something or its
+    lowest point reaches the table (to within 0.1 mm); ``reach_z`` is its lowest point's depth
+    below its centre. Only objects whose upright bounding boxes meet its own are tested."""
+    reach = np.abs(pose[:3, :3]) @ half
+    near = []
+    for p in placed:
+        other = np.abs(p.pose[:3, :3]) @ p.spec.half_extents
+        if np.all(np.abs(p.pose[:2, 3] - pose[:2, 3]) <= reach[:2] + other[:2] + 1e-3):
+            near.append((p, p.pose[2, 3] - other[2], p.pose[2, 3] + other[2]))
+    pose = pose.copy()
+    pose[2, 3] = max([top for _, _, top in near], default=0.0) + reach_z + 1e-3
+
+    def hits(z):
+        trial = pose.copy()
+        trial[2, 3] = z
+        # No margin: a margin would hold it up by margin / cos(slope) on a steep face.
+        return any(_obb_overlap(trial, half, p.pose, p.spec.half_extents, 0.0) for p, bottom, top in near
+                   if z - reach_z <= top + 1e-3 and z + reach_z >= bottom - 1e-3)
+    free = pose[2, 3]
+    while free - PILE_STEP_M > reach_z and not hits(free - PILE_STEP_M):
+        free -= PILE_STEP_M
+    low = max(free - PILE_STEP_M, reach_z)
+    if not hits(low):
+        free = low                      # reached the table
+    else:
+        for _ in range(7):              # between touching (low) and free
+            mid = 0.5 * (low + free)
+            if hits(mid):
+                low = mid
+            else:
+                free = mid
+    pose[2, 3] = free
+    return pose
+
+
 def _try_arrangement(kind, spec, up, label, table, half, rng) -> Placement | None:
+    margin = 5e-4
     for _ in range(25):
         other = table.placed[int(rng.integers(len(table.placed)))]
-        if kind == "touching":
+        if kind == "flush":
+            # Against a copy of itself, turned the same way, face to face along one of the
+            # copy's horizontal axes, with a gap of at most FLUSH_GAP_M: tops in one plane.
+            if other.spec != spec or spec.shape != "box" or other.arrangement == "fixture":
+                continue
+            horiz = [i for i in range(3) if abs(other.pose[2, i]) < 0.5]
+            axis = horiz[int(rng.integers(len(horiz)))]
+            sign = float(rng.choice([-1.0, 1.0]))
+            pose = other.pose.copy()
+            pose[:3, 3] += sign * other.pose[:3, axis] * (2 * spec.half_extents[axis] + rng.uniform(1e-4, FLUSH_GAP_M))
+            margin = 0.0
+        elif kind == "pile":
+            # Dropped at a random orientation into the region (a bin's inside): of PILE_SPOTS
+            # random spots, where it comes to rest lowest, falling straight down from above
+            # everything until it touches something (it is not turned by what it meets).
+            R = Rotation.random(random_state=rng).as_matrix()
+            reach = np.abs(R) @ spec.half_extents                # half sizes of its upright bounding box
+            room = np.maximum(half - reach[:2], 0.0)
+            best = None
+            for _spot in range(PILE_SPOTS):
+                pose = make_transform(R, [rng.uniform(-room[0], room[0]), rng.uniform(-room[1], room[1]), 0.0])
+                rest = _drop(pose, spec.half_extents, float(reach[2]), table.placed)
+                if best is None or rest[2, 3] < best[2, 3]:
+                    best = rest
+            return Placement(spec, best, label, kind)
+        elif kind == "touching":
             pose = make_transform(_resting_rotation(spec, up, rng.uniform(0, 2 * np.pi), rng), [0, 0, 0])
             pose[2, 3] -= _lowest_z(pose, spec.half_extents)
             a = rng.uniform(0, 2 * np.pi)
@@ -288,10 +385,36 @@ def _try_arrangement(kind, spec, up, label, table, half, rng) -> Placement | Non
             continue
         if np.any(np.abs(pose[:2, 3]) > 1.6 * half):
             continue
-        if table.collides(pose, spec.half_extents):
+        if table.collides(pose, spec.half_extents, margin):
             continue
         return Placement(spec, pose, label, kind)
     return None
+
+
+BIN_PANEL_M = 0.012             # wall and floor thickness of a bin
+BIN_HEIGHT_M = (0.12, 0.2)      # inside height, drawn per seed
+BIN_FILL = (1.5, 2.5)           # inside floor area / the objects' summed footprints, drawn per seed
+                                # (1.5: a heap two or three deep; 2.5: mostly one layer)
+
+
+def bin_fixtures(specs: list[ObjectSpec], rng) -> tuple[list[Placement], np.ndarray]:
+    """An open bin around the origin for ``specs`` to be piled in: its floor and four walls
+    (``PROPS["bin_panel"]``, fixtures labelled -1 like the table), the inside BIN_FILL times
+    the objects' footprints (4:3) and BIN_HEIGHT_M high. Returns (panels, inside half sizes)."""
+    area = max(0.03, rng.uniform(*BIN_FILL) * footprint_area(specs))
+    inside = np.array([np.sqrt(area * 4 / 3), np.sqrt(area * 3 / 4)])
+    height = rng.uniform(*BIN_HEIGHT_M)
+    t = BIN_PANEL_M
+    panel = PROPS["bin_panel"]
+    ox, oy = inside / 2 + t / 2                    # wall centres
+    boxes = [((0.0, 0.0, t / 2), (inside[0] + 2 * t, inside[1] + 2 * t, t)),
+             ((ox, 0.0, t + height / 2), (t, inside[1] + 2 * t, height)),
+             ((-ox, 0.0, t + height / 2), (t, inside[1] + 2 * t, height)),
+             ((0.0, oy, t + height / 2), (inside[0], t, height)),
+             ((0.0, -oy, t + height / 2), (inside[0], t, height))]
+    panels = [Placement(replace(panel, dimensions_m=tuple(float(v) for v in dims)), make_transform(np.eye(3), centre),
+                        -1, "fixture") for centre, dims in boxes]
+    return panels, inside / 2
 
 
 # ----------------------------------------------------------------------------------------------
@@ -330,8 +453,9 @@ def _view_centre_and_distance(placements: list[Placement], rng) -> tuple[np.ndar
     return centre, min(max(rng.uniform(0.6, 0.75), 0.9 * spread), 1.2)
 
 
-def sweep_trajectory(placements: list[Placement], frames: int, rng) -> list[np.ndarray]:
-    """A smooth hand-held sweep over the table from the front: camera -> world poses at 30 Hz.
+def sweep_trajectory(placements: list[Placement], frames: int, rng, rate_hz: float = FRAME_RATE_HZ) -> list[np.ndarray]:
+    """A smooth hand-held sweep over the table from the front: camera -> world poses at
+    ``rate_hz`` (a function of time: at a lower rate each frame moves more).
 
     Distance to the looked-at point 0.5-0.9 m (up to ~1.35 m for crowded tables), elevation
     ~40-70 deg, azimuth swinging +-12-22 deg, plus a few millimetres of hand shake. Most
@@ -351,7 +475,7 @@ def sweep_trajectory(placements: list[Placement], frames: int, rng) -> list[np.n
     for _attempt in range(20):
         poses = []
         for i in range(frames):
-            tsec = i / FRAME_RATE_HZ
+            tsec = i / rate_hz
             w = 2 * np.pi * tsec
             r = r0 + amp_r * np.sin(w / period[0] + phase[0])
             az = az0 + amp_az * np.sin(w / period[1] + phase[1])
@@ -364,6 +488,30 @@ def sweep_trajectory(placements: list[Placement], frames: int, rng) -> list[np.n
         if min(_clearance(P[:3, 3], placements) for P in poses) >= MIN_CAMERA_CLEARANCE_M:
             return poses
         r0 += 0.05          # too close to a tall object somewhere: back off
+    return poses
+
+
+def overhead_trajectory(placements: list[Placement], frames: int, rng, rate_hz: float = FRAME_RATE_HZ,
+                        distance=(1.3, 1.8)) -> list[np.ndarray]:
+    """Camera -> world poses from above (a pallet, boxes packed flush, a bin): ``distance``
+    metres (drawn per seed; the ends of a slow wobble of +-8 cm) from the top of the load,
+    tilted 5-30 deg off vertical, drifting a few centimetres and turning slowly over time."""
+    load = [p for p in placements if p.spec.name != "pallet"] or placements
+    tops = np.array([p.pose[2, 3] + p.spec.dimensions_m[2] / 2 for p in load])
+    centre = np.array([np.mean([p.pose[0, 3] for p in placements]), np.mean([p.pose[1, 3] for p in placements]),
+                       float(tops.max())])
+    r0 = rng.uniform(*distance)
+    el0 = np.radians(90 - rng.uniform(5, 30))
+    az0 = rng.uniform(0, 2 * np.pi)
+    phase = rng.uniform(0, 2 * np.pi, size=4)
+    poses = []
+    for i in range(frames):
+        w = 2 * np.pi * i / rate_hz
+        r = r0 + 0.08 * np.sin(w / 6.0 + phase[0])
+        az = az0 + np.radians(10) * np.sin(w / 8.0 + phase[1])
+        el = el0 + np.radians(3) * np.sin(w / 5.0 + phase[2])
+        target = centre + 0.04 * np.array([np.sin(w / 7.0 + phase[3]), np.cos(w / 9.0 + phase[3]), 0.0])
+        poses.append(look_at(_spherical(target, r, az, el), target, np.radians(2.0) * np.sin(w / 3.0)))
     return poses
 
 
@@ -413,8 +561,8 @@ class PanPlan:
         hx = 0.5 * (view_width + self.travel)
         return hx, max(0.18, 2.4 * footprint_area / (4 * hx))
 
-    def trajectory(self, placements: list[Placement], frames: int) -> list[np.ndarray]:
-        """Camera -> world poses at 30 Hz. The looked-at point eases along x from one end of
+    def trajectory(self, placements: list[Placement], frames: int, rate_hz: float = FRAME_RATE_HZ) -> list[np.ndarray]:
+        """Camera -> world poses at ``rate_hz``. The looked-at point eases along x from one end of
         the travel to the other in ``PAN_SECONDS`` (then back), with the distance and the
         elevation wobbling by a few percent and a few millimetres of hand shake."""
         centres = np.array([p.pose[:3, 3] for p in placements])
@@ -423,7 +571,7 @@ class PanPlan:
         for _attempt in range(20):
             poses = []
             for i in range(frames):
-                tsec = i / FRAME_RATE_HZ
+                tsec = i / rate_hz
                 w = 2 * np.pi * tsec
                 along = 0.5 * (1 - np.cos(np.pi * tsec / PAN_SECONDS)) - 0.5      # -0.5 .. 0.5
                 target = mid + np.array([self.direction * self.travel * along, 0.0, 0.0])
@@ -436,6 +584,142 @@ class PanPlan:
                 return poses
             distance += 0.05        # too close to a tall object somewhere: back off
         return poses
+
+
+# Hand-held shaky pan and arm jumps: the camera paths of the tracker benchmark (issue 35). Both
+# are functions of time, so at 5-15 Hz each frame moves more than at 30 Hz; their random draws
+# come from the motion stream only (the objects lie where the sweep of the same seed puts them).
+SHAKY_ARC_DEG = 30.0            # the pan's arc about the objects' centre, in PAN_SECONDS
+SHAKE_STEP_M = (0.0025, 0.0035)     # mean frame-to-frame shake translation, drawn per seed
+SHAKE_STEP_DEG = (0.3, 0.5)         # mean frame-to-frame shake rotation, drawn per seed
+# A 3-D offset that is white per frame with sigma s per axis changes between two frames by
+# s * sqrt(2) per axis, i.e. by s * sqrt(2) * sqrt(8 / pi) = 2.257 s on average in length.
+_WHITE_STEP_PER_SIGMA = float(np.sqrt(2.0) * np.sqrt(8.0 / np.pi))
+
+
+@dataclass
+class ShakyPanPlan:
+    """A hand-held camera swung slowly along a 30 deg arc about the objects' centre, with
+    hand shake that is not smooth: every frame's pose is off the smooth arc by fresh white
+    noise (mean frame-to-frame change ``step_m`` in position, ``step_deg`` in orientation)
+    on top of a slowly varying offset (a few mm, under 1 Hz)."""
+    distance: float
+    elevation: float            # rad
+    azimuth: float              # rad, centre of the arc, about -90 deg: from the front
+    direction: float            # +1 or -1: which way the arc runs first
+    step_m: float
+    step_deg: float
+    slow_f: np.ndarray          # (3, 2) Hz of the slowly varying offset
+    slow_p: np.ndarray          # (3, 2) rad
+    noise_seed: int
+
+    @classmethod
+    def draw(cls, rng) -> "ShakyPanPlan":
+        return cls(distance=rng.uniform(0.6, 0.75), elevation=np.radians(rng.uniform(42, 58)),
+                   azimuth=np.radians(-90 + rng.uniform(-15, 15)), direction=float(rng.choice([-1.0, 1.0])),
+                   step_m=rng.uniform(*SHAKE_STEP_M), step_deg=rng.uniform(*SHAKE_STEP_DEG),
+                   slow_f=rng.uniform(0.15, 0.7, size=(3, 2)), slow_p=rng.uniform(0, 2 * np.pi, size=(3, 2)),
+                   noise_seed=int(rng.integers(2 ** 31)))
+
+    def trajectory(self, placements: list[Placement], frames: int, rate_hz: float = FRAME_RATE_HZ,
+                   shake: bool = True) -> list[np.ndarray]:
+        """Camera -> world poses at ``rate_hz``: the azimuth eases over SHAKY_ARC_DEG in
+        PAN_SECONDS (then back), looking at the objects' centre; ``shake=False``: the smooth
+        arc alone (what the shake is measured against)."""
+        centres = np.array([p.pose[:3, 3] for p in placements])
+        centre = np.array([centres[:, 0].mean(), centres[:, 1].mean(), 0.03])
+        noise = np.random.default_rng(self.noise_seed).standard_normal((frames, 6))
+        sigma_t = self.step_m / _WHITE_STEP_PER_SIGMA
+        sigma_r = np.radians(self.step_deg) / _WHITE_STEP_PER_SIGMA
+        distance = self.distance
+        for _attempt in range(20):
+            poses = []
+            for i in range(frames):
+                tsec = i / rate_hz
+                along = 0.5 * (1 - np.cos(np.pi * tsec / PAN_SECONDS)) - 0.5      # -0.5 .. 0.5
+                az = self.azimuth + self.direction * np.radians(SHAKY_ARC_DEG) * along
+                pose = look_at(_spherical(centre, distance, az, self.elevation), centre)
+                if shake:
+                    slow = 0.0015 * np.sin(2 * np.pi * tsec * self.slow_f + self.slow_p).sum(axis=1)
+                    pose[:3, 3] += slow + sigma_t * noise[i, :3]
+                    # Rotation noise about the camera's own axes (the hand turns the camera).
+                    pose[:3, :3] = pose[:3, :3] @ cv2.Rodrigues(sigma_r * noise[i, 3:])[0]
+                poses.append(pose)
+            if min(_clearance(P[:3, 3], placements) for P in poses) >= MIN_CAMERA_CLEARANCE_M:
+                return poses
+            distance += 0.05        # too close to a tall object somewhere: back off
+        return poses
+
+
+ARM_TICK_HZ = 30.0              # the arm's motion is planned on this grid (exact at 30/15/10/5 Hz)
+ARM_STEP_DEG = (3.0, 8.0)       # per tick while moving, drawn per burst
+ARM_BURST_TICKS = (2, 6)        # ticks a burst lasts
+ARM_HOLD_TICKS = (6, 24)        # ticks the arm holds still between bursts (0.2-0.8 s)
+
+
+def jumps_trajectory(placements: list[Placement], frames: int, rng, rate_hz: float = FRAME_RATE_HZ) -> list[np.ndarray]:
+    """A camera on a robot arm that moves in bursts: it holds still for 0.2-0.8 s, then moves
+    2-6 ticks of 1/30 s at 3-8 deg per tick (drawn per burst; 90-240 deg/s) over the sphere
+    about the objects' centre, and holds again. At 30 Hz consecutive frames differ by 0 or by
+    3-8 deg (the camera's rotation; its position moves distance x angle, 3-10 cm); at lower
+    rates a burst falls between two frames. Elevation stays 35-75 deg, azimuth within 40 deg
+    of the start; the arm does not shake."""
+    centre, r0 = _view_centre_and_distance(placements, rng)
+    el_home = np.radians(rng.uniform(45, 62))
+    az_home = np.radians(-90 + rng.uniform(-20, 20))
+    duration_ticks = int(np.ceil((frames - 1) / rate_hz * ARM_TICK_HZ)) + 2
+    az, el = [az_home], [el_home]
+    hold = int(rng.integers(ARM_HOLD_TICKS[0] // 2, ARM_HOLD_TICKS[1] + 1))   # first burst comes sooner
+    while len(az) < duration_ticks:
+        az.extend([az[-1]] * hold)
+        el.extend([el[-1]] * hold)
+        ticks = int(rng.integers(ARM_BURST_TICKS[0], ARM_BURST_TICKS[1] + 1))
+        step = np.radians(rng.uniform(*ARM_STEP_DEG))
+        # Head back towards home when a burst could leave the allowed range.
+        home = np.arctan2(el_home - el[-1], az_home - az[-1])
+        far = np.hypot(az_home - az[-1], el_home - el[-1]) > np.radians(15)
+        theta = home + rng.uniform(-1, 1) * np.radians(60) if far else rng.uniform(0, 2 * np.pi)
+        for _ in range(ticks):
+            a, e = az[-1] + step * np.cos(theta), el[-1] + step * np.sin(theta)
+            if not (np.radians(35) <= e <= np.radians(75)) or abs(a - az_home) > np.radians(40):
+                theta = np.arctan2(el_home - el[-1], az_home - az[-1])      # turn home mid-burst
+                a, e = az[-1] + step * np.cos(theta), el[-1] + step * np.sin(theta)
+            az.append(a)
+            el.append(e)
+        hold = int(rng.integers(ARM_HOLD_TICKS[0], ARM_HOLD_TICKS[1] + 1))
+    tick_times = np.arange(len(az)) / ARM_TICK_HZ
+    times = np.arange(frames) / rate_hz
+    az_t, el_t = np.interp(times, tick_times, az), np.interp(times, tick_times, el)
+    r = r0
+    for _attempt in range(20):
+        poses = [look_at(_spherical(centre, r, a, e), centre) for a, e in zip(az_t, el_t)]
+        if min(_clearance(P[:3, 3], placements) for P in poses) >= MIN_CAMERA_CLEARANCE_M:
+            return poses
+        r += 0.05           # too close to a tall object somewhere: back off
+    return poses
+
+
+def frame_timeline(frames: int, drop: float, loop: bool, rng) -> tuple[list[int], list[int]]:
+    """Which frames of a ``frames``-long camera path are written, and when: (stamp slots,
+    log slots), one per written frame, in frame periods from the first frame. ``drop`` > 0
+    leaves out about that share of the frames after the first, in runs of 1-3 (a gap in the
+    stamps, the camera moving on); ``loop`` plays the kept frames twice, the second time with
+    the same stamps (they jump back once) and later log times (bag time runs on)."""
+    slots = list(range(frames))
+    if drop > 0 and frames > 2:
+        dropped = np.zeros(frames, bool)
+        target = int(round(drop * (frames - 1)))
+        while dropped.sum() < target:
+            start = int(rng.integers(1, frames))
+            dropped[start:start + int(rng.integers(1, 4))] = True
+            dropped[0] = False
+            excess = int(dropped.sum()) - target
+            if excess > 0:      # trim the last run so that the share is what was asked
+                dropped[np.flatnonzero(dropped)[-excess:]] = False
+        slots = [i for i in range(frames) if not dropped[i]]
+    if loop:
+        return slots + slots, slots + [s + frames for s in slots]
+    return slots, slots
 
 
 @dataclass
@@ -660,9 +944,43 @@ def table_lightmap(placements: list[Placement], wall_y: float, size_m: tuple[flo
     return np.clip(1.0 - direct * shadow - 0.25 * contact, 0.3, 1.0).astype(np.float32)
 
 
-def environment_primitives(wall_y: float, placements: list[Placement] = ()) -> list:
+FLOOR_BELOW_TABLE_M = 0.75
+CLUTTER_DISTANCE_M = (2.0, 3.0)     # the far wall behind the table's back edge, drawn per seed
+
+
+def clutter_primitives(table_back_y: float, rng) -> tuple[list, float]:
+    """A room behind the table (background "clutter"): a floor FLOOR_BELOW_TABLE_M below the
+    table top, 3-5 pieces of furniture (``objects.FURNITURE``: textured boxes standing on the
+    floor, most against the far wall) and the far wall's y, CLUTTER_DISTANCE_M behind the
+    table's back edge. Returns (primitives, far wall y)."""
+    far_y = table_back_y + rng.uniform(*CLUTTER_DISTANCE_M)
+    floor_z = -FLOOR_BELOW_TABLE_M
+    size = ENVIRONMENT_SIZE["floor"]
+    prims = [Quad(origin=np.array([-size[0] / 2, far_y, floor_z]), e1=np.array([size[0], 0.0, 0.0]),
+                  e2=np.array([0.0, -size[1], 0.0]), normal=np.array([0.0, 0.0, 1.0]),
+                  texture=_environment_texture("floor"), tex_rect=(0.0, 0.0, size[0] * size[2], size[1] * size[2]))]
+    placed: list[Placement] = []
+    for _ in range(int(rng.integers(3, 6))):
+        spec = PROPS[FURNITURE[int(rng.integers(len(FURNITURE)))]]
+        half = spec.half_extents
+        for _attempt in range(30):
+            against_wall = rng.random() < 0.7
+            yaw = rng.normal(0.0, np.radians(4)) if against_wall else rng.uniform(-0.6, 0.6)
+            y = far_y - half[1] - 0.02 if against_wall else rng.uniform(table_back_y + 0.6, far_y - 0.5)
+            pose = make_transform(_rot_z(yaw), [rng.uniform(-2.4, 2.4), y, floor_z + half[2]])
+            if y - half[1] > table_back_y + 0.3 and not any(
+                    _obb_overlap(pose, half, q.pose, q.spec.half_extents, 0.02) for q in placed):
+                placed.append(Placement(spec, pose, -1, "fixture"))
+                break
+    for q in placed:
+        prims += object_primitives(q)
+    return prims, far_y
+
+
+def environment_primitives(wall_y: float, placements: list[Placement] = (), clutter_rng=None) -> list:
     """The table top (z = 0) and the wall behind it (y = wall_y), both textured; the
-    placements cast shadows on the table."""
+    placements cast shadows on the table. With ``clutter_rng``, the table ends at wall_y and
+    a room lies behind it instead of the wall (``clutter_primitives``)."""
     table_tex = _environment_texture("table")
     wall_tex = _environment_texture("wall")
     table_per_m = ENVIRONMENT_SIZE["table"][2]
@@ -673,11 +991,15 @@ def environment_primitives(wall_y: float, placements: list[Placement] = ()) -> l
                  tex_rect=(0.0, 0.0, sx * table_per_m, sy * table_per_m),
                  lightmap=table_lightmap(list(placements), wall_y, (sx, sy)) if placements else None)
     wall_w, wall_h = ENVIRONMENT_SIZE["wall"][:2]
-    # The wall stops just below the table top: anything lower is hidden and costs time.
-    wall = Quad(origin=np.array([-wall_w / 2, wall_y, wall_h - 0.02]), e1=np.array([wall_w, 0.0, 0.0]),
+    room, bottom = [], -0.02
+    if clutter_rng is not None:
+        room, wall_y = clutter_primitives(wall_y, clutter_rng)
+        bottom = -FLOOR_BELOW_TABLE_M - 0.02
+    # The wall stops just below the table top (the floor): anything lower is hidden and costs time.
+    wall = Quad(origin=np.array([-wall_w / 2, wall_y, wall_h + bottom]), e1=np.array([wall_w, 0.0, 0.0]),
                 e2=np.array([0.0, 0.0, -wall_h]), normal=np.array([0.0, -1.0, 0.0]), texture=wall_tex,
                 tex_rect=(0.0, 0.0, wall_w * wall_per_m, wall_h * wall_per_m))
-    return [table, wall]
+    return [table, wall] + room
 
 
 # ----------------------------------------------------------------------------------------------
@@ -714,6 +1036,17 @@ class SyntheticScene:
     occluder: MovingObject | None = None
     more_targets: tuple = ()             # further target objects of a mixed scene (ObjectSpec)
     depth_noise_correlation_px: float = 0.0   # > 0: depth noise smooth over this many pixels (sensor.simulate_depth)
+    # When frames are written (``frame_timeline``): the camera path at ``frame_rate_hz`` has
+    # one pose per slot (``path_poses``); frame i is slot ``frame_slots[i]`` (its stamp, its
+    # noise) written at bag time slot ``log_slots[i]``. None: frame i is slot i (every frame
+    # of the path, once), ``camera_poses`` is the path.
+    frame_rate_hz: float = FRAME_RATE_HZ
+    frame_slots: list | None = None
+    log_slots: list | None = None
+    path_poses: list | None = None
+    sensor: SensorProfile = SENSOR_PROFILES["d455"]     # how the depth is made (sensor.simulate_depth)
+    layout: str = "table"                # how the objects lie: table | flush | bin (make_tabletop_scene)
+    background: str = "wall"             # behind the table: wall | clutter (a room 2-3 m behind)
 
     def __post_init__(self):
         wall_y = max(0.45, max(p.pose[1, 3] for p in self.placements) + 0.3)
@@ -721,7 +1054,8 @@ class SyntheticScene:
             wall_y = 1.0
         self._stages = []           # (first frame, placements, primitives)
         for start, placements in [(0, self.placements)] + sorted(self.later_placements, key=lambda s: s[0]):
-            prims = environment_primitives(wall_y, placements)
+            clutter_rng = np.random.default_rng([self.seed, 10]) if self.background == "clutter" else None
+            prims = environment_primitives(wall_y, placements, clutter_rng)
             for p in placements:
                 prims += object_primitives(p)
             self._stages.append((start, placements, prims))
@@ -744,18 +1078,32 @@ class SyntheticScene:
         """The /ground_truth/object JSON: the shared convention plus what else was placed."""
         d = self.target.description()
         d.update({"instances": len(self.instances), "kind": self.kind, "seed": int(self.seed),
-                  "distractors": [p.spec.name for p in self.placements if not p.is_instance],
+                  "distractors": [p.spec.name for p in self.placements if p.is_distractor],
                   "arrangements": [p.arrangement for p in self.instances],
                   "generator": "multi_instance_reg.synthetic"})
         # Only when not the defaults, so that default bags stay byte for byte what they were.
         if self.motion != "sweep":
             d["motion"] = self.motion
+        if self.layout != "table":
+            d["layout"] = self.layout
+        if self.background != "wall":
+            d["background"] = self.background
         if self.more_targets:
             # A mixed scene: every target object, and which one each ground-truth index is.
             d["objects"] = [spec.description() for spec in (self.target,) + tuple(self.more_targets)]
             d["instance_objects"] = self.instance_objects
         if self.depth_noise_correlation_px > 0:
             d["depth_noise_correlation_px"] = float(self.depth_noise_correlation_px)
+        if self.sensor != SENSOR_PROFILES["d455"]:
+            d["sensor"] = self.sensor.description()
+        if self.frame_rate_hz != FRAME_RATE_HZ:
+            d["frame_rate_hz"] = float(self.frame_rate_hz)
+        if self.frame_slots is not None:
+            path_frames = len(self._path())
+            d["path_frames"] = path_frames
+            d["dropped_frames"] = path_frames - len(set(self.frame_slots))
+            if self.log_slots != self.frame_slots:
+                d["loop"] = True
         if self.occluder is not None:
             first, last = self.occluder.frames
             d["occluder"] = {"name": self.occluder.spec.name, "shape": self.occluder.spec.shape,
@@ -763,8 +1111,24 @@ class SyntheticScene:
                              "frames": [first, last]}
         return d
 
+    def slot(self, index: int) -> int:
+        """Frame ``index``'s place on the camera path (frame periods from the first frame)."""
+        return index if self.frame_slots is None else int(self.frame_slots[index])
+
+    def _path(self) -> list:
+        return self.camera_poses if self.path_poses is None else self.path_poses
+
     def stamp_ns(self, index: int) -> int:
-        return START_STAMP_NS + int(round(index * 1e9 / FRAME_RATE_HZ))
+        """Header stamp of frame ``index``: its slot at ``frame_rate_hz`` (gaps where frames
+        were dropped; back to the start where a loop begins again)."""
+        return START_STAMP_NS + int(round(self.slot(index) * 1e9 / self.frame_rate_hz))
+
+    def log_time_ns(self, index: int) -> int:
+        """Bag time of frame ``index``: its stamp, except in a loop's second play, which is
+        recorded after the first (bag time never runs back)."""
+        if self.log_slots is None:
+            return self.stamp_ns(index)
+        return START_STAMP_NS + int(round(int(self.log_slots[index]) * 1e9 / self.frame_rate_hz))
 
     def set_depth_noise_correlation(self, pixels: float) -> "SyntheticScene":
         """Depth noise smooth over about ``pixels`` pixels from now on (0 = independent per
@@ -775,6 +1139,13 @@ class SyntheticScene:
         self.depth_noise_correlation_px = pixels
         return self
 
+    def set_sensor(self, name: str = "d455", randomise: bool = False) -> "SyntheticScene":
+        """Depth as the named sensor profile makes it from now on (``sensor.SENSOR_PROFILES``:
+        "d455", "realistic"); with ``randomise`` each of its figures drawn per seed from
+        ``sensor.PROFILE_RANGES``. Returns the scene."""
+        self.sensor = sensor_profile(name, self.seed, randomise)
+        return self
+
     def render_frame(self, index: int) -> RenderedFrame:
         T_wc = self.camera_poses[index]
         T_cw = invert_transform(T_wc)
@@ -783,10 +1154,11 @@ class SyntheticScene:
             primitives = primitives + self.occluder.primitives(index)
         instances = [p for p in placements if p.is_instance]
         out = self._renderer.render(primitives, T_cw, count_labels=[p.label for p in instances])
-        noise_seed = int(np.random.SeedSequence([self.seed, index, 17]).generate_state(1)[0])
+        # Keyed by the slot: a loop's second play is the same recording, byte for byte.
+        noise_seed = int(np.random.SeedSequence([self.seed, self.slot(index), 17]).generate_state(1)[0])
         rgb = simulate_colour(out.radiance, noise_seed)
         depth_mm = simulate_depth(out.depth_m, float(self.intrinsics.K[0, 0]), noise_seed + 1,
-                                  self.depth_noise_correlation_px)
+                                  self.depth_noise_correlation_px, self.sensor)
         mask = out.labels.copy()
         mask[mask >= _DISTRACTOR_LABEL0] = LABEL_DISTRACTOR
         counts = np.bincount(mask[mask >= 0].ravel(), minlength=len(instances))
@@ -812,35 +1184,47 @@ class SyntheticScene:
         a bias per recording and white noise, each from streams of their own (the images do not
         change). The reading's axes are those of the colour optical frame, as librealsense
         gives a D455's IMU samples up to a fraction of a degree."""
-        period = 1.0 / FRAME_RATE_HZ
-        t1 = index * period
-        k = np.arange(int(np.floor((t1 - period) * rate_hz + 1e-9)) + 1, int(np.floor(t1 * rate_hz + 1e-9)) + 1)
-        times = k / rate_hz
-        s = (times - (t1 - period)) / period                 # 0 at the previous frame, 1 at this one
-        prev = max(index - 1, 0)
+        period = 1.0 / self.frame_rate_hz
+        slot = self.slot(index)
+        # Since the previous frame: every path period up to this frame's slot (more than one
+        # after dropped frames; one at the first frame and where a loop starts again).
+        first = self.slot(index - 1) + 1 if index > 0 and self.slot(index - 1) < slot else slot
         acc = self._path_acceleration()
+        path = self._path()
         lift = np.array([0.0, 0.0, GRAVITY_M_S2])
-        f_prev = self.camera_poses[prev][:3, :3].T @ (acc[prev] + lift)
-        f_this = self.camera_poses[index][:3, :3].T @ (acc[index] + lift)
-        if self.kind != "scene":
-            f_prev = f_this                                  # views, not a path: still at each
-        force = (1.0 - s)[:, None] * f_prev + s[:, None] * f_this
+        k_all, times_all, force_all = [], [], []
+        for q in range(first, slot + 1):
+            t1 = q * period
+            k = np.arange(int(np.floor((t1 - period) * rate_hz + 1e-9)) + 1, int(np.floor(t1 * rate_hz + 1e-9)) + 1)
+            times = k / rate_hz
+            s = (times - (t1 - period)) / period                 # 0 at the previous path pose, 1 at this one
+            prev = max(q - 1, 0)
+            f_prev = path[prev][:3, :3].T @ (acc[prev] + lift)
+            f_this = path[q][:3, :3].T @ (acc[q] + lift)
+            if self.kind != "scene":
+                f_prev = f_this                                  # views, not a path: still at each
+            k_all.append(k)
+            times_all.append(times)
+            force_all.append((1.0 - s)[:, None] * f_prev + s[:, None] * f_this)
+        k, times = np.concatenate(k_all), np.concatenate(times_all)
+        force = np.concatenate(force_all)
         bias = np.clip(np.random.default_rng([self.seed, 41]).normal(0.0, ACCEL_BIAS_M_S2, 3),
                        -3 * ACCEL_BIAS_M_S2, 3 * ACCEL_BIAS_M_S2)
-        noise = np.random.default_rng([self.seed, index, 43]).normal(0.0, ACCEL_NOISE_M_S2, (len(k), 3))
+        noise = np.random.default_rng([self.seed, slot, 43]).normal(0.0, ACCEL_NOISE_M_S2, (len(k), 3))
         # Each rounded as the frame stamps are: in a scene's own bag the samples fall on an exact 5 ms grid.
-        offsets = np.round(times * 1e9).astype(np.int64) - int(round(t1 * 1e9))
+        offsets = np.round(times * 1e9).astype(np.int64) - int(round(slot * period * 1e9))
         return offsets, force + bias + noise
 
     def _path_acceleration(self) -> np.ndarray:
-        """(frames, 3) world acceleration of the camera at each frame (m/s^2): second
-        differences of its positions at 30 Hz (the ends take their neighbour's); zero for a
-        capture's separate views or fewer than three frames."""
-        n = self.num_frames
+        """(path slots, 3) world acceleration of the camera at each slot of its path (m/s^2):
+        second differences of its positions at ``frame_rate_hz`` (the ends take their
+        neighbour's); zero for a capture's separate views or fewer than three slots."""
+        path = self._path()
+        n = len(path)
         acc = np.zeros((n, 3))
         if self.kind == "scene" and n >= 3:
-            p = np.array([P[:3, 3] for P in self.camera_poses])
-            acc[1:-1] = (p[2:] - 2.0 * p[1:-1] + p[:-2]) * FRAME_RATE_HZ ** 2
+            p = np.array([P[:3, 3] for P in path])
+            acc[1:-1] = (p[2:] - 2.0 * p[1:-1] + p[:-2]) * self.frame_rate_hz ** 2
             acc[0], acc[-1] = acc[1], acc[-2]
         return acc
 
@@ -855,7 +1239,9 @@ def _check_common(object_name: str, seed: int, resolution: str) -> ObjectSpec:
 
 def make_tabletop_scene(object_name: str | list[str] = DEFAULT_OBJECT, instances: int = 6, distractors: int = 3,
                         frames: int = 60, seed: int = 0, resolution: str = "640x480", motion: str = "sweep",
-                        occluder: bool = False) -> SyntheticScene:
+                        occluder: bool = False, frame_rate: float = FRAME_RATE_HZ, drop: float = 0.0,
+                        loop: bool = False, sensor: str = "d455", randomise: bool = False, layout: str = "table",
+                        background: str = "wall") -> SyntheticScene:
     names = [object_name] if isinstance(object_name, str) else list(object_name)
     if not names or len(set(names)) != len(names):
         raise InputError(f"target objects must be given once each, got {names}")
@@ -863,6 +1249,14 @@ def make_tabletop_scene(object_name: str | list[str] = DEFAULT_OBJECT, instances
     more = tuple(get_object(n) for n in names[1:])
     if motion not in MOTIONS:
         raise InputError(f"motion must be one of {', '.join(MOTIONS)}, got '{motion}'")
+    if layout not in LAYOUTS:
+        raise InputError(f"layout must be one of {', '.join(LAYOUTS)}, got '{layout}'")
+    if background not in BACKGROUNDS:
+        raise InputError(f"background must be one of {', '.join(BACKGROUNDS)}, got '{background}'")
+    if motion == "pan" and layout != "table":
+        raise InputError(f"motion pan spreads the objects along the table: it needs layout table, not {layout}")
+    if layout == "flush" and not all(s.shape == "box" for s in (spec, *more)):
+        raise InputError("layout flush packs boxes: choose box objects (e.g. snack_box, cereal_box, snack_bar)")
     if not 1 <= int(instances) * len(names) <= MAX_INSTANCES:
         raise InputError(f"instances must be 1 to {MAX_INSTANCES} in all ({len(names)} object(s) x {instances})"
                          if len(names) > 1 else f"instances must be 1 to {MAX_INSTANCES}, got {instances}")
@@ -870,10 +1264,15 @@ def make_tabletop_scene(object_name: str | list[str] = DEFAULT_OBJECT, instances
         raise InputError(f"distractors must be 0 to {MAX_DISTRACTORS}, got {distractors}")
     if int(frames) < 1:
         raise InputError(f"frames must be at least 1, got {frames}")
+    frame_rate = float(frame_rate)
+    if not MIN_FRAME_RATE_HZ <= frame_rate <= MAX_FRAME_RATE_HZ:
+        raise InputError(f"frame rate must be {MIN_FRAME_RATE_HZ:g} to {MAX_FRAME_RATE_HZ:g} Hz, got {frame_rate:g}")
+    if not 0.0 <= float(drop) <= MAX_DROP:
+        raise InputError(f"drop (share of frames left out) must be 0 to {MAX_DROP:g}, got {drop:g}")
     # Independent streams, so that e.g. the frame count does not change the placement, and
     # the static camera, the pan and the occluder take nothing from the sweep's streams.
-    rng_choose, rng_place, rng_path, rng_motion, rng_occluder = (
-        np.random.default_rng([int(seed), k]) for k in (1, 2, 3, 6, 7))
+    rng_choose, rng_place, rng_path, rng_motion, rng_occluder, rng_drop, rng_layout = (
+        np.random.default_rng([int(seed), k]) for k in (1, 2, 3, 6, 7, 8, 11))
     intrinsics = d455_intrinsics(resolution)
     pool = [s for s in OBJECTS.values() if s.name not in names]
     distractor_specs = [pool[int(i)] for i in rng_choose.integers(len(pool), size=int(distractors))]
@@ -882,16 +1281,52 @@ def make_tabletop_scene(object_name: str | list[str] = DEFAULT_OBJECT, instances
         footprint = footprint_area([spec, *more] * int(instances) + distractor_specs)
         placements = place_objects(spec, int(instances), distractor_specs, rng_place,
                                    region_half=pan.region_half(intrinsics, footprint), more_targets=more)
-        poses = pan.trajectory(placements, int(frames))
+        poses = pan.trajectory(placements, int(frames), frame_rate)
     else:
-        placements = place_objects(spec, int(instances), distractor_specs, rng_place, more_targets=more)
-        if motion == "static":
-            poses = static_viewpoint(placements, int(frames), rng_motion)
+        if layout == "flush":
+            # Every box against a copy of itself, all lying on their most likely face (as on a
+            # pallet: the first of each object sets the way; the copies follow it); the
+            # distractors fall back to free.
+            def lying(s):
+                return replace(s, resting=(max(s.resting, key=lambda r: r[1]),))
+            flat = [lying(s) for s in (spec, *more)]
+            placements = place_objects(flat[0], int(instances), distractor_specs, rng_place, more_targets=tuple(flat[1:]),
+                                       arrangement_probs=(0.0, 0.0, 0.0, 0.0, 1.0))
+        elif layout == "bin":       # everything dropped into a bin at random orientations
+            panels, inside = bin_fixtures([spec, *more] * int(instances) + distractor_specs, rng_layout)
+            placements = place_objects(spec, int(instances), distractor_specs, rng_place, more_targets=more,
+                                       arrangement_probs=(0.0, 0.0, 0.0, 0.0, 0.0, 1.0), region_half=inside,
+                                       fixtures=tuple(panels))
         else:
-            poses = sweep_trajectory(placements, int(frames), rng_path)
-    moving = occluder_path(poses, placements, intrinsics, rng_occluder) if occluder else None
+            placements = place_objects(spec, int(instances), distractor_specs, rng_place, more_targets=more)
+        if motion == "overhead":    # closer over a bin (it fills the view, as in bin-picking cells)
+            poses = overhead_trajectory(placements, int(frames), rng_motion, frame_rate,
+                                        distance=(0.55, 0.75) if layout == "bin" else (0.7, 1.0))
+        elif motion == "static":
+            poses = static_viewpoint(placements, int(frames), rng_motion)
+        elif motion == "shaky_pan":
+            poses = ShakyPanPlan.draw(rng_motion).trajectory(placements, int(frames), frame_rate)
+        elif motion == "jumps":
+            poses = jumps_trajectory(placements, int(frames), rng_motion, frame_rate)
+        else:
+            poses = sweep_trajectory(placements, int(frames), rng_path, frame_rate)
+    timeline = {}
+    if drop > 0 or loop:
+        slots, log_slots = frame_timeline(int(frames), float(drop), bool(loop), rng_drop)
+        timeline = dict(frame_slots=slots, log_slots=log_slots, path_poses=poses)
+        poses = [poses[s] for s in slots]
+    if occluder:
+        # On the written frames (a loop's first play; the second repeats it).
+        first_play = poses[:len(poses) // 2] if loop else poses
+        moving = occluder_path(first_play, placements, intrinsics, rng_occluder)
+        if loop:
+            moving.poses = moving.poses + moving.poses
+    else:
+        moving = None
     return SyntheticScene("scene", spec, placements, poses, intrinsics, int(seed), motion=motion,
-                          occluder=moving, more_targets=more)
+                          occluder=moving, more_targets=more, frame_rate_hz=frame_rate,
+                          sensor=sensor_profile(sensor, int(seed), randomise), layout=layout, background=background,
+                          **timeline)
 
 
 def make_capture_scene(object_name: str = DEFAULT_OBJECT, seed: int = 0, views: int = 10,
@@ -939,12 +1374,21 @@ class BagSummary:
 
 
 def write_scene_bag(scene: SyntheticScene, out_path, storage: str = "sqlite3", preview_dir=None,
-                    preview_frames=None, transport: str = "raw", imu: bool = True) -> BagSummary:
+                    preview_frames=None, transport: str = "raw", imu: bool = True, bop_dir=None,
+                    bop_scene: int | None = None) -> BagSummary:
     """Render every frame of ``scene`` into a new rosbag2 at ``out_path``, its images raw or,
     with ``transport`` "compressed", as image_transport's compressed topics; with ``imu``,
-    the accelerometer's samples before each frame (``SyntheticScene.accel_samples``)."""
+    the accelerometer's samples before each frame (``SyntheticScene.accel_samples``); with
+    ``bop_dir``, the same frames also as scene ``bop_scene`` (default: the seed) of a BOP
+    dataset there (``bop_export.SceneBopExport``)."""
     from ..datasets.bag_writer import RealSenseBagWriter
     from .preview import write_preview
+
+    bop = None
+    if bop_dir is not None:
+        from .bop_export import SceneBopExport
+
+        bop = SceneBopExport(bop_dir, scene, scene.seed if bop_scene is None else bop_scene)
 
     n = scene.num_frames
     if preview_frames is None:
@@ -955,12 +1399,18 @@ def write_scene_bag(scene: SyntheticScene, out_path, storage: str = "sqlite3", p
     with RealSenseBagWriter(out_path, storage=storage, transport=transport) as bag:
         bag.write_object_description(scene.stamp_ns(0), scene.description())
         for frame in scene.frames():
+            log_time = scene.log_time_ns(frame.index)
             if imu:
-                bag.write_accel_samples(frame.stamp_ns, *scene.accel_samples(frame.index))
+                bag.write_accel_samples(frame.stamp_ns, *scene.accel_samples(frame.index),
+                                        log_offset_ns=log_time - frame.stamp_ns)
             bag.write_frame(frame.stamp_ns, frame.rgb, frame.depth_mm, scene.intrinsics,
-                            poses=frame.poses, visibility=frame.visibility)
+                            poses=frame.poses, visibility=frame.visibility, log_time_ns=log_time)
+            if bop is not None:
+                bop.add(frame)
             if preview_dir is not None and frame.index in preview_frames:
                 write_preview(preview_dir, frame, scene)
+    if bop is not None:
+        bop.close()
     return BagSummary(Path(out_path), n, time.perf_counter() - t0, len(scene.instances), storage)
 
 
@@ -968,18 +1418,27 @@ def generate_scene_bag(out_path, object_name: str | list[str] = DEFAULT_OBJECT, 
                        distractors: int = 3, frames: int = 60, seed: int = 0, storage: str = "sqlite3",
                        resolution: str = "640x480", preview_dir=None, motion: str = "sweep",
                        occluder: bool = False, depth_noise_correlation_px: float = 0.0,
-                       transport: str = "raw", imu: bool = True) -> BagSummary:
-    """Make a tabletop scene (see ``make_tabletop_scene``) and write it as a rosbag2."""
+                       transport: str = "raw", imu: bool = True, frame_rate: float = FRAME_RATE_HZ,
+                       drop: float = 0.0, loop: bool = False, sensor: str = "d455",
+                       randomise: bool = False, layout: str = "table", background: str = "wall",
+                       bop_dir=None, bop_scene: int | None = None) -> BagSummary:
+    """Make a tabletop scene (see ``make_tabletop_scene``) and write it as a rosbag2 (and, with
+    ``bop_dir``, as a BOP scene: ``write_scene_bag``)."""
     scene = make_tabletop_scene(object_name, instances, distractors, frames, seed, resolution,
-                                motion=motion, occluder=occluder)
+                                motion=motion, occluder=occluder, frame_rate=frame_rate, drop=drop, loop=loop,
+                                sensor=sensor, randomise=randomise, layout=layout, background=background)
     scene.set_depth_noise_correlation(depth_noise_correlation_px)
-    return write_scene_bag(scene, out_path, storage, preview_dir, transport=transport, imu=imu)
+    return write_scene_bag(scene, out_path, storage, preview_dir, transport=transport, imu=imu,
+                           bop_dir=bop_dir, bop_scene=bop_scene)
 
 
 def generate_capture_bag(out_path, object_name: str = DEFAULT_OBJECT, seed: int = 0, views: int = 10,
                          storage: str = "sqlite3", resolution: str = "640x480", preview_dir=None,
-                         transport: str = "raw", imu: bool = True) -> BagSummary:
-    """Make a capture sequence (see ``make_capture_scene``) and write it as a rosbag2."""
+                         transport: str = "raw", imu: bool = True, bop_dir=None,
+                         bop_scene: int | None = None) -> BagSummary:
+    """Make a capture sequence (see ``make_capture_scene``) and write it as a rosbag2 (and, with
+    ``bop_dir``, as a BOP scene: ``write_scene_bag``)."""
     scene = make_capture_scene(object_name, seed, views, resolution)
     return write_scene_bag(scene, out_path, storage, preview_dir,
-                           preview_frames=list(range(min(views, 4))), transport=transport, imu=imu)
+                           preview_frames=list(range(min(views, 4))), transport=transport, imu=imu,
+                           bop_dir=bop_dir, bop_scene=bop_scene)

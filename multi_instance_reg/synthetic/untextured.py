@@ -21,8 +21,8 @@ import numpy as np
 from ..errors import InputError
 from ..transforms import make_transform
 from .objects import UNTEXTURED_OBJECTS, get_object
-from .scene import (FRAME_RATE_HZ, MAX_DISTRACTORS, MAX_INSTANCES, Placement, SyntheticScene, _DISTRACTOR_LABEL0,
-                    _rot_z, _spherical, look_at, place_objects, sweep_trajectory)
+from .scene import (MAX_DISTRACTORS, MAX_INSTANCES, Placement, SyntheticScene, _DISTRACTOR_LABEL0, _rot_z,
+                    overhead_trajectory, place_objects, sweep_trajectory)
 from .sensor import d455_intrinsics
 
 PRESETS = {
@@ -132,35 +132,16 @@ def _slot_centre(pallet, slot: int, rng) -> np.ndarray:
     return np.array([x, y]) + rng.uniform(-0.02, 0.02, size=2)
 
 
-def overhead_trajectory(placements: list[Placement], frames: int, rng) -> list[np.ndarray]:
-    """Camera -> world poses above the pallet: 1.2-2 m from the top of the load, tilted
-    5-30 deg off vertical, drifting a few centimetres and turning slowly over the frames."""
-    load = [p for p in placements if p.spec.name != "pallet"] or placements
-    tops = np.array([p.pose[2, 3] + p.spec.dimensions_m[2] / 2 for p in load])
-    centre = np.array([np.mean([p.pose[0, 3] for p in placements]), np.mean([p.pose[1, 3] for p in placements]),
-                       float(tops.max())])
-    r0 = rng.uniform(1.3, 1.8)
-    el0 = np.radians(90 - rng.uniform(5, 30))
-    az0 = rng.uniform(0, 2 * np.pi)
-    phase = rng.uniform(0, 2 * np.pi, size=4)
-    poses = []
-    for i in range(frames):
-        w = 2 * np.pi * i / FRAME_RATE_HZ
-        r = r0 + 0.08 * np.sin(w / 6.0 + phase[0])
-        az = az0 + np.radians(10) * np.sin(w / 8.0 + phase[1])
-        el = el0 + np.radians(3) * np.sin(w / 5.0 + phase[2])
-        target = centre + 0.04 * np.array([np.sin(w / 7.0 + phase[3]), np.cos(w / 9.0 + phase[3]), 0.0])
-        poses.append(look_at(_spherical(target, r, az, el), target, np.radians(2.0) * np.sin(w / 3.0)))
-    return poses
-
-
 def generate_untextured_bag(out_path, preset: str, instances: int = 8, distractors: int = 3, frames: int = 30,
                             seed: int = 0, storage: str = "sqlite3", resolution: str = "640x480",
                             preview_dir=None, mesh_path=None, mesh_units: str = "m",
-                            depth_noise_correlation_px: float = 0.0, transport: str = "raw", imu: bool = True):
+                            depth_noise_correlation_px: float = 0.0, transport: str = "raw", imu: bool = True,
+                            sensor: str = "d455", randomise: bool = False, bop_dir=None, bop_scene: int | None = None):
     """Make an untextured scene and write it as a rosbag2; with ``mesh_path`` also the
     target object's mesh (.ply, .stl or .obj) in its object frame. ``depth_noise_correlation_px``:
-    see ``sensor.simulate_depth``. ``imu``: with the accelerometer's samples (``write_scene_bag``)."""
+    see ``sensor.simulate_depth``. ``imu``: with the accelerometer's samples; ``bop_dir``: also
+    as a BOP scene (both: ``write_scene_bag``). ``sensor``, ``randomise``: the depth's sensor
+    profile (``SyntheticScene.set_sensor``)."""
     from ..meshes import save_mesh
     from .objects import object_mesh
     from .scene import write_scene_bag
@@ -172,7 +153,9 @@ def generate_untextured_bag(out_path, preset: str, instances: int = 8, distracto
         raise InputError(f"mesh file {mesh_path}: unknown format; use .ply, .stl or .obj")
     scene = make_untextured_scene(preset, instances, distractors, frames, seed, resolution)
     scene.set_depth_noise_correlation(depth_noise_correlation_px)
-    summary = write_scene_bag(scene, out_path, storage, preview_dir, transport=transport, imu=imu)
+    scene.set_sensor(sensor, randomise)
+    summary = write_scene_bag(scene, out_path, storage, preview_dir, transport=transport, imu=imu,
+                              bop_dir=bop_dir, bop_scene=bop_scene)
     if mesh_path is not None:
         save_mesh(object_mesh(scene.target), mesh_path, mesh_units)
     return summary

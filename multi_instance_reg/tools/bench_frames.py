@@ -203,7 +203,8 @@ def format_report(metrics: dict) -> str:
         f"median RTE {'-' if rte is None else f'{rte * 1000:.2f} mm'}  median RRE {'-' if rre is None else f'{rre:.2f} deg'}",
         f"latency per frame: p50 {lat['total']['p50']:.1f} ms  p95 {lat['total']['p95']:.1f} ms  "
         f"(CPU time per frame, all threads: p50 {metrics['cpu_ms_per_frame']['p50']:.1f} ms; "
-        f"load average during the run {metrics.get('load_average', float('nan')):.2f} on {os.cpu_count()} cores)",
+        f"load average during the run {metrics.get('load_average', float('nan')):.2f} on {os.cpu_count()} cores; "
+        f"shape search cut by its deadline on {metrics.get('deadline_cut_frames', 0)} of {metrics['frames']} frames)",
         "stages (p50 / p95 ms): " + "  ".join(f"{s} {lat[s]['p50']:.1f} / {lat[s]['p95']:.1f}"
                                             for s in ("sift", "matching", "lifting", "ecc", "refinement")
                                             + (("shape",) if "shape" in lat else ())),
@@ -294,6 +295,7 @@ def _replay_all(args, bags, models, config):
             total.object_scores.setdefault(name, []).extend(scores)
         total.skipped += r.skipped
         total.confusions += r.confusions
+        total.deadline_cuts += r.deadline_cuts
     return total
 
 
@@ -357,6 +359,7 @@ def run(args) -> int:
             for name in ("frames", "timings", "cpu_ms", "scores", "present", "found", "hits"):
                 getattr(total, name).extend(getattr(r, name))
             total.skipped += r.skipped
+            total.deadline_cuts += r.deadline_cuts
             load.append(os.getloadavg()[0])
     if not total.scores:
         raise InputError("the scene bags have no ground truth (/ground_truth/poses); the benchmark needs it")

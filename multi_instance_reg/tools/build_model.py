@@ -2,7 +2,8 @@
 
     mireg build-model CAPTURE_BAG [MORE_BAGS ...] -o MODEL.npz [--frames 0,10,20 | 0:60:10] [--roi x,y,w,h] [--depth-range 0.2 1.5]
     mireg build-model --rgb colour.png --depth depth.png --intrinsics fx,fy,cx,cy -o MODEL.npz
-    mireg build-model --mesh FILE.ply|.stl|.obj [--units m|mm] [--name N] [--symmetry auto|none|z:inf,x:2] [CAPTURE_BAG ...] -o MODEL.npz
+    mireg build-model --mesh FILE.ply|.stl|.obj [--units m|mm] [--name N] [--symmetry auto|none|z:inf,x:2]
+                      [--models-info models_info.json --obj-id N] [CAPTURE_BAG ...] -o MODEL.npz
 
 The object is isolated by the ROI and depth range, the removal of the dominant (table) plane
 and the blob nearest the image centre. Several frames are merged with their ground-truth
@@ -45,12 +46,24 @@ def add_arguments(parser) -> None:
     parser.add_argument("--topics", nargs=3, metavar=("COLOUR", "DEPTH", "INFO"), default=None,
                         help="colour, aligned depth and camera_info topics, raw or compressed (default: realsense-ros names; "
                              "their /compressed and /compressedDepth topics when the raw ones are absent)")
-    mesh = parser.add_argument_group("from a CAD mesh (shape; texture too when capture bags are given)")
+    mesh = parser.add_argument_group("from a mesh (shape; texture too from capture bags, or from the mesh's own colours)")
     mesh.add_argument("--mesh", default=None, help="triangle mesh of the object: .ply, .stl or .obj; the model frame is the mesh's")
     mesh.add_argument("--units", choices=("m", "mm"), default="m", help="units of the mesh's coordinates (default m)")
     mesh.add_argument("--symmetry", default="auto",
                       help="the object's symmetries: auto (found from the mesh), none, or items AXIS:N / AXIS:inf about "
-                           "the mesh's axes through its box centre, e.g. 'x:2,y:2' (a box), 'z:inf,x:2' (a cylinder)")
+                           "the mesh's axes through its box centre, e.g. 'x:2,y:2' (a box), 'z:inf,x:2' (a cylinder); "
+                           "auto takes them from a BOP models_info.json instead when there is one (--models-info)")
+    mesh.add_argument("--render-views", type=int, default=None,
+                      help="a mesh with colour (PLY vertex colours or a texture) and no capture bags gets SIFT keypoints "
+                           "from this many renders around it (default 30; 0 = none: the model is found by shape alone)")
+    mesh.add_argument("--render-distance", type=float, default=None,
+                      help="metres from the object's centre to the rendering camera (default 0.6: the distance the "
+                           "object is seen from; a Primesense-like camera, fx 550 px at 640 x 480)")
+    mesh.add_argument("--models-info", default=None,
+                      help="BOP models_info.json holding the object's symmetries (symmetries_discrete / "
+                           "symmetries_continuous); default: models_info.json beside the mesh, if any")
+    mesh.add_argument("--obj-id", type=int, default=None,
+                      help="the mesh's object id in --models-info (default: from a BOP file name, obj_000002.ply -> 2)")
     png = parser.add_argument_group("from PNG files instead of a bag")
     png.add_argument("--rgb", help="colour PNG (8-bit)")
     png.add_argument("--depth", help="depth PNG (16-bit, millimetres by default)")
@@ -209,6 +222,45 @@ def check_name(name: str) -> None:
                          f"e.g. instances/<name>/poses); give one with --name")
 
 
+def mesh_symmetry(mesh_path, symmetry_text: str, models_info, obj_id) -> tuple:
+    """What ``build_model_from_mesh`` is to take as the symmetries (``Symmetries``, text, or
+    None: find them from the mesh), and where they come from (said in the build's line):
+    --symmetry text; else a BOP models_info.json (given, or beside a mesh named obj_NNNNNN
+    and listing it); else the mesh's shape."""
+    import re
+
+    from ..datasets.bop import read_models_info
+    from ..symmetry import Symmetries
+
+    if models_info and symmetry_text != "auto":
+        raise InputError("give the symmetries either as --symmetry or from --models-info, not both")
+    if symmetry_text != "auto":
+        return symmetry_text, "from --symmetry"
+    mesh_path = Path(mesh_path)
+    path = Path(models_info) if models_info else mesh_path.parent / "models_info.json"
+    if not models_info and not path.is_file():
+        if obj_id is not None:
+            raise InputError(f"--obj-id {obj_id} names an object of a BOP models_info.json, and there is none beside "
+                             f"{mesh_path}; give one with --models-info")
+        return None, "found from the mesh"
+    if obj_id is None:
+        m = re.fullmatch(r"obj_0*(\d+)", mesh_path.stem)
+        if m is None:
+            if models_info:
+                raise InputError(f"which object of {path} is {mesh_path.name}? its name is not BOP's obj_NNNNNN.ply: "
+                                 f"give --obj-id")
+            return None, "found from the mesh"
+        obj_id = int(m.group(1))
+    info = read_models_info(path)
+    if obj_id not in info:
+        if not models_info:
+            return None, f"found from the mesh ({path} beside it does not list object {obj_id})"
+        raise InputError(f"{path} has no object {obj_id} (it lists {', '.join(map(str, sorted(info))) or 'none'}); "
+                         f"give the mesh's id with --obj-id")
+    # An entry without symmetries: the object has none (BOP leaves the keys out).
+    return info[obj_id].symmetries() or Symmetries(), f"from {path}, object {obj_id}"
+
+
 def run(args) -> int:
     from ..rgbd.model import BuildSettings, CaptureView, build_model, model_name, save_model
 
@@ -217,6 +269,8 @@ def run(args) -> int:
         raise InputError(f"output {out} must end in .npz")
     if args.mesh:
         return run_mesh(args, out)
+    if args.models_info or args.obj_id is not None:
+        raise InputError("--models-info and --obj-id give a mesh's symmetries: use them with --mesh")
     lo, hi = args.depth_range
     if not 0 <= lo < hi:
         raise InputError(f"--depth-range {lo} {hi}: need 0 <= MIN < MAX (metres)")
@@ -263,7 +317,8 @@ def run_mesh(args, out: Path) -> int:
 
     from ..meshes import load_mesh
     from ..rgbd.capture_alignment import place_capture_keypoints
-    from ..rgbd.mesh_model import add_capture_keypoints, build_model_from_mesh
+    from ..rgbd.mesh_model import (RENDER_DISTANCE_M, RENDER_VIEWS, add_capture_keypoints, add_rendered_keypoints,
+                                   build_model_from_mesh)
     from ..rgbd.model import BuildSettings, model_name, save_model
 
     if args.rgb or args.depth:
@@ -272,13 +327,31 @@ def run_mesh(args, out: Path) -> int:
     mesh = load_mesh(args.mesh, args.units)
     name = args.name or model_name("", args.mesh)
     check_name(name)
-    model = build_model_from_mesh(mesh, name, None if args.symmetry == "auto" else args.symmetry)
+    symmetry, symmetry_source = mesh_symmetry(args.mesh, args.symmetry, args.models_info, args.obj_id)
+    model = build_model_from_mesh(mesh, name, symmetry)
     views = []
     for bag in args.bag:
         # Placed on the mesh view by view (by ground truth or by shape): spread frames by default.
         more, _ = views_from_bag(bag, args.frames, args.topics, spread=True)
         views += more
-    placed = ""
+    placed, rendered = "", 0
+    render_views = RENDER_VIEWS if args.render_views is None else args.render_views
+    distance = RENDER_DISTANCE_M if args.render_distance is None else args.render_distance
+    if render_views < 0 or not 0.05 <= distance <= 20.0:
+        raise InputError(f"--render-views must be 0 or more and --render-distance 0.05-20 m; got {render_views} "
+                         f"and {distance}")
+    if views and (args.render_views or args.render_distance is not None):
+        raise InputError("--render-views and --render-distance give a coloured mesh keypoints when there are no capture "
+                         "bags; with capture bags the keypoints come from those")
+    if not views and mesh.has_colour and render_views:
+        _, per_view = add_rendered_keypoints(model, mesh, BuildSettings(), render_views, distance)
+        rendered = len(per_view)
+        colour = "its texture" if mesh.texture is not None else "its vertex colours"
+        placed = (f" (rendered from {colour} at {distance:g} m: {min(per_view)}-{max(per_view)} a view, "
+                  f"median {int(np.median(per_view))})")
+    elif not views and (args.render_views or args.render_distance is not None):
+        raise InputError(f"--render-views and --render-distance need a mesh with colour; {args.mesh} has neither vertex "
+                         f"colours nor a texture")
     if views:
         lo, hi = args.depth_range
         settings = BuildSettings(roi=parse_roi(args.roi), depth_range=(lo, hi))
@@ -296,6 +369,6 @@ def run_mesh(args, out: Path) -> int:
     save_model(model, out)
     print(f"model {out} ('{model.name}'): from mesh {args.mesh} ({len(mesh.vertices)} vertices, {len(mesh.triangles)} triangles) in "
           f"{time.perf_counter() - t0:.2f} s: {len(model.shape_points)} shape points at voxel {model.shape_voxel * 1000:.1f} mm, "
-          f"{model.num_keypoints} SIFT keypoints from {len(views)} view(s){placed}, extent {np.round(model.extent, 3).tolist()} m, "
-          f"symmetries: {model.symmetries.describe() if model.symmetries is not None else 'none'}", file=sys.stderr)
+          f"{model.num_keypoints} SIFT keypoints from {len(views) or rendered} view(s){placed}, extent {np.round(model.extent, 3).tolist()} m, "
+          f"symmetries: {model.symmetries.describe() if model.symmetries is not None else 'none'} ({symmetry_source})", file=sys.stderr)
     return 0

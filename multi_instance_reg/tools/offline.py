@@ -63,10 +63,10 @@ def add_arguments(parser) -> None:
 
 
 def load_config(params_path):
-    """PipelineConfig with the frontend.* and ecc.* entries of a node parameter file applied."""
+    """PipelineConfig with the frontend.*, ecc.* and workspace.* entries of a node parameter file applied."""
     from ..rgbd.pipeline import PipelineConfig
 
-    return _config_from_params(PipelineConfig(), params_path, ("frontend", "ecc"))
+    return _config_from_params(PipelineConfig(), params_path, ("frontend", "ecc", "workspace"))
 
 
 def load_tracker_config(params_path):
@@ -130,6 +130,7 @@ class ReplayResult:
     detection_scores: list = field(default_factory=list)      # the same for the detector alone (frames it ran on)
     identity: object = None                                   # metrics.IdentityScore when tracking
     present: list[int] = field(default_factory=list)          # per frame: ground-truth instances (-1 without)
+    in_view: list[int] = field(default_factory=list)          # per frame: ground-truth instances visible at all (-1 without)
     found: list[int] = field(default_factory=list)
     hits: list[int] = field(default_factory=list)
     object_scores: dict = field(default_factory=dict)         # object name -> its SceneScores, frame by frame
@@ -139,6 +140,7 @@ class ReplayResult:
     skip_reasons: str = ""
     has_ground_truth: bool = False
     gravity_frames: int = 0                                   # frames given the direction of gravity (IMU)
+    deadline_cuts: int = 0                                    # frames whose shape search its deadline cut
 
     def latency_summary(self) -> dict:
         out = {}
@@ -269,9 +271,13 @@ def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_
         total = bag.num_colour_messages if not max_frames else min(max_frames, bag.num_colour_messages)
         bar = Progress(total, progress)
         try:
+            stream, last_stamp = 0, None          # streams: runs of frames whose stamps do not go back
             for index, frame in enumerate(bag):
                 if max_frames and index >= max_frames:
                     break
+                if last_stamp is not None and frame.stamp_ns < last_stamp:
+                    stream += 1
+                last_stamp = frame.stamp_ns
                 cpu0 = time.process_time()
                 detect = trackers is None or index % detect_every == 0
                 try:
@@ -288,7 +294,7 @@ def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_
                 if trackers is not None:
                     t0 = time.perf_counter()
                     published = trackers.step(frame.stamp_ns, frame.depth_m, frame.intrinsics,
-                                              result.instances if result is not None else None)
+                                              result.instances if result is not None else None, frame.rgb)
                     timings["tracking"] = (time.perf_counter() - t0) * 1e3
                     timings["total"] += timings["tracking"]
                 else:
@@ -302,6 +308,7 @@ def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_
                 out.cpu_ms.append((time.process_time() - cpu0) * 1e3)
                 out.found.append(len(published))
                 out.gravity_frames += frame.gravity is not None
+                out.deadline_cuts += bool(result is not None and result.deadline_cut)
                 if frame.gt_poses is not None:
                     owners = ground_truth_owners(models, bag.instance_objects(len(frame.gt_poses)))
                     scores, detection_scores, hit_estimates = [], [], set()
@@ -315,7 +322,10 @@ def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_
                         out.object_scores[m.name].append(score)
                         hit_estimates |= {est[e] for _, e in hits}
                         if trackers is not None:
-                            matches = [((m.name, int(gt[g])), (m.name, published[est[e]].track_id)) for g, e in hits]
+                            # Identity is kept within a stream: where the stamps went back (a
+                            # loop) the tracker starts again, and so does the identity count.
+                            matches = [((m.name, stream, int(gt[g])), (m.name, published[est[e]].track_id))
+                                       for g, e in hits]
                             out.identity.add_frame(matches, score.n_gt, score.n_est)
                             out.object_identity[m.name].add_frame(matches, score.n_gt, score.n_est)
                             if result is not None:
@@ -330,9 +340,12 @@ def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_
                     out.confusions += count_confusions(models, frame.gt_poses, owners, frame.gt_visibility,
                                                        min_visibility, published, hit_estimates, max_rte)
                     out.present.append(score.n_gt)
+                    out.in_view.append(len(frame.gt_poses) if frame.gt_visibility is None
+                                       else int(np.count_nonzero(frame.gt_visibility > 0)))
                     out.hits.append(score.hits)
                 else:
                     out.present.append(-1)
+                    out.in_view.append(-1)
                     out.hits.append(-1)
                 if on_frame is not None:
                     on_frame(index, frame, published)
@@ -375,23 +388,28 @@ def metrics_dict(result: ReplayResult, max_rre_deg: float, max_rte: float, min_v
     extra["confusions"] = result.confusions
     return {**summary, **extra, "max_rre_deg": max_rre_deg, "max_rte": max_rte, "min_visibility": min_visibility,
             "frames": len(result.frames), "frames_with_ground_truth": len(result.scores),
-            "skipped_frames": result.skipped, "latency_ms": result.latency_summary(),
+            "skipped_frames": result.skipped, "deadline_cut_frames": result.deadline_cuts,
+            "latency_ms": result.latency_summary(),
             "cpu_ms_per_frame": {"p50": float(np.percentile(result.cpu_ms, 50)) if result.cpu_ms else None,
                                  "p95": float(np.percentile(result.cpu_ms, 95)) if result.cpu_ms else None}}
 
 
 # --------------------------------------------------------------------------- pictures
 
-def draw_overlay(rgb: np.ndarray, intrinsics, models, instances, gt_poses=None, gt_owners=None) -> np.ndarray:
+def draw_overlay(rgb: np.ndarray, intrinsics, models, instances, gt_poses=None, gt_owners=None,
+                 workspace=None) -> np.ndarray:
     """BGR picture: each instance's model box projected (green) with its id (and its object's
     name when there are several models); ground truth in grey (``gt_owners``: the model index
-    of each ground-truth instance, default all the first's)."""
+    of each ground-truth instance, default all the first's); the ``workspace`` (a
+    ``rgbd.workspace.Workspace``, or None) in orange."""
     from ..rgbd.model import ObjectModel
     from ..rgbd.overlay import draw_box
 
     models = [models] if isinstance(models, ObjectModel) else list(models)
     by_name = {m.name: m for m in models}
     img = np.ascontiguousarray(rgb[:, :, ::-1]).copy()
+    if workspace is not None:
+        workspace.draw(img, intrinsics, (0, 140, 255))
     if gt_poses is not None:
         owners = np.zeros(len(gt_poses), np.int64) if gt_owners is None else gt_owners
         for T, k in zip(gt_poses, owners):
@@ -443,8 +461,11 @@ def run(args) -> int:
 
     from ..rgbd.multi_model import load_models
 
+    from ..rgbd.workspace import Workspace
+
     models = load_models(args.model)
     config = load_config(args.params)
+    workspace = Workspace.from_config(config.workspace)
     out_dir = Path(args.output)
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"output {out_dir} exists and is not a directory")
@@ -463,7 +484,7 @@ def run(args) -> int:
     def on_frame(index, frame, instances):
         if index in picks:
             owners = None if frame.gt_poses is None else ground_truth_owners(models, gt_names(len(frame.gt_poses)))
-            img = draw_overlay(frame.rgb, frame.intrinsics, models, instances, frame.gt_poses, owners)
+            img = draw_overlay(frame.rgb, frame.intrinsics, models, instances, frame.gt_poses, owners, workspace)
             cv2.imwrite(str(out_dir / f"overlay_{index:05d}.png"), img)
 
     result = replay(args.bag, models, config, args.topics, args.max_rre_deg, args.max_rte, args.max_frames,
@@ -477,6 +498,8 @@ def run(args) -> int:
         line += f", {result.skipped} skipped ({result.skip_reasons})"
     if result.gravity_frames:
         line += f", {result.gravity_frames} of them with gravity from the IMU"
+    if result.deadline_cuts:
+        line += f", the shape search's deadline (frontend.shape_deadline_ms) cut {result.deadline_cuts} of them"
     if result.scores:
         metrics = metrics_dict(result, args.max_rre_deg, args.max_rte, args.min_visibility)
         (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))

@@ -12,14 +12,18 @@ from __future__ import annotations
 from dataclasses import replace
 
 from .live import LiveTracker
+from .odometry import CameraOdometry
 from .tracker import InstanceTracker, TrackedInstance, TrackerConfig
 
 
 class ObjectTrackers:
-    """One ``InstanceTracker`` per object model, fed that object's detections."""
+    """One ``InstanceTracker`` per object model, fed that object's detections; the camera's
+    motion (``odometry``) measured once a frame for all of them."""
 
     def __init__(self, models, config: TrackerConfig | None = None):
+        config = config or TrackerConfig()
         self.trackers = {m.name: InstanceTracker(m, config) for m in models}
+        self.odometry = CameraOdometry() if config.odometry else None
 
     def _split(self, detections):
         if detections is None:
@@ -29,11 +33,13 @@ class ObjectTrackers:
             mine[det.object].append(det)
         return mine
 
-    def step(self, stamp_ns: int, depth_m, intrinsics, detections=None) -> list[TrackedInstance]:
-        """Every object's tracker advanced to this frame (see ``InstanceTracker.step``)."""
+    def step(self, stamp_ns: int, depth_m, intrinsics, detections=None, rgb=None) -> list[TrackedInstance]:
+        """Every object's tracker advanced to this frame (see ``InstanceTracker.step``);
+        ``rgb``: the colour image, for the camera's motion."""
         dets = self._split(detections)
+        motion = self.odometry.step(rgb, depth_m, intrinsics, stamp_ns) if self.odometry is not None else None
         return [replace(inst, object=name) for name, tracker in self.trackers.items()
-                for inst in tracker.step(stamp_ns, depth_m, intrinsics, dets[name])]
+                for inst in tracker.step(stamp_ns, depth_m, intrinsics, dets[name], motion)]
 
     def add_detections(self, stamp_ns: int, detections) -> None:
         """Detections found on an earlier frame, each to its object's tracker."""
@@ -55,6 +61,7 @@ class LiveObjectTrackers:
         self._config, self._live = config, live
         self._trackers: dict = {}
         self._models: dict = {}
+        self._odometry = CameraOdometry() if (config or TrackerConfig()).odometry else None
         self.set_models(models)
 
     def set_models(self, models) -> None:
@@ -71,13 +78,18 @@ class LiveObjectTrackers:
 
     def set_config(self, config: TrackerConfig) -> None:
         self._config = config
+        if (self._odometry is not None) != config.odometry:
+            self._odometry = CameraOdometry() if config.odometry else None
         for tracker in self._trackers.values():
             tracker.set_config(config)
 
-    def step(self, stamp_ns: int, depth_m, intrinsics) -> list[TrackedInstance]:
-        """Every object's live tracks on this frame, by object (models' order), then track_id."""
+    def step(self, stamp_ns: int, depth_m, intrinsics, rgb=None) -> list[TrackedInstance]:
+        """Every object's live tracks on this frame, by object (models' order), then track_id;
+        ``rgb``: the colour image, for the camera's motion (one camera thread calls this)."""
+        odometry = self._odometry
+        motion = odometry.step(rgb, depth_m, intrinsics, stamp_ns) if odometry is not None else None
         return [replace(inst, object=name) for name, tracker in self._trackers.items()
-                for inst in tracker.step(stamp_ns, depth_m, intrinsics)]
+                for inst in tracker.step(stamp_ns, depth_m, intrinsics, motion)]
 
     def add_detections(self, stamp_ns: int, detections) -> bool:
         """The detector's instances of the frame ``stamp_ns``, each to its object's tracker

@@ -2,22 +2,36 @@
 
     tracker = InstanceTracker(model, TrackerConfig())
     for frame in frames:                                       # in order, every frame
-        out = tracker.step(stamp_ns, depth_m, intrinsics, detections)   # detections may be None
+        out = tracker.step(stamp_ns, depth_m, intrinsics, detections, camera_motion)
         for inst in out:                                       # by track_id
             inst.track_id, inst.state, inst.source, inst.T
 
-Each frame, every live track is first predicted (constant velocity), then corrected by the
-detections of that frame if there are any (one-to-one assignment, gated on position and
-orientation), then aligned to the depth image by projective ICP (``icp.py``). A detection
-found on an older frame (the live node's detector runs behind the camera) is fused with
-``add_detections(stamp_ns, detections)``: it is compared with each track's pose on that
-frame and moved forward by the motion the track has made since.
+Objects rest and the camera moves. Each frame every track is first moved by the camera's
+motion, measured where it can be (``camera_motion`` from ``odometry.py``: the static scene's
+features; else the tracks' shared velocity), corrected by one ICP of all tracks together
+against the depth; then the frame's detections are assigned to the tracks (one to one within
+``gate_distance``, after moving the tracks by the camera motion the detections themselves
+show where nothing else measured it; a detection left over within a track's volume corrects
+that track); then each track is aligned to the depth by projective ICP (``icp.py``). A
+detection found on an older frame (the live node's detector runs behind the camera) is fused
+with ``add_detections(stamp_ns, detections)`` against each track's pose on that frame.
 
-Life of a track: born *tentative* from a detection no track claims; *confirmed* after
-``confirm_detections`` detections, or at once when the depth confirms the detection's pose
-(ICP fitness at least ``confirm_fitness``); a confirmed track neither detected nor confirmed by the
-depth on a frame is *coasting*, and ends when that lasts ``coast_s``. A tentative track ends
-at its first miss. Ids count up from 0 and are never reused.
+What is published is what has evidence on the frame: a track the depth confirms (ICP
+fitness), or one a detection continues that the depth does not contradict (no more than
+``max_free_share`` of its visible model points standing where the camera saw through to a
+surface behind them). A prediction is not evidence: a track with neither is kept, coasting,
+for its object's next detection, and not published, unless the depth shows it hidden (most
+of it behind a surface well in front of it, nothing seen through it) where the camera's
+motion was measured: then it is published as coasting. Where the depth vouches for neither a
+track's pose nor its detection's, the detection wins. Two tracks whose model volumes overlap
+are one object: the one with the better evidence stays. Stamps that go back (a bag played in
+a loop, a camera restarted) end every track, and the tracker says so in the log.
+
+Life of a track: born *tentative* from a detection no track claims (published at once where
+the depth confirms it); *confirmed* after ``confirm_detections`` detections, or at once when
+the depth confirms the detection's pose (``confirm_fitness``); a confirmed track without
+evidence on a frame is *coasting*, and ends when that lasts ``coast_s``. A tentative track
+ends at its first miss. Ids count up from 0 and are never reused.
 
 A detection whose position matches a track but whose orientation does not is the same object
 seen in one of its symmetric poses (a box turned 180 deg looks the same on its plain faces):
@@ -26,6 +40,7 @@ other on the other one (the track itself was the wrong one).
 """
 from __future__ import annotations
 
+import logging
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -38,6 +53,8 @@ from ..params import param
 from ..transforms import invert_transform, rotation_angle_deg
 from ..rgbd.shape import apply_twist as twist_step
 from .icp import ProjectiveICP
+
+_log = logging.getLogger(__name__)
 
 TENTATIVE, CONFIRMED, COASTING = "tentative", "confirmed", "coasting"
 DETECTION, TRACKING = "detection", "tracking"
@@ -53,9 +70,12 @@ class TrackerConfig:
     flip_after: int = param(3, "detections in a row, agreeing with each other but not with their track's orientation, that turn the track to theirs", 1, 1000)
     confirm_detections: int = param(2, "detections that confirm a new (tentative) track; a tentative track ends at its first miss", 1, 100)
     confirm_fitness: float = param(0.9, "a new track is confirmed at once, on its first detection, when the ICP from that detection's pose confirms at least this share of the visible model points not hidden behind something nearer (and icp_min_fitness and icp_min_in_view hold): the depth then vouches for the detection as a second detection would; 0 = off (only detections confirm)", 0.0, 1.0)
-    coast_s: float = param(1.0, "s: a confirmed track that is neither detected nor confirmed by the depth for longer than this ends (it is published as coasting meanwhile)", 0.0, 60.0)
-    max_undetected_s: float = param(1.5, "s: a track kept by the depth alone, with no detection for longer than this, ends (0 = never)", 0.0, 3600.0)
-    duplicate_distance: float = param(0.015, "m: two tracks whose positions come closer than this follow one object: the younger ends", 0.0, 1.0)
+    coast_s: float = param(1.0, "s: a confirmed track that is neither detected nor confirmed by the depth for longer than this ends; meanwhile it is kept (coasting, carried by the camera's motion) so that the object's next detection continues it, but not published: a prediction is not evidence", 0.0, 60.0)
+    max_undetected_s: float = param(1.5, "s: a track kept by the depth alone, with no detection for longer than this and not found by the last two detection rounds that ran on frames it lived in, ends (0 = never): the detector's verdict, not the clock's (a detector running seconds behind on a loaded host leaves that long between its rounds)", 0.0, 3600.0)
+    duplicate_distance: float = param(0.015, "m: two tracks whose positions come closer than this, or than half the object's smallest extent (their model volumes overlap), follow one object: the one with the weaker evidence on this frame ends (published before not, confirmed before tentative, then the older)", 0.0, 1.0)
+    min_hidden_share: float = param(0.6, "share of a track's visible model points that must be hidden behind a surface more than icp_max_distance in front of them (an arm, an object in front) for an undetected track whose pose the camera's measured motion carried to be published as hidden (state coasting): the depth agrees with it without confirming it; 1 = never", 0.0, 1.0)
+    max_free_share: float = param(0.3, "share of a track's visible model points that may stand where the camera saw through to a surface more than icp_max_distance behind them (space seen empty, which no occlusion explains): above it the depth contradicts the pose and the track has no evidence on that frame, whatever detected it", 0.0, 1.0)
+    odometry: bool = param(True, "measure the camera's motion from one frame to the next by the colour image's features with depth (tracking.odometry: ORB, RANSAC; objects rest, so it moves every track) and predict the tracks by it: a shaking or jumping camera is followed exactly where a velocity would guess; where a frame has too little texture, the prediction below is used")
     camera_motion: bool = param(True, "predict every track by one motion shared by all (the camera's: objects rest and the camera moves), corrected on each frame by one ICP of all confirmed and coasting tracks together against the depth (where that is refused or no such track is in view: the median rotation, then the median translation of the steps of the tracks the depth or a detection saw), plus the track's own residual velocity; an occluded (coasting) track follows the shared motion. Off: each track's own constant velocity, an occluded one follows the nearest seen track")
     velocity_decay: float = param(0.5, "share of a track's own velocity (with camera_motion: what the shared motion does not explain) kept per frame the track is updated by the depth alone (no detection): a velocity the depth does not confirm (a box sliding along the table plane it shares with its neighbours) dies out instead of carrying the track away from a resting object; 1 = constant velocity", 0.0, 1.0)
     smoothing: float = param(0.0, "pose smoothing, 0 = off (the published pose is the measured one) to 0.95 (heavy): the published pose is a constant-velocity (alpha-beta) filter of the measured one with gain 1 - smoothing, so a resting object's pose settles and a steadily moving one does not lag (and, with a still camera, the running mean of a resting object's measured poses: rest_frames); a measurement further than icp_max_step / icp_max_step_deg from the filter restarts it", 0.0, 0.95)
@@ -63,7 +83,7 @@ class TrackerConfig:
     rest_sigmas: float = param(3.0, "see rest_frames: how many times its usual (RMS) distance from the published pose, in rotation or position, one measurement, or the running mean of the last few, must be for the track to count as moving", 1.0, 100.0)
     detection_gain: float = param(0.3, "with smoothing on: share of an agreeing detection's correction (within icp_max_step and, in orientation, icp_max_step_deg times its spread of a confirmed track, no symmetric flip) that moves a resting track in the steady state, for a detection of detection_gain_inliers inliers (a Kalman gain: the first detections of a track are averaged, weaker ones pull less, stronger ones more); the ICP then re-fits what the depth constrains, so this filters only what it does not (a box seen from its top: its yaw and where it lies on the table), which a detection would otherwise reset with its own noise on every frame. 1 = reset; unused with smoothing 0 (the track is then the measured pose)", 0.01, 1.0)
     detection_gain_inliers: int = param(100, "inliers of the detection that detection_gain refers to; a detection's pose variance is taken as inversely proportional to its inliers", 1, 100000)
-    publish_tentative: bool = param(False, "also publish tracks not yet confirmed (state tentative)")
+    publish_tentative: bool = param(True, "publish a new track (state tentative) on the frame where only its detection vouches for it, the depth not contradicting it (a detection is evidence: the output is then never worse than the detector's); off: only once the depth or a second detection confirms it")
     icp: bool = param(True, "bring every track up to date on every frame by projective point-to-plane ICP of the model against the depth image (off: tracks move only with detections)")
     icp_points: int = param(1000, "model points used by the ICP of one track", 20, 20000)
     icp_iterations: int = param(10, "ICP iterations per track and frame", 1, 100)
@@ -123,6 +143,8 @@ class Track:
     pull_variance: float = 1.0                # of the pose where the depth leaves it free, in units of a detection with detection_gain_inliers inliers
     frames_since_pull: int = 0
     pulled: float = 0.0                       # share of the way a detection moved it on this frame (0: none, or reset to it)
+    evidence: bool = False                    # a detection or the depth vouched for it on its latest frame (published then)
+    missed_rounds: int = 0                    # detection rounds in a row, on frames it lived in, that did not find it
 
     def pose_at(self, stamp_ns: int) -> np.ndarray | None:
         for s, T in reversed(self.history):
@@ -143,6 +165,20 @@ def proper_pose(T) -> np.ndarray:
 
 
 _ORIGIN = np.zeros(3)
+MISSED_ROUNDS = 2                # detection rounds in a row that must miss a track before max_undetected_s ends it
+MAX_CAMERA_TURN_DEG = 45.0       # a camera motion between two frames taken from the detections turns at most this
+
+
+def smallest_extent(points: np.ndarray) -> float:
+    """The object's thickness along its thinnest principal axis (m): two poses of one object
+    whose origins are closer than half of it have overlapping volumes."""
+    pts = np.asarray(points, dtype=np.float64)
+    if len(pts) < 4:
+        return 0.0
+    centred = pts - pts.mean(axis=0)
+    axes = np.linalg.svd(centred, full_matrices=False)[2]
+    spans = np.ptp(centred @ axes.T, axis=0)
+    return float(spans.min())
 
 
 def relative_twist(T_from: np.ndarray, T_to: np.ndarray) -> np.ndarray:
@@ -199,6 +235,11 @@ class InstanceTracker:
         self._camera_step = self._camera_square = self._camera_change = None   # _camera_moves: the last shared step, recent mean squares of the steps and of their changes
         self._camera_moving = True
         self._camera_still = 0                # frames the camera has been judged still in a row
+        self.resets = 0                       # times the stamps went back and every track was ended
+        self._detections_win = False          # this frame's detections reset their tracks (see _fuse)
+        self._predicted_motion = np.eye(4)    # the camera motion the tracks were predicted by on this frame
+        self._motion_measured = False         # ... measured (odometry), not extrapolated
+        self._merge_distance = max(0.5 * smallest_extent(model.points_xyz), 0.0)
         # Rotations (model frame) under which the object looks the same; identity first.
         self.symmetries = [np.eye(3)] + [np.asarray(S, dtype=np.float64)[:3, :3] for S in (symmetries or [])]
         self.set_config(config or TrackerConfig())
@@ -210,28 +251,59 @@ class InstanceTracker:
 
     # ---- per frame -------------------------------------------------------------------
     def step(self, stamp_ns: int, depth_m: np.ndarray | None, intrinsics: CameraIntrinsics | None,
-             detections=None) -> list[TrackedInstance]:
+             detections=None, camera_motion: np.ndarray | None = None) -> list[TrackedInstance]:
         """Advance every track to this frame; ``detections`` (Instances found on this very
         frame, or None when the detector did not run on it) correct them before the depth
-        alignment. Returns what to publish for this frame."""
-        self._predict(stamp_ns)
+        alignment; ``camera_motion``: the camera's motion D since the frame stepped before
+        (X_now = D X_before; ``odometry.CameraOdometry``), None where it is not known.
+        Returns what to publish for this frame."""
+        if self.stamp_ns is not None and int(stamp_ns) < self.stamp_ns:
+            self.reset(f"the stamps went back by {(self.stamp_ns - int(stamp_ns)) * 1e-9:.3f} s "
+                       "(a bag played in a loop, a camera restarted)")
+            camera_motion = None
+        self._predict(stamp_ns, camera_motion)
         self._align_camera(depth_m, intrinsics)
         if detections is not None:
             self._fuse(stamp_ns, detections)
         self._align(stamp_ns, depth_m, intrinsics)
-        return self.output(intrinsics)
+        return self.output()
 
     def add_detections(self, stamp_ns: int, detections) -> None:
         """Detections found on an earlier frame (at most HISTORY frames back)."""
         self._fuse(int(stamp_ns), detections)
 
+    def reset(self, why: str) -> None:
+        """End every track (ids go on counting): the stream's past is not this frame's."""
+        _log.warning("tracking reset, %d track(s) ended: %s", len(self.tracks), why)
+        self.ended += len(self.tracks)
+        self.tracks = []
+        self.resets += 1
+        self.stamp_ns = None
+        self.camera_velocity = np.zeros(6)
+        self._camera_step = self._camera_square = self._camera_change = None
+        self._camera_moving, self._camera_still = True, 0
+
     # ---- stages ----------------------------------------------------------------------
-    def _predict(self, stamp_ns: int) -> None:
+    def _predict(self, stamp_ns: int, camera_motion: np.ndarray | None = None) -> None:
+        """Every track moved to this frame: by the camera's measured motion where it is known
+        (objects rest), else by the shared velocity; then by its own residual velocity."""
         stamp_ns = int(stamp_ns)
         shared = self.camera_velocity if self.config.camera_motion else np.zeros(6)
+        dt_frame = (stamp_ns - self.stamp_ns) * 1e-9 if self.stamp_ns is not None else 0.0
+        self._predicted_motion = (proper_pose(camera_motion) if camera_motion is not None
+                                  else apply_twist(np.eye(4), shared, max(dt_frame, 0.0)))
+        self._motion_measured = camera_motion is not None
         for tr in self.tracks:
             dt = (stamp_ns - tr.stamp_ns) * 1e-9
-            if dt > 0:
+            if camera_motion is not None:
+                tr.T = apply_twist(self._predicted_motion @ tr.T, tr.velocity, max(dt, 0.0))
+                tr.T_out_before = tr.T_out
+                if self._camera_moving:
+                    # (A still camera's measured motion is noise: the published pose of a
+                    # resting object is held, as rest_frames averages it.)
+                    tr.T_out = proper_pose(self._predicted_motion @ tr.T_out)
+                tr.stamp_ns = stamp_ns
+            elif dt > 0:
                 tr.T = apply_twist(apply_twist(tr.T, shared, dt), tr.velocity, dt)
                 tr.T_out_before = tr.T_out
                 tr.T_out = local_step(tr.T_out, tr.out_velocity * dt)   # the filter's own velocity
@@ -277,25 +349,49 @@ class InstanceTracker:
         return best, best_angle
 
     def _fuse(self, stamp_ns: int, detections) -> None:
+        """Each detection continues the track of its object or starts one. The tracks are first
+        moved by the camera's motion that the detections show (``_camera_from_detections``:
+        a shaking or jumping camera moves every resting object alike), then assigned one to
+        one within ``gate_distance``; a detection left over that lies within a left-over
+        track's volume corrects that track (it drifted) rather than starting a second one."""
         c = self.config
         dets = list(detections)
         candidates = [(tr, tr.pose_at(stamp_ns)) for tr in self.tracks]
         candidates = [(tr, T) for tr, T in candidates if T is not None]
         matched_dets: set[int] = set()
         matched_tracks: set[int] = set()
+        # On this very frame, where neither the colour (odometry) nor the depth measured the
+        # camera's motion (a jump beyond the ICP's reach, a gap), the tracks' poses are stale:
+        # the detections win.
+        self._detections_win = (stamp_ns == self.stamp_ns and self.camera_correction is None
+                                and not self._motion_measured)
         if dets and candidates:
+            D = self._camera_from_detections([T for _, T in candidates], dets)
+            if D is not None and (self._detections_win or stamp_ns != self.stamp_ns):
+                if stamp_ns == self.stamp_ns:
+                    for tr in self.tracks:       # this very frame: every track moves with the camera
+                        tr.T = proper_pose(D @ tr.T)
+                        tr.history[-1] = (stamp_ns, tr.T.copy())
+                    candidates = [(tr, tr.T.copy()) for tr, _ in candidates]
+                else:
+                    candidates = [(tr, proper_pose(D @ T)) for tr, T in candidates]
             pos_d = np.array([np.asarray(d.T)[:3, 3] for d in dets])
             pos_t = np.array([T[:3, 3] for _, T in candidates])
             dist = np.linalg.norm(pos_t[:, None] - pos_d[None], axis=2)
-            cost = np.where(dist <= c.gate_distance, dist, 1e6)
-            rows, cols = linear_sum_assignment(cost)
-            for r, k in zip(rows, cols):
-                if cost[r, k] >= 1e6:
-                    continue
-                tr, T_then = candidates[r]
-                self._correct(tr, T_then, dets[k], stamp_ns)
-                matched_dets.add(k)
-                matched_tracks.add(tr.track_id)
+            for gate in (c.gate_distance, max(c.gate_distance, self._merge_distance)):
+                cost = np.where(dist <= gate, dist, 1e6)
+                cost[list(matched_tracks_idx(candidates, matched_tracks)), :] = 1e6
+                cost[:, list(matched_dets)] = 1e6
+                rows, cols = linear_sum_assignment(cost)
+                for r, k in zip(rows, cols):
+                    if cost[r, k] >= 1e6:
+                        continue
+                    tr, T_then = candidates[r]
+                    self._correct(tr, T_then, dets[k], stamp_ns)
+                    matched_dets.add(k)
+                    matched_tracks.add(tr.track_id)
+        for tr, _ in candidates:
+            tr.missed_rounds = 0 if tr.track_id in matched_tracks else tr.missed_rounds + 1
         # A tentative track that a detection round (on a frame it lived in) did not find ends.
         missed = {tr.track_id for tr, _ in candidates if tr.state == TENTATIVE and tr.track_id not in matched_tracks}
         self.ended += len(missed)
@@ -303,6 +399,53 @@ class InstanceTracker:
         for k, det in enumerate(dets):
             if k not in matched_dets:
                 self._birth(det, stamp_ns, candidates)
+
+    def _camera_from_detections(self, poses: list[np.ndarray], dets) -> np.ndarray | None:
+        """The camera's motion since the tracks' poses ``poses`` (on the detections' frame) as
+        the detections show it, or None where they show none. Objects rest, so one rigid
+        motion D takes every track onto its object's detection: no motion and each (track,
+        detection) pair propose one (the detection turned by the symmetry nearest the track);
+        the one that brings most tracks within gate_distance of a detection wins (then the
+        nearer), refitted to all it pairs. It must pair at least two tracks (no camera motion
+        is made of one pair), and more than the tracks as they are: where those pair, the
+        detections correct them one by one."""
+        c = self.config
+        if len(poses) < 2 or len(dets) < 2:
+            return None
+        pos_t = np.array([T[:3, 3] for T in poses])
+        pos_d = np.array([np.asarray(d.T)[:3, 3] for d in dets])
+
+        def paired(D):
+            moved = pos_t @ D[:3, :3].T + D[:3, 3]
+            near = np.linalg.norm(moved[:, None] - pos_d[None], axis=2)
+            j = near.argmin(axis=1)
+            d = near[np.arange(len(poses)), j]
+            ok = d <= c.gate_distance
+            return (int(ok.sum()), -float(d[ok].sum())), np.flatnonzero(ok), j[ok]
+
+        identity = np.eye(4)
+        best = (identity,) + paired(identity)
+        identity_n = best[1][0]
+        for T in poses:
+            for det in dets:
+                D = self._closest_symmetric(proper_pose(det.T), T)[0] @ invert_transform(T)
+                if rotation_angle_deg(D[:3, :3]) > MAX_CAMERA_TURN_DEG:
+                    continue
+                score, rows, cols = paired(D)
+                if score > best[1]:
+                    best = (D, score, rows, cols)
+        D, (n, _), rows, cols = best
+        if n < 2 or D is identity or n == identity_n:
+            return None
+        # Refitted to every pair it makes: the mean of the turns the pairs' orientations give
+        # (their positions alone would leave the turn about a row of objects free), then the
+        # mean of the shifts that turn leaves.
+        turns = [self._closest_symmetric(proper_pose(dets[k].T), poses[r])[0][:3, :3] @ poses[r][:3, :3].T
+                 for r, k in zip(rows, cols)]
+        R = Rotation.from_matrix(np.array(turns)).mean().as_matrix()
+        D = np.eye(4)
+        D[:3, :3], D[:3, 3] = R, np.mean(pos_d[cols] - pos_t[rows] @ R.T, axis=0)
+        return D
 
     def _correct(self, tr: Track, T_then: np.ndarray, det, stamp_ns: int) -> None:
         """Fuse one detection (found on frame stamp_ns, where the track was at T_then)."""
@@ -336,13 +479,13 @@ class InstanceTracker:
         spread = np.sqrt(max(1.0, self._detection_variance(det.inliers))) if c.smoothing > 0 else 1.0
         far = (np.linalg.norm(step[3:]) > c.icp_max_step
                or (not flipped and np.degrees(np.linalg.norm(step[:3])) > c.icp_max_step_deg * spread))
-        if tr.state != TENTATIVE and far:
+        if tr.state != TENTATIVE and far and not self._detections_win:
             # A detection far from a confirmed track, in position or orientation, may be a bad
             # one (few inliers on an object half hidden by an arm): the depth decides between
             # the two (_align).
             tr.T_before_jump = tr.T.copy()
             tr.far_detections += 1
-        elif tr.state != TENTATIVE and c.smoothing > 0 and not flipped:
+        elif tr.state != TENTATIVE and c.smoothing > 0 and not flipped and not far:
             # An agreeing detection: pull part of the way. The ICP (_align) re-fits what the
             # depth constrains, so this filters the rest, which the depth leaves at the track.
             # A Kalman gain: the first detections of a track are averaged, weak ones pull
@@ -350,7 +493,7 @@ class InstanceTracker:
             gain = self._pull_gain(tr, det.inliers)
             T_new = proper_pose(local_step(tr.T, gain * step))
             tr.pulled = gain
-        if not far:
+        if not far or self._detections_win:
             tr.far_detections = 0
             if not tr.pulled:
                 self._reset_pull(tr, det.inliers)     # the track is reset to this detection
@@ -409,8 +552,13 @@ class InstanceTracker:
         stamp_ns = int(stamp_ns)
         seen: dict[int, bool] = {}
         jumped: set[int] = set()         # moved by a detection's correction, not by motion
+        depth_ok: set[int] = set()      # confirmed by the depth on this frame
+        hidden: set[int] = set()        # mostly behind something well in front of it, nothing seen through it
+        # A hidden track's pose is the prediction: evidence only where the camera's motion was
+        # measured on this frame (odometry, or the tracks' joint alignment).
+        carried = self._motion_measured or self.camera_correction is not None
         for tr in self.tracks:
-            seen[tr.track_id] = tr.last_seen_ns == stamp_ns
+            seen[tr.track_id] = tr.last_seen_ns == stamp_ns     # detected on this frame
             tr.fitness = 0.0
             jumped_from, tr.T_before_jump = tr.T_before_jump, None
             if jumped_from is not None:
@@ -420,10 +568,9 @@ class InstanceTracker:
                 if jumped_from is not None:
                     own = self._icp.align(jumped_from, depth_m, intrinsics)
                     # The depth decides: the detection wins where the depth confirms it
-                    # (icp_min_fitness) better than the track. Where the depth cannot tell the
-                    # two apart (a box's yaw seen from its top; an arm hiding most of the
-                    # object) one detection is not enough to move the track: flip_after such
-                    # detections in a row are.
+                    # (icp_min_fitness) better than the track, or confirms neither. Where it
+                    # confirms both alike (a box's yaw seen from its top) one detection is not
+                    # enough to move the track: flip_after such detections in a row are.
                     if tr.state == COASTING:
                         # Not confirmed by the depth on the frame before, mostly because
                         # something covers it: the points hidden behind that are evidence
@@ -432,8 +579,10 @@ class InstanceTracker:
                         own_f, res_f = own.unoccluded_fitness, res.unoccluded_fitness
                     else:
                         own_f, res_f = own.fitness, res.fitness
-                    undecided = own_f == res_f or max(own_f, res_f) < c.icp_min_fitness
-                    if undecided:
+                    if max(own_f, res_f) < c.icp_min_fitness:
+                        # The depth vouches for neither: the detection is the evidence there is.
+                        take_detection = True
+                    elif own_f == res_f:
                         take_detection = tr.far_detections >= c.flip_after
                     else:
                         take_detection = res_f > own_f
@@ -441,7 +590,10 @@ class InstanceTracker:
                         tr.far_detections = 0
                         self._reset_pull(tr, tr.inliers)
                     else:
+                        # The track keeps its pose, which the detection does not vouch for:
+                        # only the depth can (below).
                         tr.T, res = jumped_from, own
+                        seen[tr.track_id] = False
                 # An instance all but out of view is no evidence: a handful of points on the
                 # image border would confirm it while it lags behind.
                 tr.fitness = res.fitness if res.in_view >= c.icp_min_in_view else 0.0
@@ -454,15 +606,28 @@ class InstanceTracker:
                 step_deg = rotation_angle_deg(res.T[:3, :3] @ tr.T[:3, :3].T)
                 # A large step is the model sliding along a plane it shares with a neighbour
                 # (touching boxes, a box on the table), not the object moving: keep the start.
-                if tr.fitness >= c.icp_min_fitness and step_m <= c.icp_max_step and step_deg <= c.icp_max_step_deg:
+                if res.free_share > c.max_free_share:
+                    # The camera saw through where the model would stand: whatever detected
+                    # it, the object is not there (a wrong detection, or a track that slid
+                    # off its object into space).
+                    seen[tr.track_id] = False
+                elif tr.fitness >= c.icp_min_fitness and step_m <= c.icp_max_step and step_deg <= c.icp_max_step_deg:
                     tr.T = proper_pose(res.T)
                     seen[tr.track_id] = True
+                    depth_ok.add(tr.track_id)
                     tr.measured_ref = res.visible if tr.measured_ref <= 0 else 0.9 * tr.measured_ref + 0.1 * res.visible
                     # Confirmed at birth where the depth vouches for the whole of the object it
                     # can see: points hidden behind a neighbour are no evidence against it.
                     if (tr.state == TENTATIVE and c.confirm_fitness > 0 and tr.fitness > 0
                             and res.unoccluded_fitness >= c.confirm_fitness):
                         tr.state = CONFIRMED
+                elif (not seen[tr.track_id] and carried and tr.state != TENTATIVE and res.visible
+                      and c.min_hidden_share < 1.0 and res.occluded >= c.min_hidden_share * res.visible):
+                    # Hidden: where the model stands the camera sees something more than
+                    # icp_max_distance in front of it (an arm, a box in front), not the
+                    # surface it sits in, and nowhere through it: the depth agrees with the
+                    # pose without confirming it.
+                    hidden.add(tr.track_id)
         movers = [tr for tr in self.tracks if seen[tr.track_id] and len(tr.history) >= 2 and tr.track_id not in jumped
                   and stamp_ns > tr.history[-2][0]]
         shared = self._shared_motion(movers, stamp_ns) if c.camera_motion else None
@@ -473,6 +638,11 @@ class InstanceTracker:
         alive = []
         for tr in self.tracks:
             T_prev, prev_stamp = (tr.history[-2][1], tr.history[-2][0]) if len(tr.history) >= 2 else (None, None)
+            # Evidence on this frame: the depth confirms it, or a detection does and the depth
+            # does not contradict it (a new track that only its detection vouches for is
+            # published with publish_tentative).
+            tr.evidence = ((seen[tr.track_id] and (tr.state != TENTATIVE or tr.track_id in depth_ok or c.publish_tentative))
+                           or tr.track_id in hidden)
             if seen[tr.track_id]:
                 tr.last_seen_ns = stamp_ns
                 if tr.state == COASTING:
@@ -534,7 +704,8 @@ class InstanceTracker:
                 else:
                     tr.T_out = tr.T.copy()
                 tr.out_velocity = np.zeros(6)
-            if c.max_undetected_s > 0 and (stamp_ns - tr.last_detected_ns) * 1e-9 > c.max_undetected_s:
+            if (c.max_undetected_s > 0 and (stamp_ns - tr.last_detected_ns) * 1e-9 > c.max_undetected_s
+                    and tr.missed_rounds >= MISSED_ROUNDS):
                 self.ended += 1
                 continue
             tr.history[-1] = (stamp_ns, tr.T.copy())
@@ -573,10 +744,13 @@ class InstanceTracker:
         track's position is better known than its orientation, which a lever arm of half a
         metre would turn into millimetres). Updates camera_velocity for the next prediction;
         with no such track the last one stays."""
-        if self.camera_correction is not None and self._frame_dt > 0:
-            # Measured by the joint alignment: the predicted motion, corrected.
+        if (self.camera_correction is not None or self._motion_measured) and self._frame_dt > 0:
+            # Measured by the odometry and / or the joint alignment: the predicted motion,
+            # corrected.
             dt = self._frame_dt
-            M = self.camera_correction @ apply_twist(np.eye(4), self.camera_velocity, dt)
+            M = self._predicted_motion
+            if self.camera_correction is not None:
+                M = self.camera_correction @ M
             measured = relative_twist(np.eye(4), M) / dt
             self.camera_velocity = 0.5 * self.camera_velocity + 0.5 * measured
             return measured
@@ -656,13 +830,14 @@ class InstanceTracker:
         return tr.out_count
 
     def _without_duplicates(self, tracks: list[Track]) -> list[Track]:
-        """Two tracks on one object (e.g. a detection born next to a coasting track that then
-        came back): the older one stays."""
-        d = self.config.duplicate_distance
+        """Two tracks on one object (their model volumes overlap: e.g. a detection born next
+        to a coasting track that then came back): the one with the better evidence on this
+        frame stays (published before not, confirmed before tentative), then the older."""
+        d = max(self.config.duplicate_distance, self._merge_distance)
         if d <= 0 or len(tracks) < 2:
             return tracks
         keep: list[Track] = []
-        for tr in sorted(tracks, key=lambda t: (t.state == TENTATIVE, t.track_id)):
+        for tr in sorted(tracks, key=lambda t: (not t.evidence, t.state == TENTATIVE, t.track_id)):
             if all(np.linalg.norm(tr.T[:3, 3] - k.T[:3, 3]) >= d for k in keep):
                 keep.append(tr)
             else:
@@ -670,14 +845,13 @@ class InstanceTracker:
         return sorted(keep, key=lambda t: t.track_id)
 
     # ---- output ----------------------------------------------------------------------
-    def output(self, intrinsics: CameraIntrinsics | None = None) -> list[TrackedInstance]:
-        """The tracks to publish on the latest frame, by track_id: confirmed and coasting ones
-        (coasting only while in the image), and tentative ones if publish_tentative."""
+    def output(self) -> list[TrackedInstance]:
+        """The tracks to publish on the latest frame, by track_id: those with evidence on it
+        (a detection or the depth vouched for them; see ``_align``). A coasting track is kept
+        for its object's next detection, not published."""
         out = []
         for tr in self.tracks:
-            if tr.state == TENTATIVE and not self.config.publish_tentative:
-                continue
-            if tr.state == COASTING and intrinsics is not None and not _in_image(tr.T_out, intrinsics):
+            if not tr.evidence:
                 continue
             out.append(TrackedInstance(
                 tr.track_id, -1, tr.T_out.copy(), tr.inliers, tr.score, tr.state,
@@ -689,13 +863,9 @@ class InstanceTracker:
         return out
 
 
-def _in_image(T: np.ndarray, intrinsics: CameraIntrinsics) -> bool:
-    x, y, z = T[:3, 3]
-    if z <= 0:
-        return False
-    K = intrinsics.K
-    u, v = K[0, 0] * x / z + K[0, 2], K[1, 1] * y / z + K[1, 2]
-    return 0 <= u < intrinsics.width and 0 <= v < intrinsics.height
+def matched_tracks_idx(candidates, track_ids: set) -> list[int]:
+    """Rows of ``candidates`` whose track is among ``track_ids``."""
+    return [r for r, (tr, _) in enumerate(candidates) if tr.track_id in track_ids]
 
 
 __all__ = ["TrackerConfig", "InstanceTracker", "TrackedInstance", "Track", "TENTATIVE", "CONFIRMED", "COASTING",
