@@ -683,17 +683,19 @@ def _main(argv: list[str] | None) -> int:
         if rclpy.ok():
             raise
         return _stopped_while_starting()
+    interrupted = False
     try:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
-        pass
+        interrupted = True   # (KeyboardInterrupt may come before rclpy's handler shut the context down)
     except Exception:
         # A timer's publish racing a Ctrl-C finds its context invalid: that is the shutdown
         # itself, not an error. Anything raised while the context is still up is.
         if rclpy.ok():
             raise
+        interrupted = True
     finally:
-        if not rclpy.ok():   # printed: the node's logger would try rosout, shut down with the context
+        if interrupted or not rclpy.ok():   # printed: the node's logger would try rosout, going down too
             print(f"{NODE_NAME}: interrupted, stopping", file=sys.stderr, flush=True)
         node.destroy_node()
         rclpy.try_shutdown()
