@@ -266,9 +266,12 @@ def test_live_tracker_fuses_detections_only_for_frames_it_stepped():
     # Found on frame 1, arriving after frame 2 (the detector runs behind): fused.
     assert live.add_detections(1 * FRAME_NS, [det_at(0.0)])
     assert live.add_detections(2 * FRAME_NS, [det_at(0.0)])
-    # Two detections confirmed it; on frame 3 neither detected nor seen in a depth: coasting,
-    # kept but not published (a prediction is not evidence).
-    assert live.step(3 * FRAME_NS, None, None) == []
+    # Two detections confirmed it, fused after frame 2: evidence on frame 3, the first it is
+    # published on; on frame 4 neither detected nor seen in a depth: coasting, kept but not
+    # published (a prediction is not evidence).
+    (out,) = live.step(3 * FRAME_NS, None, None)
+    assert out.track_id == 0 and out.state == "confirmed" and out.source == "detection"
+    assert live.step(4 * FRAME_NS, None, None) == []
     assert [(t.track_id, t.state) for t in live._tracker.tracks] == [(0, "coasting")]
     counts = live.counts()
     assert counts["detections_fused"] == 2 and counts["detections_refused"] == 1 and counts["tracks_live"] == 1

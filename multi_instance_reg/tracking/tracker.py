@@ -558,7 +558,9 @@ class InstanceTracker:
         # measured on this frame (odometry, or the tracks' joint alignment).
         carried = self._motion_measured or self.camera_correction is not None
         for tr in self.tracks:
-            seen[tr.track_id] = tr.last_seen_ns == stamp_ns     # detected on this frame
+            # Detected on this frame, or (a live stream) by a detection fused since the frame
+            # before: found on an earlier frame and carried here by the camera's motion.
+            seen[tr.track_id] = tr.last_seen_ns == stamp_ns or tr.detected_since_output
             tr.fitness = 0.0
             jumped_from, tr.T_before_jump = tr.T_before_jump, None
             if jumped_from is not None:
@@ -851,13 +853,12 @@ class InstanceTracker:
         for its object's next detection, not published."""
         out = []
         for tr in self.tracks:
+            detected, tr.detected_since_output = tr.detected_since_output, False
             if not tr.evidence:
                 continue
             out.append(TrackedInstance(
                 tr.track_id, -1, tr.T_out.copy(), tr.inliers, tr.score, tr.state,
-                DETECTION if tr.detected_since_output else TRACKING,
-                (self.stamp_ns - tr.born_ns) * 1e-9, tr.fitness))
-            tr.detected_since_output = False
+                DETECTION if detected else TRACKING, (self.stamp_ns - tr.born_ns) * 1e-9, tr.fitness))
         for rank, k in enumerate(sorted(range(len(out)), key=lambda k: (-out[k].inliers, out[k].track_id))):
             out[k].id = rank
         return out
