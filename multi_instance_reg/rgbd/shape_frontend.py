@@ -1015,13 +1015,15 @@ class ShapeFrontEnd:
         return out
 
     def set_deadline(self, at: float | None) -> None:
-        """Refine no further hypothesis once ``time.perf_counter()`` passes ``at`` (None: no
-        bound); ``deadline_cut`` says afterwards whether that turned any away."""
+        """Refine no further hypothesis once ``time.process_time()`` passes ``at`` (None: no
+        bound); ``deadline_cut`` says afterwards whether that turned any away. CPU time, not
+        the clock's: what the frame costs, whatever else the host runs (on a host of its own
+        the two agree), so that a replay or a benchmark finds the same instances at any load."""
         self._deadline, self.deadline_cut = at, False
 
     def past_deadline(self) -> bool:
         """Whether the frame's deadline has passed (and so work is turned away: counted)."""
-        if self._deadline is None or time.perf_counter() < self._deadline:
+        if self._deadline is None or time.process_time() < self._deadline:
             return False
         self.deadline_cut = True
         return True

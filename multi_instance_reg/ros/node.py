@@ -653,10 +653,23 @@ def _tracker_fields(values: dict) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
+    sys.unraisablehook = _quiet_half_built_executor(sys.unraisablehook)
     try:
         return _main(argv)
     except KeyboardInterrupt:   # before rclpy took over the signals, or between its steps
         return _stopped_while_starting()
+
+
+def _quiet_half_built_executor(hook):
+    """The unraisable-exception hook, less one case: a signal that lands inside rclpy's
+    Executor() (rclpy.spin makes one) leaves it without the attributes its __del__ reads, and
+    Python would print that AttributeError as a traceback while the node stops as asked."""
+    def quiet(unraisable):
+        obj = getattr(unraisable, "object", None)
+        if (isinstance(unraisable.exc_value, AttributeError) and getattr(obj, "__qualname__", "") == "Executor.__del__"):
+            return
+        hook(unraisable)
+    return quiet
 
 
 def _main(argv: list[str] | None) -> int:
