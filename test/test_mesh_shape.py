@@ -128,7 +128,7 @@ def test_untextured_offline_replay(tmp_path):
     assert len(poses["frames"]) == 2
     # PPF per segment with the outline check reaches MHF1 0.75 on these two frames (3 of 5
     # instances each, no false one; before PPF: 4 hits of 10); the MHF1 >= 0.90 is
-    # not met here (README: "Untextured objects"); a margin below.
+    # not met here (docs/frontends.md, the shape path); a margin below.
     assert metrics["MHF1"] >= 0.65
     assert metrics["median_rte"] <= 0.01 and metrics["median_rre_deg"] <= 3.0
 

@@ -32,7 +32,7 @@ def test_params_file_is_the_generated_one():
 
 
 def test_the_faster_shape_setting_changes_known_parameters_within_their_ranges():
-    # config/shape_fast.yaml (README, "A faster setting"): read as the node and the tools read it.
+    # config/shape_fast.yaml (docs/frontends.md, "A faster setting"): read as the node and the tools read it.
     from multi_instance_reg.tools.offline import load_config
 
     fast = read_params_yaml(PARAMS_FILE.parent / "shape_fast.yaml")

@@ -460,7 +460,8 @@ class InstanceRegistrationNode(Node):
             return
         rgb, depth, intrinsics = frame
         t0 = time.perf_counter()
-        tracks = self._tracker.step(stamp_to_ns(pair.colour.header.stamp), depth, intrinsics)
+        # (The tracker logs it when the stamps go back and it ends every track.)
+        tracks = self._tracker.step(stamp_to_ns(pair.colour.header.stamp), depth, intrinsics, rgb)
         tracking_ms = round((time.perf_counter() - t0) * 1e3, 2)
         self._slot.put(_Frame(pair, rgb, depth, intrinsics, self._gravity(stamp_to_ns(pair.colour.header.stamp))))
         if self._publish(pair, tracks, timings_ms={"tracking": tracking_ms, "total": tracking_ms},

@@ -22,6 +22,7 @@ COMMANDS = {
     "demo": ("multi_instance_reg.tools.demo", "the end-to-end demo: synthetic bags, model, node, live replay, MHF1 and latency"),
     "listen": ("multi_instance_reg.tools.listen", "print the node's instances per frame; MHF1 against a bag's ground truth"),
     "synth": ("multi_instance_reg.tools.synth", "make synthetic D455 tabletop bags with ground truth (scene, capture)"),
+    "param-docs": ("multi_instance_reg.tools.param_docs", "write the parameter reference (docs/parameters.md) from the declared parameters"),
 }
 
 
@@ -35,15 +36,20 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
+def parser_for(argv: list[str]) -> argparse.ArgumentParser:
+    """The parser with the arguments of the command that argv names: its module only is
+    imported (the README test parses the README's command lines with it, too)."""
     parser = build_parser()
-    # Find the command first, then import only its module to add its arguments.
     name = next((a for a in argv if not a.startswith("-")), None)
     if name in COMMANDS:
         module = importlib.import_module(COMMANDS[name][0])
         module.add_arguments(parser._subparsers._group_actions[0].choices[name])
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    args = parser_for(argv).parse_args(argv)
     module = importlib.import_module(args._module)
     try:
         return int(module.run(args) or 0)

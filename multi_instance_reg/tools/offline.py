@@ -130,6 +130,7 @@ class ReplayResult:
     detection_scores: list = field(default_factory=list)      # the same for the detector alone (frames it ran on)
     identity: object = None                                   # metrics.IdentityScore when tracking
     present: list[int] = field(default_factory=list)          # per frame: ground-truth instances (-1 without)
+    in_view: list[int] = field(default_factory=list)          # per frame: ground-truth instances visible at all (-1 without)
     found: list[int] = field(default_factory=list)
     hits: list[int] = field(default_factory=list)
     object_scores: dict = field(default_factory=dict)         # object name -> its SceneScores, frame by frame
@@ -288,7 +289,7 @@ def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_
                 if trackers is not None:
                     t0 = time.perf_counter()
                     published = trackers.step(frame.stamp_ns, frame.depth_m, frame.intrinsics,
-                                              result.instances if result is not None else None)
+                                              result.instances if result is not None else None, frame.rgb)
                     timings["tracking"] = (time.perf_counter() - t0) * 1e3
                     timings["total"] += timings["tracking"]
                 else:
@@ -330,9 +331,12 @@ def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_
                     out.confusions += count_confusions(models, frame.gt_poses, owners, frame.gt_visibility,
                                                        min_visibility, published, hit_estimates, max_rte)
                     out.present.append(score.n_gt)
+                    out.in_view.append(len(frame.gt_poses) if frame.gt_visibility is None
+                                       else int(np.count_nonzero(frame.gt_visibility > 0)))
                     out.hits.append(score.hits)
                 else:
                     out.present.append(-1)
+                    out.in_view.append(-1)
                     out.hits.append(-1)
                 if on_frame is not None:
                     on_frame(index, frame, published)

@@ -77,8 +77,8 @@ def _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, max_dist, free_dist, centre, 
     centre, so that rotation and translation are nearly decoupled), and returns (pairs used,
     visible, squared error). Visible: facing the camera, inside the image and with a depth
     measurement there (a pixel without one, e.g. a side face seen at a grazing angle, is no
-    evidence for or against the pose). Free: visible, more than ``free_dist`` in front of the
-    measured surface."""
+    evidence for or against the pose). Free: visible, facing the camera within 60 deg,
+    more than ``free_dist`` in front of the measured surface."""
     H, W = depth.shape
     used = 0
     visible = 0
@@ -118,7 +118,9 @@ def _pair_pass(T, pts, nrm, depth, fx, fy, cx, cy, max_dist, free_dist, centre, 
         if abs(z - qz) > max_dist:
             if z < qz:
                 occluded += 1
-            elif z > qz + free_dist:
+            elif z > qz + free_dist and -(nx * qx + ny * qy + nz * qz) > 0.5 * np.sqrt(qx * qx + qy * qy + qz * qz):
+                # Only a face the camera looks at (within 60 deg): one seen at a grazing angle
+                # lands a pixel beside where it should for the slightest error in the pose.
                 free += 1
             continue
         s = z / qz                                   # the depth pixel lifted along q's ray

@@ -65,19 +65,23 @@ class LiveTracker:
             self._tracker.set_config(config)
             self._icp = icp
 
-    def step(self, stamp_ns: int, depth_m, intrinsics) -> list[TrackedInstance]:
-        """Every live track brought to this frame (by track_id); what to publish for it."""
+    def step(self, stamp_ns: int, depth_m, intrinsics, camera_motion=None) -> list[TrackedInstance]:
+        """Every live track brought to this frame (by track_id); what to publish for it.
+        ``camera_motion``: the camera's motion since the frame stepped before (odometry), or
+        None."""
         stamp_ns = int(stamp_ns)
         with self._lock:
             if self._stepped and stamp_ns <= self._stepped[-1]:
                 # Time went back (a bag looping, a camera restarted): the old frames are not
-                # this stream's past, so older detections must not be fused into it.
+                # this stream's past, so older detections must not be fused into it (the
+                # tracker ends its tracks itself).
                 self._stepped.clear()
                 self._frames.clear()
-            published = self._tracker.step(stamp_ns, depth_m, intrinsics, None)
+                camera_motion = None
+            published = self._tracker.step(stamp_ns, depth_m, intrinsics, None, camera_motion)
             self._stepped.append(stamp_ns)
             if self._live.catch_up_frames:
-                self._frames.append((stamp_ns, depth_m, intrinsics))
+                self._frames.append((stamp_ns, depth_m, intrinsics, camera_motion))
             return published
 
     def add_detections(self, stamp_ns: int, detections) -> bool:
@@ -106,25 +110,35 @@ class LiveTracker:
 
     def _frames_after(self, stamp_ns: int):
         """The kept frames after ``stamp_ns``, or None if that frame is no longer kept."""
-        stamps = [s for s, _, _ in self._frames]
+        stamps = [f[0] for f in self._frames]
         if stamp_ns not in stamps:
             return None
         return list(self._frames)[stamps.index(stamp_ns) + 1:]
 
     def _carry(self, detections, frames, icp) -> list:
-        """Each detection aligned to each frame's depth in turn (the tracker's own acceptance
-        rule per frame); those the depth stops confirming are dropped."""
+        """Each detection moved by each frame's camera motion (where the odometry measured
+        it) and aligned to that frame's depth in turn (the tracker's own acceptance rule per
+        frame). One the depth stops confirming is dropped where the camera's motion is not
+        known (occluded, left the view, or a jump the ICP cannot reach), or where the depth
+        contradicts it; with the motion known it is carried by that alone."""
         c = self._tracker.config
         out = []
         for det in detections:
             T = proper_pose(det.T)
-            for _, depth, intrinsics in frames:
+            for _, depth, intrinsics, motion in frames:
+                if motion is not None:
+                    T = proper_pose(motion @ T)
                 res = icp.align(T, depth, intrinsics)
                 step_m = float(np.linalg.norm(res.T[:3, 3] - T[:3, 3]))
                 step_deg = rotation_angle_deg(res.T[:3, :3] @ T[:3, :3].T)
-                if res.fitness < c.icp_min_fitness or step_m > c.icp_max_step or step_deg > c.icp_max_step_deg:
+                if res.free_share > c.max_free_share:
                     T = None
                     break
+                if res.fitness < c.icp_min_fitness or step_m > c.icp_max_step or step_deg > c.icp_max_step_deg:
+                    if motion is None:
+                        T = None
+                        break
+                    continue
                 T = proper_pose(res.T)
             if T is None:
                 self.detections_lost += 1
@@ -135,7 +149,8 @@ class LiveTracker:
     def counts(self) -> dict:
         with self._lock:
             return {"tracks_live": len(self._tracker.tracks), "tracks_started": self._tracker.next_id,
-                    "tracks_ended": self._tracker.ended, "detections_fused": self.detections_fused,
+                    "tracks_ended": self._tracker.ended, "tracking_resets": self._tracker.resets,
+                    "detections_fused": self.detections_fused,
                     "detections_refused": self.detections_refused, "detections_lost": self.detections_lost}
 
 

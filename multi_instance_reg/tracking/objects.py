@@ -61,6 +61,7 @@ class LiveObjectTrackers:
         self._config, self._live = config, live
         self._trackers: dict = {}
         self._models: dict = {}
+        self._odometry = CameraOdometry() if (config or TrackerConfig()).odometry else None
         self.set_models(models)
 
     def set_models(self, models) -> None:
@@ -77,13 +78,18 @@ class LiveObjectTrackers:
 
     def set_config(self, config: TrackerConfig) -> None:
         self._config = config
+        if (self._odometry is not None) != config.odometry:
+            self._odometry = CameraOdometry() if config.odometry else None
         for tracker in self._trackers.values():
             tracker.set_config(config)
 
-    def step(self, stamp_ns: int, depth_m, intrinsics) -> list[TrackedInstance]:
-        """Every object's live tracks on this frame, by object (models' order), then track_id."""
+    def step(self, stamp_ns: int, depth_m, intrinsics, rgb=None) -> list[TrackedInstance]:
+        """Every object's live tracks on this frame, by object (models' order), then track_id;
+        ``rgb``: the colour image, for the camera's motion (one camera thread calls this)."""
+        odometry = self._odometry
+        motion = odometry.step(rgb, depth_m, intrinsics, stamp_ns) if odometry is not None else None
         return [replace(inst, object=name) for name, tracker in self._trackers.items()
-                for inst in tracker.step(stamp_ns, depth_m, intrinsics)]
+                for inst in tracker.step(stamp_ns, depth_m, intrinsics, motion)]
 
     def add_detections(self, stamp_ns: int, detections) -> bool:
         """The detector's instances of the frame ``stamp_ns``, each to its object's tracker

@@ -2,22 +2,34 @@
 
     tracker = InstanceTracker(model, TrackerConfig())
     for frame in frames:                                       # in order, every frame
-        out = tracker.step(stamp_ns, depth_m, intrinsics, detections)   # detections may be None
+        out = tracker.step(stamp_ns, depth_m, intrinsics, detections, camera_motion)
         for inst in out:                                       # by track_id
             inst.track_id, inst.state, inst.source, inst.T
 
-Each frame, every live track is first predicted (constant velocity), then corrected by the
-detections of that frame if there are any (one-to-one assignment, gated on position and
-orientation), then aligned to the depth image by projective ICP (``icp.py``). A detection
-found on an older frame (the live node's detector runs behind the camera) is fused with
-``add_detections(stamp_ns, detections)``: it is compared with each track's pose on that
-frame and moved forward by the motion the track has made since.
+Objects rest and the camera moves. Each frame every track is first moved by the camera's
+motion, measured where it can be (``camera_motion`` from ``odometry.py``: the static scene's
+features; else the tracks' shared velocity), corrected by one ICP of all tracks together
+against the depth; then the frame's detections are assigned to the tracks (one to one within
+``gate_distance``, after moving the tracks by the camera motion the detections themselves
+show where nothing else measured it; a detection left over within a track's volume corrects
+that track); then each track is aligned to the depth by projective ICP (``icp.py``). A
+detection found on an older frame (the live node's detector runs behind the camera) is fused
+with ``add_detections(stamp_ns, detections)`` against each track's pose on that frame.
 
-Life of a track: born *tentative* from a detection no track claims; *confirmed* after
-``confirm_detections`` detections, or at once when the depth confirms the detection's pose
-(ICP fitness at least ``confirm_fitness``); a confirmed track neither detected nor confirmed by the
-depth on a frame is *coasting*, and ends when that lasts ``coast_s``. A tentative track ends
-at its first miss. Ids count up from 0 and are never reused.
+What is published is what has evidence on the frame: a track the depth confirms (ICP
+fitness), or one a detection continues that the depth does not contradict (no more than
+``max_free_share`` of its visible model points standing where the camera saw through to a
+surface behind them). A prediction is not evidence: a track with neither is kept, coasting,
+for its object's next detection, and not published. Where the depth vouches for neither a
+track's pose nor its detection's, the detection wins. Two tracks whose model volumes overlap
+are one object: the one with the better evidence stays. Stamps that go back (a bag played in
+a loop, a camera restarted) end every track, and the tracker says so in the log.
+
+Life of a track: born *tentative* from a detection no track claims (published at once where
+the depth confirms it); *confirmed* after ``confirm_detections`` detections, or at once when
+the depth confirms the detection's pose (``confirm_fitness``); a confirmed track without
+evidence on a frame is *coasting*, and ends when that lasts ``coast_s``. A tentative track
+ends at its first miss. Ids count up from 0 and are never reused.
 
 A detection whose position matches a track but whose orientation does not is the same object
 seen in one of its symmetric poses (a box turned 180 deg looks the same on its plain faces):
@@ -39,7 +51,6 @@ from ..params import param
 from ..transforms import invert_transform, rotation_angle_deg
 from ..rgbd.shape import apply_twist as twist_step
 from .icp import ProjectiveICP
-from .odometry import rigid_fit
 
 _log = logging.getLogger(__name__)
 
@@ -250,7 +261,7 @@ class InstanceTracker:
         if detections is not None:
             self._fuse(stamp_ns, detections)
         self._align(stamp_ns, depth_m, intrinsics)
-        return self.output(intrinsics)
+        return self.output()
 
     def add_detections(self, stamp_ns: int, detections) -> None:
         """Detections found on an earlier frame (at most HISTORY frames back)."""
@@ -385,8 +396,9 @@ class InstanceTracker:
         motion D takes every track onto its object's detection: no motion and each (track,
         detection) pair propose one (the detection turned by the symmetry nearest the track);
         the one that brings most tracks within gate_distance of a detection wins (then the
-        nearer), refitted to all it pairs. It must pair at least two tracks: no camera motion
-        is made of one pair."""
+        nearer), refitted to all it pairs. It must pair at least two tracks (no camera motion
+        is made of one pair), and more than the tracks as they are: where those pair, the
+        detections correct them one by one."""
         c = self.config
         if len(poses) < 2 or len(dets) < 2:
             return None
@@ -401,21 +413,28 @@ class InstanceTracker:
             ok = d <= c.gate_distance
             return (int(ok.sum()), -float(d[ok].sum())), np.flatnonzero(ok), j[ok]
 
-        best = (np.eye(4),) + paired(np.eye(4))
+        identity = np.eye(4)
+        best = (identity,) + paired(identity)
+        identity_n = best[1][0]
         for T in poses:
             for det in dets:
-                T_det, _ = self._closest_symmetric(proper_pose(det.T), T)
-                D = T_det @ invert_transform(T)
+                D = self._closest_symmetric(proper_pose(det.T), T)[0] @ invert_transform(T)
                 if rotation_angle_deg(D[:3, :3]) > MAX_CAMERA_TURN_DEG:
                     continue
                 score, rows, cols = paired(D)
                 if score > best[1]:
                     best = (D, score, rows, cols)
         D, (n, _), rows, cols = best
-        if n < 2:
+        if n < 2 or D is identity or n == identity_n:
             return None
-        if len(rows) >= 3:
-            D = rigid_fit(pos_t[rows], pos_d[cols])
+        # Refitted to every pair it makes: the mean of the turns the pairs' orientations give
+        # (their positions alone would leave the turn about a row of objects free), then the
+        # mean of the shifts that turn leaves.
+        turns = [self._closest_symmetric(proper_pose(dets[k].T), poses[r])[0][:3, :3] @ poses[r][:3, :3].T
+                 for r, k in zip(rows, cols)]
+        R = Rotation.from_matrix(np.array(turns)).mean().as_matrix()
+        D = np.eye(4)
+        D[:3, :3], D[:3, 3] = R, np.mean(pos_d[cols] - pos_t[rows] @ R.T, axis=0)
         return D
 
     def _correct(self, tr: Track, T_then: np.ndarray, det, stamp_ns: int) -> None:
@@ -448,16 +467,15 @@ class InstanceTracker:
         # small gain, not a jump for the depth to decide. (Static + arm sequences: one
         # 5-9-inlier detection 6-7 deg off had turned a settled track for 1-15 frames.)
         spread = np.sqrt(max(1.0, self._detection_variance(det.inliers))) if c.smoothing > 0 else 1.0
-        far = not self._detections_win and (
-            np.linalg.norm(step[3:]) > c.icp_max_step
-            or (not flipped and np.degrees(np.linalg.norm(step[:3])) > c.icp_max_step_deg * spread))
-        if tr.state != TENTATIVE and far:
+        far = (np.linalg.norm(step[3:]) > c.icp_max_step
+               or (not flipped and np.degrees(np.linalg.norm(step[:3])) > c.icp_max_step_deg * spread))
+        if tr.state != TENTATIVE and far and not self._detections_win:
             # A detection far from a confirmed track, in position or orientation, may be a bad
             # one (few inliers on an object half hidden by an arm): the depth decides between
             # the two (_align).
             tr.T_before_jump = tr.T.copy()
             tr.far_detections += 1
-        elif tr.state != TENTATIVE and c.smoothing > 0 and not flipped:
+        elif tr.state != TENTATIVE and c.smoothing > 0 and not flipped and not far:
             # An agreeing detection: pull part of the way. The ICP (_align) re-fits what the
             # depth constrains, so this filters the rest, which the depth leaves at the track.
             # A Kalman gain: the first detections of a track are averaged, weak ones pull
@@ -465,7 +483,7 @@ class InstanceTracker:
             gain = self._pull_gain(tr, det.inliers)
             T_new = proper_pose(local_step(tr.T, gain * step))
             tr.pulled = gain
-        if not far:
+        if not far or self._detections_win:
             tr.far_detections = 0
             if not tr.pulled:
                 self._reset_pull(tr, det.inliers)     # the track is reset to this detection
@@ -602,8 +620,7 @@ class InstanceTracker:
             # Evidence on this frame: the depth confirms it, or a detection does and the depth
             # does not contradict it (a new track that only its detection vouches for is
             # published with publish_tentative).
-            tr.evidence = seen[tr.track_id] and (tr.state != TENTATIVE or tr.track_id in depth_ok
-                                                 or self._icp is None or depth_m is None or c.publish_tentative)
+            tr.evidence = seen[tr.track_id] and (tr.state != TENTATIVE or tr.track_id in depth_ok or c.publish_tentative)
             if seen[tr.track_id]:
                 tr.last_seen_ns = stamp_ns
                 if tr.state == COASTING:
@@ -805,7 +822,7 @@ class InstanceTracker:
         return sorted(keep, key=lambda t: t.track_id)
 
     # ---- output ----------------------------------------------------------------------
-    def output(self, intrinsics: CameraIntrinsics | None = None) -> list[TrackedInstance]:
+    def output(self) -> list[TrackedInstance]:
         """The tracks to publish on the latest frame, by track_id: those with evidence on it
         (a detection or the depth vouched for them; see ``_align``). A coasting track is kept
         for its object's next detection, not published."""
@@ -826,15 +843,6 @@ class InstanceTracker:
 def matched_tracks_idx(candidates, track_ids: set) -> list[int]:
     """Rows of ``candidates`` whose track is among ``track_ids``."""
     return [r for r, (tr, _) in enumerate(candidates) if tr.track_id in track_ids]
-
-
-def _in_image(T: np.ndarray, intrinsics: CameraIntrinsics) -> bool:
-    x, y, z = T[:3, 3]
-    if z <= 0:
-        return False
-    K = intrinsics.K
-    u, v = K[0, 0] * x / z + K[0, 2], K[1, 1] * y / z + K[1, 2]
-    return 0 <= u < intrinsics.width and 0 <= v < intrinsics.height
 
 
 __all__ = ["TrackerConfig", "InstanceTracker", "TrackedInstance", "Track", "TENTATIVE", "CONFIRMED", "COASTING",
