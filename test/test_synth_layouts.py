@@ -1,12 +1,14 @@
 """Layouts and backgrounds (issue 35): boxes packed flush, a pile in a bin, a room behind the
 table. Each is checked on its geometry and on what a frame shows; the defaults are pinned by
 test_synth_tracking's digests."""
+import cv2
 import numpy as np
 import pytest
 
 from multi_instance_reg.errors import InputError
 from multi_instance_reg.synthetic.scene import (
     BIN_PANEL_M, CLUTTER_DISTANCE_M, FLUSH_GAP_M, _obb_overlap, _top_z, make_tabletop_scene)
+from multi_instance_reg.synthetic.preview import colour_and_depth, colourise_depth, write_preview
 from multi_instance_reg.tools import cli
 
 
@@ -65,7 +67,7 @@ def test_a_bin_holds_a_pile_at_random_orientations_each_resting_on_something():
     assert scene.description()["layout"] == "bin" and "bin_panel" not in scene.description()["distractors"]
 
 
-def test_clutter_puts_a_room_2_to_3_m_behind_the_table_in_view():
+def test_clutter_puts_a_room_2_to_3_m_behind_the_table_in_view(tmp_path):
     kw = dict(object_name="snack_box", instances=4, distractors=2, frames=1, seed=2)
     plain, room = make_tabletop_scene(**kw), make_tabletop_scene(**kw, background="clutter")
     assert [p.pose.tolist() for p in plain.placements] == [p.pose.tolist() for p in room.placements]
@@ -76,6 +78,11 @@ def test_clutter_puts_a_room_2_to_3_m_behind_the_table_in_view():
     assert (b.depth_mm[far] > 0).mean() > 0.8
     assert np.array_equal(a.poses, b.poses) and np.array_equal(a.visibility, b.visibility)
     assert room.description()["background"] == "clutter" and "background" not in plain.description()
+    # Its preview colours the room's depth (up to 4 m) instead of clipping it at 2 m.
+    depth_png = cv2.imread(str(write_preview(tmp_path, b, room)[1]))
+    assert depth_png.shape == (480, 640, 3)
+    assert np.array_equal(depth_png, colourise_depth(b.depth_mm, far_mm=4000.0))
+    assert np.array_equal(colour_and_depth(b)[:, 640:], colourise_depth(b.depth_mm, far_mm=3500.0))
 
 
 def test_bad_layouts_are_one_line_errors(tmp_path, capsys):

@@ -100,3 +100,16 @@ def test_a_scene_with_the_realistic_sensor_changes_only_its_depth():
     assert not np.array_equal(f.depth_mm, g.depth_mm)
     assert (g.depth_mm > 0).sum() > 0.8 * (f.depth_mm > 0).sum()
     assert real.description()["sensor"]["name"] == "realistic" and "sensor" not in plain.description()
+
+
+def test_the_cli_records_a_drawn_profile_in_the_bag(tmp_path, capsys):
+    from multi_instance_reg.datasets.rgbd_bag import read_object_description
+    from multi_instance_reg.tools import cli
+
+    out = tmp_path / "pallet"
+    assert cli.main(["synth", "untextured", "--preset", "pallet", "-o", str(out), "--instances", "3", "--frames", "1",
+                     "--seed", "8", "--sensor", "realistic", "--randomise", "--no-imu"]) == 0
+    assert "wrote 1 frames" in capsys.readouterr().out
+    recorded = read_object_description(out)["sensor"]
+    assert recorded == sensor_profile("realistic", 8, randomise=True).description()
+    assert recorded["name"] == "realistic-random"

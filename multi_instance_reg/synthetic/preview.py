@@ -18,6 +18,13 @@ def colourise_depth(depth_mm: np.ndarray, near_mm: float = 300.0, far_mm: float 
     return img
 
 
+def colour_and_depth(frame, far_mm: float = 3500.0) -> np.ndarray:
+    """BGR image of a RenderedFrame's colour beside its colourised depth (0.3 m to ``far_mm``):
+    the form of the docs' figures and of a real camera's frames put side by side."""
+    return np.concatenate([cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR),
+                           colourise_depth(frame.depth_mm, 300.0, far_mm)], axis=1)
+
+
 def box_corners(dimensions_m) -> np.ndarray:
     """The 8 corners (object frame) of an object's bounding box, index bits = (x, y, z) signs."""
     h = 0.5 * np.asarray(dimensions_m, dtype=np.float64)
@@ -59,7 +66,9 @@ def write_preview(directory, frame, scene) -> list[Path]:
     stem = f"{scene.kind}_{frame.index:04d}"
     paths = [directory / f"{stem}_colour.png", directory / f"{stem}_depth.png", directory / f"{stem}_truth.png"]
     cv2.imwrite(str(paths[0]), cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR))
-    cv2.imwrite(str(paths[1]), colourise_depth(frame.depth_mm))
+    # A room behind the table (background "clutter") lies 2.5-4 m away: show it in colour too.
+    far_mm = 4000.0 if getattr(scene, "background", "wall") == "clutter" else 2000.0
+    cv2.imwrite(str(paths[1]), colourise_depth(frame.depth_mm, far_mm=far_mm))
     cv2.imwrite(str(paths[2]), draw_ground_truth(frame.rgb, frame.K, frame.poses, scene.target.dimensions_m,
                                                  frame.visibility))
     return paths

@@ -70,7 +70,7 @@ SENSOR_PROFILES = {
 }
 # randomise=True: each drawn per seed, uniformly in these ranges (the realistic value inside).
 PROFILE_RANGES = {"noise_per_m": (0.0018, 0.006), "noise_floor_m": (0.0, 0.001), "edge_dropout": (0.5, 0.9),
-                  "flying": (0.2, 0.8), "speckle": (0.005, 0.025), "disparity_step_px": (1 / 32, 1 / 10)}
+                  "flying": (0.2, 0.8), "speckle": (0.005, 0.025), "disparity_step_px": (1 / 32, 1 / 8)}
 
 
 def sensor_profile(name: str = "d455", seed: int = 0, randomise: bool = False) -> SensorProfile:
