@@ -239,7 +239,7 @@ class InstanceTracker:
         self._detections_win = False          # this frame's detections reset their tracks (see _fuse)
         self._predicted_motion = np.eye(4)    # the camera motion the tracks were predicted by on this frame
         self._motion_measured = False         # ... measured (odometry), not extrapolated
-        self._merge_distance = max(0.5 * smallest_extent(model.points_xyz), 0.0)
+        self._merge_distance = 0.5 * smallest_extent(model.points_xyz)
         # Rotations (model frame) under which the object looks the same; identity first.
         self.symmetries = [np.eye(3)] + [np.asarray(S, dtype=np.float64)[:3, :3] for S in (symmetries or [])]
         self.set_config(config or TrackerConfig())
@@ -359,7 +359,7 @@ class InstanceTracker:
         candidates = [(tr, tr.pose_at(stamp_ns)) for tr in self.tracks]
         candidates = [(tr, T) for tr, T in candidates if T is not None]
         matched_dets: set[int] = set()
-        matched_tracks: set[int] = set()
+        matched_rows: set[int] = set()  # of candidates
         # On this very frame, where neither the colour (odometry) nor the depth measured the
         # camera's motion (a jump beyond the ICP's reach, a gap), the tracks' poses are stale:
         # the detections win.
@@ -380,7 +380,7 @@ class InstanceTracker:
             dist = np.linalg.norm(pos_t[:, None] - pos_d[None], axis=2)
             for gate in (c.gate_distance, max(c.gate_distance, self._merge_distance)):
                 cost = np.where(dist <= gate, dist, 1e6)
-                cost[list(matched_tracks_idx(candidates, matched_tracks)), :] = 1e6
+                cost[list(matched_rows), :] = 1e6
                 cost[:, list(matched_dets)] = 1e6
                 rows, cols = linear_sum_assignment(cost)
                 for r, k in zip(rows, cols):
@@ -389,7 +389,8 @@ class InstanceTracker:
                     tr, T_then = candidates[r]
                     self._correct(tr, T_then, dets[k], stamp_ns)
                     matched_dets.add(k)
-                    matched_tracks.add(tr.track_id)
+                    matched_rows.add(r)
+        matched_tracks = {candidates[r][0].track_id for r in matched_rows}
         for tr, _ in candidates:
             tr.missed_rounds = 0 if tr.track_id in matched_tracks else tr.missed_rounds + 1
         # A tentative track that a detection round (on a frame it lived in) did not find ends.
@@ -426,23 +427,23 @@ class InstanceTracker:
         identity = np.eye(4)
         best = (identity,) + paired(identity)
         identity_n = best[1][0]
-        for T in poses:
-            for det in dets:
+        turns = {}                      # (track, detection) -> the turn that pair proposes
+        for r, T in enumerate(poses):
+            for k, det in enumerate(dets):
                 D = self._closest_symmetric(proper_pose(det.T), T)[0] @ invert_transform(T)
+                turns[r, k] = D[:3, :3]
                 if rotation_angle_deg(D[:3, :3]) > MAX_CAMERA_TURN_DEG:
                     continue
                 score, rows, cols = paired(D)
                 if score > best[1]:
                     best = (D, score, rows, cols)
         D, (n, _), rows, cols = best
-        if n < 2 or D is identity or n == identity_n:
+        if n < 2 or n == identity_n:
             return None
         # Refitted to every pair it makes: the mean of the turns the pairs' orientations give
         # (their positions alone would leave the turn about a row of objects free), then the
         # mean of the shifts that turn leaves.
-        turns = [self._closest_symmetric(proper_pose(dets[k].T), poses[r])[0][:3, :3] @ poses[r][:3, :3].T
-                 for r, k in zip(rows, cols)]
-        R = Rotation.from_matrix(np.array(turns)).mean().as_matrix()
+        R = Rotation.from_matrix(np.array([turns[r, k] for r, k in zip(rows, cols)])).mean().as_matrix()
         D = np.eye(4)
         D[:3, :3], D[:3, 3] = R, np.mean(pos_d[cols] - pos_t[rows] @ R.T, axis=0)
         return D
@@ -862,11 +863,6 @@ class InstanceTracker:
         for rank, k in enumerate(sorted(range(len(out)), key=lambda k: (-out[k].inliers, out[k].track_id))):
             out[k].id = rank
         return out
-
-
-def matched_tracks_idx(candidates, track_ids: set) -> list[int]:
-    """Rows of ``candidates`` whose track is among ``track_ids``."""
-    return [r for r, (tr, _) in enumerate(candidates) if tr.track_id in track_ids]
 
 
 __all__ = ["TrackerConfig", "InstanceTracker", "TrackedInstance", "Track", "TENTATIVE", "CONFIRMED", "COASTING",
