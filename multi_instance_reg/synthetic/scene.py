@@ -62,7 +62,8 @@ from .objects import (BOX_FACES, DEFAULT_OBJECT, ENVIRONMENT_SIZE, FURNITURE, OB
                       environment_texture, get_object, object_textures)
 from .preview import box_corners
 from .render import AMBIENT, DIFFUSE, LIGHT_DIR_WORLD, CylinderSide, Quad, Renderer, Texture
-from .sensor import SENSOR_PROFILES, SensorProfile, d455_intrinsics, sensor_profile, simulate_colour, simulate_depth
+from .sensor import (SENSOR_PROFILES, SensorProfile, UnalignedDepth, d455_intrinsics, sensor_profile, simulate_colour,
+                     simulate_depth, unaligned_depth_sensor)
 
 FRAME_RATE_HZ = 30.0
 START_STAMP_NS = 1_700_000_000 * 1_000_000_000
@@ -1146,16 +1147,35 @@ class SyntheticScene:
         self.sensor = sensor_profile(name, self.seed, randomise)
         return self
 
-    def render_frame(self, index: int) -> RenderedFrame:
-        T_wc = self.camera_poses[index]
-        T_cw = invert_transform(T_wc)
+    def _primitives(self, index: int) -> tuple[list[Placement], list]:
         _, placements, primitives = [st for st in self._stages if st[0] <= index][-1]
         if self.occluder is not None:
             primitives = primitives + self.occluder.primitives(index)
+        return placements, primitives
+
+    def _noise_seed(self, index: int) -> int:
+        # Keyed by the slot: a loop's second play is the same recording, byte for byte.
+        return int(np.random.SeedSequence([self.seed, self.slot(index), 17]).generate_state(1)[0])
+
+    def render_unaligned_depth(self, index: int, sensor: UnalignedDepth) -> np.ndarray:
+        """Frame ``index``'s depth as ``sensor``'s own depth imager records it (16UC1 mm in its
+        pixels; the same sensor profile and noise streams as the aligned depth)."""
+        if getattr(self, "_depth_renderer_for", None) is not sensor:
+            K, intr = sensor.intrinsics.K, sensor.intrinsics
+            self._depth_renderer, self._depth_renderer_for = Renderer(K, intr.width, intr.height), sensor
+        _, primitives = self._primitives(index)
+        T_depth_world = invert_transform(sensor.colour_from_depth) @ invert_transform(self.camera_poses[index])
+        out = self._depth_renderer.render(primitives, T_depth_world)
+        return simulate_depth(out.depth_m, float(sensor.intrinsics.K[0, 0]), self._noise_seed(index) + 1,
+                              self.depth_noise_correlation_px, self.sensor)
+
+    def render_frame(self, index: int) -> RenderedFrame:
+        T_wc = self.camera_poses[index]
+        T_cw = invert_transform(T_wc)
+        placements, primitives = self._primitives(index)
         instances = [p for p in placements if p.is_instance]
         out = self._renderer.render(primitives, T_cw, count_labels=[p.label for p in instances])
-        # Keyed by the slot: a loop's second play is the same recording, byte for byte.
-        noise_seed = int(np.random.SeedSequence([self.seed, self.slot(index), 17]).generate_state(1)[0])
+        noise_seed = self._noise_seed(index)
         rgb = simulate_colour(out.radiance, noise_seed)
         depth_mm = simulate_depth(out.depth_m, float(self.intrinsics.K[0, 0]), noise_seed + 1,
                                   self.depth_noise_correlation_px, self.sensor)
@@ -1356,6 +1376,10 @@ def make_capture_scene(object_name: str = DEFAULT_OBJECT, seed: int = 0, views: 
 # Bags
 
 
+# How the depth is recorded (write_scene_bag).
+RECORDINGS = ("aligned", "unaligned", "viewer")
+
+
 @dataclass
 class BagSummary:
     path: Path
@@ -1375,14 +1399,22 @@ class BagSummary:
 
 def write_scene_bag(scene: SyntheticScene, out_path, storage: str = "sqlite3", preview_dir=None,
                     preview_frames=None, transport: str = "raw", imu: bool = True, bop_dir=None,
-                    bop_scene: int | None = None) -> BagSummary:
+                    bop_scene: int | None = None, recording: str = "aligned") -> BagSummary:
     """Render every frame of ``scene`` into a new rosbag2 at ``out_path``, its images raw or,
     with ``transport`` "compressed", as image_transport's compressed topics; with ``imu``,
     the accelerometer's samples before each frame (``SyntheticScene.accel_samples``); with
     ``bop_dir``, the same frames also as scene ``bop_scene`` (default: the seed) of a BOP
-    dataset there (``bop_export.SceneBopExport``)."""
+    dataset there (``bop_export.SceneBopExport``). ``recording`` (``RECORDINGS``): "aligned"
+    depth as realsense-ros with align_depth.enable; "unaligned" the depth imager's own
+    (``sensor.unaligned_depth_sensor``) as realsense-ros records it without; "viewer" the
+    same as a RealSense Viewer ROS 1 .bag at ``out_path`` (no IMU, no compression)."""
     from ..datasets.bag_writer import RealSenseBagWriter
+    from ..datasets.realsense_viewer import ViewerBagWriter
     from .preview import write_preview
+
+    if recording not in RECORDINGS:
+        raise InputError(f"recording '{recording}' is not one of: {', '.join(RECORDINGS)}")
+    depth_sensor = unaligned_depth_sensor() if recording != "aligned" else None
 
     bop = None
     if bop_dir is not None:
@@ -1396,22 +1428,36 @@ def write_scene_bag(scene: SyntheticScene, out_path, storage: str = "sqlite3", p
     if preview_dir is not None:
         Path(preview_dir).mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    with RealSenseBagWriter(out_path, storage=storage, transport=transport) as bag:
+    writer = ViewerBagWriter(out_path, depth_sensor.colour_from_depth) if recording == "viewer" else \
+        RealSenseBagWriter(out_path, storage=storage, transport=transport)
+    with writer as bag:
         bag.write_object_description(scene.stamp_ns(0), scene.description())
         for frame in scene.frames():
             log_time = scene.log_time_ns(frame.index)
-            if imu:
+            if imu and recording != "viewer":
                 bag.write_accel_samples(frame.stamp_ns, *scene.accel_samples(frame.index),
                                         log_offset_ns=log_time - frame.stamp_ns)
-            bag.write_frame(frame.stamp_ns, frame.rgb, frame.depth_mm, scene.intrinsics,
-                            poses=frame.poses, visibility=frame.visibility, log_time_ns=log_time)
+            if recording == "viewer":
+                # The Viewer's depth and colour come from two sensors' clocks: 1 ms apart here.
+                bag.write_frame(frame.stamp_ns, frame.rgb, scene.render_unaligned_depth(frame.index, depth_sensor),
+                                scene.intrinsics, depth_sensor.intrinsics, poses=frame.poses,
+                                visibility=frame.visibility, depth_stamp_ns=frame.stamp_ns + 1_000_000)
+            elif recording == "unaligned":
+                bag.write_frame(frame.stamp_ns, frame.rgb, scene.render_unaligned_depth(frame.index, depth_sensor),
+                                scene.intrinsics, poses=frame.poses, visibility=frame.visibility,
+                                log_time_ns=log_time, depth_intrinsics=depth_sensor.intrinsics,
+                                colour_from_depth=depth_sensor.colour_from_depth)
+            else:
+                bag.write_frame(frame.stamp_ns, frame.rgb, frame.depth_mm, scene.intrinsics,
+                                poses=frame.poses, visibility=frame.visibility, log_time_ns=log_time)
             if bop is not None:
                 bop.add(frame)
             if preview_dir is not None and frame.index in preview_frames:
                 write_preview(preview_dir, frame, scene)
     if bop is not None:
         bop.close()
-    return BagSummary(Path(out_path), n, time.perf_counter() - t0, len(scene.instances), storage)
+    return BagSummary(Path(out_path), n, time.perf_counter() - t0, len(scene.instances),
+                      "ROS 1, RealSense Viewer layout" if recording == "viewer" else storage)
 
 
 def generate_scene_bag(out_path, object_name: str | list[str] = DEFAULT_OBJECT, instances: int = 6,
@@ -1421,15 +1467,15 @@ def generate_scene_bag(out_path, object_name: str | list[str] = DEFAULT_OBJECT, 
                        transport: str = "raw", imu: bool = True, frame_rate: float = FRAME_RATE_HZ,
                        drop: float = 0.0, loop: bool = False, sensor: str = "d455",
                        randomise: bool = False, layout: str = "table", background: str = "wall",
-                       bop_dir=None, bop_scene: int | None = None) -> BagSummary:
+                       bop_dir=None, bop_scene: int | None = None, recording: str = "aligned") -> BagSummary:
     """Make a tabletop scene (see ``make_tabletop_scene``) and write it as a rosbag2 (and, with
-    ``bop_dir``, as a BOP scene: ``write_scene_bag``)."""
+    ``bop_dir``, as a BOP scene; ``recording``: aligned, unaligned or viewer: ``write_scene_bag``)."""
     scene = make_tabletop_scene(object_name, instances, distractors, frames, seed, resolution,
                                 motion=motion, occluder=occluder, frame_rate=frame_rate, drop=drop, loop=loop,
                                 sensor=sensor, randomise=randomise, layout=layout, background=background)
     scene.set_depth_noise_correlation(depth_noise_correlation_px)
     return write_scene_bag(scene, out_path, storage, preview_dir, transport=transport, imu=imu,
-                           bop_dir=bop_dir, bop_scene=bop_scene)
+                           bop_dir=bop_dir, bop_scene=bop_scene, recording=recording)
 
 
 def generate_capture_bag(out_path, object_name: str = DEFAULT_OBJECT, seed: int = 0, views: int = 10,

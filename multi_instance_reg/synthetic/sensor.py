@@ -106,6 +106,35 @@ def d455_intrinsics(resolution: str = "640x480") -> CameraIntrinsics:
     return CameraIntrinsics(K=K, width=width, height=height, D=np.zeros(5), distortion_model="plumb_bob")
 
 
+# Depth as the depth imager records it (realsense-ros without align_depth.enable, the
+# RealSense Viewer): its own 848x480 stream with a wider view than colour's, and the colour
+# camera 15 mm along x with a small tilt, as a D4xx's factory extrinsics are (realsense-ros
+# reports depth_to_color translations of about 15 mm and rotations of a few tenths of a degree).
+UNALIGNED_DEPTH_SIZE = (848, 480)
+UNALIGNED_DEPTH_K = ((426.0, 0.0, 424.2), (0.0, 426.0, 239.6), (0.0, 0.0, 1.0))
+DEPTH_TO_COLOUR_TRANSLATION_M = (0.0150, 0.0002, 0.0004)
+DEPTH_TO_COLOUR_ROTATION_DEG = (0.12, -0.25, 0.05)      # about x, y, z
+
+
+@dataclass(frozen=True)
+class UnalignedDepth:
+    """A depth imager beside the colour camera: its intrinsics and where colour sits."""
+    intrinsics: CameraIntrinsics
+    colour_from_depth: np.ndarray       # (4, 4) depth optical frame -> colour optical frame
+
+
+def unaligned_depth_sensor() -> UnalignedDepth:
+    """The D4xx-like depth imager of ``UNALIGNED_DEPTH_*`` / ``DEPTH_TO_COLOUR_*``."""
+    from scipy.spatial.transform import Rotation
+
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("xyz", DEPTH_TO_COLOUR_ROTATION_DEG, degrees=True).as_matrix()
+    T[:3, 3] = DEPTH_TO_COLOUR_TRANSLATION_M
+    w, h = UNALIGNED_DEPTH_SIZE
+    return UnalignedDepth(CameraIntrinsics(K=np.array(UNALIGNED_DEPTH_K), width=w, height=h, D=np.zeros(5),
+                                           distortion_model="plumb_bob"), T)
+
+
 @functools.lru_cache(maxsize=4)
 def _vignetting(width: int, height: int) -> np.ndarray:
     y, x = np.mgrid[0:height, 0:width].astype(np.float32)

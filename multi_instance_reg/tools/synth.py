@@ -3,7 +3,7 @@
     mireg synth scene -o OUT [--object NAME [--object NAME2 ...]] [--instances K] [--distractors D] [--frames F]
                       [--layout table|flush|bin] [--background wall|clutter] [--sensor d455|realistic] [--randomise]
                       [--motion sweep|static|pan|shaky_pan|jumps|overhead] [--frame-rate HZ] [--drop SHARE] [--loop]
-                      [--occluder]
+                      [--occluder] [--unaligned | --viewer-bag]
                       [--seed S] [--storage sqlite3|mcap] [--image-transport raw|compressed]
                       [--resolution 640x480|1280x720] [--preview DIR] [--bop DIR [--bop-scene ID]]
     mireg synth capture -o OUT --object NAME [--seed S] [--views N] [...]
@@ -121,6 +121,15 @@ def add_arguments(parser) -> None:
                        help="an arm (a distractor, not in the ground truth) passes between the camera and "
                             "the table from about 1/3 to 2/3 of the frames, hiding instances for a few "
                             "frames each (needs at least 3 frames)")
+    recording = scene.add_mutually_exclusive_group()
+    recording.add_argument("--unaligned", action="store_true",
+                           help="record depth as the depth imager sees it, as realsense-ros does without "
+                                "align_depth.enable: /camera/camera/depth/image_rect_raw (848x480, its own "
+                                "camera_info) and /camera/camera/extrinsics/depth_to_color (colour 15 mm along x)")
+    recording.add_argument("--viewer-bag", action="store_true",
+                           help="write a RealSense Viewer recording instead of a rosbag2: a ROS 1 .bag file at "
+                                "OUTPUT (/device_0/sensor_0/Depth_0/..., /device_0/sensor_1/Color_0/..., depth "
+                                "unaligned as with --unaligned), ground truth on the usual topics; no IMU")
 
     capture = sub.add_parser("capture", help="the object alone, seen from viewpoints around it (to build a model)",
                              description="The object alone on the table, seen from a few viewpoints around it, "
@@ -191,7 +200,12 @@ def run(args) -> int:
               + (f"; BOP scene in {args.bop}" if args.bop else ""))
         return 0
     if args.synth_command == "scene":
+        from ..errors import InputError
+
         objects = args.object or [DEFAULT_OBJECT]
+        if args.viewer_bag and (args.loop or args.image_transport != "raw" or args.storage != "sqlite3"):
+            raise InputError("--viewer-bag writes a ROS 1 .bag as the RealSense Viewer does: it takes no --loop, "
+                             "--image-transport or --storage")
         summary = generate_scene_bag(args.output, object_name=objects[0] if len(objects) == 1 else objects,
                                      instances=args.instances,
                                      distractors=args.distractors, frames=args.frames, seed=args.seed,
@@ -201,7 +215,9 @@ def run(args) -> int:
                                      transport=args.image_transport, imu=not args.no_imu,
                                      frame_rate=args.frame_rate, drop=args.drop, loop=args.loop,
                                      sensor=args.sensor, randomise=args.randomise, layout=args.layout,
-                                     background=args.background, bop_dir=args.bop, bop_scene=args.bop_scene)
+                                     background=args.background, bop_dir=args.bop, bop_scene=args.bop_scene,
+                                     recording="viewer" if args.viewer_bag else
+                                     "unaligned" if args.unaligned else "aligned")
     else:
         summary = generate_capture_bag(args.output, object_name=args.object, seed=args.seed, views=args.views,
                                        storage=args.storage, resolution=args.resolution, preview_dir=args.preview,
