@@ -14,14 +14,16 @@ export PYTHONDONTWRITEBYTECODE := 1
 
 install: $(STAMP) $(KERNELS_AOT)
 
-# vision_msgs (Detection3DArray, LabelInfo) has no wheel: the last step builds it into the venv
-# from interfaces/vision_msgs unless the user's ROS already has it (about a minute at most).
+# vision_msgs (Detection3DArray, LabelInfo) and realsense2_camera_msgs (Extrinsics) have no wheel:
+# the last steps build them into the venv from interfaces/ unless the user's ROS already has them
+# (about a minute each at most).
 $(STAMP): requirements.txt setup.py setup.cfg package.xml interfaces/install_vision_msgs.py \
-		$(wildcard interfaces/vision_msgs/*.* interfaces/vision_msgs/msg/*.msg)
+		$(wildcard interfaces/*/*.* interfaces/*/msg/*.msg)
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --disable-pip-version-check -r requirements.txt
 	$(PY) -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e .
 	$(PY) interfaces/install_vision_msgs.py
+	$(PY) interfaces/install_vision_msgs.py --package realsense2_camera_msgs
 	touch $(STAMP)
 
 $(KERNELS_AOT): $(STAMP) $(CORE)/native.py $(CORE)/clustering.py $(CORE)/compatibility.py $(CORE)/refinement.py $(CORE)/sampling.py
