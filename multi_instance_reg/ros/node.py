@@ -1,7 +1,9 @@
 """``instance_registration_node``: every instance's pose from a live RGB-D stream.
 
 Subscribes to colour, aligned depth and camera_info (realsense-ros names by default; remap
-to change), pairs colour and depth by header stamp, takes the direction of gravity per frame
+to change), or to depth recorded unaligned with its camera_info and the depth to colour
+extrinsics, registered to colour here (``depth_registration``; ``rgbd.registration``), pairs
+colour and depth by header stamp, takes the direction of gravity per frame
 from the camera's accelerometer when it is published (``camera/camera/accel/sample``,
 ``gravity_source``), and publishes:
 
@@ -68,6 +70,7 @@ try:
     from ..errors import InputError
     from ..gravity import AccelWindow, imu_accel
     from ..messages import array_to_image_fields, camera_info_to_intrinsics, colour_to_rgb, depth_to_metres
+    from ..rgbd.registration import extrinsics_matrix, register_to_colour
     from ..params import param_specs, with_overrides
     from . import conversions
     from .conversions import ObjectClass
@@ -87,6 +90,11 @@ COLOUR_TOPIC = "camera/camera/color/image_raw"
 DEPTH_TOPIC = "camera/camera/aligned_depth_to_color/image_raw"
 CAMERA_INFO_TOPIC = "camera/camera/color/camera_info"
 ACCEL_TOPIC = "camera/camera/accel/sample"   # realsense-ros' accelerometer (best effort: sensor data QoS)
+# realsense-ros without align_depth.enable: the depth imager's own stream, its intrinsics and the
+# extrinsics from depth to colour (published once, transient local).
+UNALIGNED_DEPTH_TOPIC = "camera/camera/depth/image_rect_raw"
+DEPTH_INFO_TOPIC = "camera/camera/depth/camera_info"
+EXTRINSICS_TOPIC = "camera/camera/extrinsics/depth_to_color"
 LATENCY_WINDOW = 300  # frames kept for the latency percentiles
 
 
@@ -100,6 +108,10 @@ def image_subscriptions(transport: str):
     return Image, COLOUR_TOPIC, DEPTH_TOPIC
 
 
+def unaligned_depth_topic(transport: str) -> str:
+    return UNALIGNED_DEPTH_TOPIC + "/compressedDepth" if transport == "compressed" else UNALIGNED_DEPTH_TOPIC
+
+
 @dataclass
 class FrameCounters:
     colour_received: int = 0
@@ -109,6 +121,7 @@ class FrameCounters:
     dropped: int = 0          # synchronised pairs replaced by a newer one before processing
     bad: int = 0              # malformed images (encoding, step, sizes), skipped
     no_camera_info: int = 0   # pairs skipped because no camera_info had arrived yet
+    no_extrinsics: int = 0    # pairs of unaligned depth skipped: no depth camera_info or extrinsics yet
     failed: int = 0           # pipeline raised on a frame, skipped
     detected: int = 0         # frames the detector (the full pipeline) ran on
     deadline_cut: int = 0     # of those, frames whose shape search frontend.shape_deadline_ms stopped
@@ -124,6 +137,7 @@ class _Pair:
     received: float  # time.monotonic() when the pair was complete
     received_ns: int  # the same moment on the wall clock (comparable with header stamps)
     sequence: int
+    unaligned: bool = False   # the depth is the depth imager's own, to be registered to colour
 
 
 @dataclass
@@ -211,8 +225,17 @@ class InstanceRegistrationNode(Node):
         self._pub_stats = self.create_publisher(String, "~/stats", pub_qos)
         image_type, colour_topic, depth_topic = image_subscriptions(self.settings.image_transport)
         self.create_subscription(image_type, colour_topic, lambda m: self._on_image(0, m), sub_qos)
-        self.create_subscription(image_type, depth_topic, lambda m: self._on_image(1, m), sub_qos)
         self.create_subscription(CameraInfo, CAMERA_INFO_TOPIC, self._on_camera_info, sub_qos)
+        mode = self.settings.depth_registration
+        self._aligned_seen = False
+        self._depth_intrinsics = None
+        self._colour_from_depth = None
+        depth_topics = []
+        if mode != "unaligned":
+            self.create_subscription(image_type, depth_topic, self._on_aligned_depth, sub_qos)
+            depth_topics.append(depth_topic)
+        if mode != "aligned" and self._subscribe_unaligned(image_type, sub_qos):
+            depth_topics.append(unaligned_depth_topic(self.settings.image_transport))
         self._accel = AccelWindow()
         self._accel_lock = threading.Lock()
         self._accel_subscription = None
@@ -228,7 +251,7 @@ class InstanceRegistrationNode(Node):
             worker.start()
         self.get_logger().info(
             f"ready: models {', '.join(f'{m.name} ({f})' for m, f in zip(self.models, self.model_files))}, listening on "
-            f"{self.resolve_topic_name(colour_topic)} + {self.resolve_topic_name(depth_topic)} "
+            f"{self.resolve_topic_name(colour_topic)} + {' or '.join(map(self.resolve_topic_name, depth_topics))} "
             f"({self.settings.qos_reliability}); tracking {'on' if self._tracker else 'off'}")
 
     # ---- parameters -------------------------------------------------------------------
@@ -379,7 +402,50 @@ class InstanceRegistrationNode(Node):
                 "until they do")
         return up
 
-    def _on_image(self, stream: int, msg: Image) -> None:
+    def _subscribe_unaligned(self, image_type, sub_qos) -> bool:
+        """Subscriptions for depth recorded unaligned; False when realsense2_camera_msgs (the
+        extrinsics' type) is not installed (logged)."""
+        from rclpy.qos import DurabilityPolicy
+
+        try:
+            from realsense2_camera_msgs.msg import Extrinsics
+        except ImportError:
+            log = self.get_logger().error if self.settings.depth_registration == "unaligned" else self.get_logger().info
+            log("realsense2_camera_msgs is not installed, so the depth to colour extrinsics cannot be received: "
+                "only aligned depth is read (run `make install`, or start realsense-ros with align_depth.enable:=true)")
+            return False
+        self.create_subscription(image_type, unaligned_depth_topic(self.settings.image_transport),
+                                 self._on_unaligned_depth, sub_qos)
+        self.create_subscription(CameraInfo, DEPTH_INFO_TOPIC, self._on_depth_camera_info, sub_qos)
+        # realsense-ros publishes the extrinsics once, transient local: a late subscriber still gets them.
+        latched = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.create_subscription(Extrinsics, EXTRINSICS_TOPIC, self._on_extrinsics, latched)
+        return True
+
+    def _on_aligned_depth(self, msg: Image) -> None:
+        self._aligned_seen = True
+        self._on_image(1, msg)
+
+    def _on_unaligned_depth(self, msg: Image) -> None:
+        # auto: realsense-ros publishes the raw depth also when it aligns; the aligned one wins.
+        if not self._aligned_seen:
+            self._on_image(1, msg, unaligned=True)
+
+    def _on_depth_camera_info(self, msg: CameraInfo) -> None:
+        try:
+            self._depth_intrinsics = camera_info_to_intrinsics(msg)
+        except InputError as exc:
+            self.get_logger().warn(f"ignoring the depth camera_info: {exc}", throttle_duration_sec=5.0)
+
+    def _on_extrinsics(self, msg) -> None:
+        try:
+            self._colour_from_depth = extrinsics_matrix(msg.rotation, msg.translation)
+        except InputError as exc:
+            self.get_logger().warn(f"ignoring the extrinsics on {self.resolve_topic_name(EXTRINSICS_TOPIC)}: {exc}",
+                                   throttle_duration_sec=5.0)
+
+    def _on_image(self, stream: int, msg: Image, unaligned: bool = False) -> None:
         now = time.monotonic()
         with self._counters_lock:
             if stream == 0:
@@ -387,16 +453,17 @@ class InstanceRegistrationNode(Node):
             else:
                 self.counters.depth_received += 1
         stamp = stamp_to_ns(msg.header.stamp)
-        pair = self._sync.add(stream, stamp, msg)
+        pair = self._sync.add(stream, stamp, msg if stream == 0 else (msg, unaligned))
         if pair is None:
             self._note_unpaired(stream, stamp)
             return
         self._unpaired_since_pair = [0, 0]
         slot = self._slot if self._tracker is None else self._track_slot
+        (depth, depth_unaligned) = pair[1]
         with self._counters_lock:
             self.counters.synchronised += 1
             self._sequence += 1
-            if slot.put(_Pair(pair[0], pair[1], now, time.time_ns(), self._sequence)):
+            if slot.put(_Pair(pair[0], depth, now, time.time_ns(), self._sequence, depth_unaligned)):
                 self.counters.dropped += 1
 
     UNPAIRED_BEFORE_WARNING = 15   # images of each stream without a pair
@@ -468,9 +535,20 @@ class InstanceRegistrationNode(Node):
                 f"skipping frames: the camera_info on {topic} is refused ({refused})" if refused else
                 f"no camera_info received on {topic} yet; skipping frames until it arrives", throttle_duration_sec=5.0)
             return None
+        depth_intrinsics, colour_from_depth = self._depth_intrinsics, self._colour_from_depth
+        if pair.unaligned and (depth_intrinsics is None or colour_from_depth is None):
+            self._count("no_extrinsics")
+            missing = DEPTH_INFO_TOPIC if depth_intrinsics is None else EXTRINSICS_TOPIC
+            self.get_logger().warn(
+                f"depth arrives unaligned but nothing has come on {self.resolve_topic_name(missing)} yet; skipping "
+                "frames until it does (realsense-ros publishes the extrinsics once at its start, transient local)",
+                throttle_duration_sec=5.0)
+            return None
         try:
             rgb = colour_to_rgb(pair.colour)
             depth = depth_to_metres(pair.depth, self.settings.depth_scale)
+            if pair.unaligned:
+                depth = register_to_colour(depth, depth_intrinsics, intrinsics, colour_from_depth)
             check_frame(rgb, depth, intrinsics)
         except InputError as exc:
             self._count("bad")

@@ -45,6 +45,11 @@ class NodeSettings:
     wait_for_fresher: bool = param(True, "when the newest frame has waited more than half a frame interval for the busy pipeline, "
                                          "take the next one (due sooner) instead: at 30 Hz ~13 ms less latency for ~4 % fewer frames processed")
     depth_scale: float = param(0.001, "metres per unit of a 16UC1 depth image (realsense-ros: 0.001, millimetres)", 1e-6, 1.0)
+    depth_registration: str = param("auto", "which depth the node reads (read-only): aligned = camera/camera/aligned_depth_to_color/"
+                                            "image_raw (realsense-ros align_depth.enable:=true); unaligned = camera/camera/depth/"
+                                            "image_rect_raw with camera/camera/depth/camera_info and camera/camera/extrinsics/"
+                                            "depth_to_color, registered to colour here; auto = the aligned depth when it arrives, "
+                                            "else the unaligned one", choices=("auto", "aligned", "unaligned"))
     publish_debug_image: bool = param(False, "draw and publish the debug image on every frame even with no subscriber "
                                              "(it is drawn whenever someone subscribes)")
     stats_log_period_s: float = param(5.0, "how often frame counts and latency are logged and published on ~/stats (s)", 0.1, 3600.0)
@@ -60,7 +65,7 @@ class NodeSettings:
 
 
 # Fixed for the node's lifetime: they shape subscriptions or the loaded model.
-READ_ONLY = frozenset({"model_path", "qos_reliability", "image_transport", "qos_depth", "pipeline_processes", "detector_niceness",
+READ_ONLY = frozenset({"model_path", "qos_reliability", "image_transport", "depth_registration", "qos_depth", "pipeline_processes", "detector_niceness",
                        "tracking.enabled", "tracking.catch_up_frames"})
 
 

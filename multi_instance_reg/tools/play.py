@@ -63,7 +63,7 @@ def run(args) -> int:
 
 def _play(reader, args) -> int:
     import rclpy
-    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
     connections = [c for c in reader.connections if not args.topics or c.topic in args.topics]
     if args.topics:
@@ -82,8 +82,13 @@ def _play(reader, args) -> int:
     node = rclpy.create_node("mireg_play", namespace=args.namespace)
     try:
         qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        # What was recorded latched (realsense-ros' extrinsics, published once) goes out latched
+        # too, so a subscriber that comes late still gets it.
+        latched = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
         # Relative names: /camera/... goes out as <namespace>/camera/... (the same in the root namespace).
-        publishers = {topic: node.create_publisher(cls, relative(topic), qos) for topic, cls in types.items()}
+        publishers = {topic: node.create_publisher(cls, relative(topic), latched if topic in _latched_topics(connections)
+                                                   else qos) for topic, cls in types.items()}
         _wait_for_subscribers(node, publishers, args)
         time.sleep(args.start_delay)
         if not args.quiet:
@@ -109,6 +114,15 @@ def _play(reader, args) -> int:
         node.destroy_node()
         rclpy.try_shutdown()
     return 0
+
+
+def _latched_topics(connections) -> set[str]:
+    """Topics a rosbag2 recorded from a transient-local publisher (the extrinsics the node
+    needs for unaligned depth are published once)."""
+    from rosbags.interfaces import QosDurability
+
+    return {c.topic for c in connections
+            if any(q.durability == QosDurability.TRANSIENT_LOCAL for q in getattr(c.ext, "offered_qos_profiles", None) or ())}
 
 
 def _wait_for_subscribers(node, publishers, args) -> None:
