@@ -139,3 +139,9 @@ def test_viewer_bag_refuses_options_it_cannot_write(tmp_path):
     res = cli("synth", "scene", "-o", tmp_path / "x.bag", "--viewer-bag", "--loop", "--frames", "1")
     assert res.returncode == 2 and "--viewer-bag writes a ROS 1 .bag" in res.stderr
     assert res.stderr.strip().count("\n") == 0 and not (tmp_path / "x.bag").exists()
+
+
+def test_play_refuses_a_viewer_bag_in_one_line(bags):
+    res = cli("play", bags["viewer"])
+    assert res.returncode == 2 and res.stderr.strip().count("\n") == 0
+    assert "is a ROS 1 bag" in res.stderr and "mireg offline" in res.stderr

@@ -53,6 +53,10 @@ def run(args) -> int:
     from ..datasets.rgbd_bag import _open_reader
 
     reader = _open_reader(args.bag)
+    if not reader.is2:
+        reader.close()
+        raise InputError(f"{args.bag} is a ROS 1 bag (a RealSense Viewer recording?): mireg play publishes rosbag2 "
+                         "bags only; run `mireg offline` on it instead")
     try:
         return _play(reader, args)
     except KeyboardInterrupt:
