@@ -28,7 +28,6 @@ import numpy as np
 from ..errors import InputError
 from ..gravity import ACCEL_TOPIC, IMU_TOPIC, IMU_TYPE, AccelWindow, imu_accel
 from ..messages import CameraIntrinsics, camera_info_to_intrinsics, colour_to_rgb, depth_to_metres
-from ..rgbd.registration import extrinsics_matrix, register_to_colour
 from ..transforms import pose_to_matrix
 
 COLOUR_TOPIC = "/camera/camera/color/image_raw"
@@ -310,6 +309,8 @@ class RGBDBag:
             rgb = colour_to_rgb(colour_msg)
             depth = depth_to_metres(depth_msg, self.depth_scale)
             if self.colour_from_depth is not None:
+                from ..rgbd.registration import register_to_colour   # (numba: only for bags that need it)
+
                 depth = register_to_colour(depth, depth_info, info, self.colour_from_depth)
         except InputError as exc:
             self.skipped.add(str(exc))
@@ -338,6 +339,8 @@ def read_rgbd_frames(path, colour_topic: str = COLOUR_TOPIC, depth_topic: str = 
 
 def _read_extrinsics(reader, path) -> np.ndarray:
     """T_colour_from_depth from the first message on realsense-ros' depth_to_color topic."""
+    from ..rgbd.registration import extrinsics_matrix
+
     conns = [c for c in reader.connections if c.topic == EXTRINSICS_TOPIC]
     for conn, _, raw in reader.messages(connections=conns):
         try:

@@ -70,7 +70,6 @@ try:
     from ..errors import InputError
     from ..gravity import AccelWindow, imu_accel
     from ..messages import array_to_image_fields, camera_info_to_intrinsics, colour_to_rgb, depth_to_metres
-    from ..rgbd.registration import extrinsics_matrix, register_to_colour
     from ..params import param_specs, with_overrides
     from . import conversions
     from .conversions import ObjectClass
@@ -439,6 +438,10 @@ class InstanceRegistrationNode(Node):
             self.get_logger().warn(f"ignoring the depth camera_info: {exc}", throttle_duration_sec=5.0)
 
     def _on_extrinsics(self, msg) -> None:
+        # Imported on first use, not with the node's imports: importing numba swallows a Ctrl-C
+        # that lands during it (a start-up cut short by a signal must still end).
+        from ..rgbd.registration import extrinsics_matrix
+
         try:
             self._colour_from_depth = extrinsics_matrix(msg.rotation, msg.translation)
         except InputError as exc:
@@ -521,6 +524,7 @@ class InstanceRegistrationNode(Node):
     def _convert(self, pair: _Pair):
         """(rgb, depth in metres, intrinsics) of a pair, or None when it is skipped (counted)."""
         from ..rgbd.pipeline import check_frame
+        from ..rgbd.registration import register_to_colour
 
         if self._intrinsics is None and self._camera_info_refused is None:
             # At start-up the first camera_info can trail the first images: a reliable reader
