@@ -737,3 +737,25 @@ def test_a_loop_played_a_hundred_times_keeps_its_tracks_bounded():
     last = sorted(t.T[0, 3] for t in live._tracker.tracks)
     assert most == 3 and live.counts()["tracking_resets"] == 99          # at the start of every pass but the first
     assert len(last) == 3 and np.allclose(first, last)
+
+
+def test_a_detection_older_than_the_kept_depth_is_moved_by_the_camera_motions_since():
+    # A loaded host's first detection comes more frames late than the depth images kept to
+    # carry it (catch_up_frames): a new object must still be born where it is now, moved by
+    # the camera's motions measured since its frame, not where it was then.
+    from multi_instance_reg.tracking import LiveConfig, LiveTracker
+
+    step = make_transform(np.eye(3), [0.004, 0.0, 0.0])   # the box moves 4 mm a frame in the image
+    for catch_up, expected in ((3, 0.036), (0, 0.0)):     # 0: never carried, fused where it was found
+        live = LiveTracker(box_model(), TrackerConfig(), LiveConfig(catch_up_frames=catch_up))
+        for k in range(10):
+            live.step(k * FRAME_NS, box_depth(0.004 * k), BOX_INTR, camera_motion=step if k else None)
+        assert live.add_detections(0, [box_det(0.0)])
+        (track,) = live._tracker.tracks
+        assert abs(track.T[0, 3] - expected) < 0.002, (catch_up, track.T[0, 3])
+    # A step whose motion was not measured: nothing to move it by, fused where it was found.
+    live = LiveTracker(box_model(), TrackerConfig(), LiveConfig(catch_up_frames=3))
+    for k in range(10):
+        live.step(k * FRAME_NS, box_depth(0.004 * k), BOX_INTR, camera_motion=step if k != 4 else None)
+    live.add_detections(0, [box_det(0.0)])
+    assert abs(live._tracker.tracks[0].T[0, 3]) < 0.002
