@@ -8,10 +8,10 @@ from multi_instance_reg.meshes import box_mesh, sample_surface
 from multi_instance_reg.messages import CameraIntrinsics
 from multi_instance_reg.rgbd.lifting import _depth_to_cloud_numpy, depth_to_cloud
 from multi_instance_reg.rgbd.mesh_model import build_model_from_mesh
-from multi_instance_reg.rgbd.ppf import PPFModel
-from multi_instance_reg.rgbd.segments import connected_segments, support_mask
-from multi_instance_reg.rgbd.shape import PointGrid, icp_point_to_plane
-from multi_instance_reg.rgbd.shape_frontend import oriented_downsample
+from multi_instance_reg.frontends.shape.ppf import PPFModel
+from multi_instance_reg.frontends.shape.segments import connected_segments, support_mask
+from multi_instance_reg.frontends.shape.geometry import PointGrid, icp_point_to_plane
+from multi_instance_reg.frontends.shape.frontend import oriented_downsample
 from multi_instance_reg.symmetry import closest_symmetric_pose
 from multi_instance_reg.transforms import make_transform, rotation_angle_deg
 
@@ -137,7 +137,7 @@ def test_graph_components_number_components_as_scipy_does():
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    from multi_instance_reg.rgbd.segments import graph_components
+    from multi_instance_reg.frontends.shape.segments import graph_components
 
     rng = np.random.default_rng(5)
     for n, m in ((1, 0), (50, 0), (500, 300), (2000, 2500), (3000, 9000)):
@@ -281,7 +281,7 @@ def test_in_view_share_counts_the_facing_surface_inside_the_image():
 
 
 def test_pose_clusters_rank_agreeing_references_above_scattered_ones():
-    from multi_instance_reg.rgbd.ppf import cluster_poses
+    from multi_instance_reg.frontends.shape.ppf import cluster_poses
     from multi_instance_reg.symmetry import _rotation
 
     rng = np.random.default_rng(0)
@@ -439,7 +439,7 @@ def test_refinement_corrects_a_box_pose_with_either_icp_association(association)
     from dataclasses import replace
 
     from multi_instance_reg.rgbd.pipeline import FrontEndConfig
-    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.frontends.shape.frontend import ShapeFrontEnd
 
     model = _box_model()
     intr = _intrinsics()
@@ -516,7 +516,7 @@ def test_depth_points_and_normals_are_the_central_differences_of_the_depth_image
 
 
 def test_votes_split_over_threads_give_the_peaks_of_one_call(monkeypatch):
-    import multi_instance_reg.rgbd.ppf as ppf_module
+    import multi_instance_reg.frontends.shape.ppf as ppf_module
 
     model, ppf, T, P, N = _box_seen_by_ppf()
     labels = np.zeros(len(P), np.int64)
@@ -545,7 +545,7 @@ def test_refinement_in_the_thread_pool_gives_the_serial_results():
     """Hypotheses refined two at a time, and some of them started early (``start_refining``,
     as the pipeline does during ECC), give exactly what one at a time gives, in the same order."""
     from multi_instance_reg.rgbd.pipeline import FrontEndConfig
-    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.frontends.shape.frontend import ShapeFrontEnd
     from multi_instance_reg.symmetry import _rotation
 
     model = _box_model()
@@ -590,7 +590,7 @@ def test_a_rejected_pose_where_one_is_kept_gets_no_further_tries():
     takes a kept one's place gets no further tries (``_rescue``: moved onto its outline's
     patch, looked at again), one clear of every kept pose does."""
     from multi_instance_reg.rgbd.pipeline import FrontEndConfig
-    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd, _Plain
+    from multi_instance_reg.frontends.shape.frontend import ShapeFrontEnd, _Plain
 
     T, depth, intr = _box_top_on_floor()
     shape = ShapeFrontEnd(_box_model(), FrontEndConfig())
@@ -616,7 +616,7 @@ def test_of_the_rejected_poses_on_one_place_only_the_best_fits_get_further_tries
     tries only as many as that, the best fits (support - free) first; those on other places
     their own; 0 tries them all."""
     from multi_instance_reg.rgbd.pipeline import FrontEndConfig
-    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd, _Plain
+    from multi_instance_reg.frontends.shape.frontend import ShapeFrontEnd, _Plain
 
     T, depth, intr = _box_top_on_floor()
     offs = []
@@ -648,7 +648,7 @@ def test_overhanging_and_flush_rejected_poses_on_one_place_each_get_their_own_tr
     ``shape_rescues_per_place`` 1, the best overhanging pose on a place is tried beside the best
     flush one, though a better flush one is left out."""
     from multi_instance_reg.rgbd.pipeline import FrontEndConfig
-    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd, _Plain
+    from multi_instance_reg.frontends.shape.frontend import ShapeFrontEnd, _Plain
 
     T, depth, intr = _box_top_on_floor()
     shape = ShapeFrontEnd(_box_model(), FrontEndConfig(shape_rescues_per_place=1))
@@ -669,7 +669,7 @@ def test_overhanging_and_flush_rejected_poses_on_one_place_each_get_their_own_tr
 def test_best_per_place_keeps_a_pose_unless_as_many_better_ones_taken_overlap_it():
     from types import SimpleNamespace
 
-    from multi_instance_reg.rgbd.shape_frontend import best_per_place
+    from multi_instance_reg.frontends.shape.frontend import best_per_place
 
     poses = [SimpleNamespace(support=s + 0.1, free=0.1, name=i) for i, s in enumerate((0.5, 0.9, 0.7, 0.8, 0.6, 0.55))]
     overlap = np.eye(6, dtype=bool)
@@ -687,7 +687,7 @@ def test_a_group_whose_first_fails_is_tried_again_from_its_next_vote_pose():
     poses, after ECC's), one a group; groups whose first passed, and ECC's own duplicates
     before ``offset``, are not tried again."""
     from multi_instance_reg.rgbd.pipeline import FrontEndConfig
-    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.frontends.shape.frontend import ShapeFrontEnd
     from multi_instance_reg.symmetry import _rotation
 
     shape = ShapeFrontEnd(_box_model(), FrontEndConfig())
@@ -706,7 +706,7 @@ def test_a_group_whose_first_fails_is_tried_again_from_its_next_vote_pose():
 
 
 def test_thread_pool_helpers_keep_order_and_raise_errors():
-    from multi_instance_reg.rgbd.shape_frontend import Prefetch
+    from multi_instance_reg.frontends.shape.frontend import Prefetch
     from multi_instance_reg.threads import map_each, submit_each
 
     assert map_each(lambda x: x * x, range(20)) == [x * x for x in range(20)]
@@ -765,8 +765,8 @@ def _two_brackets_side_by_side():
 
 
 def test_depth_support_leaves_out_what_a_bracket_hides_of_itself():
-    from multi_instance_reg.rgbd.shape import depth_support, is_convex
-    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.frontends.shape.geometry import depth_support, is_convex
+    from multi_instance_reg.frontends.shape.frontend import ShapeFrontEnd
     from multi_instance_reg.rgbd.pipeline import PipelineConfig
     from multi_instance_reg.synthetic.objects import get_object, object_mesh
     from multi_instance_reg.synthetic.scene import look_at
@@ -835,7 +835,7 @@ def test_instance_pixels_kept_for_the_frame_equal_a_fresh_drawing():
 
 
 def test_depth_checks_kept_for_the_frame_equal_fresh_ones(monkeypatch):
-    from multi_instance_reg.rgbd import shape_frontend
+    from multi_instance_reg.frontends.shape import frontend
 
     _, shape, intr, front, back, depth = _front_and_back_boxes()
     calls = []
@@ -863,7 +863,7 @@ def test_depth_checks_kept_for_the_frame_equal_fresh_ones(monkeypatch):
 
 def _front_and_back_boxes():
     from multi_instance_reg.rgbd.pipeline import PipelineConfig
-    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.frontends.shape.frontend import ShapeFrontEnd
 
     solid = box_mesh(0.08, 0.07, 0.05)
     model = build_model_from_mesh(solid, "block")
@@ -908,7 +908,7 @@ def test_a_pair_passes_with_a_member_as_its_second_look_places_it(monkeypatch):
     refined the pair fails; with that member as its projective look places it (stubbed:
     onto the truth), it passes, and the pose the pair returns is the look's."""
     from multi_instance_reg.rgbd.pipeline import box_grid, box_overlaps
-    from multi_instance_reg.rgbd.shape import apply_twist
+    from multi_instance_reg.frontends.shape.geometry import apply_twist
 
     model, shape, intr, front, back, depth = _front_and_back_boxes()
     cloud = shape.frame_cloud(depth, intr, None)
@@ -930,7 +930,7 @@ def test_a_pair_passes_with_a_member_as_its_second_look_places_it(monkeypatch):
 
 
 def test_a_pose_behind_a_nearer_surface_is_judged_by_what_is_in_view_where_the_depth_steps_in_front(monkeypatch):
-    import multi_instance_reg.rgbd.shape_frontend as shape_frontend
+    import multi_instance_reg.frontends.shape.frontend as shape_frontend
 
     model, shape, intr, front, back, depth = _front_and_back_boxes()
     cloud = shape.frame_cloud(depth, intr, None)
@@ -979,8 +979,8 @@ def test_a_bracket_split_by_a_depth_step_is_voted_as_one_pair_of_segments():
     """Seen from behind, a bracket's upright plate and its base plate past the depth step
     form two segments; each alone votes hardly a right pose, the pair voted together does."""
     from multi_instance_reg.rgbd.pipeline import PipelineConfig
-    from multi_instance_reg.rgbd.segments import pairs_across_steps
-    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.frontends.shape.segments import pairs_across_steps
+    from multi_instance_reg.frontends.shape.frontend import ShapeFrontEnd
     from multi_instance_reg.synthetic.objects import get_object, object_mesh
     from multi_instance_reg.synthetic.scene import look_at
     from multi_instance_reg.transforms import invert_transform
@@ -1049,7 +1049,7 @@ def test_a_box_flush_with_an_instance_found_is_judged_by_its_outline_without_it(
     from dataclasses import replace
 
     from multi_instance_reg.rgbd.pipeline import PipelineConfig
-    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.frontends.shape.frontend import ShapeFrontEnd
 
     solid = box_mesh(0.08, 0.07, 0.05)
     fe = PipelineConfig().frontend
@@ -1079,8 +1079,8 @@ def test_a_bracket_pose_left_off_by_icp_gets_a_second_look_by_projective_icp(mon
     model, or the option off, gets none."""
     from dataclasses import replace
     from multi_instance_reg.rgbd.pipeline import PipelineConfig
-    from multi_instance_reg.rgbd.shape import apply_twist
-    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.frontends.shape.geometry import apply_twist
+    from multi_instance_reg.frontends.shape.frontend import ShapeFrontEnd
     from multi_instance_reg.synthetic.objects import get_object, object_mesh
     from multi_instance_reg.synthetic.scene import look_at
     from multi_instance_reg.transforms import invert_transform
@@ -1116,7 +1116,7 @@ def test_a_pose_reaching_through_the_table_is_rejected():
     there (support 0.88). The support plane rejects it; the true pose stays."""
     from dataclasses import replace
     from multi_instance_reg.rgbd.pipeline import PipelineConfig
-    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.frontends.shape.frontend import ShapeFrontEnd
     from multi_instance_reg.synthetic.objects import get_object, object_mesh
     from multi_instance_reg.synthetic.scene import look_at
     from multi_instance_reg.transforms import invert_transform
@@ -1152,7 +1152,7 @@ def test_a_standing_bracket_below_a_plane_of_its_own_base_plates_top_does_not_re
     one sunk into the table (the plane it stands on), its base plate's top 4 mm under it:
     nothing stands below the table, so its own face there is no object top."""
     from multi_instance_reg.rgbd.pipeline import PipelineConfig
-    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.frontends.shape.frontend import ShapeFrontEnd
     from multi_instance_reg.synthetic.objects import BRACKET_THICKNESS_M, get_object, object_mesh
     from multi_instance_reg.synthetic.scene import look_at
     from multi_instance_reg.transforms import invert_transform
@@ -1195,7 +1195,7 @@ def test_an_object_beyond_the_tables_edge_and_lower_does_not_reach_through_it():
     beyond it: a bracket standing on the floor there is mostly below the table's plane, but
     the depth on its rays reaches past that plane. Only the plane where it is there counts."""
     from multi_instance_reg.rgbd.pipeline import PipelineConfig
-    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.frontends.shape.frontend import ShapeFrontEnd
     from multi_instance_reg.synthetic.objects import get_object, object_mesh
     from multi_instance_reg.synthetic.scene import look_at
     from multi_instance_reg.transforms import invert_transform
@@ -1234,7 +1234,7 @@ def test_touching_objects_whose_tops_are_found_as_a_plane_do_not_reach_through_i
     nothing on them.)"""
     from dataclasses import replace
     from multi_instance_reg.rgbd.pipeline import PipelineConfig
-    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.frontends.shape.frontend import ShapeFrontEnd
     from multi_instance_reg.synthetic.objects import get_object, object_mesh
     from multi_instance_reg.synthetic.scene import look_at
     from multi_instance_reg.transforms import invert_transform
@@ -1274,8 +1274,8 @@ def test_a_row_of_three_flush_channels_passes_as_a_group_not_in_pairs():
     added to the rejected ones, is not taken with them."""
     from dataclasses import replace
     from multi_instance_reg.rgbd.pipeline import PipelineConfig, box_grid, box_overlaps
-    from multi_instance_reg.rgbd.shape import depth_support
-    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.frontends.shape.geometry import depth_support
+    from multi_instance_reg.frontends.shape.frontend import ShapeFrontEnd
     from multi_instance_reg.synthetic.objects import get_object, object_mesh
     from multi_instance_reg.synthetic.scene import look_at
     from multi_instance_reg.transforms import invert_transform
@@ -1313,8 +1313,8 @@ def test_a_carton_sunk_through_the_pallets_top_is_rejected_though_the_floor_is_t
     standing on the pallet beside the tray reaches through none."""
     from dataclasses import replace
     from multi_instance_reg.rgbd.pipeline import PipelineConfig
-    from multi_instance_reg.rgbd.shape import depth_support
-    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.frontends.shape.geometry import depth_support
+    from multi_instance_reg.frontends.shape.frontend import ShapeFrontEnd
     from multi_instance_reg.synthetic.objects import get_object, object_mesh
     from multi_instance_reg.synthetic.scene import look_at
     from multi_instance_reg.transforms import invert_transform
@@ -1355,7 +1355,7 @@ def test_noise_agreement_tells_a_cylinder_from_a_square_bar_it_fits_in():
     the camera, both 0.45 m away. Moved 5 mm towards the bar's edge, the cylinder's side
     agrees with the bar everywhere within the 8 mm tolerance (support 1.0), but within the
     depth noise (2 mm) only where it nears the faces; on itself, everywhere."""
-    from multi_instance_reg.rgbd.shape import depth_support, noise_agreement
+    from multi_instance_reg.frontends.shape.geometry import depth_support, noise_agreement
 
     K = _intrinsics()
     r, length, zc = 0.03, 0.10, 0.45
@@ -1394,7 +1394,7 @@ def test_two_small_segments_larger_together_are_paired_once():
     within the object's reach, both together are not: paired anyway, once, the one with more
     points first (the joined vote takes of the other only its points within reach of it); a
     segment elsewhere is not."""
-    from multi_instance_reg.rgbd.segments import pairs_across_steps
+    from multi_instance_reg.frontends.shape.segments import pairs_across_steps
 
     g = np.arange(0.0, 1.0, 0.1)
     plate = np.array([[x, y, 0.60] for x in 0.09 * g for y in 0.06 * g])              # a: 9 x 6 cm
@@ -1417,7 +1417,7 @@ def test_two_small_segments_larger_together_are_paired_once():
 def test_segments_within_reach_are_those_within_reach_one_by_one():
     """``segments_within_reach`` (one sort) names the segments ``within_reach`` names one by
     one (labels shuffled, some -1); given to ``pairs_across_steps`` it finds the same pairs."""
-    from multi_instance_reg.rgbd.segments import pairs_across_steps, segments_within_reach, within_reach
+    from multi_instance_reg.frontends.shape.segments import pairs_across_steps, segments_within_reach, within_reach
 
     rng = np.random.default_rng(2)
     sizes = rng.uniform(0.02, 0.3, 30)
@@ -1436,7 +1436,7 @@ def test_densest_pose_clusters_are_seeded_at_the_mode_not_at_the_strongest_vote(
     """References spread about the right pose (a plate's votes, blurred in its plane) with
     the strongest of them 22 deg off: strongest first, that one seeds the cluster and is
     the hypothesis; densest first, the pose most of them agree with is."""
-    from multi_instance_reg.rgbd.ppf import cluster_poses
+    from multi_instance_reg.frontends.shape.ppf import cluster_poses
 
     def yaw(deg, x=0.0):
         a = np.radians(deg)
@@ -1458,8 +1458,8 @@ def test_each_segment_keeps_its_own_best_pose_clusters():
     (``segment_poses``), and a segment's cluster the frame already has is not repeated."""
     from dataclasses import replace
     from multi_instance_reg.rgbd.pipeline import PipelineConfig
-    from multi_instance_reg.rgbd.ppf import ANGLE_BINS, cluster_poses
-    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.frontends.shape.ppf import ANGLE_BINS, cluster_poses
+    from multi_instance_reg.frontends.shape.frontend import ShapeFrontEnd
 
     shape = ShapeFrontEnd(build_model_from_mesh(box_mesh(0.12, 0.06, 0.08), "block"),
                           replace(PipelineConfig().frontend, shape_segment_clusters=1))
@@ -1485,9 +1485,9 @@ def test_a_bracket_pose_a_turn_away_from_icps_basin_is_started_again_turned(monk
     both ways about each model axis, one start lies in the basin and is kept (``second``);
     with ``shape_turned_starts`` 0 nothing is."""
     from dataclasses import replace
-    from multi_instance_reg.rgbd import shape_frontend as sf
+    from multi_instance_reg.frontends.shape import frontend as sf
     from multi_instance_reg.rgbd.pipeline import PipelineConfig
-    from multi_instance_reg.rgbd.shape import apply_twist
+    from multi_instance_reg.frontends.shape.geometry import apply_twist
 
     intr, T, mesh, depth = _bracket_before_a_wall()
 
@@ -1519,9 +1519,9 @@ def test_a_turned_start_icp_slides_off_is_judged_as_it_starts(monkeypatch):
     and fitted worse). The start competes with what ICP makes of it (as in
     ``_refine_plain``), so the true pose is kept (``second``); ranked after ICP alone, no
     start beat the rejected pose and nothing was."""
-    from multi_instance_reg.rgbd import shape_frontend as sf
+    from multi_instance_reg.frontends.shape import frontend as sf
     from multi_instance_reg.rgbd.pipeline import PipelineConfig
-    from multi_instance_reg.rgbd.shape import apply_twist
+    from multi_instance_reg.frontends.shape.geometry import apply_twist
 
     intr, T, mesh, depth = _bracket_before_a_wall()
     shape = sf.ShapeFrontEnd(build_model_from_mesh(mesh, "bracket"), PipelineConfig().frontend)
@@ -1548,8 +1548,8 @@ def test_a_pose_icp_could_not_better_gets_the_second_look_however_far_it_overhan
     support - free 0.21-0.58), the projective look is tried all the same and sets it right;
     where ICP moved it (to a pose as far along, still rejected), it gets no look."""
     from multi_instance_reg.rgbd.pipeline import PipelineConfig
-    from multi_instance_reg.rgbd.shape import apply_twist
-    from multi_instance_reg.rgbd.shape_frontend import SECOND_LOOK_MIN, ShapeFrontEnd
+    from multi_instance_reg.frontends.shape.geometry import apply_twist
+    from multi_instance_reg.frontends.shape.frontend import SECOND_LOOK_MIN, ShapeFrontEnd
 
     intr, T, mesh, depth = _bracket_before_a_wall()
     off = apply_twist(T, np.array([0.0, np.radians(10.0), np.radians(5.0), 0.006, -0.005, 0.0]), T[:3, 3])
@@ -1579,8 +1579,8 @@ def test_a_pose_still_rejected_after_its_second_look_is_handed_on_as_the_pose_th
     ICP left (bracket seed 5 frame 7: ICP 11.5 deg off, the second look 0.3 deg; the pose
     ICP left passed with its points hidden)."""
     from multi_instance_reg.rgbd.pipeline import PipelineConfig
-    from multi_instance_reg.rgbd.shape import apply_twist
-    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.frontends.shape.geometry import apply_twist
+    from multi_instance_reg.frontends.shape.frontend import ShapeFrontEnd
 
     intr, T, mesh, depth = _bracket_before_a_wall()
     off = apply_twist(T, np.array([0.0, np.radians(5.0), np.radians(2.0), 0.004, -0.003, 0.0]), T[:3, 3])
@@ -1598,7 +1598,7 @@ def test_a_pose_still_rejected_after_its_second_look_is_handed_on_as_the_pose_th
 def test_central_radius_is_the_smallest_ball_about_a_surface_point_holding_the_box():
     """A 0.3 x 0.2 x 0.15 box: about the middle of a largest face, the far corners lie
     sqrt(0.15^2 + 0.1^2 + 0.15^2) away; about any other surface point, something lies farther."""
-    from multi_instance_reg.rgbd.shape_frontend import central_radius
+    from multi_instance_reg.frontends.shape.frontend import central_radius
 
     pts, _ = sample_surface(box_mesh(0.3, 0.2, 0.15), 0.005, seed=0)
     assert abs(central_radius(pts) - np.sqrt(0.15 ** 2 + 0.1 ** 2 + 0.15 ** 2)) < 0.006
@@ -1618,7 +1618,7 @@ def _cartons_in_a_row(model, surface, normals, count=3):
 def test_references_in_a_segment_of_touching_boxes_vote_right_more_often_within_the_central_reach():
     """Touching boxes with flush tops are one segment: partners over the whole diameter lie
     mostly on the neighbours; within the central radius mostly on the reference's own box."""
-    from multi_instance_reg.rgbd.shape_frontend import central_radius
+    from multi_instance_reg.frontends.shape.frontend import central_radius
 
     model = _box_model()
     surface, normals = oriented_downsample(model.shape_points.astype(np.float64), model.shape_normals,
@@ -1639,7 +1639,7 @@ def test_references_in_a_segment_of_touching_boxes_vote_right_more_often_within_
 
 def test_partner_reach_is_short_only_in_segments_larger_than_the_object():
     from multi_instance_reg.rgbd.pipeline import FrontEndConfig
-    from multi_instance_reg.rgbd.shape_frontend import FrameCloud, ShapeFrontEnd
+    from multi_instance_reg.frontends.shape.frontend import FrameCloud, ShapeFrontEnd
 
     model = _box_model()
     shape = ShapeFrontEnd(model, FrontEndConfig())
@@ -1660,7 +1660,7 @@ def test_partner_reach_is_short_only_in_segments_larger_than_the_object():
 def test_central_radius_of_a_flat_patch_falls_back_to_every_point():
     """Points in one plane have no convex hull in 3-D: the farthest points are then sought
     among all of them (a square of side 0.2: about its centre, the corners 0.1 * sqrt(2) away)."""
-    from multi_instance_reg.rgbd.shape_frontend import central_radius
+    from multi_instance_reg.frontends.shape.frontend import central_radius
 
     g = np.stack(np.meshgrid(np.linspace(0, 0.2, 21), np.linspace(0, 0.2, 21)), -1).reshape(-1, 2)
     assert abs(central_radius(np.column_stack([g, np.zeros(len(g))])) - 0.1 * np.sqrt(2.0)) < 1e-9
@@ -1671,7 +1671,7 @@ def test_the_segments_an_instance_found_touches_are_voted_again_without_its_poin
     the segment is voted again (``residual_poses``) and gives the second its pose. Nothing
     found: nothing voted again."""
     from multi_instance_reg.rgbd.pipeline import PipelineConfig
-    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.frontends.shape.frontend import ShapeFrontEnd
 
     mesh, intr, T1, T2, depth = _two_brackets_side_by_side()
     shape = ShapeFrontEnd(build_model_from_mesh(mesh, "bracket"), PipelineConfig().frontend)
@@ -1704,7 +1704,7 @@ def test_the_points_of_a_supported_rejected_pose_are_left_out_of_the_residual_vo
     (``supported_evidence``) ranks the right pose above one slid off it, which takes in
     points of the neighbour."""
     from multi_instance_reg.rgbd.pipeline import PipelineConfig
-    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.frontends.shape.frontend import ShapeFrontEnd
 
     mesh, intr, T1, T2, depth = _two_brackets_side_by_side()
     shape = ShapeFrontEnd(build_model_from_mesh(mesh, "bracket"), PipelineConfig().frontend)
@@ -1731,7 +1731,7 @@ def test_the_pieces_a_bracket_found_in_front_cuts_another_into_are_voted_togethe
     found touches either, so the residual votes leave them. Voted together
     (``bridged_poses``), they give its pose, which refined passes behind the one found."""
     from multi_instance_reg.rgbd.pipeline import PipelineConfig
-    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.frontends.shape.frontend import ShapeFrontEnd
     from multi_instance_reg.synthetic.objects import get_object, object_mesh
     from multi_instance_reg.synthetic.scene import look_at
     from multi_instance_reg.transforms import invert_transform
@@ -1777,7 +1777,7 @@ def _vote_reference(p, n, refs, lo, hi, reach, max_partners, bucket_start, entry
     first-voted of the largest cells. Also returns the most votes one reference cast."""
     import math
 
-    from multi_instance_reg.rgbd.ppf import TURN_BINS, _align_to_x, _feature
+    from multi_instance_reg.frontends.shape.ppf import TURN_BINS, _align_to_x, _feature
 
     out, most = [], 0
     for r, i in enumerate(refs):
@@ -1817,7 +1817,7 @@ def test_vote_kernel_gives_the_peaks_of_a_plain_accumulator(layout):
     peaks as a dict per reference. "plane": three coplanar model points and a flat scene,
     whose every partner votes for all the model's pairs: a reference casts more votes than
     the accumulator has cells, and the list of votes is grown."""
-    from multi_instance_reg.rgbd.ppf import TURN_BINS, _vote
+    from multi_instance_reg.frontends.shape.ppf import TURN_BINS, _vote
 
     rng = np.random.default_rng(4)
     if layout == "random":
@@ -1902,8 +1902,8 @@ def test_a_pose_sunk_whole_into_a_board_its_top_flush_with_the_boards_is_rejecte
     tops is no support it goes through); the outline must reject it: the board's top goes
     on past it. The same tee standing on the board is kept."""
     from multi_instance_reg.rgbd.pipeline import PipelineConfig
-    from multi_instance_reg.rgbd.shape import depth_support
-    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.frontends.shape.geometry import depth_support
+    from multi_instance_reg.frontends.shape.frontend import ShapeFrontEnd
     from multi_instance_reg.synthetic.objects import get_object, object_mesh
     from multi_instance_reg.synthetic.scene import look_at
     from multi_instance_reg.transforms import invert_transform
@@ -1940,7 +1940,7 @@ def test_found_share_is_the_share_of_agreeing_points_on_a_found_instances_surfac
     """A bracket seen alone: judged against itself as found, all its agreeing points are that
     instance's (1.0); against a bracket 20 cm away, none (0.0); nothing found, 0.0."""
     from multi_instance_reg.rgbd.pipeline import PipelineConfig
-    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.frontends.shape.frontend import ShapeFrontEnd
     from multi_instance_reg.synthetic.objects import get_object, object_mesh
     from multi_instance_reg.synthetic.scene import look_at
     from multi_instance_reg.transforms import invert_transform
@@ -2015,8 +2015,8 @@ def test_an_open_channel_behind_a_distractor_passes_judged_behind_anything():
     too small (channel seed 617: 5-8 mm median, 28-58 mm at the points hidden clearly). Here
     8 mm with them, 71 mm without (16 needed): the true pose passes."""
     from multi_instance_reg.rgbd.pipeline import PipelineConfig
-    from multi_instance_reg.rgbd.shape import depth_support
-    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.frontends.shape.geometry import depth_support
+    from multi_instance_reg.frontends.shape.frontend import ShapeFrontEnd
     from multi_instance_reg.synthetic.objects import get_object, object_mesh
     from multi_instance_reg.synthetic.scene import look_at
     from multi_instance_reg.transforms import invert_transform
@@ -2053,7 +2053,7 @@ def test_a_plane_just_off_the_table_is_not_pierced_by_what_stands_on_the_table()
     top: "through" it, unless points on the table are left out. Sunk into a plane 4 cm up,
     its bottom 2 cm above the table, it still reaches through."""
     from multi_instance_reg.rgbd.pipeline import PipelineConfig
-    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.frontends.shape.frontend import ShapeFrontEnd
     from multi_instance_reg.synthetic.objects import get_object, object_mesh
     from multi_instance_reg.synthetic.scene import look_at
     from multi_instance_reg.transforms import invert_transform
@@ -2086,7 +2086,7 @@ def test_on_found_kept_for_the_same_instances_is_the_same_test():
     """``_on_found`` keeps its last tree: asked again for the same poses it answers as a
     fresh one; for other poses it is built anew (a kept tree would answer for the old ones)."""
     from multi_instance_reg.rgbd.pipeline import FrontEndConfig
-    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.frontends.shape.frontend import ShapeFrontEnd
 
     shape = ShapeFrontEnd(_box_model(), FrontEndConfig())
     A = make_transform(np.eye(3), [0.0, 0.0, 1.5])
@@ -2110,8 +2110,8 @@ def test_a_channel_seen_turned_over_is_found_from_its_fit_open_side_up():
     passes at the true pose. The true pose open side up gives no start (nothing of it in front
     of the depth)."""
     from multi_instance_reg.rgbd.pipeline import PipelineConfig
-    from multi_instance_reg.rgbd.shape import depth_support
-    from multi_instance_reg.rgbd.shape_frontend import TURNED_OVER_MIN, ShapeFrontEnd
+    from multi_instance_reg.frontends.shape.geometry import depth_support
+    from multi_instance_reg.frontends.shape.frontend import TURNED_OVER_MIN, ShapeFrontEnd
     from multi_instance_reg.synthetic.objects import get_object, object_mesh
     from multi_instance_reg.synthetic.scene import look_at
     from multi_instance_reg.transforms import invert_transform
@@ -2153,7 +2153,7 @@ def test_near_twins_are_the_half_turns_that_map_most_of_the_model_onto_itself():
     over (about x; the one about y is the same under its half turn about z, itself a
     symmetry, not a twin). A box (convex) has none looked for."""
     from multi_instance_reg.rgbd.pipeline import PipelineConfig
-    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.frontends.shape.frontend import ShapeFrontEnd
     from multi_instance_reg.synthetic.objects import get_object, object_mesh
 
     fe = PipelineConfig().frontend
@@ -2206,7 +2206,7 @@ def test_a_turned_pose_left_a_few_degrees_off_is_kept_at_its_second_look():
     vertical; bracket seed 1917 frame 2: 10.4 deg, evidence 171.5) is kept at its second look
     (projective ICP) when the depth agrees with that better (1.0 deg, 213)."""
     from multi_instance_reg.rgbd.pipeline import InstanceRegistration, PipelineConfig
-    from multi_instance_reg.rgbd.shape import apply_twist
+    from multi_instance_reg.frontends.shape.geometry import apply_twist
     from multi_instance_reg.synthetic.objects import get_object, object_mesh
     from multi_instance_reg.synthetic.scene import look_at
     from multi_instance_reg.transforms import invert_transform
@@ -2233,8 +2233,8 @@ def test_icp_does_not_slide_an_open_side_down_channel_along_its_length():
     visible surface does not hold dropped (``_held_look``), it is right (returned apart, as
     a second look's pose)."""
     from multi_instance_reg.rgbd.pipeline import PipelineConfig
-    from multi_instance_reg.rgbd.shape import apply_twist
-    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.frontends.shape.geometry import apply_twist
+    from multi_instance_reg.frontends.shape.frontend import ShapeFrontEnd
     from multi_instance_reg.synthetic.objects import get_object, object_mesh
     from multi_instance_reg.synthetic.scene import look_at
     from multi_instance_reg.transforms import invert_transform
@@ -2263,8 +2263,8 @@ def test_the_second_look_reaches_a_standing_bracket_turned_30_deg_about_its_upri
     standing bracket turned 30 deg about the vertical, 10 rounds stop 11 deg off, its rounds
     (``SECOND_LOOK_ITERATIONS``) reach the pose (bracket seed 1947: 29 deg -> 0.1 deg)."""
     from multi_instance_reg.rgbd.pipeline import PipelineConfig
-    from multi_instance_reg.rgbd.shape import apply_twist
-    from multi_instance_reg.rgbd.shape_frontend import SECOND_LOOK_ITERATIONS, ShapeFrontEnd
+    from multi_instance_reg.frontends.shape.geometry import apply_twist
+    from multi_instance_reg.frontends.shape.frontend import SECOND_LOOK_ITERATIONS, ShapeFrontEnd
     from multi_instance_reg.synthetic.objects import get_object, object_mesh
     from multi_instance_reg.synthetic.scene import look_at
     from multi_instance_reg.tracking.icp import align_projective
@@ -2324,7 +2324,7 @@ def test_the_second_look_keeps_the_better_fit_of_its_short_and_long_rounds(monke
     agrees with better is kept."""
     from types import SimpleNamespace
 
-    import multi_instance_reg.rgbd.shape_frontend as sf
+    import multi_instance_reg.frontends.shape.frontend as sf
     from multi_instance_reg.rgbd.pipeline import PipelineConfig
     from multi_instance_reg.synthetic.objects import get_object, object_mesh
     from multi_instance_reg.synthetic.scene import look_at
@@ -2384,7 +2384,7 @@ def test_support_mask_keeps_flush_object_tops_but_not_a_raised_support():
 
 
 def test_object_face_heights_of_a_box_are_its_sides():
-    from multi_instance_reg.rgbd.shape_frontend import object_face_heights
+    from multi_instance_reg.frontends.shape.frontend import object_face_heights
 
     points, normals = sample_surface(box_mesh(0.16, 0.10, 0.05), 0.004, seed=1)
     heights = object_face_heights(points, normals, 0.008)
@@ -2434,7 +2434,7 @@ def test_a_channel_half_hidden_by_its_flush_neighbour_is_climbed_onto_its_pose_a
     with the nearer one slid along its length, overhanging space seen empty (channel seed
     2404 frame 11: such a pair passed, one member 27 mm off)."""
     from multi_instance_reg.rgbd.pipeline import InstanceRegistration, PipelineConfig
-    from multi_instance_reg.rgbd.shape import apply_twist
+    from multi_instance_reg.frontends.shape.geometry import apply_twist
     from multi_instance_reg.synthetic.objects import get_object, object_mesh
     from multi_instance_reg.synthetic.scene import look_at
     from multi_instance_reg.transforms import invert_transform

@@ -20,7 +20,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..messages import CameraIntrinsics
-from .shape import measured_at
+from ..frontends.shape.geometry import measured_at
 
 # Second-moment elongation (0: round, 1: a line) above which a mask's long axis is defined.
 MIN_ELONGATION = 0.2
@@ -485,7 +485,7 @@ def surface_samples(points: np.ndarray, extent, max_points: int = 600) -> tuple[
     """(P, 3) points spread over a model's dense cloud (model frame), at most ``max_points``,
     and their outward normals (PCA over the neighbours, turned away from the cloud's centre:
     right for the convex objects of a tabletop; only the back-face test reads the sign)."""
-    from .shape import shape_voxel, surface_normals, voxel_downsample
+    from ..frontends.shape.geometry import shape_voxel, surface_normals, voxel_downsample
 
     pts = np.asarray(points, np.float64)
     if len(pts) < 3:

@@ -29,9 +29,9 @@ import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..messages import CameraIntrinsics
-from ..threads import map_in_chunks
-from ..transforms import apply_transform, invert_transform
+from ...messages import CameraIntrinsics
+from ...threads import map_in_chunks
+from ...transforms import apply_transform, invert_transform
 
 FPFH_BINS = 11
 FPFH_DIM = 3 * FPFH_BINS
@@ -791,7 +791,7 @@ def _noise_agreement(T, mp, mn, depth, fx, fy, cx, cy, tolerance, noise):
 def scene_cloud(depth_m: np.ndarray, intrinsics: CameraIntrinsics, mask: np.ndarray, voxel: float,
                 stride: int = 1) -> np.ndarray:
     """Search-region depth points (camera frame), voxel-downsampled, (M, 3) float64."""
-    from .lifting import depth_to_cloud
+    from ...rgbd.lifting import depth_to_cloud
 
     pts, _ = depth_to_cloud(depth_m, intrinsics, mask.astype(bool), stride=stride)
     return voxel_downsample(np.asarray(pts, np.float64), voxel)

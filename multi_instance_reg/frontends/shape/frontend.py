@@ -19,19 +19,19 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..core import ECCConfig
-from ..errors import InputError
-from ..messages import CameraIntrinsics
-from .model import ObjectModel
+from ...core import ECCConfig
+from ...errors import InputError
+from ...messages import CameraIntrinsics
+from ...rgbd.model import ObjectModel
 from .ppf import ANGLE_BINS as ANGLE_STEPS, PPFModel, cluster_poses
 from .faces import Faces, frame_patches, matches, model_faces, nearest_face_pose, patch_poses
 from .segments import (connected_segments, pairs_across_steps, segments_within_reach, support_mask,
                        within_reach)
-from .verify import facing_camera, image_pixels, in_view_share, outline_continuation, outline_shift
-from ..threads import map_each, shared_pool, submit_each
-from ..tracking.icp import align_projective
-from ..transforms import rotation_angle_deg
-from .shape import (PointGrid, ShapeMatcher, apply_twist, depth_support, describe, icp_point_to_plane, is_convex,
+from ...rgbd.verify import facing_camera, image_pixels, in_view_share, outline_continuation, outline_shift
+from ...threads import map_each, shared_pool, submit_each
+from ...tracking.icp import align_projective
+from ...transforms import rotation_angle_deg
+from .geometry import (PointGrid, ShapeMatcher, apply_twist, depth_support, describe, icp_point_to_plane, is_convex,
                     noise_agreement, scene_cloud, surface_normals, voxel_downsample)
 
 
@@ -176,7 +176,7 @@ class ShapeFrontEnd:
             # Where flush tops of such objects would lie above their support (support_mask).
             self._face_heights = object_face_heights(self._surface, self._surface_normals, self.voxel)
             # The model's flat faces with a long axis (a carton's six): a frame patch with
-            # the same outline moments places the pose (rgbd/faces.py). Convex models only:
+            # the same outline moments places the pose (frontends/shape/faces.py). Convex models only:
             # a non-convex one hides parts of its own faces (the bracket's upright, its base
             # plate), and a plate's outline does not say on which side the rest lies
             # (bracket MHF1 seed 0 / 5: 0.925 / 0.833 -> 0.901 / 0.828 with them).

@@ -21,9 +21,9 @@ import numba
 import numpy as np
 from scipy.spatial import ConvexHull, Delaunay, QhullError, cKDTree
 
-from ..messages import CameraIntrinsics
-from ..threads import submit_each
-from .lifting import depth_to_cloud, fit_dominant_plane
+from ...messages import CameraIntrinsics
+from ...threads import submit_each
+from ...rgbd.lifting import depth_to_cloud, fit_dominant_plane
 
 
 def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.ndarray, max_area: float,

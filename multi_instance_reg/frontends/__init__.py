@@ -1,0 +1,1 @@
+"""Front ends: from an RGB-D frame to correspondences and pose hypotheses."""
