@@ -1,0 +1,217 @@
+"""The shape front end's one verification: how well a pose explains the frame, and the
+joint choice of the instances.
+
+    view = FrameView(depth_m, intrinsics, rgb)              # once a frame: colour edges
+    e = explain(T, model, view, tolerance, claimed)          # one pose: Explanation
+    chosen = select(candidates, model, view, ...)            # the set that explains most
+
+The model's camera-facing surface samples at the pose, drawn with a z-buffer (a non-convex
+object hides parts of itself), each compared with the depth measured on its pixel:
+
+- *agree*: within the tolerance (3 sigma of the depth noise at its distance, sigma = k z^2,
+  with a floor) and the measured normal within ``NORMAL_DEG`` of the model's (where the
+  depth around the pixel gives one: a dropout or a flying pixel leaves it out, not against);
+- *free*: the measurement lies farther: the camera saw through where the model would stand;
+- *hidden*: a nearer measured surface. Behind pixels another chosen instance claims, it is
+  explained and left out; behind anything else it counts half against (an object behind an
+  unknown occluder stays possible, a pose sunk into a surface does not pass on it alone);
+- no depth (dropouts, IR shadows): left out, neither for nor against.
+
+And the outline: the share of a band just outside the drawn model where the nearest model
+face continues in the depth (``verify.outline_continuation``): a piece of a larger surface
+(a carton fitted onto a crate's top, a pose sunk into the table) continues past its
+outline; a true instance does not. Pixels another chosen instance claims, and with colour
+the pixels on or next to a colour edge, break that continuation: flush-packed cartons form
+one plane in depth, and their outlines are seen only in colour.
+
+The evidence of a pose is support - free - 2 x outline (shares of the judged samples); the
+gain a pose would add is its evidence times the samples it explains that no chosen
+instance explains already. ``select`` takes the pose with the largest gain while it passes
+``shape_min_support`` and ``shape_min_evidence``, claims its pixels, and scores the poses
+that meet it again: hypotheses on the same pixels compete, and a neighbour's outline onto
+a chosen instance no longer counts against it.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ...messages import CameraIntrinsics
+from ...rgbd.verify import _points_and_normals, facing_camera, outline_continuation
+
+# A sample agrees only when the measured normal is within this of the model's (where the
+# depth gives one): a cylinder's side laid over a block's edge agrees in depth, not in normals.
+NORMAL_DEG = 45.0
+# A sample hidden by a nearer surface that no chosen instance explains counts this much
+# against the pose (a chosen instance's pixels: not at all).
+HIDDEN_WEIGHT = 0.5
+# The outline's weight in the evidence (as the earlier checks ranked: support - free - 2 x outline).
+OUTLINE_WEIGHT = 2.0
+# At least this many samples must be judged (on valid depth, not explained by another
+# instance): fewer tell nothing.
+MIN_JUDGED = 20
+# A pose whose agreeing samples lie more than this share on pixels a chosen instance
+# claims is that instance seen again (the same pixels): it is dropped.
+MAX_CLAIMED = 0.5
+
+
+@dataclass
+class FrameView:
+    """What the verification reads of a frame: the depth, the camera, and the colour edges
+    (None without colour, or on an image of one colour)."""
+    depth: np.ndarray
+    intrinsics: CameraIntrinsics
+    edges: np.ndarray | None = None
+
+    @staticmethod
+    def of(depth_m: np.ndarray, intrinsics: CameraIntrinsics, rgb: np.ndarray | None = None) -> "FrameView":
+        edges = None
+        if rgb is not None and rgb.ndim == 3:
+            grey = cv2.GaussianBlur(cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY), (5, 5), 0)
+            if int(grey.max()) - int(grey.min()) >= 8:
+                found = cv2.Canny(grey, 30, 90)
+                edges = (found > 0).astype(np.uint8) if found.any() else None
+        return FrameView(depth_m, intrinsics, edges)
+
+
+@dataclass
+class Explanation:
+    """One pose's account of the frame."""
+    T: np.ndarray
+    agree: int              # samples the depth confirms (and their normals)
+    free: int               # samples in space the camera saw through
+    hidden: float           # samples behind a nearer surface no chosen instance explains (weighted)
+    judged: int             # agree + free + hidden + those off in depth or normal
+    outline: float          # share of the outline band where the surface goes on
+    pixels: np.ndarray      # flat pixel indices of the agreeing samples (what it claims)
+    rect: tuple             # image rows and columns its judged samples span (top, bottom, left, right)
+    claimed: int = 0        # of its agreeing samples, those on pixels already claimed
+
+    @property
+    def support(self) -> float:
+        return self.agree / self.judged if self.judged else 0.0
+
+    @property
+    def evidence(self) -> float:
+        if self.judged < MIN_JUDGED:
+            return -1.0
+        return (self.agree - self.free) / self.judged - OUTLINE_WEIGHT * self.outline
+
+    @property
+    def gain(self) -> float:
+        """Evidence times the samples it explains that no chosen instance explains."""
+        return self.evidence * (self.agree - self.claimed)
+
+
+def visible_samples(T: np.ndarray, surface: np.ndarray, normals: np.ndarray, intrinsics: CameraIntrinsics,
+                    shape, splat: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The model's samples at pose T that face the camera, fall in the image and are not
+    behind the model's own nearer surface (z-buffer of the samples, each drawn over
+    ``splat`` metres): (points (n, 3), normals, rows, cols)."""
+    p = surface @ T[:3, :3].T + T[:3, 3]
+    n = normals @ T[:3, :3].T
+    facing = facing_camera(p, n)
+    p, n = p[facing], n[facing]
+    K = intrinsics.K
+    h, w = shape
+    u = np.round(K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2]).astype(np.int64)
+    v = np.round(K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]).astype(np.int64)
+    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    p, n, u, v = p[inside], n[inside], u[inside], v[inside]
+    if len(p) < 2:
+        return p, n, v, u
+    # z-buffer in a crop around the drawing: the nearest sample per pixel, spread over its splat.
+    r = max(1, int(round(splat * K[0, 0] / float(np.median(p[:, 2])))))
+    u0, v0 = u.min(), v.min()
+    zbuf = np.full((v.max() - v0 + 1, u.max() - u0 + 1), np.inf, np.float32)
+    np.minimum.at(zbuf, (v - v0, u - u0), p[:, 2].astype(np.float32))
+    zbuf = cv2.erode(zbuf, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
+    front = p[:, 2] <= zbuf[v - v0, u - u0] + 2.0 * splat
+    return p[front], n[front], v[front], u[front]
+
+
+def explain(T: np.ndarray, surface: np.ndarray, normals: np.ndarray, view: FrameView, tolerance: float,
+            voxel: float, same_surface: float, claimed: np.ndarray | None = None,
+            up: np.ndarray | None = None) -> Explanation:
+    """How well pose T explains the frame (module docstring). ``surface``, ``normals``: the
+    model's samples (model frame, outward); ``tolerance``: metres, agreement in depth at
+    the pose's distance; ``same_surface``: metres, "the same surface" for the outline (the
+    depth noise); ``claimed``: (H, W) uint8, pixels chosen instances explain (or None);
+    ``up``: the support's normal (what lies below the object does not continue it)."""
+    depth = view.depth
+    p, n, rows, cols = visible_samples(T, surface, normals, view.intrinsics, depth.shape, 0.5 * voxel)
+    d = depth[rows, cols].astype(np.float64)
+    valid = d > 0
+    p, n, rows, cols, d = p[valid], n[valid], rows[valid], cols[valid], d[valid]
+    diff = d - p[:, 2]
+    near = np.abs(diff) < tolerance
+    free = diff >= tolerance
+    behind = diff <= -tolerance
+    mine = np.ones(len(d), bool) if claimed is None else claimed[rows, cols] == 0
+    # Normals where the depth gives one (four neighbours a couple of pixels away).
+    _, measured, has = _points_and_normals(depth, view.intrinsics.K, rows[near], cols[near])
+    turned = np.zeros(int(near.sum()), bool)
+    turned[has] = np.sum(measured * n[near][has], axis=1) < np.cos(np.radians(NORMAL_DEG))
+    agree = near.copy()
+    agree[np.flatnonzero(near)[turned]] = False
+    hidden_other = behind & mine
+    hidden = HIDDEN_WEIGHT * float(np.sum(hidden_other))
+    judged = int(round(np.sum(~behind) + hidden))
+    explained = claimed
+    if view.edges is not None:
+        edges = cv2.dilate(view.edges, np.ones((5, 5), np.uint8))
+        explained = edges if claimed is None else np.maximum(edges, claimed)
+    outline, _ = outline_continuation(T, surface, normals, depth, view.intrinsics, voxel, same_surface, up=up,
+                                      explained=explained)
+    pix = rows[agree] * depth.shape[1] + cols[agree]
+    taken = 0 if claimed is None else int(np.sum(~mine & agree))
+    rect = (int(rows.min()), int(rows.max()), int(cols.min()), int(cols.max())) if len(rows) else (0, -1, 0, -1)
+    return Explanation(T, int(agree.sum()), int(free.sum()), hidden, judged, float(outline), pix, rect, taken)
+
+
+def claim(mask: np.ndarray, e: Explanation, radius: int) -> None:
+    """Mark the pixels of explanation e's agreeing samples (spread over ``radius`` pixels:
+    the samples lie a few pixels apart) as claimed in ``mask`` (H, W) uint8."""
+    if len(e.pixels) == 0:
+        return
+    one = np.zeros(mask.shape, np.uint8)
+    one.flat[e.pixels] = 1
+    r = max(1, radius)
+    one = cv2.dilate(one, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
+    np.maximum(mask, one, out=mask)
+
+
+def select(candidates: list, rescore, conflicts, min_support: float, min_evidence: float, radius: int,
+           margin: int, shape, deadline: float | None = None) -> list:
+    """The instances chosen jointly from ``candidates`` (Explanations with nothing claimed):
+    best gain first; after each choice the rest are scored again with its pixels claimed
+    (``rescore(e, claimed)`` -> Explanation), those that ``conflicts(e, chosen)`` (their
+    volumes overlap a chosen one's: two objects cannot fill one space, which the depth
+    alone cannot tell where neither is seen) or repeat its pixels (``MAX_CLAIMED``) drop
+    out; only those whose drawings come within ``margin`` pixels of the chosen one's are
+    scored again. Stops when no pose passes ``min_support`` and ``min_evidence``, or, past
+    ``deadline`` (``time.process_time()``), without scoring again."""
+    def passes(e):
+        return e.support >= min_support and e.evidence >= min_evidence and e.agree - e.claimed >= MIN_JUDGED // 2
+    pending = [e for e in candidates if passes(e)]
+    claimed = np.zeros(shape, np.uint8)
+    chosen: list = []
+    while pending:
+        best = max(range(len(pending)), key=lambda k: pending[k].gain)
+        e = pending.pop(best)
+        chosen.append(e)
+        claim(claimed, e, radius)
+        pending = [c for c in pending if not conflicts(c, e)]
+        if deadline is None or time.process_time() < deadline:
+            # Only the poses whose drawing comes near the chosen one's can score otherwise.
+            pending = [rescore(c, claimed) if _near(c.rect, e.rect, margin) else c for c in pending]
+        pending = [c for c in pending if passes(c) and c.claimed <= MAX_CLAIMED * max(c.agree, 1)]
+    return chosen
+
+
+def _near(a: tuple, b: tuple, margin: int) -> bool:
+    """Whether two image rectangles (top, bottom, left, right) come within ``margin`` pixels."""
+    return not (a[0] > b[1] + margin or b[0] > a[1] + margin or a[2] > b[3] + margin or b[2] > a[3] + margin)
