@@ -45,6 +45,7 @@ from ...rgbd.verify import _points_and_normals, facing_camera, outline_continuat
 # A sample agrees only when the measured normal is within this of the model's (where the
 # depth gives one): a cylinder's side laid over a block's edge agrees in depth, not in normals.
 NORMAL_DEG = 45.0
+NORMAL_STEP = 2         # pixels: the central differences' half width
 # A sample hidden by a nearer surface that no chosen instance explains counts this much
 # against the pose (a chosen instance's pixels: not at all).
 HIDDEN_WEIGHT = 0.5
@@ -56,6 +57,9 @@ MIN_JUDGED = 20
 # A pose whose agreeing samples lie more than this share on pixels a chosen instance
 # claims is that instance seen again (the same pixels): it is dropped.
 MAX_CLAIMED = 0.5
+# Canny's thresholds on the blurred grey image: low enough for the seam between two cartons
+# of slightly different shades (12 grey levels).
+EDGE_LOW, EDGE_HIGH = 15, 40
 
 
 @dataclass
@@ -72,7 +76,7 @@ class FrameView:
         if rgb is not None and rgb.ndim == 3:
             grey = cv2.GaussianBlur(cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY), (5, 5), 0)
             if int(grey.max()) - int(grey.min()) >= 8:
-                found = cv2.Canny(grey, 30, 90)
+                found = cv2.Canny(grey, EDGE_LOW, EDGE_HIGH)
                 edges = (found > 0).astype(np.uint8) if found.any() else None
         return FrameView(depth_m, intrinsics, edges)
 
@@ -151,18 +155,31 @@ def explain(T: np.ndarray, surface: np.ndarray, normals: np.ndarray, view: Frame
     free = diff >= tolerance
     behind = diff <= -tolerance
     mine = np.ones(len(d), bool) if claimed is None else claimed[rows, cols] == 0
-    # Normals where the depth gives one (four neighbours a couple of pixels away).
-    _, measured, has = _points_and_normals(depth, view.intrinsics.K, rows[near], cols[near])
-    turned = np.zeros(int(near.sum()), bool)
+    # Normals where the depth gives one: four neighbours a couple of pixels away, all on the
+    # same surface (not across a depth step, where a difference is no normal).
+    r, c = rows[near], cols[near]
+    _, measured, has = _points_and_normals(depth, view.intrinsics.K, r, c, NORMAL_STEP)
+    h, w = depth.shape
+    smooth = np.ones(len(r), bool)
+    for dr, dc in ((0, NORMAL_STEP), (0, -NORMAL_STEP), (NORMAL_STEP, 0), (-NORMAL_STEP, 0)):
+        q = depth[np.clip(r + dr, 0, h - 1), np.clip(c + dc, 0, w - 1)]
+        smooth &= np.abs(q - d[near]) < tolerance
+    turned = np.zeros(len(r), bool)
     turned[has] = np.sum(measured * n[near][has], axis=1) < np.cos(np.radians(NORMAL_DEG))
+    turned &= smooth
     agree = near.copy()
     agree[np.flatnonzero(near)[turned]] = False
     hidden_other = behind & mine
     hidden = HIDDEN_WEIGHT * float(np.sum(hidden_other))
     judged = int(round(np.sum(~behind) + hidden))
     explained = claimed
-    if view.edges is not None:
-        edges = cv2.dilate(view.edges, np.ones((5, 5), np.uint8))
+    if view.edges is not None and len(p):
+        # Colour edges widened over the outline band's inner edge (the samples' splat and
+        # half a voxel past them, as outline_continuation draws it, and two pixels): where
+        # one runs along the outline, the surface past it is another object's going on.
+        px = voxel * view.intrinsics.K[0, 0] / float(np.median(p[:, 2]))
+        r = int(round(0.75 * px)) + int(round(0.5 * px)) + 2
+        edges = cv2.dilate(view.edges, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
         explained = edges if claimed is None else np.maximum(edges, claimed)
     outline, _ = outline_continuation(T, surface, normals, depth, view.intrinsics, voxel, same_surface, up=up,
                                       explained=explained)
@@ -186,8 +203,9 @@ def claim(mask: np.ndarray, e: Explanation, radius: int) -> None:
 
 def select(candidates: list, rescore, conflicts, min_support: float, min_evidence: float, radius: int,
            margin: int, shape, deadline: float | None = None) -> list:
-    """The instances chosen jointly from ``candidates`` (Explanations with nothing claimed):
-    best gain first; after each choice the rest are scored again with its pixels claimed
+    """The instances chosen jointly from ``candidates`` (Explanations with nothing claimed;
+    those that could pass were what hides them and their outlines explained): of those that
+    pass, the best gain first; after each choice the rest are scored again with its pixels claimed
     (``rescore(e, claimed)`` -> Explanation), those that ``conflicts(e, chosen)`` (their
     volumes overlap a chosen one's: two objects cannot fill one space, which the depth
     alone cannot tell where neither is seen) or repeat its pixels (``MAX_CLAIMED``) drop
@@ -196,19 +214,25 @@ def select(candidates: list, rescore, conflicts, min_support: float, min_evidenc
     ``deadline`` (``time.process_time()``), without scoring again."""
     def passes(e):
         return e.support >= min_support and e.evidence >= min_evidence and e.agree - e.claimed >= MIN_JUDGED // 2
-    pending = [e for e in candidates if passes(e)]
+
+    def possible(e):
+        # Could pass once chosen instances explain what hides it and its outline.
+        return e.agree - e.free >= min_evidence * max(e.judged - e.hidden, 1.0)
+    pending = [e for e in candidates if possible(e)]
     claimed = np.zeros(shape, np.uint8)
     chosen: list = []
     while pending:
-        best = max(range(len(pending)), key=lambda k: pending[k].gain)
-        e = pending.pop(best)
+        ready = [k for k, e in enumerate(pending) if passes(e)]
+        if not ready:
+            break
+        e = pending.pop(max(ready, key=lambda k: pending[k].gain))
         chosen.append(e)
         claim(claimed, e, radius)
         pending = [c for c in pending if not conflicts(c, e)]
         if deadline is None or time.process_time() < deadline:
             # Only the poses whose drawing comes near the chosen one's can score otherwise.
             pending = [rescore(c, claimed) if _near(c.rect, e.rect, margin) else c for c in pending]
-        pending = [c for c in pending if passes(c) and c.claimed <= MAX_CLAIMED * max(c.agree, 1)]
+        pending = [c for c in pending if c.claimed <= MAX_CLAIMED * max(c.agree, 1)]
     return chosen
 
 

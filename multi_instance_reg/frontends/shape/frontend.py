@@ -25,7 +25,7 @@ from ...messages import CameraIntrinsics
 from ...rgbd.model import ObjectModel
 from ...threads import shared_pool, submit_each
 from ...tracking.icp import align_projective
-from .explain import Explanation, FrameView, explain, select
+from .explain import HIDDEN_WEIGHT, Explanation, FrameView, explain, select
 from ...rgbd.verify import facing_camera
 from .faces import Faces, frame_patches, matches, model_faces, nearest_face_pose, patch_poses
 from .geometry import (PointGrid, ShapeMatcher, depth_support, describe, icp_point_to_plane, is_convex, scene_cloud,
@@ -442,11 +442,15 @@ class ShapeFrontEnd:
 
     def depth_check(self, T, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> tuple[float, float, float]:
         """(support - free, support, free) of the model's surface at pose T
-        (``geometry.depth_support``, compiled: the cheap look that guides ICP), or (-1, 0, 1)
-        with fewer than ``MIN_VISIBLE`` points judged."""
+        (``geometry.depth_support``, compiled: the cheap look that guides ICP), the points
+        behind the depth counted half as ``explain`` counts those behind a surface no chosen
+        instance explains; (-1, 0, 1) with fewer than ``MIN_VISIBLE`` points judged."""
         support, free, n = depth_support(T, self._surface, self._surface_normals, depth_m, intrinsics,
                                          self.tolerance_at(T), self._self_hiding)
-        return (support - free, support, free) if n >= MIN_VISIBLE else (-1.0, 0.0, 1.0)
+        if n < MIN_VISIBLE:
+            return -1.0, 0.0, 1.0
+        judged = support + free + HIDDEN_WEIGHT * max(1.0 - support - free, 0.0)
+        return (support - free) / judged, support / judged, free / judged
 
     def explain(self, T, cloud: FrameCloud, view: FrameView, claimed: np.ndarray | None = None) -> Explanation:
         """``explain.explain`` of pose T with this model's surface, tolerance and support."""
