@@ -58,11 +58,10 @@ def test_a_true_pose_explains_its_pixels_and_a_pose_in_free_space_does_not(shape
 
 
 def test_a_pose_behind_a_nearer_surface_counts_as_hidden_and_a_chosen_instance_explains_it(shape):
-    # A board 20 cm above the box covers its left half.
-    K = _intrinsics().K
+    # A board 20 cm above the box covers its left half (a small board: no support plane).
     depth = _scene([(0.0, 0.0, TOP, 0.15, 0.1)])
-    u = np.arange(320)
-    depth[:, (u - K[0, 2]) / K[0, 0] * TOP < 0.0] = TOP - 0.2
+    board = _scene([(-0.1, 0.0, TOP - 0.2, 0.1, 0.14)])
+    depth = np.minimum(depth, board)
     e = _explain(shape, _pose(), depth)
     assert e.hidden > 0.2 * e.judged and e.agree > 0.4 * e.judged and e.free == 0
     # With the board's pixels claimed by an instance chosen before it, what it hides is explained.
@@ -125,3 +124,12 @@ def test_select_stops_when_nothing_passes_and_keeps_the_best_of_a_conflict(shape
     assert select([bad], rescore, always, 0.75, 0.8, 2, 8, depth.shape) == []
     chosen = select([bad, good], rescore, always, 0.75, 0.8, 2, 8, depth.shape)
     assert len(chosen) == 1 and chosen[0] is good
+
+
+def test_a_pose_reaching_into_the_support_it_stands_on_counts_as_free(shape):
+    # A crate 0.4 x 0.3 x 0.12 on a floor (a support plane): the box, 15 cm tall, with its top
+    # in the crate's top, reaches 3 cm into the floor, which the camera sees around the crate.
+    crate = _scene([(0.0, 0.0, FLOOR - 0.12, 0.2, 0.15)])
+    sunk = _explain(shape, _pose(x=0.05, y=0.05, top=FLOOR - 0.12), crate)
+    standing = _explain(shape, _pose(), _scene([(0.0, 0.0, TOP, 0.15, 0.1)]))
+    assert sunk.free > 0.05 * sunk.judged and standing.free == 0

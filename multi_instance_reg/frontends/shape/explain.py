@@ -15,7 +15,10 @@ object hides parts of itself), each compared with the depth measured on its pixe
 - *hidden*: a nearer measured surface. Behind pixels another chosen instance claims, it is
   explained and left out; behind anything else it counts half against (an object behind an
   unknown occluder stays possible, a pose sunk into a surface does not pass on it alone);
-- no depth (dropouts, IR shadows): left out, neither for nor against.
+- no depth (dropouts, IR shadows): left out, neither for nor against;
+- and any sample of the model, seen or not, more than a voxel (or the tolerance) below a support plane the
+  depth shows there (floor, pallet, table): inside it, counted as free (two cartons sunk 3
+  cm into a pallet fit a crate's top).
 
 And the outline: the share of a band just outside the drawn model where the nearest model
 face continues in the depth (``verify.outline_continuation``): a piece of a larger surface
@@ -60,6 +63,9 @@ MAX_CLAIMED = 0.5
 # Canny's thresholds on the blurred grey image: low enough for the seam between two cartons
 # of slightly different shades (12 grey levels).
 EDGE_LOW, EDGE_HIGH = 15, 40
+# A sample more than this many voxels (or the depth tolerance, if larger) below a support
+# plane the depth shows is inside it.
+SUNK_VOXELS = 1.0
 
 
 @dataclass
@@ -139,12 +145,13 @@ def visible_samples(T: np.ndarray, surface: np.ndarray, normals: np.ndarray, int
 
 def explain(T: np.ndarray, surface: np.ndarray, normals: np.ndarray, view: FrameView, tolerance: float,
             voxel: float, same_surface: float, claimed: np.ndarray | None = None,
-            up: np.ndarray | None = None) -> Explanation:
+            up: np.ndarray | None = None, planes=()) -> Explanation:
     """How well pose T explains the frame (module docstring). ``surface``, ``normals``: the
     model's samples (model frame, outward); ``tolerance``: metres, agreement in depth at
     the pose's distance; ``same_surface``: metres, "the same surface" for the outline (the
     depth noise); ``claimed``: (H, W) uint8, pixels chosen instances explain (or None);
-    ``up``: the support's normal (what lies below the object does not continue it)."""
+    ``up``: the support's normal (what lies below the object does not continue it);
+    ``planes``: the frame's support planes ((normal towards the camera, offset) each)."""
     depth = view.depth
     p, n, rows, cols = visible_samples(T, surface, normals, view.intrinsics, depth.shape, 0.5 * voxel)
     d = depth[rows, cols].astype(np.float64)
@@ -171,7 +178,8 @@ def explain(T: np.ndarray, surface: np.ndarray, normals: np.ndarray, view: Frame
     agree[np.flatnonzero(near)[turned]] = False
     hidden_other = behind & mine
     hidden = HIDDEN_WEIGHT * float(np.sum(hidden_other))
-    judged = int(round(np.sum(~behind) + hidden))
+    sunk = sunk_samples(T, surface, view, tolerance, voxel, planes)
+    judged = int(round(np.sum(~behind) + hidden)) + sunk
     explained = claimed
     if view.edges is not None and len(p):
         # Colour edges widened over the outline band's inner edge (the samples' splat and
@@ -186,7 +194,38 @@ def explain(T: np.ndarray, surface: np.ndarray, normals: np.ndarray, view: Frame
     pix = rows[agree] * depth.shape[1] + cols[agree]
     taken = 0 if claimed is None else int(np.sum(~mine & agree))
     rect = (int(rows.min()), int(rows.max()), int(cols.min()), int(cols.max())) if len(rows) else (0, -1, 0, -1)
-    return Explanation(T, int(agree.sum()), int(free.sum()), hidden, judged, float(outline), pix, rect, taken)
+    return Explanation(T, int(agree.sum()), int(free.sum()) + sunk, hidden, judged, float(outline), pix, rect, taken)
+
+
+def sunk_samples(T: np.ndarray, surface: np.ndarray, view: FrameView, tolerance: float, voxel: float,
+                 planes) -> int:
+    """How many of the model's samples at pose T, seen or not, lie more than ``SUNK_VOXELS``
+    (or ``tolerance``) below one of the support ``planes`` where the depth shows that plane (or something on it)
+    on their pixel: inside the support. The camera sees little of what is sunk (a carton's
+    sides at a grazing angle), so the volume is asked, as two instances' volumes are."""
+    if not planes:
+        return 0
+    p = surface @ T[:3, :3].T + T[:3, 3]
+    deep = max(SUNK_VOXELS * voxel, tolerance)
+    out = np.zeros(len(p), bool)
+    for n_up, offset in planes:
+        out |= p @ n_up + offset < -deep
+    if not out.any():
+        return 0
+    q = p[out]
+    K = view.intrinsics.K
+    h, w = view.depth.shape
+    z = np.maximum(q[:, 2], 1e-6)
+    u = np.round(K[0, 0] * q[:, 0] / z + K[0, 2]).astype(np.int64)
+    v = np.round(K[1, 1] * q[:, 1] / z + K[1, 2]).astype(np.int64)
+    inside = (q[:, 2] > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    q, d = q[inside], view.depth[v[inside], u[inside]].astype(np.float64)
+    count = np.zeros(len(q), bool)
+    for n_up, offset in planes:
+        below = q @ n_up + offset < -deep
+        seen = (d > 0) & ((q @ n_up) * (d / q[:, 2]) + offset >= -tolerance)    # measured on or above it
+        count |= below & seen
+    return int(count.sum())
 
 
 def claim(mask: np.ndarray, e: Explanation, radius: int) -> None:

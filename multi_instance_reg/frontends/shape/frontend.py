@@ -36,6 +36,10 @@ from .segments import connected_segments, segments_within_reach, support_mask
 
 # ICP pairs a model point with a scene point at most this many voxels away.
 ICP_REACH = 2.0
+# A refined pose with more than this share of its points in space seen empty is aligned again
+# by projective ICP, for this many rounds.
+OVERHANG = 0.02
+PROJECTIVE_ROUNDS = 30
 # Points closer than this many voxels are in one segment.
 SEGMENT_LINK = 2.0
 # An instance needs at least this many model points seen on valid depth (explain.MIN_JUDGED
@@ -437,8 +441,15 @@ class ShapeFrontEnd:
             return None
         T = self._icp(best[3], cloud, depth_m, intrinsics, 1.5 * self.voxel, fe.shape_icp_iterations - first)
         # ICP can slide a box seen by one face alone: whichever pose the depth supports better.
-        T = max([best, fit(T) + (T,)], key=lambda c: c[0])[3]
-        return self.explain(T, cloud, view)
+        best = max([best, fit(T) + (T,)], key=lambda c: c[0])
+        if best[2] > OVERHANG:
+            # Overhanging space seen empty: nearest-point ICP paired points across a
+            # non-convex object's parts (or onto a neighbour). Projective ICP pairs each
+            # model point with the depth on its ray instead.
+            T = align_projective(best[3], self._surface, self._surface_normals, depth_m, intrinsics,
+                                 PROJECTIVE_ROUNDS, 1.5 * self.voxel, 0.75 * self.voxel).T
+            best = max([best, fit(T) + (T,)], key=lambda c: c[0])
+        return self.explain(best[3], cloud, view)
 
     def depth_check(self, T, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> tuple[float, float, float]:
         """(support - free, support, free) of the model's surface at pose T
@@ -455,7 +466,7 @@ class ShapeFrontEnd:
     def explain(self, T, cloud: FrameCloud, view: FrameView, claimed: np.ndarray | None = None) -> Explanation:
         """``explain.explain`` of pose T with this model's surface, tolerance and support."""
         return explain(T, self._surface, self._surface_normals, view, self.tolerance_at(T), self.voxel,
-                       self._same_surface(T), claimed, up=cloud.up)
+                       self._same_surface(T), claimed, up=cloud.up, planes=cloud.planes)
 
     def choose(self, candidates: list[Explanation], cloud: FrameCloud, view: FrameView, conflicts) -> list[Explanation]:
         """The instances among the refined ``candidates``, chosen jointly (``explain.select``);
