@@ -11,6 +11,7 @@ object hides parts of itself), each compared with the depth measured on its pixe
 - *agree*: within the tolerance (3 sigma of the depth noise at its distance, sigma = k z^2,
   with a floor) and the measured normal within ``NORMAL_DEG`` of the model's (where the
   depth around the pixel gives one: a dropout or a flying pixel leaves it out, not against);
+  weighted 1 within the noise itself, down to nothing at the tolerance;
 - *free*: the measurement lies farther: the camera saw through where the model would stand;
 - *hidden*: a nearer measured surface. Behind pixels another chosen instance claims, it is
   explained and left out; behind anything else it counts half against (an object behind an
@@ -99,14 +100,14 @@ class FrameView:
 class Explanation:
     """One pose's account of the frame."""
     T: np.ndarray
-    agree: int              # samples the depth confirms (and their normals)
+    agree: float            # samples the depth confirms (and their normals), weighted by how closely
     free: int               # samples in space the camera saw through
     hidden: float           # samples behind a nearer surface no chosen instance explains (weighted)
     judged: int             # agree + free + hidden + those off in depth or normal
     outline: float          # share of the outline band where the surface goes on
     pixels: np.ndarray      # flat pixel indices of the agreeing samples (what it claims)
     rect: tuple             # image rows and columns its judged samples span (top, bottom, left, right)
-    claimed: int = 0        # of its agreeing samples, those on pixels already claimed
+    claimed: float = 0.0    # of its agreeing samples (weighted), those on pixels already claimed
 
     @property
     def support(self) -> float:
@@ -203,9 +204,15 @@ def explain(T: np.ndarray, surface: np.ndarray, normals: np.ndarray, view: Frame
     outline, _ = outline_continuation(T, surface, normals, depth, view.intrinsics, voxel, same_surface, up=up,
                                       explained=explained)
     pix = rows[agree] * depth.shape[1] + cols[agree]
-    taken = 0 if claimed is None else int(np.sum(~mine & agree))
+    # Each agreeing sample counts 1 within the depth noise (same_surface), less towards the
+    # tolerance (nothing at it): the tolerance's floor is many sigma near the camera, and a shape
+    # that only passes near the surface (a cylinder lying in a wider one's place: 87 % within
+    # 8 mm) is not the surface.
+    weight = np.clip((tolerance - np.abs(diff)) / max(tolerance - same_surface, 1e-9), 0.0, 1.0)
+    taken = 0.0 if claimed is None else float(np.sum(weight[~mine & agree]))
     rect = (int(rows.min()), int(rows.max()), int(cols.min()), int(cols.max())) if len(rows) else (0, -1, 0, -1)
-    return Explanation(T, int(agree.sum()), int(free.sum()) + sunk, hidden, judged, float(outline), pix, rect, taken)
+    return Explanation(T, float(np.sum(weight[agree])), int(free.sum()) + sunk, hidden, judged, float(outline), pix, rect,
+                       taken)
 
 
 def sunk_samples(T: np.ndarray, surface: np.ndarray, view: FrameView, tolerance: float, voxel: float,
