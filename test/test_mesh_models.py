@@ -148,7 +148,7 @@ def test_symmetries_read_from_models_info(tmp_path):
 
 def test_build_model_takes_symmetries_from_models_info(tmp_path):
     from multi_instance_reg.meshes import box_mesh, save_mesh
-    from multi_instance_reg.rgbd.model import load_model
+    from multi_instance_reg.models.model import load_model
 
     mesh = save_mesh(box_mesh(0.06, 0.04, 0.03), tmp_path / "obj_000003.ply", "mm")
     models_info(tmp_path, {3: {"symmetries_continuous": [{"axis": [0, 1, 0], "offset": [0, 0, 5]}]}})
@@ -253,7 +253,7 @@ def depth_on_face(T, K, u, v, normal, offset):
 
 
 def test_rendered_two_coloured_box_has_its_colours_where_expected(tmp_path):
-    from multi_instance_reg.mesh_render import BACKGROUND_RGB, look_at, render_mesh
+    from multi_instance_reg.models.mesh_render import BACKGROUND_RGB, look_at, render_mesh
 
     path = tmp_path / "box.ply"
     write_two_coloured_box(path)
@@ -280,7 +280,7 @@ def test_rendered_two_coloured_box_has_its_colours_where_expected(tmp_path):
 
 @pytest.mark.parametrize("per_corner", [False, True])
 def test_textured_box_read_and_rendered(tmp_path, per_corner):
-    from multi_instance_reg.mesh_render import look_at, render_mesh
+    from multi_instance_reg.models.mesh_render import look_at, render_mesh
 
     texture = np.zeros((64, 96, 3), np.uint8)
     cells = [(255, 0, 0), (0, 255, 0), (0, 0, 255), (255, 255, 0), (0, 255, 255), (255, 0, 255)]
@@ -319,11 +319,11 @@ def box_surface_distance(p, size=BOX):
 
 
 def test_keypoints_of_a_textured_mesh_sit_at_their_3d_places(tmp_path):
-    from multi_instance_reg.mesh_render import look_at, render_mesh
-    from multi_instance_reg.rgbd.features import extract_sift
-    from multi_instance_reg.rgbd.matching import DescriptorMatcher, prepare_descriptors
-    from multi_instance_reg.rgbd.mesh_model import add_rendered_keypoints, build_model_from_mesh, view_directions
-    from multi_instance_reg.rgbd.model import BuildSettings
+    from multi_instance_reg.models.mesh_render import look_at, render_mesh
+    from multi_instance_reg.frontends.sift.features import extract_sift
+    from multi_instance_reg.frontends.sift.matching import DescriptorMatcher, prepare_descriptors
+    from multi_instance_reg.models.mesh_model import add_rendered_keypoints, build_model_from_mesh, view_directions
+    from multi_instance_reg.models.model import BuildSettings
 
     write_textured_box(tmp_path / "box.ply", photo_texture(), per_corner=False)
     mesh = load_mesh(tmp_path / "box.ply")
@@ -353,7 +353,7 @@ def test_keypoints_of_a_textured_mesh_sit_at_their_3d_places(tmp_path):
 
 
 def test_build_model_from_coloured_mesh_takes_the_sift_path(tmp_path):
-    from multi_instance_reg.rgbd.model import load_model
+    from multi_instance_reg.models.model import load_model
     from multi_instance_reg.frontends.shape.frontend import resolve_correspondences
 
     write_textured_box(tmp_path / "box.ply", photo_texture(), per_corner=True)
@@ -384,8 +384,8 @@ def test_a_plain_coloured_mesh_gets_no_keypoints_from_its_outline():
     # One colour all over: its renders have nothing but the outline, which a real scene does
     # not show against the same background; the model stays shape only.
     from multi_instance_reg.meshes import cylinder_mesh
-    from multi_instance_reg.rgbd.mesh_model import add_rendered_keypoints, build_model_from_mesh
-    from multi_instance_reg.rgbd.model import BuildSettings
+    from multi_instance_reg.models.mesh_model import add_rendered_keypoints, build_model_from_mesh
+    from multi_instance_reg.models.model import BuildSettings
 
     mesh = cylinder_mesh(0.08, 0.12)
     mesh.vertex_colours = np.full((len(mesh.vertices), 3), 200, np.uint8)
@@ -408,27 +408,36 @@ def test_coloured_meshes_written_and_read_back(tmp_path):
     assert np.array_equal(back.texture, box.texture) and np.allclose(back.corner_uv, box.corner_uv, atol=1e-7)
 
 
-def test_mesh_render_agrees_with_the_synthetic_renderer():
-    # The snack box as a textured mesh (its face pictures in one atlas) and as the synthetic
-    # scenes draw it (textured quads): the same depth and outline, the same picture but for
-    # the synthetic renderer's lighting.
+@pytest.mark.parametrize("name", ["snack_box", "can"])
+def test_mesh_render_agrees_with_the_synthetic_renderer(name):
+    # The object as a textured mesh (its pictures in one atlas) and as the synthetic scenes
+    # draw it (textured quads; a cylinder's side by ray casting): the same depth and outline,
+    # the same picture but for the synthetic renderer's lighting. The can's mesh is a 64-gon
+    # prism, so its outline and depth agree to within the polygon's sagitta (0.04 mm).
     import cv2
 
-    from multi_instance_reg.mesh_render import look_at, render_mesh
+    from multi_instance_reg.models.mesh_render import look_at, render_mesh
     from multi_instance_reg.synthetic.objects import get_object, textured_object_mesh
     from multi_instance_reg.synthetic.render import Renderer
     from multi_instance_reg.synthetic.scene import Placement, object_primitives
 
-    spec = get_object("snack_box")
+    spec = get_object(name)
     mesh = textured_object_mesh(spec)
+    assert mesh.has_colour
     intr = camera(640, 480, 550.0)
     for direction in ([0.5, -0.8, 0.9], [-0.7, 0.3, -0.6]):
         T = look_at(np.zeros(3), direction, 0.5)
         ours = render_mesh(mesh, T, intr)
         theirs = Renderer(intr.K, 640, 480).render(object_primitives(Placement(spec, np.eye(4), 0)), T)
         seen = np.isfinite(theirs.depth_m)
-        assert np.array_equal(ours.mask, seen) and seen.sum() > 10000
-        assert np.abs(ours.depth_m[seen] - theirs.depth_m[seen]).max() < 1e-5
+        both = ours.mask & seen
+        assert (ours.mask ^ seen).sum() <= (0 if name == "snack_box" else 0.01 * seen.sum()) and seen.sum() > 5000
+        gap = np.abs(ours.depth_m[both] - theirs.depth_m[both])
+        # (the can at grazing rims excepted)
+        assert gap.max() < 1e-5 if name == "snack_box" else np.percentile(gap, 99) < 1e-3
+        seen = both
         grey = [cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)[seen].astype(float) for img in
                 (ours.rgb, np.clip(theirs.radiance * 255, 0, 255).astype(np.uint8))]
-        assert np.corrcoef(*grey)[0, 1] > 0.85
+        # The can's side is lit by a cosine the mesh renderer leaves out: 0.80-0.88 against
+        # 0.06 / -0.54 for the same mesh with its picture mirrored.
+        assert np.corrcoef(*grey)[0, 1] > (0.85 if name == "snack_box" else 0.7)

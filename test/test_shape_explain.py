@@ -8,7 +8,7 @@ from multi_instance_reg.frontends.shape.explain import FrameView, claim, select
 from multi_instance_reg.frontends.shape.frontend import ShapeFrontEnd
 from multi_instance_reg.meshes import box_mesh
 from multi_instance_reg.messages import CameraIntrinsics
-from multi_instance_reg.rgbd.mesh_model import build_model_from_mesh
+from multi_instance_reg.models.mesh_model import build_model_from_mesh
 from multi_instance_reg.rgbd.pipeline import FrontEndConfig
 from multi_instance_reg.transforms import make_transform
 

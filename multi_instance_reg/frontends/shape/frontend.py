@@ -22,7 +22,7 @@ from scipy.spatial import cKDTree
 from ...core import ECCConfig
 from ...errors import InputError
 from ...messages import CameraIntrinsics
-from ...rgbd.model import ObjectModel
+from ...models.model import ObjectModel
 from ...threads import shared_pool, submit_each
 from ...tracking.icp import align_projective
 from .explain import HIDDEN_WEIGHT, Explanation, FrameView, explain, select

@@ -19,9 +19,9 @@ import cv2
 import numba
 import numpy as np
 
-from .errors import InputError
-from .messages import CameraIntrinsics
-from .meshes import TriangleMesh
+from ..errors import InputError
+from ..messages import CameraIntrinsics
+from ..meshes import TriangleMesh
 
 NEAR_M = 0.01
 BACKGROUND_RGB = (128, 128, 128)
