@@ -39,6 +39,10 @@ from .workspace import Workspace, WorkspaceConfig
 from ..threads import limit_blas_threads, submit_each
 
 STAGES = ("sift", "matching", "lifting", "ecc", "refinement", "total")
+# The share of frontend.shape_deadline_ms the shape path's refinement may take; the joint
+# choice has the rest (past the whole, it chooses on the scores it has: bracket seed 5 lost
+# neighbours whose outlines a chosen instance explains, not scored again).
+REFINE_SHARE = 0.8
 
 
 @dataclass(frozen=True)
@@ -505,12 +509,18 @@ class InstanceRegistration:
         offset = len(hypotheses) - (0 if cloud.poses is None else len(cloud.poses))
         t6 = time.perf_counter()
         t["ecc"] = (t6 - t5) * 1e3
-        # The search's budget: from here, where the hypotheses are taken up best first.
-        self._shape.set_deadline(time.process_time() + fe.shape_deadline_ms / 1e3 if fe.shape_deadline_ms > 0 else None)
+        # The search's budget: from here, where the hypotheses are taken up best first; the
+        # refinement stops at REFINE_SHARE of it, the joint choice (scoring the neighbours of
+        # each instance chosen again) has the rest.
+        budget = fe.shape_deadline_ms / 1e3 if fe.shape_deadline_ms > 0 else None
+        start = time.process_time()
+        self._shape.set_deadline(start + REFINE_SHARE * budget if budget else None)
         candidates = self._shape.refine_all(hypotheses, cloud, view, started, offset)
+        cut = self._shape.deadline_cut
+        self._shape.set_deadline(start + budget if budget else None)
         chosen = self._shape.choose(candidates, cloud, view,
                                     lambda e, c: bool(self._overlapping([e.T], [c.T])[0, 0]))
-        cut = self._shape.deadline_cut
+        cut = cut or self._shape.deadline_cut
         self._shape.set_deadline(None)
         instances = [Instance(i, e.T, int(round(e.agree)), e.support, self.model.name) for i, e in enumerate(chosen)]
         labels, _ = assign_nearest(src, tgt, [e.T for e in chosen], self._shape_ecc.config.inlier_thresh)

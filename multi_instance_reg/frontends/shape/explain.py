@@ -37,8 +37,7 @@ a chosen instance no longer counts against it.
 """
 from __future__ import annotations
 
-import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -84,6 +83,16 @@ class FrameView:
     depth: np.ndarray
     intrinsics: CameraIntrinsics
     edges: np.ndarray | None = None
+    widened: dict = field(default_factory=dict)     # edges_within's images by radius
+
+    def edges_within(self, r: int) -> np.ndarray:
+        """(H, W) uint8: the pixels within r of a colour edge (made once a frame per radius:
+        a full-image dilation a pose cost as much as the rest of its explanation)."""
+        out = self.widened.get(r)
+        if out is None:
+            out = cv2.dilate(self.edges, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
+            self.widened[r] = out
+        return out
 
     @staticmethod
     def of(depth_m: np.ndarray, intrinsics: CameraIntrinsics, rgb: np.ndarray | None = None) -> "FrameView":
@@ -196,7 +205,7 @@ def explain(T: np.ndarray, surface: np.ndarray, normals: np.ndarray, view: Frame
         # one runs along the outline, the surface past it is another object's going on.
         px = voxel * view.intrinsics.K[0, 0] / float(np.median(p[:, 2]))
         r = int(round(0.75 * px)) + int(round(0.5 * px)) + 2
-        edges = cv2.dilate(view.edges, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
+        edges = view.edges_within(r)
         # Only where the object's own face is mostly plain: on texture (a brick wall, a print)
         # edges lie everywhere, along any outline by chance.
         if np.mean(edges[rows, cols] > 0) <= MAX_TEXTURE:
@@ -259,7 +268,7 @@ def claim(mask: np.ndarray, e: Explanation, radius: int) -> None:
 
 
 def select(candidates: list, rescore, conflicts, min_support: float, min_evidence: float, radius: int,
-           margin: int, shape, deadline: float | None = None) -> list:
+           margin: int, shape, late=lambda: False) -> list:
     """The instances chosen jointly from ``candidates`` (Explanations with nothing claimed;
     those that could pass were what hides them and their outlines explained): of those that
     pass, the best gain first; after each choice the rest are scored again with its pixels claimed
@@ -267,8 +276,8 @@ def select(candidates: list, rescore, conflicts, min_support: float, min_evidenc
     volumes overlap a chosen one's: two objects cannot fill one space, which the depth
     alone cannot tell where neither is seen) or repeat its pixels (``MAX_CLAIMED``) drop
     out; only those whose drawings come within ``margin`` pixels of the chosen one's are
-    scored again. Stops when no pose passes ``min_support`` and ``min_evidence``, or, past
-    ``deadline`` (``time.process_time()``), without scoring again."""
+    scored again. Stops when no pose passes ``min_support`` and ``min_evidence``; once
+    ``late()`` (the frame's deadline), without scoring again."""
     def passes(e):
         return e.support >= min_support and e.evidence >= min_evidence and e.agree - e.claimed >= MIN_JUDGED // 2
 
@@ -286,7 +295,7 @@ def select(candidates: list, rescore, conflicts, min_support: float, min_evidenc
         chosen.append(e)
         claim(claimed, e, radius)
         pending = [c for c in pending if not conflicts(c, e)]
-        if deadline is None or time.process_time() < deadline:
+        if not late():
             # Only the poses whose drawing comes near the chosen one's can score otherwise.
             pending = [rescore(c, claimed) if _near(c.rect, e.rect, margin) else c for c in pending]
         pending = [c for c in pending if c.claimed <= MAX_CLAIMED * max(c.agree, 1)]

@@ -25,7 +25,7 @@ from ...messages import CameraIntrinsics
 from ...models.model import ObjectModel
 from ...threads import shared_pool, submit_each
 from ...tracking.icp import align_projective
-from .explain import HIDDEN_WEIGHT, Explanation, FrameView, explain, select
+from .explain import FREE_WEIGHT, HIDDEN_WEIGHT, Explanation, FrameView, explain, select
 from ...rgbd.verify import facing_camera
 from .faces import Faces, frame_patches, matches, model_faces, nearest_face_pose, patch_poses
 from .geometry import (PointGrid, ShapeMatcher, depth_support, describe, icp_point_to_plane, is_convex, scene_cloud,
@@ -449,7 +449,12 @@ class ShapeFrontEnd:
             T = align_projective(best[3], self._surface, self._surface_normals, depth_m, intrinsics,
                                  PROJECTIVE_ROUNDS, 1.5 * self.voxel, 0.75 * self.voxel).T
             best = max([best, fit(T) + (T,)], key=lambda c: c[0])
-        return self.explain(best[3], cloud, view)
+        _, support, free, T = best
+        if support - FREE_WEIGHT * free < 0.9 * fe.shape_min_evidence * (support + free):
+            # Not even were everything that hides it explained (``explain.select``'s
+            # ``possible``, by the cheap check): not worth its explanation.
+            return None
+        return self.explain(T, cloud, view)
 
     def depth_check(self, T, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> tuple[float, float, float]:
         """(support - free, support, free) of the model's surface at pose T
@@ -476,7 +481,7 @@ class ShapeFrontEnd:
         px = K[0, 0] * self.voxel / max(z, 1e-3)        # a voxel in pixels at the candidates' distance
         return select(candidates, lambda e, claimed: self.explain(e.T, cloud, view, claimed), conflicts,
                       self.fe.shape_min_support, self.fe.shape_min_evidence, max(1, int(round(0.75 * px))),
-                      int(np.ceil(2.0 * px)), view.depth.shape, self._deadline)
+                      int(np.ceil(2.0 * px)), view.depth.shape, self.past_deadline)
 
     def _same_surface(self, T) -> float:
         """Metres: depth differences within the noise (3 sigma) at pose T's distance, at least
