@@ -20,7 +20,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..messages import CameraIntrinsics
-from ..rgbd.shape import apply_twist, normals_and_variation
+from ..frontends.shape.geometry import apply_twist, normals_and_variation
 
 # The tracker's distances (icp_max_distance, icp_inlier_distance) hold up to this depth and grow
 # with its square beyond: the depth noise of a stereo or structured-light camera does (NOTES:
