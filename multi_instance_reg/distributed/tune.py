@@ -176,11 +176,11 @@ def choose(trials: list[dict], max_cpu_ms: float | None) -> dict | None:
 def draw_front(trials: list[dict], defaults: dict | None, best: dict | None, objective: str,
                max_cpu_ms: float | None, width: int = 760, height: int = 480) -> np.ndarray:
     """BGR scatter of the trials, CPU ms per image (x) against accuracy (y): every trial grey,
-    the Pareto front joined in blue, the defaults a red square, the chosen trial green."""
+    the Pareto front joined in blue, the base settings a red square, the chosen trial green."""
     import cv2
 
     img = np.full((height, width, 3), 255, np.uint8)
-    left, right, top, bottom = 70, 20, 40, 50
+    left, right, top, bottom = 70, 20, 60, 50
     xs = np.array([t["cpu_ms"] for t in trials], float)
     ys = np.array([t["accuracy"] for t in trials], float)
     x0, x1 = float(xs.min()), float(xs.max())
@@ -221,16 +221,18 @@ def draw_front(trials: list[dict], defaults: dict | None, best: dict | None, obj
     if best is not None:
         cv2.circle(img, xy(best["cpu_ms"], best["accuracy"]), 9, (0, 170, 0), 2, cv2.LINE_AA)
     for k, (label, colour) in enumerate((("trial", (170, 170, 170)), ("Pareto front", (200, 120, 30)),
-                                         ("defaults", (0, 0, 220)), ("chosen", (0, 170, 0)))):
-        x = width - right - 440 + 110 * k
-        cv2.circle(img, (x, 20), 5, colour, -1 if k < 2 else 2, cv2.LINE_AA)
-        cv2.putText(img, label, (x + 10, 25), font, 0.45, black, 1, cv2.LINE_AA)
+                                         ("base settings", (0, 0, 220)), ("chosen", (0, 170, 0)))):
+        x = left + 10 + 130 * k
+        cv2.circle(img, (x, 42), 5, colour, -1 if k < 2 else 2, cv2.LINE_AA)
+        cv2.putText(img, label, (x + 10, 47), font, 0.45, black, 1, cv2.LINE_AA)
     return img
 
 
 def importances(study, names: list[str]) -> dict[str, float]:
-    """Each parameter's share of the accuracy's variation over the trials (Optuna's PED-ANOVA,
-    which needs no extra package); empty when there are too few trials to tell."""
+    """Each parameter's share of the accuracy's variation over the trials (Optuna's PED-ANOVA
+    for high accuracy, which needs no extra package); empty when there are too few trials to tell."""
+    import warnings
+
     import optuna
 
     complete = [t for t in study.get_trials(deepcopy=False) if t.state == optuna.trial.TrialState.COMPLETE]
@@ -238,8 +240,10 @@ def importances(study, names: list[str]) -> dict[str, float]:
         return {}
     try:
         evaluator = optuna.importance.PedAnovaImportanceEvaluator()
-        out = optuna.importance.get_param_importances(study, evaluator=evaluator, target=lambda t: t.values[0],
-                                                      params=names)
+        with warnings.catch_warnings():     # it warns that it ranks for low targets: the target is negated
+            warnings.simplefilter("ignore")
+            out = optuna.importance.get_param_importances(study, evaluator=evaluator, target=lambda t: -t.values[0],
+                                                          params=names)
     except (ValueError, RuntimeError):
         return {}
     return {k: float(v) for k, v in out.items()}
