@@ -3,6 +3,7 @@
     mireg bop run DATASET -o OUT [--split test] [--model ID=MODEL.npz ...] [--objects 1,2]
                   [--scenes 1,2] [--images 0,5] [--all-images] [--tracking | --no-tracking]
                   [--params FILE.yaml] [--overlays N] [--method NAME] [--csv FILE]
+                  [--ray | --workers N | --address ADDR] [--retries N]
     mireg bop model DATASET --obj ID -o MODEL.npz
     mireg bop to-bag DATASET --scene ID -o BAG [--split test] [--images 0,5] [--rate 30] [--storage sqlite3|mcap]
     mireg bop score RESULTS.csv --dataset DATASET [--split test] [-o SCORES.json]   (tools/bop_score.py)
@@ -19,6 +20,8 @@ symmetries ``models_info.json`` lists (kept in ``OUT/models/``). Which objects: 
 else the targets' (``test_targets_bop19.json``), else the ground truth's, else all in
 ``models_info.json``. Images are solved alone (BOP images are not a video) unless
 ``--tracking``, which runs each scene's images in id order through the tracker.
+``--ray`` / ``--workers`` / ``--address``: the images (scenes with --tracking) as tasks on Ray
+workers, each finished one in ``OUT/parts/`` so that a rerun skips it (docs/scale_out.md).
 
 ``model`` builds one object's model file from the dataset's mesh (the same code path).
 ``to-bag`` writes one scene as a realsense-ros rosbag2 (topics as ``datasets/rgbd_bag.py``
@@ -337,6 +340,7 @@ def run_run(args) -> int:
     todo = [t for t in tasks if task_key(t) not in results]
     worker_args = (str(ds.root), ds.split, models, obj_ids, config, tracker_config, pairs[:max(args.overlays, 0)])
     bar = Progress(len(tasks), not args.quiet, unit="scenes" if args.tracking else "images")
+    workers, t_run = 0, time.perf_counter()
     try:
         if use_ray:
             workers = connect(args.address, args.workers)
@@ -349,6 +353,7 @@ def run_run(args) -> int:
             failures = run_serial(BopImageSolver, worker_args, todo, describe_bop_task, on_result, bar)
     finally:
         bar.close()
+    run_seconds = time.perf_counter() - t_run
     images, estimates, skipped = [], [], SkipCounter()
     for task in tasks:
         result = results.get(task_key(task))
@@ -372,6 +377,9 @@ def run_run(args) -> int:
                "models": [m.name for m in models], "tracking": bool(args.tracking), "images": images,
                "skipped": skipped.count, "skip_reasons": skipped.reasons,
                "failed_tasks": [f.as_json() for f in failures],
+               # How this run went: Ray workers (0: serial), the tasks it ran and their wall-clock seconds.
+               "run": {"workers": workers if use_ray else 0, "tasks_run": len(todo), "tasks_done_before": len(tasks) - len(todo),
+                       "wall_seconds": round(run_seconds, 3)},
                "deadline_cut_images": sum(e["deadline_cut"] for e in images),
                "seconds_per_image": {"mean": float(secs.mean()), "p50": float(np.median(secs)), "max": float(secs.max())},
                "cpu_seconds_per_image": {"mean": float(cpu.mean()), "p50": float(np.median(cpu)), "max": float(cpu.max())}}

@@ -1,6 +1,10 @@
 """``mireg offline``: replay a recorded bag through the per-frame pipeline, without ROS.
 
-    mireg offline BAG --model MODEL.npz [--model MODEL2.npz ...] -o OUTDIR [--params FILE.yaml] [--topics COLOUR DEPTH INFO]
+    mireg offline BAG [BAG2 ... | FOLDER] --model MODEL.npz [--model MODEL2.npz ...] -o OUTDIR [--params FILE.yaml]
+                  [--topics COLOUR DEPTH INFO] [--ray | --workers N | --address ADDR]
+
+Several bags (or a folder of bags) write each bag's files into OUTDIR/<bag name>/ and a list
+in OUTDIR/summary.json; with Ray each bag is a task on a worker (docs/scale_out.md).
 
 Writes OUTDIR/poses.json (the public contract below). When the bag carries ground truth it
 also writes OUTDIR/metrics.json, overlay_*.png (each instance's box with its id) and
