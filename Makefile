@@ -60,6 +60,7 @@ bench: install
 	$(VENV)/bin/mireg bench frames --untextured all --scenes 4 --frames 3 --seed 5
 	$(VENV)/bin/mireg bench tracking
 	$(VENV)/bin/mireg bench tracking --seed 1000
+	$(VENV)/bin/mireg bench bop
 	$(VENV)/bin/mireg bench node
 
 clean:

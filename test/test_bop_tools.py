@@ -67,6 +67,10 @@ def test_synthetic_scene_as_bop_reads_back_as_its_bag(mixed_scene):
         np.testing.assert_allclose(info.size_mm, np.array(dims) * 1000, atol=1e-3)
         assert info.symmetries() is None
         assert ds.model_path(info.obj_id).is_file()
+        # ... with the pictures the scene shows on it, so a model built from it has keypoints.
+        from multi_instance_reg.meshes import load_mesh
+
+        assert load_mesh(ds.model_path(info.obj_id), "mm").has_colour
 
 
 def test_to_bag_gives_the_bop_frames_and_names_the_objects(mixed_scene, tmp_path):

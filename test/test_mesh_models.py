@@ -408,10 +408,12 @@ def test_coloured_meshes_written_and_read_back(tmp_path):
     assert np.array_equal(back.texture, box.texture) and np.allclose(back.corner_uv, box.corner_uv, atol=1e-7)
 
 
-def test_mesh_render_agrees_with_the_synthetic_renderer():
-    # The snack box as a textured mesh (its face pictures in one atlas) and as the synthetic
-    # scenes draw it (textured quads): the same depth and outline, the same picture but for
-    # the synthetic renderer's lighting.
+@pytest.mark.parametrize("name", ["snack_box", "can"])
+def test_mesh_render_agrees_with_the_synthetic_renderer(name):
+    # The object as a textured mesh (its pictures in one atlas) and as the synthetic scenes
+    # draw it (textured quads; a cylinder's side by ray casting): the same depth and outline,
+    # the same picture but for the synthetic renderer's lighting. The can's mesh is a 64-gon
+    # prism, so its outline and depth agree to within the polygon's sagitta (0.04 mm).
     import cv2
 
     from multi_instance_reg.mesh_render import look_at, render_mesh
@@ -419,16 +421,23 @@ def test_mesh_render_agrees_with_the_synthetic_renderer():
     from multi_instance_reg.synthetic.render import Renderer
     from multi_instance_reg.synthetic.scene import Placement, object_primitives
 
-    spec = get_object("snack_box")
+    spec = get_object(name)
     mesh = textured_object_mesh(spec)
+    assert mesh.has_colour
     intr = camera(640, 480, 550.0)
     for direction in ([0.5, -0.8, 0.9], [-0.7, 0.3, -0.6]):
         T = look_at(np.zeros(3), direction, 0.5)
         ours = render_mesh(mesh, T, intr)
         theirs = Renderer(intr.K, 640, 480).render(object_primitives(Placement(spec, np.eye(4), 0)), T)
         seen = np.isfinite(theirs.depth_m)
-        assert np.array_equal(ours.mask, seen) and seen.sum() > 10000
-        assert np.abs(ours.depth_m[seen] - theirs.depth_m[seen]).max() < 1e-5
+        both = ours.mask & seen
+        assert (ours.mask ^ seen).sum() <= (0 if name == "snack_box" else 0.01 * seen.sum()) and seen.sum() > 5000
+        gap = np.abs(ours.depth_m[both] - theirs.depth_m[both])
+        # (the can at grazing rims excepted)
+        assert gap.max() < 1e-5 if name == "snack_box" else np.percentile(gap, 99) < 1e-3
+        seen = both
         grey = [cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)[seen].astype(float) for img in
                 (ours.rgb, np.clip(theirs.radiance * 255, 0, 255).astype(np.uint8))]
-        assert np.corrcoef(*grey)[0, 1] > 0.85
+        # The can's side is lit by a cosine the mesh renderer leaves out: 0.80-0.88 against
+        # 0.06 / -0.54 for the same mesh with its picture mirrored.
+        assert np.corrcoef(*grey)[0, 1] > (0.85 if name == "snack_box" else 0.7)

@@ -2,7 +2,9 @@
 
 Object ids are the catalogue's order (``OBJECTS`` then ``UNTEXTURED_OBJECTS``, from 1), so
 scenes exported into one folder share their models: ``models/obj_NNNNNN.ply`` is the object's
-mesh (``objects.object_mesh``, mm; its frame is the ground truth's). Symmetries in
+mesh in mm, its frame the ground truth's, with the pictures the scene shows on it
+(``objects.textured_object_mesh``: a texture beside the PLY, as BOP's textured meshes come),
+so that a model built from it has keypoints as one built from a real textured mesh does. Symmetries in
 models_info.json: found from the mesh for the untextured objects; none for the textured ones
 (their print tells every pose apart, and BOP's symmetries are those of the appearance).
 Each frame: rgb/ and depth/ PNGs (depth the bag's 16UC1 mm, depth_scale 1), cam_K, the
@@ -15,7 +17,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..datasets.bop import BopWriter, gt_info_from_mask
-from .objects import OBJECTS, UNTEXTURED_OBJECTS, get_object, object_mesh
+from .objects import OBJECTS, UNTEXTURED_OBJECTS, get_object, object_mesh, textured_object_mesh
 
 MAX_SCENE_ID = 999_999      # scene folders are six digits
 
@@ -54,6 +56,8 @@ class SceneBopExport:
 
         self.scene_writer.close()
         for spec in self.specs:
-            mesh = object_mesh(spec)
-            self.writer.add_model(catalogue_obj_id(spec.name), mesh,
-                                  mesh_symmetries(mesh) if spec.name in UNTEXTURED_OBJECTS else None)
+            if spec.name in UNTEXTURED_OBJECTS:
+                mesh = object_mesh(spec)
+                self.writer.add_model(catalogue_obj_id(spec.name), mesh, mesh_symmetries(mesh))
+            else:
+                self.writer.add_model(catalogue_obj_id(spec.name), textured_object_mesh(spec), None)

@@ -272,39 +272,72 @@ def object_mesh(spec: ObjectSpec):
     return mesh
 
 
-def textured_object_mesh(spec: ObjectSpec):
-    """A box object's mesh with its faces' pictures, as the renderer draws them: 4 vertices a
-    face, the face pictures side by side in one texture (an atlas), texture coordinates per
-    triangle corner. Other shapes: ``object_mesh`` (no colour)."""
-    mesh = object_mesh(spec)
-    if spec.shape != "box" or spec.parts:
-        return mesh
-    textures = object_textures(spec.name)
-    half = spec.half_extents
-    atlas_h = max(textures[f].shape[0] for f, _, _ in BOX_FACES)
-    atlas_w = sum(textures[f].shape[1] for f, _, _ in BOX_FACES)
-    atlas = np.zeros((atlas_h, atlas_w, 3), np.uint8)
-    verts, tris, uv, col = [], [], [], 0
-    for face, normal, up in BOX_FACES:
-        tex = textures[face]
-        th, tw = tex.shape[:2]
-        atlas[:th, col:col + tw] = tex
-        n, upv = np.asarray(normal, np.float64), np.asarray(up, np.float64)
-        right = np.cross(upv, n)            # the picture's rows run along it, seen from outside
-        width, height = 2 * np.abs(right) @ half, 2 * np.abs(upv) @ half
-        centre = n * (np.abs(n) @ half)
-        # Corners at picture (column, row) = (0, 0), (w, 0), (w, h), (0, h): top left first.
-        base = len(verts)
-        for s_, t_ in ((0, 0), (1, 0), (1, 1), (0, 1)):
-            verts.append(centre + (s_ - 0.5) * width * right - (t_ - 0.5) * height * upv)
-        corner_uv = [((col + s_ * tw) / atlas_w, 1.0 - t_ * th / atlas_h) for s_, t_ in ((0, 0), (1, 0), (1, 1), (0, 1))]
-        for a, b, c in ((0, 2, 1), (0, 3, 2)):      # counter-clockwise seen from outside
-            tris.append([base + a, base + b, base + c])
-            uv.append([corner_uv[a], corner_uv[b], corner_uv[c]])
-        col += tw
+def textured_object_mesh(spec: ObjectSpec, segments: int = 64):
+    """An object's mesh with its pictures as the renderer draws them, the pictures side by side
+    in one texture (an atlas), texture coordinates per triangle corner. A box: 4 vertices a
+    face. A cylinder: its side in ``segments`` strips, the picture wrapped once round from the
+    +x axis (column = angle / 2 pi, row = down from the top), each cap's picture over the
+    square the cap is inscribed in. Objects made of parts (a bracket): ``object_mesh`` (no
+    colour)."""
     from ..meshes import TriangleMesh
 
-    return TriangleMesh(np.array(verts), np.array(tris, np.int64), corner_uv=np.array(uv, np.float32), texture=atlas)
+    if spec.parts or spec.shape not in ("box", "cylinder"):
+        return object_mesh(spec)
+    textures = object_textures(spec.name)
+    half = spec.half_extents
+    if spec.shape == "box":
+        # (face, corners as picture (column, row) fractions -> object points)
+        quads = []
+        for face, normal, up in BOX_FACES:
+            n, upv = np.asarray(normal, np.float64), np.asarray(up, np.float64)
+            right = np.cross(upv, n)            # the picture's rows run along it, seen from outside
+            width, height = 2 * np.abs(right) @ half, 2 * np.abs(upv) @ half
+            centre = n * (np.abs(n) @ half)
+            quads.append((face, [((s_, t_), centre + (s_ - 0.5) * width * right - (t_ - 0.5) * height * upv)
+                                 for s_, t_ in ((0, 0), (1, 0), (1, 1), (0, 1))]))
+    else:
+        r, hh = spec.radius, half[2]
+        quads = []
+        for k in range(segments):           # counter-clockwise seen from outside: angle, then up
+            a0, a1 = 2 * np.pi * k / segments, 2 * np.pi * (k + 1) / segments
+            s0, s1 = k / segments, (k + 1) / segments
+            quads.append(("side", [((s0, 1), (r * np.cos(a0), r * np.sin(a0), -hh)),
+                                   ((s1, 1), (r * np.cos(a1), r * np.sin(a1), -hh)),
+                                   ((s1, 0), (r * np.cos(a1), r * np.sin(a1), hh)),
+                                   ((s0, 0), (r * np.cos(a0), r * np.sin(a0), hh))]))
+        # The caps as the scene draws them (a disc in the square quad of its picture).
+        ring = [(r * np.cos(a), r * np.sin(a)) for a in 2 * np.pi * np.arange(segments) / segments]
+        caps = []
+        for face, sign in (("+z", 1.0), ("-z", -1.0)):
+            corners = [(((sign * x + r) / (2 * r), (r - y) / (2 * r)), (x, y, sign * hh)) for x, y in ring]
+            caps.append((face, corners if sign > 0 else corners[::-1]))
+    atlas_faces = sorted({face for face, _ in quads} | ({face for face, _ in caps} if spec.shape == "cylinder" else set()))
+    atlas_h = max(textures[f].shape[0] for f in atlas_faces)
+    atlas_w = sum(textures[f].shape[1] for f in atlas_faces)
+    atlas = np.zeros((atlas_h, atlas_w, 3), np.uint8)
+    column = {}
+    col = 0
+    for f in atlas_faces:
+        th, tw = textures[f].shape[:2]
+        atlas[:th, col:col + tw] = textures[f]
+        column[f] = col
+        col += tw
+
+    def uv(face, s_, t_):
+        th, tw = textures[face].shape[:2]
+        return ((column[face] + s_ * tw) / atlas_w, 1.0 - t_ * th / atlas_h)
+
+    verts, tris, corner_uv = [], [], []
+    polygons = quads + (caps if spec.shape == "cylinder" else [])
+    for face, corners in polygons:
+        base = len(verts)
+        verts.extend(p for _, p in corners)
+        for j in range(1, len(corners) - 1):        # a fan: quads and the convex caps
+            tri = (0, j + 1, j) if spec.shape == "box" else (0, j, j + 1)
+            tris.append([base + i for i in tri])
+            corner_uv.append([uv(face, *corners[i][0]) for i in tri])
+    return TriangleMesh(np.array(verts, np.float64), np.array(tris, np.int64),
+                        corner_uv=np.array(corner_uv, np.float32), texture=atlas)
 
 
 # --------------------------------------------------------------------------------------------
