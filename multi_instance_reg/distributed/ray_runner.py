@@ -10,8 +10,10 @@ in this process, so both give the same results by construction.
 """
 from __future__ import annotations
 
+import tempfile
 from collections import deque
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable
 
 from ..errors import InputError
@@ -62,6 +64,7 @@ def connect(address: str | None = None, workers: int | None = None) -> int:
         kwargs = dict(include_dashboard=False, logging_level="ERROR", log_to_driver=False)
         try:
             if address:
+                check_reachable(address)
                 ray.init(address=address, **kwargs)
             else:
                 ray.init(num_cpus=workers, **kwargs)
@@ -70,6 +73,31 @@ def connect(address: str | None = None, workers: int | None = None) -> int:
                              f"start it with `ray start --head` or check --address") from None
     cpus = int(ray.cluster_resources().get("CPU", 1))
     return max(1, workers or cpus)
+
+
+def check_reachable(address: str) -> None:
+    """InputError at once when no Ray head answers at ``address`` ('auto': the one ``ray
+    start`` recorded on this machine): ray.init would retry for minutes, logging each try."""
+    import os
+    import socket
+
+    if address.startswith("ray://"):
+        return                      # Ray Client: its own connection and errors
+    target = address
+    if address == "auto":
+        target = os.environ.get("RAY_ADDRESS", "")
+        record = Path(tempfile.gettempdir()) / "ray" / "ray_current_cluster"
+        if not target and record.is_file():
+            target = record.read_text().strip()
+        if not target:
+            raise InputError("--address auto: no Ray cluster runs on this machine (start one with `ray start --head`, "
+                             "or give HEAD_IP:6379)")
+    host, _, port = target.rpartition(":")
+    try:
+        socket.create_connection((host or "127.0.0.1", int(port)), timeout=5).close()
+    except (OSError, ValueError):
+        raise InputError(f"--address {address}: no Ray head answers at {target} (start it with `ray start --head "
+                         f"--port {port or 6379}` there, or check the address)") from None
 
 
 def one_line(exc: BaseException) -> str:

@@ -11,6 +11,7 @@ it, an image that is a worker's first is cut where a later one is not.
 from __future__ import annotations
 
 import json
+import os
 import sys
 import tempfile
 import time
@@ -94,5 +95,8 @@ def run(args) -> int:
     for r in rows:
         print(f"{r['run']:<16}{r['workers']:>8}{r['images_per_s']:>10.3f}{r['images_per_s'] / serial['images_per_s']:>10.2f}"
               f"{r['command_s']:>11.1f}{r['cpu_s_per_image']:>13.3f}  {'yes' if r['poses'] == serial['poses'] else 'NO'}")
-    print("images/s: over the run, Ray's start and the models' building left out (they are in 'command s').")
+    print(f"images/s: over the run, Ray's start and the models' building left out (they are in 'command s'); "
+          f"each worker starts its own process, loads the models and warms up inside the run. Load average "
+          f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs: with more runnable processes than cores, workers "
+          f"cannot run side by side.")
     return 0 if all(r["poses"] == serial["poses"] for r in rows) else 1

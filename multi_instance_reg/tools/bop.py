@@ -315,6 +315,7 @@ def run_run(args) -> int:
     if next(ds.read_frames(pairs, unreadable), None) is None:
         raise InputError(f"no image of {ds.split_dir} could be processed ({unreadable.count} skipped: "
                          f"{unreadable.summary()})")
+    workers = connect(args.address, args.workers) if use_ray else 0    # a cluster not there: said before the models are built
     out_dir.mkdir(parents=True, exist_ok=True)
     models = load_bop_models(ds, obj_ids, given, out_dir / "models")
     overlay_dir = out_dir / "overlays"
@@ -340,10 +341,9 @@ def run_run(args) -> int:
     todo = [t for t in tasks if task_key(t) not in results]
     worker_args = (str(ds.root), ds.split, models, obj_ids, config, tracker_config, pairs[:max(args.overlays, 0)])
     bar = Progress(len(tasks), not args.quiet, unit="scenes" if args.tracking else "images")
-    workers, t_run = 0, time.perf_counter()
+    t_run = time.perf_counter()
     try:
         if use_ray:
-            workers = connect(args.address, args.workers)
             if len(results):
                 print(f"mireg bop run: {len(results)} of {len(tasks)} task(s) done before (in {parts.folder}); "
                       f"running the other {len(todo)} on {min(workers, len(todo))} Ray worker(s)", file=sys.stderr)
@@ -378,7 +378,7 @@ def run_run(args) -> int:
                "skipped": skipped.count, "skip_reasons": skipped.reasons,
                "failed_tasks": [f.as_json() for f in failures],
                # How this run went: Ray workers (0: serial), the tasks it ran and their wall-clock seconds.
-               "run": {"workers": workers if use_ray else 0, "tasks_run": len(todo), "tasks_done_before": len(tasks) - len(todo),
+               "run": {"workers": workers, "tasks_run": len(todo), "tasks_done_before": len(tasks) - len(todo),
                        "wall_seconds": round(run_seconds, 3)},
                "deadline_cut_images": sum(e["deadline_cut"] for e in images),
                "seconds_per_image": {"mean": float(secs.mean()), "p50": float(np.median(secs)), "max": float(secs.max())},

@@ -156,7 +156,7 @@ def run(args) -> int:
     bar = Progress(missing, not args.quiet, unit="trials")
     try:
         failures = run_tasks(TrialWorker, worker_args, trial_tasks(), lambda t: f"trial {t['number']} {t['values']}",
-                             told, workers, args.retries, bar)
+                             told, workers, args.retries, bar) if missing else []
     finally:
         bar.close()
     for failure in failures:         # its trial stays FAIL in the study, with the error
