@@ -96,7 +96,7 @@ def test_bop_run_on_two_workers_gives_the_serial_poses_and_resumes(local_ray, da
 def test_offline_over_a_folder_of_bags_on_ray_gives_the_serial_files(local_ray, data, tmp_path, capsys):
     from multi_instance_reg.tools.bop import model_from_bop_mesh
     from multi_instance_reg.datasets.bop import BopDataset
-    from multi_instance_reg.rgbd.model import save_model
+    from multi_instance_reg.models.model import save_model
 
     ds = BopDataset(data / "bop")
     model = save_model(model_from_bop_mesh(ds, next(iter(ds.models_info))), tmp_path / "snack.npz")

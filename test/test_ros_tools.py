@@ -9,7 +9,7 @@ from ros_testing import REPO, ros_env
 def test_bench_node_prints_latency_overload_and_memory_figures(scene_bag, object_model, tmp_path):
     out = tmp_path / "bench.json"
     done = subprocess.run(
-        [sys.executable, "-m", "multi_instance_reg.tools.bench_node", "--bag", str(scene_bag), "--model",
+        [sys.executable, "-m", "multi_instance_reg.tools.bench.node", "--bag", str(scene_bag), "--model",
          str(object_model), "--frames", "15", "--overload-frames", "15", "--rss-frames", "30",
          "--distinct-frames", "3", "--domain-id", "50", "--json", str(out)],
         env=ros_env(50), cwd=REPO, capture_output=True, text=True, timeout=240)

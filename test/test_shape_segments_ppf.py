@@ -7,7 +7,7 @@ import pytest
 from multi_instance_reg.meshes import box_mesh, sample_surface
 from multi_instance_reg.messages import CameraIntrinsics
 from multi_instance_reg.rgbd.lifting import _depth_to_cloud_numpy, depth_to_cloud
-from multi_instance_reg.rgbd.mesh_model import build_model_from_mesh
+from multi_instance_reg.models.mesh_model import build_model_from_mesh
 from multi_instance_reg.rgbd.ppf import PPFModel
 from multi_instance_reg.rgbd.segments import connected_segments, support_mask
 from multi_instance_reg.rgbd.shape import PointGrid, icp_point_to_plane

@@ -84,7 +84,7 @@ def _cylinders_on_a_table(xs, table_z=0.7, mesh=None):
 
 @pytest.fixture(scope="module")
 def cylinder_model():
-    from multi_instance_reg.rgbd.mesh_model import build_model_from_mesh
+    from multi_instance_reg.models.mesh_model import build_model_from_mesh
     from multi_instance_reg.synthetic.objects import get_object, object_mesh
 
     return build_model_from_mesh(object_mesh(get_object("grey_cylinder")), "grey_cylinder")

@@ -27,12 +27,12 @@ from ..core.refinement import instance_scores, residuals
 from ..errors import InputError
 from ..messages import CameraIntrinsics, no_depth_reason
 from ..params import param
-from ..transforms import apply_transform, rigid_fit
-from .features import SiftSettings, extract_sift_in_region
+from ..transforms import apply_transform, refine_transform, rigid_fit
+from ..frontends.sift.features import SiftSettings, extract_sift_in_region
 from .lifting import backproject, lookup_depth, off_planes, support_planes, undistort_pixels
-from .matching import DescriptorMatcher, prepare_descriptors
-from .model import ObjectModel
-from .guided import GuidedMatcher, guide_instances
+from ..frontends.sift.matching import DescriptorMatcher, prepare_descriptors
+from ..models.model import ObjectModel
+from ..frontends.sift.guided import GuidedMatcher, guide_instances
 from .shape_frontend import ShapeFrontEnd, best_per_place, resolve_correspondences
 from .verify import free_space_share, surface_samples, texture_agreement
 from .workspace import Workspace, WorkspaceConfig
@@ -75,7 +75,7 @@ class FrontEndConfig:
     refine: bool = param(False, "refine each instance by least squares on its correspondences re-selected with refine_thresh (measured on the synthetic scenes: no change in median RTE/RRE, so off by default)")
     refine_iterations: int = param(3, "refinement rounds per instance", 1, 50)
     refine_thresh: float = param(0.008, "metres: residual below which a correspondence joins an instance during refinement", 0.0005, 1.0)
-    # Guided matching (rgbd/guided.py), after the selection.
+    # Guided matching (frontends/sift/guided.py), after the selection.
     guided: bool = param(True, "SIFT: after the selection, pair each instance's unassigned nearby scene keypoints with the model keypoints its pose puts within guided_radius of them (nearest descriptor among those, below guided_max_distance: texture repeated on the object fails the global ratio test but not this one), refit the pose on its inliers and these, and count them as its inliers")
     guided_radius: float = param(0.006, "metres: guided matching pairs a scene keypoint only with model keypoints this close to it at the instance's pose, and refits the pose on the correspondences this close to it", 0.001, 0.1)
     guided_max_distance: float = param(0.6, "guided matching: largest descriptor distance of a pair (RootSIFT: Hellinger distance, 0 to 1.41; plain L2 of unit SIFT vectors otherwise)", 0.0, 2.0)
@@ -456,7 +456,7 @@ class InstanceRegistration:
 
     def _guide(self, keypoints: "SceneKeypoints", instances: list[Instance], scene_idx: np.ndarray,
                model_idx: np.ndarray, labels: np.ndarray):
-        """Guided matching (``rgbd/guided.py``) for the selected instances: refitted poses, their
+        """Guided matching (``frontends/sift/guided.py``) for the selected instances: refitted poses, their
         inliers counted with the guided pairs, ranked again. Returns the instances and the
         frame's correspondences (scene and model keypoint indices, labels): a guided pair
         replaces the global match of its scene keypoint, or is added when it had none."""
@@ -1141,21 +1141,5 @@ def box_grid(extent, steps: int = 5, fill: float = 0.8) -> np.ndarray:
     return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
 
 
-def refine_transform(T: np.ndarray, src: np.ndarray, tgt: np.ndarray, thresh: float, iterations: int) -> np.ndarray:
-    """Least squares on the correspondences within ``thresh`` of T, repeated: a tighter
-    re-selection than the clustering's inlier threshold, so depth noise at the edges and
-    near-miss matches stop pulling the pose."""
-    for _ in range(iterations):
-        sel = np.linalg.norm(apply_transform(T, src) - tgt, axis=1) < thresh
-        if sel.sum() < 3:
-            break
-        T_new = rigid_fit(src[sel], tgt[sel])
-        converged = np.allclose(T_new, T, atol=1e-7)
-        T = T_new
-        if converged:
-            break
-    return T
-
-
 __all__ = ["FrontEndConfig", "PipelineConfig", "Instance", "FrameResult", "SceneKeypoints", "InstanceRegistration",
-           "check_frame", "refine_transform", "recover_small_instances", "assign_nearest", "box_overlaps", "box_grid", "STAGES"]
+           "check_frame", "recover_small_instances", "assign_nearest", "box_overlaps", "box_grid", "STAGES"]

@@ -22,7 +22,7 @@ from scipy.spatial import cKDTree
 from ..core import ECCConfig
 from ..errors import InputError
 from ..messages import CameraIntrinsics
-from .model import ObjectModel
+from ..models.model import ObjectModel
 from .ppf import ANGLE_BINS as ANGLE_STEPS, PPFModel, cluster_poses
 from .faces import Faces, frame_patches, matches, model_faces, nearest_face_pose, patch_poses
 from .segments import (connected_segments, pairs_across_steps, segments_within_reach, support_mask,

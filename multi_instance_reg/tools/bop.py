@@ -94,8 +94,8 @@ def model_from_bop_mesh(dataset, obj_id: int):
     renders of the mesh when it has colour (vertex colours or a texture)."""
     from ..datasets.bop import object_name
     from ..meshes import load_mesh
-    from ..rgbd.mesh_model import add_rendered_keypoints, build_model_from_mesh
-    from ..rgbd.model import BuildSettings
+    from ..models.mesh_model import add_rendered_keypoints, build_model_from_mesh
+    from ..models.model import BuildSettings
     from ..symmetry import Symmetries
 
     mesh = load_mesh(dataset.model_path(obj_id), "mm")
@@ -129,7 +129,7 @@ def load_bop_models(dataset, obj_ids: list[int], given: dict[int, str], save_dir
     """The models of ``obj_ids``, in order: the given model files, the rest built from the
     dataset's meshes (and saved in ``save_dir`` for reuse with --model)."""
     from ..datasets.bop import object_name
-    from ..rgbd.model import load_model, save_model
+    from ..models.model import load_model, save_model
     from ..rgbd.multi_model import check_model_names
 
     if not obj_ids:
@@ -452,7 +452,7 @@ def add_model_arguments(p) -> None:
 
 
 def run_model(args) -> int:
-    from ..rgbd.model import save_model
+    from ..models.model import save_model
 
     out = Path(args.output)
     if out.suffix != ".npz":

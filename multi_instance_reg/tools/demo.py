@@ -53,9 +53,9 @@ def prepare_data(out: Path, frames: int = 90, instances: int = 6, fresh: bool = 
     there). One object: ``instances`` of it; several: ``instances`` of each (a mixed scene)."""
     import shutil
 
-    from ..rgbd.model import save_model
+    from ..models.model import save_model
     from ..synthetic.scene import generate_scene_bag
-    from .bench_frames import CAPTURE_POSES, generate_capture_bags, model_from_captures
+    from .bench.scenes import CAPTURE_POSES, generate_capture_bags, model_from_captures
 
     objects = list(objects)
     out.mkdir(parents=True, exist_ok=True)

@@ -24,6 +24,7 @@ with each object's, and "confusions" (instances reported as the wrong object).
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 from dataclasses import dataclass, field
@@ -236,7 +237,7 @@ def replay(bag_path, model, config, topics=None, max_rre_deg: float = 10.0, max_
     from ..datasets.rgbd_bag import RGBDBag
     from ..gravity import ACCEL_TOPIC
     from ..metrics import IdentityScore, combine_scores
-    from ..rgbd.model import ObjectModel
+    from ..models.model import ObjectModel
     from ..rgbd.multi_model import MultiModelRegistration
     from ..rgbd.pipeline import check_frame
 
@@ -384,6 +385,26 @@ def metrics_dict(result: ReplayResult, max_rre_deg: float, max_rte: float, min_v
                                  "p95": float(np.percentile(result.cpu_ms, 95)) if result.cpu_ms else None}}
 
 
+def format_report(metrics: dict) -> str:
+    lat = metrics["latency_ms"]
+    rte, rre = metrics["median_rte"], metrics["median_rre_deg"]
+    lines = [
+        f"frames {metrics['frames']} (with ground truth {metrics['frames_with_ground_truth']}, skipped {metrics['skipped_frames']}); "
+        f"instances present {metrics['gt']}, found {metrics['est']}, hits {metrics['hits']} "
+        f"(hit: RRE < {metrics['max_rre_deg']} deg and RTE < {metrics['max_rte'] * 100:g} cm; "
+        f"present: visible fraction >= {metrics['min_visibility']})",
+        f"MHF1 {metrics['MHF1']:.3f}  MHR {metrics['MHR']:.3f}  MHP {metrics['MHP']:.3f}  MF {metrics['MF']:.3f}",
+        f"median RTE {'-' if rte is None else f'{rte * 1000:.2f} mm'}  median RRE {'-' if rre is None else f'{rre:.2f} deg'}",
+        f"latency per frame: p50 {lat['total']['p50']:.1f} ms  p95 {lat['total']['p95']:.1f} ms  "
+        f"(CPU time per frame, all threads: p50 {metrics['cpu_ms_per_frame']['p50']:.1f} ms; "
+        f"load average during the run {metrics.get('load_average', float('nan')):.2f} on {os.cpu_count()} cores; "
+        f"shape search cut by its deadline on {metrics.get('deadline_cut_frames', 0)} of {metrics['frames']} frames)",
+        "stages (p50 / p95 ms): " + "  ".join(f"{s} {lat[s]['p50']:.1f} / {lat[s]['p95']:.1f}"
+                                            for s in ("sift", "matching", "lifting", "ecc", "refinement")
+                                            + (("shape",) if "shape" in lat else ())),
+    ]
+    return "\n".join(lines)
+
 # --------------------------------------------------------------------------- pictures
 
 def draw_overlay(rgb: np.ndarray, intrinsics, models, instances, gt_poses=None, gt_owners=None,
@@ -392,7 +413,7 @@ def draw_overlay(rgb: np.ndarray, intrinsics, models, instances, gt_poses=None, 
     name when there are several models); ground truth in grey (``gt_owners``: the model index
     of each ground-truth instance, default all the first's); the ``workspace`` (a
     ``rgbd.workspace.Workspace``, or None) in orange."""
-    from ..rgbd.model import ObjectModel
+    from ..models.model import ObjectModel
     from ..rgbd.overlay import draw_box
 
     models = [models] if isinstance(models, ObjectModel) else list(models)

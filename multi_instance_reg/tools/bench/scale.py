@@ -31,7 +31,7 @@ def add_arguments(parser) -> None:
 
 
 def _poses(csv_path):
-    from ..datasets.bop import read_results_csv
+    from ...datasets.bop import read_results_csv
 
     return [(r.scene_id, r.im_id, r.obj_id, round(r.score, 6), [round(v, 6) for v in r.T_m.reshape(-1)])
             for r in read_results_csv(csv_path)]
@@ -40,9 +40,9 @@ def _poses(csv_path):
 def run(args) -> int:
     import ray
 
-    from ..errors import InputError
-    from ..synthetic.scene import make_tabletop_scene, write_scene_bag
-    from .cli import main
+    from ...errors import InputError
+    from ...synthetic.scene import make_tabletop_scene, write_scene_bag
+    from ..cli import main
 
     if args.scenes < 1 or args.frames < 1 or min(args.workers) < 1 or args.nodes < 0 or args.node_cpus < 1:
         raise InputError("--scenes, --frames, --workers and --node-cpus must be at least 1, --nodes at least 0")
