@@ -41,6 +41,22 @@ def rigid_fit(src: np.ndarray, tgt: np.ndarray, weights: np.ndarray | None = Non
     return make_transform(R, mu_t - R @ mu_s)
 
 
+def refine_transform(T: np.ndarray, src: np.ndarray, tgt: np.ndarray, thresh: float, iterations: int) -> np.ndarray:
+    """Least squares on the correspondences within ``thresh`` of T, repeated: a tighter
+    re-selection than the clustering's inlier threshold, so depth noise at the edges and
+    near-miss matches stop pulling the pose."""
+    for _ in range(iterations):
+        sel = np.linalg.norm(apply_transform(T, src) - tgt, axis=1) < thresh
+        if sel.sum() < 3:
+            break
+        T_new = rigid_fit(src[sel], tgt[sel])
+        converged = np.allclose(T_new, T, atol=1e-7)
+        T = T_new
+        if converged:
+            break
+    return T
+
+
 def apply_transform(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     return points @ T[:3, :3].T + T[:3, 3]
 

@@ -59,7 +59,7 @@ def built_once(tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def capture_bags(built_once):
-    from multi_instance_reg.tools.bench_frames import generate_capture_bags
+    from multi_instance_reg.tools.bench.scenes import generate_capture_bags
 
     return built_once("capture_bags", lambda folder: generate_capture_bags(folder, seed=0, views=CAPTURE_VIEWS))
 
@@ -72,7 +72,7 @@ def capture_bag(capture_bags):
 @pytest.fixture(scope="session")
 def scene_bag(built_once):
     """The benchmark's first scenes (4, 12 and 6 instances, 3 distractors each), 2 frames each."""
-    from multi_instance_reg.tools.bench_frames import generate_benchmark_bag
+    from multi_instance_reg.tools.bench.scenes import generate_benchmark_bag
 
     return built_once("scene_bag", lambda folder: generate_benchmark_bag(folder / "scene", scenes=SCENES,
                                                                           frames=SCENE_FRAMES, seed=0))
@@ -80,7 +80,7 @@ def scene_bag(built_once):
 
 @pytest.fixture(scope="session")
 def object_model(capture_bags, built_once):
-    from multi_instance_reg.rgbd.model import save_model
-    from multi_instance_reg.tools.bench_frames import model_from_captures
+    from multi_instance_reg.models.model import save_model
+    from multi_instance_reg.tools.bench.scenes import model_from_captures
 
     return built_once("object_model", lambda folder: save_model(model_from_captures(capture_bags), folder / "model.npz"))

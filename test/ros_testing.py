@@ -163,8 +163,8 @@ def poster_model(path, name: str = "poster") -> Path:
     """The model of a poster (``name``: one of POSTER_TEXTURES), named ``name``."""
     import numpy as np
 
-    from multi_instance_reg.rgbd.features import SiftSettings, extract_sift
-    from multi_instance_reg.rgbd.model import ObjectModel, save_model
+    from multi_instance_reg.frontends.sift.features import SiftSettings, extract_sift
+    from multi_instance_reg.models.model import ObjectModel, save_model
 
     K = np.array(D455_K)
     uv, desc = extract_sift(poster_texture(name), SiftSettings())

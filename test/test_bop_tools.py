@@ -138,7 +138,7 @@ def test_run_writes_csv_summary_and_overlays(cylinders_bop, tmp_path):
 
 
 def test_model_command_takes_the_models_info_symmetries(cylinders_bop, tmp_path):
-    from multi_instance_reg.rgbd.model import load_model
+    from multi_instance_reg.models.model import load_model
 
     ds = BopDataset(cylinders_bop)
     obj = next(iter(ds.models_info))

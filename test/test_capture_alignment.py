@@ -6,9 +6,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from multi_instance_reg.meshes import box_mesh, cylinder_mesh, sample_surface, save_mesh
-from multi_instance_reg.rgbd.capture_alignment import fit_to_surface, symmetric_choice
-from multi_instance_reg.rgbd.mesh_model import add_capture_keypoints, build_model_from_mesh
-from multi_instance_reg.rgbd.model import BuildSettings, load_model
+from multi_instance_reg.models.capture_alignment import fit_to_surface, symmetric_choice
+from multi_instance_reg.models.mesh_model import add_capture_keypoints, build_model_from_mesh
+from multi_instance_reg.models.model import BuildSettings, load_model
 from multi_instance_reg.synthetic.objects import get_object, object_mesh
 from multi_instance_reg.synthetic.scene import DEFAULT_OBJECT
 from multi_instance_reg.tools.build_model import views_from_bag
@@ -141,7 +141,7 @@ def test_views_without_ground_truth_are_placed_alike_in_any_order(capture_bags):
     32 views followed it by 180 deg. Checked from the outside: every view placed where its
     ground truth puts it relative to the capture frame's view, the bags in that order and
     reversed."""
-    from multi_instance_reg.rgbd.model import CaptureView, register_views
+    from multi_instance_reg.models.model import CaptureView, register_views
     from multi_instance_reg.tools.build_model import register_view_with_ecc
 
     views = []

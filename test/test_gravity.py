@@ -9,7 +9,7 @@ from multi_instance_reg.datasets.rgbd_bag import RGBDBag
 from multi_instance_reg.errors import InputError
 from multi_instance_reg.gravity import IMU_TOPIC, AccelWindow, up_from_samples
 from multi_instance_reg.messages import CameraIntrinsics
-from multi_instance_reg.rgbd.segments import support_mask
+from multi_instance_reg.frontends.shape.segments import support_mask
 
 
 def _angle_deg(a, b) -> float:
@@ -75,7 +75,7 @@ def test_support_below_follows_gravity_not_the_larger_wall():
 
 def test_the_pipeline_takes_gravity_per_frame_and_checks_it():
     from multi_instance_reg.meshes import box_mesh
-    from multi_instance_reg.rgbd.mesh_model import build_model_from_mesh
+    from multi_instance_reg.models.mesh_model import build_model_from_mesh
     from multi_instance_reg.rgbd.pipeline import InstanceRegistration, PipelineConfig, unit_up
 
     depth, intr, up = _floor_and_larger_wall()
@@ -99,7 +99,7 @@ def test_a_carton_fitted_into_a_crates_corner_is_rejected_with_gravity():
     largest plane, and a carton fitted into the crate's front corner passed the outline check
     with "below the object" taken from that wall. Given the direction of gravity, the support
     below is the floor, and the carton is rejected."""
-    from multi_instance_reg.rgbd.mesh_model import build_model_from_mesh
+    from multi_instance_reg.models.mesh_model import build_model_from_mesh
     from multi_instance_reg.rgbd.pipeline import InstanceRegistration, PipelineConfig
     from multi_instance_reg.synthetic.objects import get_object, object_mesh
     from multi_instance_reg.synthetic.untextured import make_untextured_scene

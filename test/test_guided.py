@@ -1,9 +1,9 @@
-"""Guided matching (rgbd/guided.py): known answers on a box whose texture repeats."""
+"""Guided matching (frontends/sift/guided.py): known answers on a box whose texture repeats."""
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from multi_instance_reg.rgbd.guided import GuidedMatcher, guide_instances
-from multi_instance_reg.rgbd.matching import DescriptorMatcher, prepare_descriptors
+from multi_instance_reg.frontends.sift.guided import GuidedMatcher, guide_instances
+from multi_instance_reg.frontends.sift.matching import DescriptorMatcher, prepare_descriptors
 from multi_instance_reg.transforms import apply_transform, make_transform, rigid_fit, rotation_angle_deg
 
 EXTENT = np.array([0.16, 0.10, 0.04])

@@ -148,7 +148,7 @@ def test_symmetries_read_from_models_info(tmp_path):
 
 def test_build_model_takes_symmetries_from_models_info(tmp_path):
     from multi_instance_reg.meshes import box_mesh, save_mesh
-    from multi_instance_reg.rgbd.model import load_model
+    from multi_instance_reg.models.model import load_model
 
     mesh = save_mesh(box_mesh(0.06, 0.04, 0.03), tmp_path / "obj_000003.ply", "mm")
     models_info(tmp_path, {3: {"symmetries_continuous": [{"axis": [0, 1, 0], "offset": [0, 0, 5]}]}})
@@ -253,7 +253,7 @@ def depth_on_face(T, K, u, v, normal, offset):
 
 
 def test_rendered_two_coloured_box_has_its_colours_where_expected(tmp_path):
-    from multi_instance_reg.mesh_render import BACKGROUND_RGB, look_at, render_mesh
+    from multi_instance_reg.models.mesh_render import BACKGROUND_RGB, look_at, render_mesh
 
     path = tmp_path / "box.ply"
     write_two_coloured_box(path)
@@ -280,7 +280,7 @@ def test_rendered_two_coloured_box_has_its_colours_where_expected(tmp_path):
 
 @pytest.mark.parametrize("per_corner", [False, True])
 def test_textured_box_read_and_rendered(tmp_path, per_corner):
-    from multi_instance_reg.mesh_render import look_at, render_mesh
+    from multi_instance_reg.models.mesh_render import look_at, render_mesh
 
     texture = np.zeros((64, 96, 3), np.uint8)
     cells = [(255, 0, 0), (0, 255, 0), (0, 0, 255), (255, 255, 0), (0, 255, 255), (255, 0, 255)]
@@ -319,11 +319,11 @@ def box_surface_distance(p, size=BOX):
 
 
 def test_keypoints_of_a_textured_mesh_sit_at_their_3d_places(tmp_path):
-    from multi_instance_reg.mesh_render import look_at, render_mesh
-    from multi_instance_reg.rgbd.features import extract_sift
-    from multi_instance_reg.rgbd.matching import DescriptorMatcher, prepare_descriptors
-    from multi_instance_reg.rgbd.mesh_model import add_rendered_keypoints, build_model_from_mesh, view_directions
-    from multi_instance_reg.rgbd.model import BuildSettings
+    from multi_instance_reg.models.mesh_render import look_at, render_mesh
+    from multi_instance_reg.frontends.sift.features import extract_sift
+    from multi_instance_reg.frontends.sift.matching import DescriptorMatcher, prepare_descriptors
+    from multi_instance_reg.models.mesh_model import add_rendered_keypoints, build_model_from_mesh, view_directions
+    from multi_instance_reg.models.model import BuildSettings
 
     write_textured_box(tmp_path / "box.ply", photo_texture(), per_corner=False)
     mesh = load_mesh(tmp_path / "box.ply")
@@ -353,8 +353,8 @@ def test_keypoints_of_a_textured_mesh_sit_at_their_3d_places(tmp_path):
 
 
 def test_build_model_from_coloured_mesh_takes_the_sift_path(tmp_path):
-    from multi_instance_reg.rgbd.model import load_model
-    from multi_instance_reg.rgbd.shape_frontend import resolve_correspondences
+    from multi_instance_reg.models.model import load_model
+    from multi_instance_reg.frontends.shape.frontend import resolve_correspondences
 
     write_textured_box(tmp_path / "box.ply", photo_texture(), per_corner=True)
     run = build(tmp_path, "--mesh", tmp_path / "box.ply", "--render-views", 6, "--symmetry", "none")
@@ -384,8 +384,8 @@ def test_a_plain_coloured_mesh_gets_no_keypoints_from_its_outline():
     # One colour all over: its renders have nothing but the outline, which a real scene does
     # not show against the same background; the model stays shape only.
     from multi_instance_reg.meshes import cylinder_mesh
-    from multi_instance_reg.rgbd.mesh_model import add_rendered_keypoints, build_model_from_mesh
-    from multi_instance_reg.rgbd.model import BuildSettings
+    from multi_instance_reg.models.mesh_model import add_rendered_keypoints, build_model_from_mesh
+    from multi_instance_reg.models.model import BuildSettings
 
     mesh = cylinder_mesh(0.08, 0.12)
     mesh.vertex_colours = np.full((len(mesh.vertices), 3), 200, np.uint8)
@@ -416,7 +416,7 @@ def test_mesh_render_agrees_with_the_synthetic_renderer(name):
     # prism, so its outline and depth agree to within the polygon's sagitta (0.04 mm).
     import cv2
 
-    from multi_instance_reg.mesh_render import look_at, render_mesh
+    from multi_instance_reg.models.mesh_render import look_at, render_mesh
     from multi_instance_reg.synthetic.objects import get_object, textured_object_mesh
     from multi_instance_reg.synthetic.render import Renderer
     from multi_instance_reg.synthetic.scene import Placement, object_primitives

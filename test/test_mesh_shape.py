@@ -9,7 +9,7 @@ import pytest
 from multi_instance_reg.errors import InputError
 from multi_instance_reg.meshes import box_mesh, cylinder_mesh, load_mesh, sample_surface, save_mesh
 from multi_instance_reg.metrics import evaluate_scene
-from multi_instance_reg.rgbd.model import load_model, save_model
+from multi_instance_reg.models.model import load_model, save_model
 from multi_instance_reg.symmetry import closest_symmetric_pose, detect_symmetries, parse_symmetry_text
 
 MIREG = [sys.executable, "-m", "multi_instance_reg.tools.cli"]

@@ -9,7 +9,7 @@ from planar_scene import INTRINSICS, card_pose, render_planes, table
 from skimage import data
 
 from multi_instance_reg.errors import InputError
-from multi_instance_reg.rgbd.model import (MODEL_SCHEMA_VERSION, BuildSettings, CaptureView, ObjectModel, build_model,
+from multi_instance_reg.models.model import (MODEL_SCHEMA_VERSION, BuildSettings, CaptureView, ObjectModel, build_model,
                                            load_model, object_mask, save_model)
 from multi_instance_reg.transforms import apply_transform, invert_transform
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from multi_instance_reg.errors import InputError
-from multi_instance_reg.rgbd.model import load_model, save_model
+from multi_instance_reg.models.model import load_model, save_model
 
 from test_offline_cli import cli, one_line_error
 
@@ -18,7 +18,7 @@ pytestmark = pytest.mark.xdist_group("test_multi_model")
 
 @pytest.fixture(scope="session")
 def can_model(built_once):
-    from multi_instance_reg.tools.bench_frames import generate_capture_bags, model_from_captures
+    from multi_instance_reg.tools.bench.scenes import generate_capture_bags, model_from_captures
 
     def build(folder):
         captures = generate_capture_bags(folder / "can_captures", "can", seed=0, views=8, poses=("+z", "-z", "+y"))
@@ -29,7 +29,7 @@ def can_model(built_once):
 @pytest.fixture(scope="session")
 def mixed_bag(built_once):
     """Two tabletop scenes with 3 snack boxes and 3 cans each (plus 3 distractors), 2 frames each."""
-    from multi_instance_reg.tools.bench_frames import generate_benchmark_bag
+    from multi_instance_reg.tools.bench.scenes import generate_benchmark_bag
 
     return built_once("mixed_bag", lambda folder: generate_benchmark_bag(
         folder / "mixed", ["snack_box", "can"], scenes=2, frames=2, seed=0, instances_each=3))

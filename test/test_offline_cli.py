@@ -214,7 +214,7 @@ def test_build_model_from_the_capture_bag(capture_bag, tmp_path):
     out = tmp_path / "m.npz"
     res = cli("build-model", capture_bag, "-o", out, "--frames", "0:4")
     assert res.returncode == 0, res.stderr
-    from multi_instance_reg.rgbd.model import load_model
+    from multi_instance_reg.models.model import load_model
 
     model = load_model(out)
     assert model.num_keypoints > 100 and model.T_object_model is not None and model.name

@@ -67,7 +67,7 @@ def test_tracking_never_makes_the_output_worse_than_detection_alone(object_model
     # sensor): per-frame MHF1 and MHP with tracking at least the detector's on the same frames
     # - 1 point, and never more poses published than objects in view and hidden tracks.
     from multi_instance_reg.metrics import summarize
-    from multi_instance_reg.rgbd.model import load_model
+    from multi_instance_reg.models.model import load_model
     from multi_instance_reg.rgbd.pipeline import PipelineConfig
     from multi_instance_reg.synthetic.scene import generate_scene_bag
     from multi_instance_reg.tools.offline import replay

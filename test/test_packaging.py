@@ -38,3 +38,7 @@ def test_colcon_build_installs_the_ros_layout(tmp_path):
     assert (install / "lib" / "multi_instance_reg" / "mireg").exists()
     # The Fast DDS profile travels with the Python package (ros/transport.py finds it there).
     assert list(install.glob("lib/python*/site-packages/multi_instance_reg/ros/fastdds_large_data.xml"))
+    # Every package folder of the source is installed (setup.py's find_packages: by its __init__.py).
+    site = next(install.glob("lib/python*/site-packages"))
+    packages = sorted(p.parent.relative_to(ROOT) for p in (ROOT / "multi_instance_reg").rglob("__init__.py"))
+    assert [p for p in packages if not (site / p / "__init__.py").exists()] == []

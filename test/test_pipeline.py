@@ -7,9 +7,9 @@ from skimage import data
 
 from multi_instance_reg.errors import InputError
 from multi_instance_reg.messages import CameraIntrinsics
-from multi_instance_reg.rgbd.features import SiftSettings, extract_sift
+from multi_instance_reg.frontends.sift.features import SiftSettings, extract_sift
 from multi_instance_reg.rgbd.lifting import backproject, lookup_depth, undistort_pixels
-from multi_instance_reg.rgbd.matching import DescriptorMatcher, prepare_descriptors
+from multi_instance_reg.frontends.sift.matching import DescriptorMatcher, prepare_descriptors
 from multi_instance_reg.transforms import apply_transform, invert_transform
 
 
@@ -114,7 +114,7 @@ def test_joint_index_matches_each_model_as_its_own_exact_search_does():
     """One index over three models: (nearly) every match it accepts, the model's own exact
     search accepts too, to the same model point, and it finds nearly all of them; a keypoint that
     two models share (same texture) matches both, and the matches come back per model."""
-    from multi_instance_reg.rgbd.matching import JointMatcher
+    from multi_instance_reg.frontends.sift.matching import JointMatcher
 
     rng = np.random.default_rng(4)
     descs = [prepare_descriptors(rng.random((n, 128)).astype(np.float32)) for n in (900, 300, 1500)]
@@ -180,7 +180,7 @@ def test_lifting_accuracy_on_a_rendered_frame(rendered_frame):
 
 def test_register_frame_finds_the_instances(rendered_frame, object_model):
     from multi_instance_reg.metrics import evaluate_scene
-    from multi_instance_reg.rgbd.model import load_model
+    from multi_instance_reg.models.model import load_model
     from multi_instance_reg.rgbd.pipeline import STAGES, InstanceRegistration
 
     scene, frame = rendered_frame
@@ -204,7 +204,7 @@ def test_eight_boxes_lying_flat_are_found_although_their_tops_form_a_plane(objec
     # of the pixels 5 cm above the table. It was removed as a second support plane, and the
     # frame gave 0 instances (the tracker's static sequences of this kind: IDF1 0.57-0.70).
     from multi_instance_reg.metrics import evaluate_scene
-    from multi_instance_reg.rgbd.model import load_model
+    from multi_instance_reg.models.model import load_model
     from multi_instance_reg.rgbd.pipeline import InstanceRegistration
     from multi_instance_reg.synthetic.scene import make_tabletop_scene
 
@@ -226,7 +226,7 @@ def test_eight_boxes_lying_flat_are_found_although_their_tops_form_a_plane(objec
 
 
 def test_no_instance_in_a_scene_without_the_object(object_model):
-    from multi_instance_reg.rgbd.model import load_model
+    from multi_instance_reg.models.model import load_model
     from multi_instance_reg.rgbd.pipeline import InstanceRegistration
     from multi_instance_reg.synthetic.scene import make_tabletop_scene
 
@@ -240,7 +240,7 @@ def test_no_instance_in_a_scene_without_the_object(object_model):
 
 
 def test_bad_frames_and_models_raise_clear_errors(object_model):
-    from multi_instance_reg.rgbd.model import load_model
+    from multi_instance_reg.models.model import load_model
     from multi_instance_reg.rgbd.pipeline import InstanceRegistration
 
     model = load_model(object_model)
@@ -409,7 +409,7 @@ def test_warm_up_compiles_every_kernel_a_real_frame_uses(rendered_frame, object_
     """A new checkout has no compiled kernels on disk: what warm_up leaves uncompiled, the
     first frame compiles (1.8 s; a live node's detector fell behind a short stream)."""
     from multi_instance_reg.rgbd import lifting, verify
-    from multi_instance_reg.rgbd.model import load_model
+    from multi_instance_reg.models.model import load_model
     from multi_instance_reg.rgbd.pipeline import InstanceRegistration
 
     scene, frame = rendered_frame

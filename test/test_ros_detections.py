@@ -28,7 +28,7 @@ def model(tmp_path_factory):
 @pytest.fixture(scope="module")
 def unnamed_model(tmp_path_factory):
     """The poster model without a stored name and with an off-centre box."""
-    from multi_instance_reg.rgbd.model import load_model, save_model
+    from multi_instance_reg.models.model import load_model, save_model
 
     folder = tmp_path_factory.mktemp("unnamed")
     m = load_model(poster_model(folder / "poster.npz"))
@@ -58,7 +58,7 @@ def test_detections_from_the_node_reach_another_process_and_match_the_poses(unna
     from std_msgs.msg import String
     from vision_msgs.msg import Detection3DArray, LabelInfo
 
-    from multi_instance_reg.rgbd.model import load_model
+    from multi_instance_reg.models.model import load_model
 
     extent = load_model(unnamed_model).extent
     with live_node(93, unnamed_model) as live:
@@ -297,7 +297,7 @@ def test_detection_array_names_boxes_and_track_ids():
 
 
 def test_object_class_is_the_stored_name_else_the_file_stem(tmp_path):
-    from multi_instance_reg.rgbd.model import load_model
+    from multi_instance_reg.models.model import load_model
 
     named = load_model(poster_model(tmp_path / "whatever.npz"))
     assert ObjectClass.of_model(named, tmp_path / "whatever.npz").name == "poster"

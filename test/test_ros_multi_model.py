@@ -174,7 +174,7 @@ def test_an_old_single_model_parameter_file_still_works(posters, tmp_path):
 def test_listen_scores_each_object_against_its_own_ground_truth(posters):
     import numpy as np
 
-    from multi_instance_reg.rgbd.model import load_model
+    from multi_instance_reg.models.model import load_model
     from multi_instance_reg.tools.listen import score_frames
 
     models = [load_model(p) for p in posters]       # poster, cat

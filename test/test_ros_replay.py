@@ -15,7 +15,7 @@ def test_live_replay_matches_offline_quality(scene_bag, object_model, tmp_path):
     from geometry_msgs.msg import PoseArray
 
     from multi_instance_reg.metrics import evaluate_scene, summarize
-    from multi_instance_reg.rgbd.model import load_model
+    from multi_instance_reg.models.model import load_model
     from multi_instance_reg.rgbd.pipeline import PipelineConfig
     from multi_instance_reg.tools.listen import pose_array_to_matrices
     from multi_instance_reg.tools.offline import estimates_in_object_frame, replay

@@ -99,7 +99,7 @@ def test_ids_hold_over_a_rendered_pan_played_at_30hz(object_model, tmp_path):
 
     from multi_instance_reg.datasets.rgbd_bag import RGBDBag
     from multi_instance_reg.metrics import IdentityScore
-    from multi_instance_reg.rgbd.model import load_model
+    from multi_instance_reg.models.model import load_model
     from multi_instance_reg.synthetic.scene import generate_scene_bag
     from multi_instance_reg.tools.listen import pose_array_to_matrices
     from multi_instance_reg.tools.offline import estimates_in_object_frame, match_frame

@@ -1,26 +1,19 @@
-"""Depth of a triangle mesh at a pose, seen through a pinhole camera: a z-buffer rasteriser.
+"""Depth of a triangle mesh at a pose, seen through a pinhole camera, for BOP's VSD.
 
-What VSD needs (BOP, Hodan et al. ECCV 2018): the depth of the model alone at the
-estimated and at the true pose. The project's scene renderer (``synthetic/render.py``)
-draws quads, discs and cylinders, not meshes, so this is a small rasteriser of its own, in
-numba: each triangle is projected, its pixels found by barycentric coordinates over its
-image bounding box, and the depth interpolated perspective-correctly (1/z is affine in the
-image for a planar triangle). Pixel (row, col) is sampled at image point (col, row), the
-convention of ``rgbd.lifting.backproject``. No lens distortion (BOP images have none).
-Triangles with a vertex closer than ``NEAR_PLANE_M`` are left out (an object that close is
-not a scene BOP scores).
+What VSD needs (BOP, Hodan et al. ECCV 2018): the depth of the model alone at the estimated
+and at the true pose, and the image box it spans (the error is computed there only). The
+rasteriser is the project's one (``models.mesh_render.rasterise``: z-buffered, depth
+interpolated perspective-correctly); pixel (row, col) is sampled at image point (col, row),
+the convention of ``rgbd.lifting.backproject``. No lens distortion (BOP images have none).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 
-NEAR_PLANE_M = 0.01
-# Pixels on a shared edge belong to both triangles (the z-buffer keeps the nearer): a
-# slightly negative barycentric still counts, so that no crack opens between triangles.
-EDGE_EPS = 1e-7
+from ..models.mesh_render import NEAR_M as NEAR_PLANE_M
+from ..models.mesh_render import rasterise
 
 
 @dataclass
@@ -45,61 +38,11 @@ def render_depth(vertices: np.ndarray, triangles: np.ndarray, T: np.ndarray, K: 
     T = np.asarray(T, np.float64)
     if not np.all(np.isfinite(T)):
         return DepthRender(np.zeros((int(height), int(width)), np.float32), 0, 0, 0, 0)     # a broken pose draws nothing
-    P = np.ascontiguousarray(np.asarray(vertices, np.float64) @ T[:3, :3].T + T[:3, 3])
-    K = np.asarray(K, np.float64)
-    depth = np.zeros((int(height), int(width)), np.float32)
-    box = _rasterise(P, np.ascontiguousarray(triangles, dtype=np.int64), float(K[0, 0]), float(K[1, 1]),
-                     float(K[0, 2]), float(K[1, 2]), depth, NEAR_PLANE_M)
-    return DepthRender(depth, int(box[0]), int(box[1]), int(box[2]), int(box[3]))
-
-
-@numba.njit(cache=True, nogil=True)
-def _rasterise(P, tris, fx, fy, cx, cy, depth, near):
-    H, W = depth.shape
-    n = P.shape[0]
-    u = np.empty(n)
-    v = np.empty(n)
-    iz = np.empty(n)
-    for i in range(n):
-        z = P[i, 2]
-        if z > near:
-            u[i] = fx * P[i, 0] / z + cx
-            v[i] = fy * P[i, 1] / z + cy
-            iz[i] = 1.0 / z
-        else:
-            iz[i] = -1.0
-    r0, r1, c0, c1 = H, 0, W, 0
-    for t in range(tris.shape[0]):
-        a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
-        if iz[a] < 0.0 or iz[b] < 0.0 or iz[c] < 0.0:
-            continue
-        xa, ya, xb, yb, xc, yc = u[a], v[a], u[b], v[b], u[c], v[c]
-        area = (xb - xa) * (yc - ya) - (xc - xa) * (yb - ya)
-        if abs(area) < 1e-12:
-            continue
-        xmin = max(0, int(np.ceil(min(xa, min(xb, xc)) - 1e-9)))
-        xmax = min(W - 1, int(np.floor(max(xa, max(xb, xc)) + 1e-9)))
-        ymin = max(0, int(np.ceil(min(ya, min(yb, yc)) - 1e-9)))
-        ymax = min(H - 1, int(np.floor(max(ya, max(yb, yc)) + 1e-9)))
-        if xmin > xmax or ymin > ymax:
-            continue
-        inv = 1.0 / area
-        for py in range(ymin, ymax + 1):
-            for px in range(xmin, xmax + 1):
-                wa = ((xb - px) * (yc - py) - (xc - px) * (yb - py)) * inv
-                wb = ((xc - px) * (ya - py) - (xa - px) * (yc - py)) * inv
-                wc = 1.0 - wa - wb
-                if wa < -EDGE_EPS or wb < -EDGE_EPS or wc < -EDGE_EPS:
-                    continue
-                d = 1.0 / (wa * iz[a] + wb * iz[b] + wc * iz[c])
-                cur = depth[py, px]
-                if cur == 0.0 or d < cur:
-                    depth[py, px] = d
-                    r0 = min(r0, py)
-                    r1 = max(r1, py + 1)
-                    c0 = min(c0, px)
-                    c1 = max(c1, px + 1)
-    return np.array([r0, r1, c0, c1])
+    depth, _, _ = rasterise(vertices, triangles, T, K, width, height)
+    rows, cols = np.flatnonzero(depth.any(axis=1)), np.flatnonzero(depth.any(axis=0))
+    if len(rows) == 0:
+        return DepthRender(depth, 0, 0, 0, 0)
+    return DepthRender(depth, int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1)
 
 
 def render_scene(meshes, poses, K: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray, list]:

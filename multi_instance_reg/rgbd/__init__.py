@@ -1,6 +1,10 @@
-"""RGB-D front end (no ROS).
+"""The per-frame pipeline and what it shares between the front ends (no ROS).
 
-- ``features``: SIFT extraction;  ``model``: the stored object model (file format, building);
-- ``lifting``: robust depth lookup, undistortion, back-projection;  ``matching``: one-to-many;
 - ``pipeline``: ``InstanceRegistration.register_frame(rgb, depth_m, intrinsics) -> FrameResult``.
+- ``multi_model``: several objects' models in one pass over a frame.
+- ``lifting``: robust depth lookup, undistortion, back-projection.
+- ``verify``: checks of a pose against the depth image (the acceptors).
+- ``workspace``: the box / image mask the search keeps to;  ``overlay``: the debug picture.
+- ``shape_frontend``, ``shape``, ``ppf``, ``segments``, ``faces``: the shape front end (moving
+  to ``frontends/shape``).
 """

@@ -32,8 +32,8 @@ import numpy as np
 
 from ..errors import InputError
 from ..messages import CameraIntrinsics
-from .matching import JointMatcher, prepare_descriptors
-from .model import ObjectModel
+from ..frontends.sift.matching import JointMatcher, prepare_descriptors
+from ..models.model import ObjectModel
 from .pipeline import STAGES, FrameResult, Instance, InstanceRegistration, PipelineConfig, box_grid, check_frame
 
 
@@ -51,7 +51,7 @@ def check_model_names(models: list[ObjectModel], sources: list[str] | None = Non
 def load_models(paths) -> list[ObjectModel]:
     """Every model file in ``paths``, checked (InputError naming the bad file, or the two
     files whose models share a name)."""
-    from .model import load_model
+    from ..models.model import load_model
 
     paths = [str(p) for p in paths]
     models = [load_model(p) for p in paths]

@@ -272,7 +272,7 @@ class InstanceRegistrationNode(Node):
         from pathlib import Path
 
         from ..rgbd.multi_model import check_model_names
-        from ..rgbd.model import load_model
+        from ..models.model import load_model
 
         if not files:
             raise InputError("no model: pass -p \"model_paths:=[A.npz, B.npz]\" or -p model_path:=MODEL "

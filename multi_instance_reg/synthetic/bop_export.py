@@ -52,7 +52,7 @@ class SceneBopExport:
     def close(self) -> None:
         """The scene's JSON files and the objects' models (written last: nothing is left
         behind by a run that failed before its frames)."""
-        from ..rgbd.mesh_model import mesh_symmetries
+        from ..models.mesh_model import mesh_symmetries
 
         self.scene_writer.close()
         for spec in self.specs:

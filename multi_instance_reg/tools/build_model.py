@@ -105,7 +105,7 @@ def views_from_bag(path, frames_text, topics, spread: bool | None = None) -> tup
     bag where the views are placed independently (``spread``; default: when the bag has ground
     truth), else the first (views registered to each other by texture chain from it)."""
     from ..datasets.rgbd_bag import RGBDBag
-    from ..rgbd.model import CaptureView
+    from ..models.model import CaptureView
 
     kwargs = dict(zip(("colour_topic", "depth_topic", "info_topic"), topics)) if topics else {}
     with RGBDBag(path, **kwargs) as bag:
@@ -133,7 +133,7 @@ def views_from_png(rgb_path, depth_path, intrinsics_text, depth_scale) -> list:
     import cv2
 
     from ..messages import CameraIntrinsics
-    from ..rgbd.model import CaptureView
+    from ..models.model import CaptureView
 
     if not (rgb_path and depth_path and intrinsics_text):
         raise InputError("building from PNG files needs --rgb, --depth and --intrinsics fx,fy,cx,cy")
@@ -177,8 +177,8 @@ def register_view_with_ecc(xyz, desc, model_xyz, model_desc, cloud=None, model_c
     from scipy.spatial import cKDTree
 
     from ..core import ECC, ECCConfig
-    from ..rgbd.matching import DescriptorMatcher, prepare_descriptors
-    from ..rgbd.model import ViewRegistration
+    from ..frontends.sift.matching import DescriptorMatcher, prepare_descriptors
+    from ..models.model import ViewRegistration
     from ..transforms import apply_transform
 
     # register_views tries every pending view against the same placed views: the matcher and the
@@ -215,7 +215,7 @@ def register_view_with_ecc(xyz, desc, model_xyz, model_desc, cloud=None, model_c
 
 
 def check_name(name: str) -> None:
-    from ..rgbd.model import NAME_RULE, is_valid_name
+    from ..models.model import NAME_RULE, is_valid_name
 
     if not is_valid_name(name):
         raise InputError(f"object name '{name}': use {NAME_RULE} (it becomes part of topic names, "
@@ -262,7 +262,7 @@ def mesh_symmetry(mesh_path, symmetry_text: str, models_info, obj_id) -> tuple:
 
 
 def run(args) -> int:
-    from ..rgbd.model import BuildSettings, CaptureView, build_model, model_name, save_model
+    from ..models.model import BuildSettings, CaptureView, build_model, model_name, save_model
 
     out = Path(args.output)
     if out.suffix != ".npz":
@@ -316,10 +316,10 @@ def run_mesh(args, out: Path) -> int:
     import time
 
     from ..meshes import load_mesh
-    from ..rgbd.capture_alignment import place_capture_keypoints
-    from ..rgbd.mesh_model import (RENDER_DISTANCE_M, RENDER_VIEWS, add_capture_keypoints, add_rendered_keypoints,
+    from ..models.capture_alignment import place_capture_keypoints
+    from ..models.mesh_model import (RENDER_DISTANCE_M, RENDER_VIEWS, add_capture_keypoints, add_rendered_keypoints,
                                    build_model_from_mesh)
-    from ..rgbd.model import BuildSettings, model_name, save_model
+    from ..models.model import BuildSettings, model_name, save_model
 
     if args.rgb or args.depth:
         raise InputError("give either --mesh (with capture bags, optionally) or --rgb/--depth PNG files, not both")

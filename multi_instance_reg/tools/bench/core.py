@@ -15,10 +15,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core import ECC
-from ..synthetic.correspondences import make_sized_scene
-from ..threads import limit_blas_threads
-from .register import add_ecc_arguments, ecc_config_from_args
+from ...core import ECC
+from ...synthetic.correspondences import make_sized_scene
+from ...threads import limit_blas_threads
+from ..register import add_ecc_arguments, ecc_config_from_args
 
 
 def add_arguments(parser) -> None:

@@ -28,8 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
-from ..ros.background import BackgroundNode
+from ...errors import InputError
+from ...ros.background import BackgroundNode
 
 HELP = "the ROS node's end-to-end latency, latency under overload and memory over a long replay"
 COLOUR_TOPIC = "/camera/camera/color/image_raw"
@@ -56,7 +56,7 @@ def add_arguments(parser) -> None:
 
 
 def _load_frames(bag: Path, count: int):
-    from ..datasets.rgbd_bag import RGBDBag
+    from ...datasets.rgbd_bag import RGBDBag
 
     frames = []
     with RGBDBag(bag) as reader:
@@ -72,7 +72,7 @@ def _load_frames(bag: Path, count: int):
 def _messages(frames):
     from sensor_msgs.msg import CameraInfo, Image
 
-    from ..messages import array_to_image_fields
+    from ...messages import array_to_image_fields
 
     out = []
     for f in frames:
@@ -228,7 +228,7 @@ def _pct(values: np.ndarray, q: float):
 
 def run(args) -> int:
     if args.bag is None or not args.model:
-        from .demo import prepare_data
+        from ..demo import prepare_data
 
         data = prepare_data(Path("out/bench_node"), quiet=False)
         args.bag = args.bag or data["scene_bag"]

@@ -17,7 +17,7 @@ from ..errors import InputError
 from ..meshes import TriangleMesh, sample_surface
 from ..symmetry import Symmetries, detect_symmetries, parse_symmetry_text
 from .model import ObjectModel
-from .shape import describe, shape_voxel, voxel_downsample
+from ..frontends.shape.geometry import describe, shape_voxel, voxel_downsample
 
 MARKER_SPACING_M = 0.003
 
@@ -143,7 +143,7 @@ def render_views(mesh: TriangleMesh, count: int = RENDER_VIEWS, distance: float 
                  focal_px: float = RENDER_FOCAL_PX, size: tuple[int, int] = RENDER_SIZE) -> list:
     """``count`` renders (``mesh_render.MeshRender``) of the coloured mesh from directions
     spread over the sphere, ``distance`` from its box centre, looking at it."""
-    from ..mesh_render import look_at, render_mesh
+    from .mesh_render import look_at, render_mesh
     from ..messages import CameraIntrinsics
 
     w, h = size

@@ -11,7 +11,7 @@ With a pose, a scene keypoint can only be one of the model keypoints the pose pu
 keypoints within ``radius`` of it (the scene keypoint taken into the model frame) and keeps
 the pair when that descriptor distance is below ``max_distance``; ``guide_instances`` refits
 each instance's pose on its inliers and these pairs (least squares, re-selected around the
-pose: ``pipeline.refine_transform``) and counts them as its inliers.
+pose: ``transforms.refine_transform``) and counts them as its inliers.
 """
 from __future__ import annotations
 
@@ -20,7 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..core.refinement import residuals
+from ...core.refinement import residuals
+from ...transforms import refine_transform
 
 
 @dataclass
@@ -100,8 +101,6 @@ def guide_instances(matcher: GuidedMatcher, transforms: list, own_scene: list, o
     inliers are then its correspondences within ``inlier_thresh`` of the final pose. Instances
     with more than ``max_inliers`` inliers are kept as they are (their keypoints stay theirs).
     """
-    from .pipeline import refine_transform      # the pipeline imports this module
-
     scene_xyz64 = np.asarray(scene_xyz, np.float64)
     n = len(scene_xyz64)
     owner = np.full(n, -1, np.int64)

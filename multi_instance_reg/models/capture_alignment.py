@@ -30,8 +30,8 @@ from ..errors import InputError
 from ..symmetry import turn_about
 from ..transforms import apply_transform, invert_transform
 from .model import CaptureView, ObjectModel, RegisteredView
-from .pipeline import project_points
-from .shape import apply_twist
+from ..rgbd.pipeline import project_points
+from ..frontends.shape.geometry import apply_twist
 
 AGREE_M = 0.005             # a keypoint agrees with a placed one of its descriptor this close
 MIN_AGREEING = 8            # matches that must agree before a view is placed ...
@@ -167,8 +167,8 @@ def place_views(model: ObjectModel, views: list[CaptureView], objects: list[Regi
     mesh's (shape data, symmetries); ``objects``: each view's object in its own frame
     (``model.view_objects``); ``surface``: (points, normals) of the mesh sampled densely
     (default: the model's shape points, a shape voxel apart)."""
-    from .matching import DescriptorMatcher, prepare_descriptors
-    from .pipeline import InstanceRegistration, PipelineConfig
+    from ..frontends.sift.matching import DescriptorMatcher, prepare_descriptors
+    from ..rgbd.pipeline import InstanceRegistration, PipelineConfig
 
     config = config or PipelineConfig()
     config = replace(config, frontend=replace(config.frontend, correspondences="shape"))

@@ -17,7 +17,7 @@ Optional, from a mesh (`mireg build-model --mesh`; files without them load as be
   shape_voxel      ()      float64  metres: the voxel the shape data (and every frame) is sampled at
   shape_points     (Q, 3)  float32  the surface, voxel-downsampled, model frame
   shape_normals    (Q, 3)  float32  outward unit normals there
-  shape_descriptors (Q, 33) float32 FPFH descriptors there (rgbd/shape.py)
+  shape_descriptors (Q, 33) float32 FPFH descriptors there (frontends/shape/geometry.py)
   shape_variation  (Q,)    float32  surface variation there (flat faces ~0; edges, corners higher)
   box_centre       (3,)    float64  centre of the object's box in the model frame (default 0)
   symmetry_discrete (S, 4, 4) float64  symmetries, identity first (multi_instance_reg/symmetry.py)
@@ -41,8 +41,8 @@ from ..errors import InputError
 from ..files import require_npz_archive
 from ..messages import CameraIntrinsics
 from ..transforms import apply_transform, invert_transform, make_transform
-from .features import SiftSettings, extract_sift
-from .lifting import backproject, depth_to_cloud, fit_dominant_plane, lookup_depth, undistort_pixels
+from ..frontends.sift.features import SiftSettings, extract_sift
+from ..rgbd.lifting import backproject, depth_to_cloud, fit_dominant_plane, lookup_depth, undistort_pixels
 
 MODEL_SCHEMA_VERSION = 1
 _REQUIRED = ("schema_version", "keypoints_xyz", "descriptors", "points_xyz", "extent", "T_capture_model")
@@ -439,7 +439,7 @@ STALE_MATCHES = 20
 
 def _pair_matches(descriptors: list) -> np.ndarray:
     """(n, n): ratio-test matches (0.8, RootSIFT) of view i's keypoints among view j's."""
-    from .matching import prepare_descriptors
+    from ..frontends.sift.matching import prepare_descriptors
 
     d = [prepare_descriptors(x) for x in descriptors]
     n = len(d)

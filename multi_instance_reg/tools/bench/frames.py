@@ -18,15 +18,15 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from ...errors import InputError
+from .scenes import generate_benchmark_bag, generate_capture_bags, model_from_captures
 
 HELP = "per-frame pipeline on scene bags: MHF1/MHR/MHP/MF, RTE/RRE, latency by stage"
 
-INSTANCES_PER_SCENE = (4, 12, 6, 10, 8, 5, 11, 7, 9)
 
 
 def add_arguments(parser) -> None:
-    from ..synthetic.untextured import PRESETS
+    from ...synthetic.untextured import PRESETS
     UNTEXTURED_CHOICES = tuple(PRESETS) + ("all",)
     parser.add_argument("bags", nargs="*", help="scene bags with ground truth (default: generate --scenes of them)")
     parser.add_argument("--model", default=None, action="append",
@@ -68,114 +68,16 @@ def add_arguments(parser) -> None:
                              "before it existed, for A/B; with given BAGs without it, the same anyway")
 
 
-# Rotation (object frame) that turns the upright object's "up" axis (+z) into another.
-_TO_UP = {
-    "+z": np.eye(3),
-    "-z": np.diag([1.0, -1.0, -1.0]),
-    "+y": np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]),
-    "-y": np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]),
-}
-CAPTURE_POSES = ("+z", "-z", "+y", "-y")
-
-
-def capture_scene_resting_on(up: str, object_name=None, seed: int = 0, views: int = 8):
-    """The generator's capture scene with the object resting so that its ``up`` axis points
-    up (the generator itself scans it upright): scanning an object in several resting poses
-    is how its model gets to see every face."""
-    from ..synthetic.scene import (DEFAULT_OBJECT, Placement, SyntheticScene, capture_viewpoints,
-                                   make_capture_scene)
-
-    base = make_capture_scene(object_name or DEFAULT_OBJECT, seed, views)
-    if up == "+z":
-        return base
-    upright = base.placements[0]
-    pose = upright.pose.copy()
-    pose[:3, :3] = pose[:3, :3] @ _TO_UP[up].T
-    pose[2, 3] = float(np.sum(np.abs(pose[2, :3]) * upright.spec.half_extents))   # lowest point on the table
-    placement = Placement(upright.spec, pose, 0, "free")
-    cameras = capture_viewpoints(placement, views, np.random.default_rng([seed, 5, CAPTURE_POSES.index(up)]))
-    return SyntheticScene("capture", upright.spec, [placement], cameras, base.intrinsics, seed)
-
-
-def generate_capture_bags(workdir: Path, object_name=None, seed: int = 0, views: int = 8,
-                          poses=CAPTURE_POSES) -> list[Path]:
-    """Capture bags of the object in several resting poses (default: on its bottom, top and
-    both long sides)."""
-    from ..synthetic.scene import write_scene_bag
-
-    paths = []
-    for up in poses:
-        path = Path(workdir) / f"capture_{'pos' if up[0] == '+' else 'neg'}{up[1]}_up"
-        write_scene_bag(capture_scene_resting_on(up, object_name, seed, views), path)
-        paths.append(path)
-    return paths
-
-
-def generate_benchmark_bag(path: Path, object_name=None, scenes: int = 6, frames: int = 5, seed: int = 0,
-                           instances_each: int = 0, depth_noise_correlation_px: float = 0.0) -> Path:
-    """One bag holding ``scenes`` tabletop scenes (4 to 12 instances of the object, 3
-    distractors each; seeds seed+100, seed+101, ...), ``frames`` consecutive frames of each,
-    with ground truth: the benchmark's (and the tests') scene set. With a list of objects
-    (mixed scenes), ``instances_each`` of each in every scene, so that the bag's one
-    /ground_truth/object names every scene's instances. ``depth_noise_correlation_px``: see
-    ``sensor.simulate_depth``."""
-    from ..datasets.bag_writer import RealSenseBagWriter
-    from ..synthetic.scene import DEFAULT_OBJECT, make_tabletop_scene
-
-    frame_period_ns = 33_333_333
-    stamp = 1_700_000_000_000_000_000
-    with RealSenseBagWriter(path) as bag:
-        for k in range(scenes):
-            count = instances_each or INSTANCES_PER_SCENE[k % len(INSTANCES_PER_SCENE)]
-            scene = make_tabletop_scene(object_name or DEFAULT_OBJECT, count,
-                                        distractors=3, frames=frames, seed=seed + 100 + k)
-            scene.set_depth_noise_correlation(depth_noise_correlation_px)
-            if k == 0:
-                bag.write_object_description(stamp, scene.description())
-            for frame in scene.frames():
-                bag.write_accel_samples(stamp, *scene.accel_samples(frame.index))
-                bag.write_frame(stamp, frame.rgb, frame.depth_mm, scene.intrinsics, poses=frame.poses,
-                                visibility=frame.visibility)
-                stamp += frame_period_ns
-    return Path(path)
-
-
-def model_from_captures(captures, ignore_ground_truth: bool = False) -> "object":
-    """What ``build-model`` makes of the capture bags; ``ignore_ground_truth``: as of a real
-    capture (views registered by texture), the first view's ground truth then giving the
-    model's object frame for scoring only."""
-    from ..rgbd.model import BuildSettings, CaptureView, build_model
-    from ..transforms import invert_transform
-    from .build_model import register_view_with_ecc, views_from_bag
-
-    views, description = [], None
-    for bag in captures:
-        more, desc = views_from_bag(bag, None, None)
-        views += more
-        description = description or desc
-    if not ignore_ground_truth:
-        return build_model(views, BuildSettings(), name=(description or {}).get("name", ""),
-                           register_view=register_view_with_ecc)
-    if views[0].T_camera_object is None:
-        raise InputError("--ignore-ground-truth scores the model against the captures' ground truth; these capture "
-                         "bags have none")
-    model = build_model([CaptureView(v.rgb, v.depth_m, v.intrinsics) for v in views], BuildSettings(),
-                        name=(description or {}).get("name", ""), register_view=register_view_with_ecc)
-    # The capture frame is the first placed view's (the first view's unless it was left out).
-    model.T_object_model = invert_transform(views[model.capture_view].T_camera_object) @ model.T_capture_model
-    return model
-
-
 def model_from_mesh_and_captures(object_name, captures, ignore_ground_truth: bool = False) -> "object":
     """Shape from the generated object's mesh, texture from the capture bags: what
     ``build-model --mesh`` with capture bags makes (placed by their ground truth, which is in
     the mesh frame, or with ``ignore_ground_truth`` by shape)."""
-    from ..rgbd.capture_alignment import place_capture_keypoints
-    from ..rgbd.mesh_model import add_capture_keypoints, build_model_from_mesh
-    from ..rgbd.model import BuildSettings
-    from ..synthetic.objects import get_object, object_mesh
-    from ..synthetic.scene import DEFAULT_OBJECT
-    from .build_model import views_from_bag
+    from ...models.capture_alignment import place_capture_keypoints
+    from ...models.mesh_model import add_capture_keypoints, build_model_from_mesh
+    from ...models.model import BuildSettings
+    from ...synthetic.objects import get_object, object_mesh
+    from ...synthetic.scene import DEFAULT_OBJECT
+    from ..build_model import views_from_bag
 
     spec = get_object(object_name or DEFAULT_OBJECT)
     mesh = object_mesh(spec)
@@ -191,32 +93,11 @@ def model_from_mesh_and_captures(object_name, captures, ignore_ground_truth: boo
     return model
 
 
-def format_report(metrics: dict) -> str:
-    lat = metrics["latency_ms"]
-    rte, rre = metrics["median_rte"], metrics["median_rre_deg"]
-    lines = [
-        f"frames {metrics['frames']} (with ground truth {metrics['frames_with_ground_truth']}, skipped {metrics['skipped_frames']}); "
-        f"instances present {metrics['gt']}, found {metrics['est']}, hits {metrics['hits']} "
-        f"(hit: RRE < {metrics['max_rre_deg']} deg and RTE < {metrics['max_rte'] * 100:g} cm; "
-        f"present: visible fraction >= {metrics['min_visibility']})",
-        f"MHF1 {metrics['MHF1']:.3f}  MHR {metrics['MHR']:.3f}  MHP {metrics['MHP']:.3f}  MF {metrics['MF']:.3f}",
-        f"median RTE {'-' if rte is None else f'{rte * 1000:.2f} mm'}  median RRE {'-' if rre is None else f'{rre:.2f} deg'}",
-        f"latency per frame: p50 {lat['total']['p50']:.1f} ms  p95 {lat['total']['p95']:.1f} ms  "
-        f"(CPU time per frame, all threads: p50 {metrics['cpu_ms_per_frame']['p50']:.1f} ms; "
-        f"load average during the run {metrics.get('load_average', float('nan')):.2f} on {os.cpu_count()} cores; "
-        f"shape search cut by its deadline on {metrics.get('deadline_cut_frames', 0)} of {metrics['frames']} frames)",
-        "stages (p50 / p95 ms): " + "  ".join(f"{s} {lat[s]['p50']:.1f} / {lat[s]['p95']:.1f}"
-                                            for s in ("sift", "matching", "lifting", "ecc", "refinement")
-                                            + (("shape",) if "shape" in lat else ())),
-    ]
-    return "\n".join(lines)
-
-
 def run_models(args, bags, models, config) -> int:
     """Each model alone, then all of them in one pass, on the same frames: per-object MHF1,
     confusions and latency side by side (issue 11's targets)."""
-    from ..rgbd.multi_model import check_model_names
-    from .offline import metrics_dict
+    from ...rgbd.multi_model import check_model_names
+    from ..offline import metrics_dict
 
     check_model_names(models)
     runs = [[m] for m in models] + [models]
@@ -259,8 +140,8 @@ def side_by_side_latency(bags, models, config, repeats: int = 3) -> dict:
     (a single run of a frame moved the ratio by up to 0.1 on the shared 2-core host)."""
     import time
 
-    from ..datasets.rgbd_bag import RGBDBag
-    from ..rgbd.multi_model import MultiModelRegistration
+    from ...datasets.rgbd_bag import RGBDBag
+    from ...rgbd.multi_model import MultiModelRegistration
 
     one, every = MultiModelRegistration(models[:1], config), MultiModelRegistration(models, config)
     one.warm_up()
@@ -283,7 +164,7 @@ def side_by_side_latency(bags, models, config, repeats: int = 3) -> dict:
 
 
 def _replay_all(args, bags, models, config):
-    from .offline import ReplayResult, replay
+    from ..offline import ReplayResult, replay
 
     total = ReplayResult()
     for bag in bags:
@@ -300,12 +181,12 @@ def _replay_all(args, bags, models, config):
 
 
 def run(args) -> int:
-    from ..rgbd.model import load_model
-    from .offline import ReplayResult, load_config, metrics_dict, replay
+    from ...models.model import load_model
+    from ..offline import ReplayResult, format_report, load_config, metrics_dict, replay
 
     config = load_config(args.params)
     if args.untextured:
-        from .bench_untextured import run_untextured
+        from .untextured import run_untextured
 
         return run_untextured(args, config)
     if args.correspondences:

@@ -19,13 +19,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core import ECC
-from ..core.baseline import sequential_ransac
-from ..metrics import evaluate_scene, summarize
-from ..errors import InputError
-from ..synthetic.correspondences import BANDS, HARD, PLAIN, CorrespondenceScene, make_band
-from ..threads import limit_blas_threads
-from .register import add_ecc_arguments, ecc_config_from_args
+from ...core import ECC
+from ...core.baseline import sequential_ransac
+from ...metrics import evaluate_scene, summarize
+from ...errors import InputError
+from ...synthetic.correspondences import BANDS, HARD, PLAIN, CorrespondenceScene, make_band
+from ...threads import limit_blas_threads
+from ..register import add_ecc_arguments, ecc_config_from_args
 
 PAPER_TABLE1 = {"10-50": (96.08, 99.73, 97.03, 0.62), "50-70": (93.99, 99.49, 95.51, 0.55),
                 "70-90": (60.39, 94.42, 69.36, 0.50), "90-99": (14.70, 65.20, 22.75, 0.47)}

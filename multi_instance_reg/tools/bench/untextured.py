@@ -16,13 +16,13 @@ from pathlib import Path
 
 import numpy as np
 
-from .bench_frames import INSTANCES_PER_SCENE
+from .scenes import INSTANCES_PER_SCENE
 
 
 def generate_untextured_bag(path: Path, preset: str, scenes: int, frames: int, seed: int, instances=None,
                             depth_noise_correlation_px: float = 0.0) -> Path:
-    from ..datasets.bag_writer import RealSenseBagWriter
-    from ..synthetic.untextured import make_untextured_scene
+    from ...datasets.bag_writer import RealSenseBagWriter
+    from ...synthetic.untextured import make_untextured_scene
 
     stamp = 1_700_000_000_000_000_000
     with RealSenseBagWriter(path) as bag:
@@ -41,12 +41,11 @@ def generate_untextured_bag(path: Path, preset: str, scenes: int, frames: int, s
 
 
 def run_untextured(args, config) -> int:
-    from ..meshes import load_mesh, save_mesh
-    from ..rgbd.mesh_model import build_model_from_mesh
-    from ..synthetic.objects import get_object, object_mesh
-    from ..synthetic.untextured import BENCH_ALL, PRESETS
-    from .bench_frames import format_report
-    from .offline import ReplayResult, metrics_dict, replay
+    from ...meshes import load_mesh, save_mesh
+    from ...models.mesh_model import build_model_from_mesh
+    from ...synthetic.objects import get_object, object_mesh
+    from ...synthetic.untextured import BENCH_ALL, PRESETS
+    from ..offline import ReplayResult, format_report, metrics_dict, replay
 
     presets = list(BENCH_ALL) if args.untextured == "all" else [args.untextured]
     if args.correspondences:
@@ -92,6 +91,6 @@ def run_untextured(args, config) -> int:
 
 
 def load_mesh_vertices(name: str) -> np.ndarray:
-    from ..synthetic.objects import get_object, object_mesh
+    from ...synthetic.objects import get_object, object_mesh
 
     return object_mesh(get_object(name)).vertices

@@ -35,9 +35,9 @@ def add_arguments(parser) -> None:
 
 
 def _mesh_and_symmetries(path):
-    from ..datasets.bop import read_models_info
-    from ..meshes import box_mesh, load_mesh
-    from ..symmetry import parse_symmetry_text
+    from ...datasets.bop import read_models_info
+    from ...meshes import box_mesh, load_mesh
+    from ...symmetry import parse_symmetry_text
 
     if path is None:
         return "box 10x6x4 cm", box_mesh(0.10, 0.06, 0.04), parse_symmetry_text("x:2,y:2", np.zeros(3))
@@ -61,7 +61,7 @@ def _random_rotation(rng) -> np.ndarray:
 
 
 def _small_turn(rng, deg: float) -> np.ndarray:
-    from ..symmetry import turn_about
+    from ...symmetry import turn_about
 
     return turn_about(rng.normal(size=3), np.zeros(3), np.radians(deg))[:3, :3]
 
@@ -69,8 +69,8 @@ def _small_turn(rng, deg: float) -> np.ndarray:
 def make_dataset(root: Path, mesh, sym, instances: int, images: int, wrong: int, noise_mm: float, noise_deg: float,
                  seed: int) -> list:
     """Write the dataset to ``root``; return its results rows (``BopEstimate``)."""
-    from ..datasets.bop import BopEstimate, BopWriter, gt_info_from_mask
-    from ..evaluation.render import render_scene
+    from ...datasets.bop import BopEstimate, BopWriter, gt_info_from_mask
+    from ...evaluation.render import render_scene
 
     rng = np.random.default_rng(seed)
     writer = BopWriter(root, "test")
@@ -107,9 +107,9 @@ def make_dataset(root: Path, mesh, sym, instances: int, images: int, wrong: int,
 
 
 def run(args) -> int:
-    from ..datasets.bop import BopDataset
-    from ..errors import InputError
-    from ..evaluation.bop_scoring import BopScorer
+    from ...datasets.bop import BopDataset
+    from ...errors import InputError
+    from ...evaluation.bop_scoring import BopScorer
 
     if args.instances < 1 or args.images < 1 or args.wrong < 0:
         raise InputError("--instances and --images must be at least 1, --wrong at least 0")

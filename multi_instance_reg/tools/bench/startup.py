@@ -24,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core import native
-from ..synthetic.correspondences import make_sized_scene
+from ...core import native
+from ...synthetic.correspondences import make_sized_scene
 
 
 def add_arguments(parser) -> None:

@@ -19,9 +19,9 @@ import cv2
 import numba
 import numpy as np
 
-from .errors import InputError
-from .messages import CameraIntrinsics
-from .meshes import TriangleMesh
+from ..errors import InputError
+from ..messages import CameraIntrinsics
+from ..meshes import TriangleMesh
 
 NEAR_M = 0.01
 BACKGROUND_RGB = (128, 128, 128)
@@ -40,11 +40,18 @@ class MeshRender:
         return self.triangle >= 0
 
 
+# Pixels on a shared edge belong to both triangles (the z-buffer keeps the nearer): a
+# slightly negative barycentric still counts, so that no crack opens between triangles.
+EDGE_EPS = 1e-7
+
+
 @numba.njit(cache=True, nogil=True)
-def _rasterise(u, v, z, tris, width, height, zbuf, tri_id, weights):
-    """Per pixel the nearest triangle (``tri_id``), its camera z (``zbuf``) and the
-    perspective-correct weights of its three corners (``weights``); u, v: projected vertices,
-    z: their camera depth (triangles with a corner nearer than NEAR_M are skipped)."""
+def _rasterise(u, v, z, tris, zbuf, tri_id, weights, want_weights):
+    """Per pixel the nearest triangle (``tri_id``), its camera z (``zbuf``) and, with
+    ``want_weights``, the perspective-correct weights of its three corners (``weights``);
+    u, v: projected vertices, z: their camera depth (triangles with a corner nearer than
+    NEAR_M are skipped)."""
+    height, width = zbuf.shape
     for t in range(tris.shape[0]):
         a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
         za, zb, zc = z[a], z[b], z[c]
@@ -54,10 +61,10 @@ def _rasterise(u, v, z, tris, width, height, zbuf, tri_id, weights):
         area = (ub - ua) * (vc - va) - (uc - ua) * (vb - va)
         if abs(area) < 1e-12:
             continue
-        x0 = max(int(np.ceil(min(ua, ub, uc))), 0)
-        x1 = min(int(np.floor(max(ua, ub, uc))), width - 1)
-        y0 = max(int(np.ceil(min(va, vb, vc))), 0)
-        y1 = min(int(np.floor(max(va, vb, vc))), height - 1)
+        x0 = max(int(np.ceil(min(ua, ub, uc) - 1e-9)), 0)
+        x1 = min(int(np.floor(max(ua, ub, uc) + 1e-9)), width - 1)
+        y0 = max(int(np.ceil(min(va, vb, vc) - 1e-9)), 0)
+        y1 = min(int(np.floor(max(va, vb, vc) + 1e-9)), height - 1)
         inv = 1.0 / area
         for y in range(y0, y1 + 1):
             for x in range(x0, x1 + 1):
@@ -65,7 +72,7 @@ def _rasterise(u, v, z, tris, width, height, zbuf, tri_id, weights):
                 la = ((ub - x) * (vc - y) - (uc - x) * (vb - y)) * inv
                 lb = ((uc - x) * (va - y) - (ua - x) * (vc - y)) * inv
                 lc = 1.0 - la - lb
-                if la < 0 or lb < 0 or lc < 0:
+                if la < -EDGE_EPS or lb < -EDGE_EPS or lc < -EDGE_EPS:
                     continue
                 # 1/z is linear on the screen; attributes are linear in 3D.
                 wa, wb, wc = la / za, lb / zb, lc / zc
@@ -74,9 +81,33 @@ def _rasterise(u, v, z, tris, width, height, zbuf, tri_id, weights):
                 if depth < zbuf[y, x]:
                     zbuf[y, x] = depth
                     tri_id[y, x] = t
-                    weights[y, x, 0] = wa / s
-                    weights[y, x, 1] = wb / s
-                    weights[y, x, 2] = wc / s
+                    if want_weights:
+                        weights[y, x, 0] = wa / s
+                        weights[y, x, 1] = wb / s
+                        weights[y, x, 2] = wc / s
+
+
+def rasterise(vertices: np.ndarray, triangles: np.ndarray, T_camera_object: np.ndarray, K: np.ndarray,
+              width: int, height: int, weights: bool = False):
+    """The project's one triangle rasteriser (mesh pictures here, BOP's VSD in
+    ``evaluation.render``): camera z per pixel (float32, 0 where no triangle is), the visible
+    triangle (int32, -1 where none) and, with ``weights``, the (H, W, 3) float32 weights of its
+    corners (else None), of ``vertices`` (V, 3) placed by ``T_camera_object`` and seen through
+    ``K`` (no distortion)."""
+    W, H = int(width), int(height)
+    K = np.asarray(K, np.float64)
+    T = np.asarray(T_camera_object, np.float64)
+    cam = np.asarray(vertices, np.float64) @ T[:3, :3].T + T[:3, 3]
+    z = np.ascontiguousarray(cam[:, 2])
+    safe = np.where(z > NEAR_M, z, 1.0)
+    u = np.ascontiguousarray(K[0, 0] * cam[:, 0] / safe + K[0, 1] * cam[:, 1] / safe + K[0, 2])
+    v = np.ascontiguousarray(K[1, 1] * cam[:, 1] / safe + K[1, 2])
+    zbuf = np.full((H, W), np.inf)
+    tri_id = np.full((H, W), -1, np.int32)
+    w = np.zeros((H, W, 3) if weights else (1, 1, 3), np.float32)
+    _rasterise(u, v, z, np.ascontiguousarray(triangles, np.int64), zbuf, tri_id, w, weights)
+    depth = np.where(tri_id >= 0, zbuf, 0.0).astype(np.float32)
+    return depth, tri_id, (w if weights else None)
 
 
 def render_mesh(mesh: TriangleMesh, T_camera_object: np.ndarray, intrinsics: CameraIntrinsics) -> MeshRender:
@@ -84,20 +115,12 @@ def render_mesh(mesh: TriangleMesh, T_camera_object: np.ndarray, intrinsics: Cam
     ``T_camera_object`` (mesh frame -> optical frame). Needs a mesh with colour."""
     if not mesh.has_colour:
         raise InputError("the mesh has no colour (vertex colours or a texture) to render")
-    W, H = int(intrinsics.width), int(intrinsics.height)
-    K = np.asarray(intrinsics.K, np.float64)
     T = np.asarray(T_camera_object, np.float64)
-    cam = mesh.vertices @ T[:3, :3].T + T[:3, 3]
-    z = cam[:, 2]
-    safe = np.where(z > NEAR_M, z, 1.0)
-    u = K[0, 0] * cam[:, 0] / safe + K[0, 1] * cam[:, 1] / safe + K[0, 2]
-    v = K[1, 1] * cam[:, 1] / safe + K[1, 2]
-    zbuf = np.full((H, W), np.inf)
-    tri_id = np.full((H, W), -1, np.int32)
-    weights = np.zeros((H, W, 3), np.float32)
-    tris = np.ascontiguousarray(mesh.triangles, np.int64)
-    _rasterise(u, v, z, tris, W, H, zbuf, tri_id, weights)
+    depth, tri_id, weights = rasterise(mesh.vertices, mesh.triangles, T, intrinsics.K, intrinsics.width,
+                                       intrinsics.height, weights=True)
+    H, W = depth.shape
     seen = tri_id >= 0
+    tris = np.ascontiguousarray(mesh.triangles, np.int64)
     rgb = np.empty((H, W, 3), np.uint8)
     rgb[:] = BACKGROUND_RGB
     t = tri_id[seen]
@@ -107,14 +130,18 @@ def render_mesh(mesh: TriangleMesh, T_camera_object: np.ndarray, intrinsics: Cam
         rgb[seen] = np.clip(np.einsum("pk,pkc->pc", w, corners) + 0.5, 0, 255).astype(np.uint8)
     else:
         uv = np.einsum("pk,pkc->pc", w, mesh.corner_uv[t])
-        rgb[seen] = _sample_texture(mesh, uv, _texture_level(mesh, u, v, z, tris))
-    depth = np.where(seen, zbuf, 0.0).astype(np.float32)
+        rgb[seen] = _sample_texture(mesh, uv, _texture_level(mesh, T, intrinsics.K, tris))
     return MeshRender(rgb, depth, tri_id, T, intrinsics)
 
 
-def _texture_level(mesh: TriangleMesh, u, v, z, tris) -> int:
+def _texture_level(mesh: TriangleMesh, T, K, tris) -> int:
     """Pyramid level of the texture for this view: texels per pixel over the triangles in
     front of the camera, as the ratio of their texture area to their picture area."""
+    cam = mesh.vertices @ T[:3, :3].T + T[:3, 3]
+    z = cam[:, 2]
+    safe = np.where(z > NEAR_M, z, 1.0)
+    u = K[0, 0] * cam[:, 0] / safe + K[0, 1] * cam[:, 1] / safe + K[0, 2]
+    v = K[1, 1] * cam[:, 1] / safe + K[1, 2]
     h, w = mesh.texture.shape[:2]
     front = np.all(z[tris] > NEAR_M, axis=1)
     pu, pv = u[tris[front]], v[tris[front]]
@@ -163,4 +190,4 @@ def look_at(centre: np.ndarray, direction: np.ndarray, distance: float) -> np.nd
     return T
 
 
-__all__ = ["MeshRender", "render_mesh", "look_at", "BACKGROUND_RGB"]
+__all__ = ["MeshRender", "render_mesh", "rasterise", "look_at", "BACKGROUND_RGB"]

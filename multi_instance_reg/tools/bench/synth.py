@@ -14,7 +14,7 @@ HELP = "frames/s of `mireg synth scene` (render + noise + bag writing) at 640x48
 
 
 def add_arguments(parser) -> None:
-    from ..synthetic.scene import MOTIONS
+    from ...synthetic.scene import MOTIONS
 
     parser.add_argument("--frames", type=int, default=60, help="frames per run (default 60)")
     parser.add_argument("--resolutions", nargs="+", default=["640x480", "1280x720"],
@@ -27,8 +27,8 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from ..errors import InputError
-    from ..synthetic.scene import make_tabletop_scene, write_scene_bag
+    from ...errors import InputError
+    from ...synthetic.scene import make_tabletop_scene, write_scene_bag
 
     if args.frames < 1:
         raise InputError(f"--frames must be at least 1, got {args.frames}")

@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..threads import submit_in_chunks
+from ...threads import submit_in_chunks
 
 MATCHERS = ("flann", "brute_force")
 

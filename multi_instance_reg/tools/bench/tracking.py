@@ -65,7 +65,7 @@ def jitter(frames, model, gt_frames) -> tuple[np.ndarray, np.ndarray]:
     spread (m) and RMS rotation spread (deg) of the published pose, in the object frame."""
     from scipy.spatial.transform import Rotation
 
-    from .offline import estimates_in_object_frame, match_frame
+    from ..offline import estimates_in_object_frame, match_frame
 
     series: dict = {}
     for f, (gt, vis) in zip(frames, gt_frames):
@@ -87,12 +87,12 @@ def jitter(frames, model, gt_frames) -> tuple[np.ndarray, np.ndarray]:
 
 
 def run(args) -> int:
-    from ..datasets.rgbd_bag import RGBDBag
-    from ..metrics import IdentityScore, summarize
-    from ..rgbd.model import load_model
-    from ..synthetic.scene import generate_scene_bag
-    from .bench_frames import generate_capture_bags, model_from_captures
-    from .offline import load_config, load_tracker_config, replay
+    from ...datasets.rgbd_bag import RGBDBag
+    from ...metrics import IdentityScore, summarize
+    from ...models.model import load_model
+    from ...synthetic.scene import generate_scene_bag
+    from .scenes import generate_capture_bags, model_from_captures
+    from ..offline import load_config, load_tracker_config, replay
 
     config, tracker_config = load_config(args.params), load_tracker_config(args.params)
     figures = {"sequences": {}}
@@ -161,9 +161,9 @@ def run(args) -> int:
 def recorded_sequences(tmp: Path, model, config, tracker_config, args) -> dict:
     """The RECORDED sequences, replayed with the tracker (detector on every frame): figures
     and the invariant per sequence."""
-    from ..metrics import summarize
-    from ..synthetic.scene import generate_scene_bag
-    from .offline import replay
+    from ...metrics import summarize
+    from ...synthetic.scene import generate_scene_bag
+    from ..offline import replay
 
     out = {}
     print(f"as recorded elsewhere (realistic sensor; seeds from {args.seed + 500}):")
