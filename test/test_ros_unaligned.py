@@ -17,7 +17,7 @@ def stamp_ns(msg):
 def test_node_registers_unaligned_depth_as_offline_does(object_model, tmp_path):
     from geometry_msgs.msg import PoseArray
 
-    from multi_instance_reg.rgbd.model import load_model
+    from multi_instance_reg.models.model import load_model
     from multi_instance_reg.rgbd.pipeline import PipelineConfig
     from multi_instance_reg.synthetic.scene import generate_scene_bag
     from multi_instance_reg.tools.listen import pose_array_to_matrices

@@ -5,6 +5,7 @@
 - ``lifting``: robust depth lookup, undistortion, back-projection.
 - ``verify``: checks of a pose against the depth image (the acceptors).
 - ``workspace``: the box / image mask the search keeps to;  ``overlay``: the debug picture.
+- ``registration``: depth recorded unaligned, registered to the colour camera's pixels.
 - ``shape_frontend``, ``shape``, ``ppf``, ``segments``, ``faces``: the shape front end (moving
   to ``frontends/shape``).
 """
