@@ -229,6 +229,7 @@ class InstanceRegistrationNode(Node):
         self._aligned_seen = False
         self._depth_intrinsics = None
         self._colour_from_depth = None
+        self._have_depth_calibration = threading.Event()   # both of the above
         depth_topics = []
         if mode != "unaligned":
             self.create_subscription(image_type, depth_topic, self._on_aligned_depth, sub_qos)
@@ -434,6 +435,8 @@ class InstanceRegistrationNode(Node):
     def _on_depth_camera_info(self, msg: CameraInfo) -> None:
         try:
             self._depth_intrinsics = camera_info_to_intrinsics(msg)
+            if self._colour_from_depth is not None:
+                self._have_depth_calibration.set()
         except InputError as exc:
             self.get_logger().warn(f"ignoring the depth camera_info: {exc}", throttle_duration_sec=5.0)
 
@@ -444,6 +447,8 @@ class InstanceRegistrationNode(Node):
 
         try:
             self._colour_from_depth = extrinsics_matrix(msg.rotation, msg.translation)
+            if self._depth_intrinsics is not None:
+                self._have_depth_calibration.set()
         except InputError as exc:
             self.get_logger().warn(f"ignoring the extrinsics on {self.resolve_topic_name(EXTRINSICS_TOPIC)}: {exc}",
                                    throttle_duration_sec=5.0)
@@ -539,6 +544,10 @@ class InstanceRegistrationNode(Node):
                 f"skipping frames: the camera_info on {topic} is refused ({refused})" if refused else
                 f"no camera_info received on {topic} yet; skipping frames until it arrives", throttle_duration_sec=5.0)
             return None
+        if pair.unaligned and not self._have_depth_calibration.is_set() and self.counters.no_extrinsics == 0:
+            # As for camera_info: at start-up the depth's camera_info (published after its
+            # image) or the extrinsics can trail the first depth image.
+            self._have_depth_calibration.wait(timeout=3.5)
         depth_intrinsics, colour_from_depth = self._depth_intrinsics, self._colour_from_depth
         if pair.unaligned and (depth_intrinsics is None or colour_from_depth is None):
             self._count("no_extrinsics")
