@@ -9,7 +9,7 @@ from multi_instance_reg.datasets.rgbd_bag import RGBDBag
 from multi_instance_reg.errors import InputError
 from multi_instance_reg.gravity import IMU_TOPIC, AccelWindow, up_from_samples
 from multi_instance_reg.messages import CameraIntrinsics
-from multi_instance_reg.rgbd.segments import support_mask
+from multi_instance_reg.frontends.shape.segments import support_mask
 
 
 def _angle_deg(a, b) -> float:

@@ -354,7 +354,7 @@ def test_keypoints_of_a_textured_mesh_sit_at_their_3d_places(tmp_path):
 
 def test_build_model_from_coloured_mesh_takes_the_sift_path(tmp_path):
     from multi_instance_reg.models.model import load_model
-    from multi_instance_reg.rgbd.shape_frontend import resolve_correspondences
+    from multi_instance_reg.frontends.shape.frontend import resolve_correspondences
 
     write_textured_box(tmp_path / "box.ply", photo_texture(), per_corner=True)
     run = build(tmp_path, "--mesh", tmp_path / "box.ply", "--render-views", 6, "--symmetry", "none")

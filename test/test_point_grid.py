@@ -1,11 +1,11 @@
-"""ICP's nearest-point search (rgbd/shape.py): the per-cell candidate lists give the same
+"""ICP's nearest-point search (frontends/shape/geometry.py): the per-cell candidate lists give the same
 nearest point as the grid's column search and as brute force, and ICP through them the same
 pose as a plain reference ICP."""
 import math
 
 import numpy as np
 
-from multi_instance_reg.rgbd.shape import PointGrid, _grid_nearest, _listed_nearest, apply_twist, icp_point_to_plane
+from multi_instance_reg.frontends.shape.geometry import PointGrid, _grid_nearest, _listed_nearest, apply_twist, icp_point_to_plane
 
 
 def _surfaces(rng, n=3000):

@@ -1,12 +1,12 @@
-"""Flat faces placed by their outline (rgbd/faces.py): the model's faces, a frame's flat
+"""Flat faces placed by their outline (frontends/shape/faces.py): the model's faces, a frame's flat
 patches, and the poses they give."""
 import numpy as np
 
 from multi_instance_reg.meshes import box_mesh, cylinder_mesh, sample_surface
-from multi_instance_reg.rgbd.faces import frame_patches, matches, model_faces, nearest_face_pose, patch_poses
+from multi_instance_reg.frontends.shape.faces import frame_patches, matches, model_faces, nearest_face_pose, patch_poses
 from multi_instance_reg.models.mesh_model import build_model_from_mesh
-from multi_instance_reg.rgbd.shape import voxel_downsample
-from multi_instance_reg.rgbd.shape_frontend import oriented_downsample
+from multi_instance_reg.frontends.shape.geometry import voxel_downsample
+from multi_instance_reg.frontends.shape.frontend import oriented_downsample
 from multi_instance_reg.symmetry import closest_symmetric_pose
 from multi_instance_reg.transforms import make_transform, rotation_angle_deg
 

@@ -115,7 +115,7 @@ def test_no_points_beyond_the_resolvable_depth(cylinder_model):
     """The depth check's tolerance (3 sigma of the noise) is at most shape_max_noise_share of
     the object's diameter out to resolvable_depth; the frame's points stop there."""
     from multi_instance_reg.rgbd.pipeline import PipelineConfig
-    from multi_instance_reg.rgbd.shape_frontend import ShapeFrontEnd
+    from multi_instance_reg.frontends.shape.frontend import ShapeFrontEnd
 
     fe = PipelineConfig().frontend
     shape = ShapeFrontEnd(cylinder_model, fe)

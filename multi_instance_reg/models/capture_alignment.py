@@ -31,7 +31,7 @@ from ..symmetry import turn_about
 from ..transforms import apply_transform, invert_transform
 from .model import CaptureView, ObjectModel, RegisteredView
 from ..rgbd.pipeline import project_points
-from ..rgbd.shape import apply_twist
+from ..frontends.shape.geometry import apply_twist
 
 AGREE_M = 0.005             # a keypoint agrees with a placed one of its descriptor this close
 MIN_AGREEING = 8            # matches that must agree before a view is placed ...

@@ -17,7 +17,7 @@ from ..errors import InputError
 from ..meshes import TriangleMesh, sample_surface
 from ..symmetry import Symmetries, detect_symmetries, parse_symmetry_text
 from .model import ObjectModel
-from ..rgbd.shape import describe, shape_voxel, voxel_downsample
+from ..frontends.shape.geometry import describe, shape_voxel, voxel_downsample
 
 MARKER_SPACING_M = 0.003
 

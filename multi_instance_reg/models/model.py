@@ -17,7 +17,7 @@ Optional, from a mesh (`mireg build-model --mesh`; files without them load as be
   shape_voxel      ()      float64  metres: the voxel the shape data (and every frame) is sampled at
   shape_points     (Q, 3)  float32  the surface, voxel-downsampled, model frame
   shape_normals    (Q, 3)  float32  outward unit normals there
-  shape_descriptors (Q, 33) float32 FPFH descriptors there (rgbd/shape.py)
+  shape_descriptors (Q, 33) float32 FPFH descriptors there (frontends/shape/geometry.py)
   shape_variation  (Q,)    float32  surface variation there (flat faces ~0; edges, corners higher)
   box_centre       (3,)    float64  centre of the object's box in the model frame (default 0)
   symmetry_discrete (S, 4, 4) float64  symmetries, identity first (multi_instance_reg/symmetry.py)

@@ -33,15 +33,16 @@ from .lifting import backproject, lookup_depth, off_planes, support_planes, undi
 from ..frontends.sift.matching import DescriptorMatcher, prepare_descriptors
 from ..models.model import ObjectModel
 from ..frontends.sift.guided import GuidedMatcher, guide_instances
-from .shape_frontend import ShapeFrontEnd, best_per_place, resolve_correspondences
+from ..frontends.shape.frontend import FrameView, ShapeFrontEnd, resolve_correspondences
 from .verify import free_space_share, surface_samples, texture_agreement
 from .workspace import Workspace, WorkspaceConfig
-from ..threads import limit_blas_threads, map_each, submit_each
+from ..threads import limit_blas_threads, submit_each
 
 STAGES = ("sift", "matching", "lifting", "ecc", "refinement", "total")
-# The most of a pose's agreeing points a later acceptance pass lets lie on the surface of an
-# instance found before it (``ShapeFrontEnd.found_shares``): beyond it, its evidence is theirs.
-FOUND_SHARE_MAX = 0.5
+# The share of frontend.shape_deadline_ms the shape path's refinement may take; the joint
+# choice has the rest (past the whole, it chooses on the scores it has: bracket seed 5 lost
+# neighbours whose outlines a chosen instance explains, not scored again).
+REFINE_SHARE = 0.8
 
 
 @dataclass(frozen=True)
@@ -90,56 +91,32 @@ class FrontEndConfig:
     max_free: float = param(0.15, "SIFT instances: drop one when more than this share of its visible model surface (the model's dense cloud at its pose, facing the camera, on valid depth) lies in front of the measured depth by more than free_tolerance + tan(free_tilt_deg) x its distance from the inliers' centre: space the camera sees to be empty (1 = off)", 0.0, 1.0)
     free_tolerance: float = param(0.008, "metres: max_free's margin at the inliers (depth noise)", 0.0, 0.2)
     free_tilt_deg: float = param(10.0, "degrees: max_free's margin grows by tan(this) per metre from the inliers, so that a pose a few close matches tilt by up to this is not taken for one in empty space", 0.0, 60.0)
-    # Correspondences from shape (rgbd/shape_frontend.py; models built from a mesh).
+    # Correspondences from shape (frontends/shape/frontend.py; models built from a mesh).
     correspondences: str = param("auto", "where correspondences come from: sift (texture), shape (depth: point-pair votes, see shape_features), both (each through its own ECC; the SIFT instances, plus shape instances where no SIFT instance is), or auto (what the model has: shape data and keypoints -> both, shape data only -> shape, else sift)", choices=("auto", "sift", "shape", "both"))
     shape_min_variation: float = param(0.02, "shape: match only points whose surface variation (smallest / summed PCA eigenvalue over the descriptor radius) is at least this; flat faces (~0) give only outliers", 0.0, 0.34)
     shape_neighbours: int = param(3, "shape: each scene point is matched to this many nearest model descriptors (one-to-many)", 1, 20)
     shape_max_points: int = param(30000, "shape: at most this many voxel-downsampled search-region points per frame (a random subset beyond, which thins the cloud and weakens the descriptors)", 100, 1000000)
     shape_icp_iterations: int = param(15, "shape: point-to-plane ICP rounds per instance", 0, 100)
     shape_icp_association: str = param("nearest", "shape: how ICP pairs model and scene points: nearest (the nearest point of the frame's downsampled cloud within 2 voxels, then 1.5) or projective (the depth pixel each model point projects to, within the same distance shrinking to half: the tracker's ICP, tracking/icp.py, no search)", choices=("nearest", "projective"))
-    shape_depth_tolerance: float = param(0.008, "metres: a model point agrees with the depth image when within this (or 0.8 voxel, whichever is larger)", 0.001, 0.2)
-    shape_min_support: float = param(0.75, "shape: keep an instance when at least this share of its visible model surface agrees with the depth image", 0.0, 1.0)
-    shape_min_evidence: float = param(0.8, "shape: keep an instance when support - free - 2 x outline continuation is at least this (support and free as in shape_min_support / shape_max_free; outline continuation: share of the depth pixels in a band just outside the model's outline where its nearest face continues within 3 sigma of the depth noise: a piece of a larger surface)", 0.0, 1.0)
-    shape_outline_rounds: int = param(1, "shape: a pose the depth supports (shape_min_support) but that is rejected (free space, outline continuation) is moved up to this many times onto the patch of depth surface its outline bounds, along the directions its visible normals leave ICP free (a face seen alone: along its plane, and turned about its normal to the patch's long axis), ICP'd and judged again; 0 = off", 0, 10)
-    shape_min_in_view: float = param(0.5, "shape: drop an instance when less than this share of its model surface facing the camera projects inside the image: the depth and outline checks judge only that part, and a pose mostly outside the image fits a strip of wall at its edge as well as an object. A true instance cut by the image edge can fall below it. 0 = off", 0.0, 1.0)
-    shape_max_free: float = param(0.15, "shape: drop an instance when more than this share of its visible model surface lies in front of the measured depth (space seen to be empty)", 0.0, 1.0)
-    shape_recover_max: int = param(0, "shape: look for small consistent groups among at most this many matches no ECC transform explains (a random subset; quadratic in it); 0 = off. Measured on a 2-frame grey-cylinder bag: 1500 lifts recall 0 -> 0.30 at precision 1.0 but latency 240 -> 1120 ms", 0, 100000)
+    shape_depth_tolerance: float = param(0.008, "metres: a model sample agrees with the depth image when within this (or 0.8 voxel, or 3 sigma of the depth noise at its distance, shape_depth_noise, whichever is largest)", 0.001, 0.2)
+    shape_min_support: float = param(0.75, "shape: an instance needs at least this share of its judged model samples (facing the camera, on valid depth, not behind an instance chosen before it; those behind another nearer surface count half) to agree with the depth: within the depth tolerance and, where the depth gives a normal, with the normal within 45 deg (frontends/shape/explain.py)", 0.0, 1.0)
+    shape_min_evidence: float = param(0.8, "shape: an instance needs support - 2 x free - 2 x outline at least this (shares of its judged samples; free: samples in space the camera saw through; outline: share of a band just outside its drawn outline where its nearest face continues in the depth, a piece of a larger surface, unless a colour edge or a chosen instance's pixels break it). The instances are chosen best gain first (evidence x samples no chosen one explains); each choice claims its pixels and its neighbours are judged again", 0.0, 1.0)
     shape_features: str = param("ppf", "shape: ppf (point pairs voted per connected segment of the depth off large planes; Drost et al. 2010) or fpfh (FPFH on the search region, one-to-many)", choices=("ppf", "fpfh"))
     shape_ppf_bucket: int = param(50, "shape ppf: at most this many model pairs per quantised feature (a random subset; a box has thousands of coplanar pairs per distance)", 10, 100000)
     shape_ref_step: int = param(5, "shape ppf: every this-many-th point of a segment is a reference point that votes", 1, 100)
     shape_max_partners: int = param(60, "shape ppf: each reference point is paired with at most this many points of its segment within the object's diameter (evenly spread)", 5, 100000)
     shape_pose_clusters: int = param(30, "shape ppf: besides ECC's transforms, check this many pose hypotheses clustered straight from the reference points' votes (Drost et al.; 24 deg, a tenth of the object's diagonal); 0 = ECC's only", 0, 1000)
     shape_segment_clusters: int = param(6, "shape ppf, non-convex models only: besides the frame's best shape_pose_clusters, each connected segment's best this-many clusters of its own references' poses are checked too (those not among the frame's): an instance in a small segment, or whose votes are mostly blurred or turned over, ranks low over the frame yet high in its segment; 0 = off", 0, 100)
-    shape_merged_reach: bool = param(True, "shape ppf: in a segment that holds more than one object (two of its points farther apart than the object's diameter: touching instances whose surfaces meet within the segment link), each reference point pairs only with points within the radius of the smallest ball about a point of the object's surface that holds the whole object, not the whole diameter, so that most of its partners lie on its own instance; off: the diameter, as in a segment of one object")
-    shape_merged_clusters: int = param(6, "shape ppf, non-convex models, with shape_merged_reach: the segments of several objects are voted over the whole diameter as well, and each one's best this-many clusters of those votes are checked too (those not among the frame's and the segments' own): a plate's pose is told by pairs reaching the other plate, farther than the short reach; 0 = off", 0, 100)
-    shape_support_area: float = param(3.0, "shape ppf: a connected piece of a dominant plane is a support surface (floor, pallet, table) and removed when its area exceeds this many times the object's largest box side", 1.0, 1000.0)
-    shape_keep_object_tops: bool = param(True, "shape ppf, with shape_support_area: a large plane piece stays in the cloud when its points stand, above a larger removed plane, at a height where the object resting on it shows a flat face up, and nothing stands on it within its outline: the flush tops of objects lying side by side, larger together than shape_support_area faces, not a support (a pallet's top, as high as a carton, carries the cartons)", None, None)
-    shape_deadline_ms: float = param(180.0, "shape: the search's budget, milliseconds from when the pose hypotheses are taken up (after the frame's points, votes and ECC): no further hypothesis is refined nor acceptance pass run once it is spent. The hypotheses are refined best first (ECC's clusters by size, then the vote clusters by their votes), so a cluttered frame returns the instances verified by then instead of taking seconds (IC-BIN frames with a room behind the bin: refinement 10-36 s on a loaded host). The process's CPU time, not the clock's: the same instances at any load of the host. FrameResult.deadline_cut (mireg offline: metrics.json deadline_cut_frames) says when it did; 0 = no deadline", 0.0, 100000.0)
+    shape_support_area: float = param(3.0, "shape ppf: a connected piece of a dominant plane is a support surface (floor, pallet, table) and removed when its area exceeds this many times the object's largest box side; a large piece stays when it stands above a larger removed plane at the height of an object's face (flush tops of objects side by side)", 1.0, 1000.0)
+    shape_deadline_ms: float = param(180.0, "shape: the search's budget, milliseconds from when the pose hypotheses are taken up (after the frame's points, votes and ECC): no further hypothesis is refined once it is spent, and the joint choice then uses the scores it has instead of scoring neighbours again. The hypotheses are refined best first (ECC's clusters by size, then the vote clusters by their votes), so a cluttered frame returns the instances verified by then instead of taking seconds. The process's CPU time, not the clock's: the same instances at any load of the host. FrameResult.deadline_cut (mireg offline: metrics.json deadline_cut_frames) says when it did; 0 = no deadline", 0.0, 100000.0)
     shape_max_noise_share: float = param(0.125, "shape: look for the object only where the depth check's tolerance there, 3 sigma of the depth noise (shape_depth_noise), is at most this share of its diameter (its box diagonal): z <= sqrt(this x diameter / (3 shape_depth_noise)). Beyond, any surface of the object's size agrees with it: IC-BIN frames (a room 2-3 m behind a bin of cups) gave 46-60 poses a frame on clutter at 2.0-3.1 m, support 0.8-1.0 at tolerances of 30-56 mm against a cup's 45 mm radius. 0.125 with the D4xx noise: cup (17 cm diagonal) 1.9 m, grey cylinder 1.65 m, bracket 1.8 m, carton 2.85 m; 0 = no limit", 0.0, 1.0)
     shape_depth_noise: float = param(0.002, "shape ppf: depth noise sigma per squared metre of distance (stereo: sigma_z = this x z^2; D4xx about 0.002); plane points lie within plane_thresh + 3 sigma_z", 0.0, 0.1)
     both_min_shown_keypoints: int = param(10, "both: a shape instance whose pose shows at least this many of the model's SIFT keypoints (facing the camera, not hidden) is a textured view, and kept only with both_min_agreeing matches; fewer: plain faces, kept on the depth evidence alone", 0, 100000)
     both_min_agreeing: int = param(3, "both: SIFT matches that must agree with a shape instance showing textured faces", 0, 100000)
     shape_plane_thresh: float = param(0.004, "shape ppf: metres: a point is on a support plane within this + 3 sigma_z of it (the SIFT path's plane_thresh, 1 cm, would take the top of a 12 mm plate lying on the table for the table); a point in that band is still off the plane where the band points of the 5 x 5 sampled pixels about it lie on average more than this + 3 sigma of such means off it (sigma measured on the plane): a tray's or a channel's thin floor is not the table", 0.0, 0.1)
-    shape_segment_link: float = param(2.0, "shape ppf: points closer than this many voxels are in one segment", 1.0, 10.0)
     shape_min_segment: int = param(15, "shape ppf: segments with fewer voxel points are ignored", 3, 100000)
-    shape_hidden_by_instances: bool = param(True, "shape: a pose rejected for too little support is judged again with its model points hidden behind the instances found in the frame left out (not those inside a found instance's box; at least shape_min_in_view of its points must remain), and added where no instance is", None, None)
-    shape_joined_clusters: int = param(1, "shape ppf, non-convex models only (an L bracket; boxes and cylinders show one connected surface): two segments side by side in the image across a depth step, that one object could span, also vote together, and their best this-many pose clusters are checked as hypotheses (not given to ECC); 0 = off", 0, 100)
-    shape_rejected_pairs: bool = param(True, "shape (with shape_hidden_by_instances), non-convex models only: poses still rejected after that are judged again two at a time, each with the other taken as found besides the instances found (its pixels hide the other's points and leave its outline band); a pair is added when both pass and neither overlaps an instance kept: two instances hiding each other or lying flush, neither found alone. Not for convex models: two carton-sized distractor boxes, one flush against the other, pass as a pair too", None, None)
-    shape_rejected_groups: bool = param(True, "shape, with shape_rejected_pairs (non-convex models only): the poses still rejected after the pairs, clear of every instance kept, are judged in groups of three or more whose pixels meet one another (a row of touching instances with flush tops, each rejected on its outline unless its neighbours on both sides are taken as found), each member with all the others taken as found; those that fail leave the group and the rest are judged again; added when three or more pass", None, None)
-    shape_hidden_by_any: bool = param(True, "shape (with shape_hidden_by_instances): poses still rejected after that (and shape_rejected_pairs) are judged again with every point behind a nearer measured surface left out, whatever it is, when the depth steps clearly in front of them where they go out of sight (in the depth image: at the hidden points next to the agreeing ones the depth at least 2 tolerances nearer than at those, median), and added where no instance is: an instance behind a distractor that is not found. Where a pose is sunk into a surface, that surface goes on smoothly instead", None, None)
-    shape_residual_votes: bool = param(True, "shape ppf, non-convex models only: after the acceptance passes, the segments the instances found touch are voted again without those instances' points (cut into connected segments anew), and each new segment's best shape_segment_clusters clusters are refined and judged (also with the instances found hiding them), added where no instance is: an instance in one segment with its neighbours pairs most of its references with their points", None, None)
-    shape_outline_by_instances: bool = param(True, "shape (with shape_hidden_by_instances): a pose rejected by the free-space or outline check is judged again too, its outline band's pixels on the instances found left out (a neighbour flush with it continues its face there: no larger surface), and added where no instance is", None, None)
-    shape_faces: bool = param(True, "shape ppf, convex models with a face that has a long axis (a box; not a cylinder): the segments' flat patches whose outline (second moments) is that of a model face (a carton's top seen whole) give pose hypotheses, and a hypothesis near such a patch is moved onto it before ICP (a face seen alone holds ICP in its plane nowhere, and its point pairs differ only in their distance; rgbd/faces.py)", None, None)
-    shape_rescues_per_place: int = param(3, "shape: of the refined poses the checks reject (none of them on a kept pose's place), only this many on one place (their boxes overlapping beyond max_overlap; those overhanging space seen empty, free >= 0.02, and the others each this many), the best fits (support - free), get the further tries (moved onto their outline's patch; for non-convex models the second look, turned starts and held look); 0 = all. Several hypotheses refined onto one distractor, or onto one instance they all miss, find there what the best of them finds", 0, 1000)
-    shape_second_look: bool = param(True, "shape, non-convex models only (an L bracket): a refined pose rejected while overhanging space seen empty (free >= 0.02, support and support - free >= 0.6) is aligned again by projective point-to-plane ICP (each model point with the depth pixel on its ray: no pairs across the two plates where they meet, which leave nearest-point ICP a few degrees off), judged again when the depth agrees better, and added where no instance is", None, None)
-    shape_residual_rejected: bool = param(True, "shape ppf, with shape_residual_votes: the residual votes also leave out the points of the rejected poses the depth supports (shape_min_support), the most evident first, each clear of those before it (max_overlap): an instance in one segment with flush neighbours that were all rejected (on their outlines onto it) has no hypothesis otherwise, its references paired with the neighbours' points. Voted besides the votes over the found instances' leftovers, not instead", None, None)
-    shape_climbed_pairs: bool = param(True, "shape ppf, with shape_residual_rejected and shape_rejected_pairs: of the poses the residual votes give beside a supported rejected pose that does not overhang space seen empty (free < 0.02: rejected for what a neighbour explains), refined and rejected, the best fit on each place with that pose's pixels hiding them, when those hide some of it and the rest agrees or overhangs (the held look's gate), is climbed by turned starts (shape_turned_starts, halved twice when none is better; within the vote clusters' bounds) while the depth agrees better with it so hidden, then judged in a pair with that pose: an instance half hidden by its flush neighbour has fits a few degrees off about its top's normal that nearest-point ICP neither turns nor holds along its length", None, None)
-    shape_turned_starts: float = param(10.0, "shape, with shape_second_look (non-convex models): a pose still rejected after its second look, though the depth supports it (shape_min_support), is started again from itself turned by +- this many degrees about each of the model's axes (through its visible surface's centre), 3 ICP rounds each; the start the depth agrees with best gets the remaining rounds, is judged and added where no instance is; 0 = off", 0.0, 90.0)
-    shape_reject_through_support: bool = param(True, "shape ppf: drop a pose whose model reaches more than 2 voxels through the frame's largest support plane (the plane piece with the largest area removed, taken as unbounded: the table or floor): the depth check counts what lies behind the table's surface as hidden, so a bracket turned over with its upright plate sunk into the table would pass it. Off where the largest plane is not what objects stand on and objects lie beyond its extension", None, None)
-    shape_pierce_every_plane: bool = param(True, "shape ppf, with shape_reject_through_support: the model may reach through none of the support planes a large piece of which the frame shows (the floor and a pallet's top on it, a table and a wall), not only the largest: a carton fitted onto a crate's top on a pallet can reach through the pallet's top while the largest plane is the floor", None, None)
-    shape_min_noise_agreement: float = param(0.5, "shape: of the model points that agree with the depth (within the depth tolerance, whose floor of shape_depth_tolerance or 0.8 voxel is many sigma near the camera), at least this share must agree within the depth noise (3 sigma at the object's distance, at least 2 mm): the object's surface is where the depth is, not a shape that passes near it; 0 = off", 0.0, 1.0)
-    shape_min_visible: int = param(20, "shape: an instance needs at least this many model points visible in the image with valid depth", 3, 100000)
-    shape_gravity_tolerance_deg: float = param(20.0, "shape ppf, when the frame comes with the direction of gravity (the camera's accelerometer, or TF): the support \"below\" the objects (the outline check leaves out what lies no higher than an object's lowest point; shape_reject_through_support without every plane) is the largest removed plane whose normal is within this of up, not a larger wall; none within it: the largest, as without gravity. A hand-held camera's accelerometer averaged over 0.1 s is a few degrees off, more on a sharp turn; level supports lie within a degree or two, walls 70-90 deg off", 1.0, 60.0)
+    shape_faces: bool = param(True, "shape ppf, convex models with a face that has a long axis (a box; not a cylinder): the segments' flat patches whose outline (second moments) is that of a model face (a carton's top seen whole) give pose hypotheses, and a hypothesis near such a patch is moved onto it before ICP (a face seen alone holds ICP in its plane nowhere, and its point pairs differ only in their distance; frontends/shape/faces.py)", None, None)
+    shape_gravity_tolerance_deg: float = param(20.0, "shape ppf, when the frame comes with the direction of gravity (the camera's accelerometer, or TF): the support \"below\" the objects (the outline leaves out what lies no higher than an object's lowest point) is the largest removed plane whose normal is within this of up, not a larger wall; none within it: the largest, as without gravity. A hand-held camera's accelerometer averaged over 0.1 s is a few degrees off, more on a sharp turn; level supports lie within a degree or two, walls 70-90 deg off", 1.0, 60.0)
 
 
 def rgbd_ecc_config() -> ECCConfig:
@@ -352,7 +329,7 @@ class InstanceRegistration:
         check_frame(rgb, depth_m, intrinsics)
         gravity = unit_up(gravity)
         if self.correspondences == "shape":
-            return self._register_frame_shape(depth_m, intrinsics, gravity=gravity)
+            return self._register_frame_shape(depth_m, intrinsics, gravity=gravity, rgb=rgb)
         if self.correspondences == "both":
             return self._register_frame_both(rgb, depth_m, intrinsics, gravity)
         return self._register_frame_sift(rgb, depth_m, intrinsics)
@@ -490,30 +467,29 @@ class InstanceRegistration:
         labels = np.concatenate([labels] + added_l)
         return out, scene_idx, model_idx, labels
 
-    def _register_frame_shape(self, depth_m, intrinsics, search=None, gravity=None) -> FrameResult:
-        """Shape correspondences -> ECC -> per instance ICP and a depth check -> no two
-        instances in one place (which also reports a symmetric object once: its symmetric
-        fits fill the same box)."""
+    def _register_frame_shape(self, depth_m, intrinsics, search=None, gravity=None, rgb=None) -> FrameResult:
+        """Shape correspondences -> ECC (and the vote clusters' poses) -> each hypothesis
+        refined by ICP and explained against the frame -> the instances chosen jointly
+        (``frontends/shape/explain.py``: hypotheses on the same pixels compete; two whose
+        boxes overlap cannot both be, which also reports a symmetric object once). ``rgb``:
+        its edges mark outlines the depth does not show (flush-packed cartons)."""
         fe = self.config.frontend
         t = {s: 0.0 for s in STAGES}
-        t["shape"] = 0.0
         t0 = time.perf_counter()
         within = None
         if fe.shape_features == "ppf":
             within = self.workspace_pixels(depth_m, intrinsics)     # ppf removes its own planes first
         elif search is None:
             search = self._search_mask(depth_m, intrinsics)
+        view = FrameView.of(depth_m, intrinsics, rgb)
         t3 = time.perf_counter()
         t["lifting"] = (t3 - t0) * 1e3
         cloud = self._shape.frame_cloud(depth_m, intrinsics, None if search is None else search > 0, gravity, within)
-        self._shape.keep_frame(depth_m, intrinsics)        # the acceptance passes redraw the same poses
         t4 = time.perf_counter()
         # ECC does not need the vote clusters' poses (ppf): it runs in the shared pool as
-        # soon as the correspondences are made, while those poses are made (whose single-
-        # threaded steps left the other core idle); the poses do not depend on ECC either:
-        # they are refined on the other core until ECC is done (those an ECC transform turns
-        # out to duplicate are not used). "matching" then holds the pose clusters too, and
-        # "ecc" the wait for ECC after them.
+        # soon as the correspondences are made, while those poses are made; they do not
+        # depend on ECC either: they are refined on the other core until ECC is done.
+        # "matching" then holds the pose clusters too, and "ecc" the wait for ECC after them.
         started, solving = [], []
 
         def start_ecc(s, g):
@@ -521,7 +497,7 @@ class InstanceRegistration:
                 solving.extend(submit_each(lambda pair: self._shape_ecc.register(*pair), [(s, g)]))
 
         src, tgt = self._shape.correspondences(cloud, on_poses=lambda: started.append(
-            self._shape.start_refining(list(cloud.poses), cloud, depth_m, intrinsics)), on_matches=start_ecc)
+            self._shape.start_refining(list(cloud.poses), cloud, view)), on_matches=start_ecc)
         started = started[0] if started else None
         t5 = time.perf_counter()
         t["shape"] = (t4 - t3) * 1e3
@@ -533,389 +509,36 @@ class InstanceRegistration:
         offset = len(hypotheses) - (0 if cloud.poses is None else len(cloud.poses))
         t6 = time.perf_counter()
         t["ecc"] = (t6 - t5) * 1e3
-        if fe.recover and fe.shape_recover_max > 0 and len(src) >= 3:
-            # More hypotheses from the matches no transform explains: the depth check below
-            # rejects the wrong ones, while a missed instance is lost for the frame.
-            thresh = self._shape_ecc.config.inlier_thresh
-            _, res = assign_nearest(src, tgt, hypotheses, thresh)
-            leftover = np.flatnonzero(res >= thresh)
-            if len(leftover) > fe.shape_recover_max:
-                leftover = np.sort(np.random.default_rng(0).choice(leftover, fe.shape_recover_max, replace=False))
-            hypotheses += recover_small_instances(src, tgt, leftover, self._shape.diameter, self._shape.voxel,
-                                                  fe.recover_min_inliers, thresh)
-        rejected, second = [], []
-        # The search's budget: from here, where the hypotheses are taken up best first.
-        self._shape.set_deadline(time.process_time() + fe.shape_deadline_ms / 1e3 if fe.shape_deadline_ms > 0 else None)
-        checked = self._shape.refine_and_check(hypotheses, cloud, depth_m, intrinsics, started, offset, rejected,
-                                               second, overlaps=self._overlapping)
-        chosen = self._one_per_box(checked, frame=(depth_m, intrinsics))
-        if second:
-            # Poses kept at their second look (a non-convex model's projective ICP) only where
-            # no instance is: ranked with the rest, a wrong one polished onto a bracket took
-            # the place of its right pose left 4 deg off (seed 0).
-            chosen = self._one_per_box(chosen + second, first=len(chosen), frame=(depth_m, intrinsics))
-        if not self._shape.past_deadline():
-            chosen = self._accept_rejected(chosen, rejected, hypotheses, cloud, depth_m, intrinsics)
-        self._shape.keep_frame(None)
+        # The search's budget: from here, where the hypotheses are taken up best first; the
+        # refinement stops at REFINE_SHARE of it, the joint choice (scoring the neighbours of
+        # each instance chosen again) has the rest.
+        budget = fe.shape_deadline_ms / 1e3 if fe.shape_deadline_ms > 0 else None
+        start = time.process_time()
+        self._shape.set_deadline(start + REFINE_SHARE * budget if budget else None)
+        candidates = self._shape.refine_all(hypotheses, cloud, view, started, offset)
         cut = self._shape.deadline_cut
+        self._shape.set_deadline(start + budget if budget else None)
+        chosen = self._shape.choose(candidates, cloud, view,
+                                    lambda e, c: bool(self._overlapping([e.T], [c.T])[0, 0]))
+        cut = cut or self._shape.deadline_cut
         self._shape.set_deadline(None)
-        instances = [Instance(i, c[0], c[2], float(c[1]), self.model.name) for i, c in enumerate(chosen)]
-        labels, _ = assign_nearest(src, tgt, [c[0] for c in chosen], self._shape_ecc.config.inlier_thresh)
+        instances = [Instance(i, e.T, int(round(e.agree)), e.support, self.model.name) for i, e in enumerate(chosen)]
+        labels, _ = assign_nearest(src, tgt, [e.T for e in chosen], self._shape_ecc.config.inlier_thresh)
         t["refinement"] = (time.perf_counter() - t6) * 1e3
         t["total"] = (time.perf_counter() - t0) * 1e3
         uv = project_points(tgt, intrinsics)
         return FrameResult(instances, t, uv, src.astype(np.float32), tgt.astype(np.float32), labels, 0,
                            deadline_cut=cut)
 
-    def _accept_rejected(self, chosen, rejected, hypotheses, cloud, depth_m, intrinsics) -> list:
-        """``chosen`` (the instances the refinement keeps) and what the acceptance passes add
-        of the ``rejected`` poses (and of the residual votes over ``hypotheses``' segments)."""
-        fe = self.config.frontend
-        late = self._shape.past_deadline      # each pass only while the frame's deadline has not passed
-        if fe.shape_hidden_by_instances and chosen and rejected:
-            # Poses rejected for too little support, perhaps for what the instances found
-            # hide of them, or by the outline, where a found one is flush with them: judged
-            # again with those points and pixels left out, added where no instance is.
-            chosen, rejected = self._accept_behind(chosen, rejected, cloud, depth_m, intrinsics)
-        judged_with = {id(c) for c in chosen}
-        if fe.shape_hidden_by_instances and fe.shape_rejected_pairs and len(rejected) >= 2 and not late():
-            chosen = self._accept_pairs(chosen, rejected, cloud, depth_m, intrinsics)
-            if fe.shape_rejected_groups and not late():
-                chosen = self._accept_groups(chosen, rejected, cloud, depth_m, intrinsics)
-        provisional = []
-        if fe.shape_hidden_by_instances and fe.shape_hidden_by_any and rejected and not late():
-            before = chosen
-            chosen = self._accept_hidden(chosen, rejected, cloud, depth_m, intrinsics)
-            provisional = chosen[len(before):]
-        if fe.shape_hidden_by_instances and self._shape.non_convex and rejected and not late():
-            chosen = self._accept_turned(chosen, rejected, cloud, depth_m, intrinsics)
-        if fe.shape_residual_votes and self._shape.non_convex and chosen and not late():
-            chosen = self._accept_residual(chosen, hypotheses, cloud, depth_m, intrinsics, provisional, rejected)
-        if fe.shape_hidden_by_instances and rejected and any(id(c) not in judged_with for c in chosen) and not late():
-            # The rejected poses judged again with the instances the later passes found (those
-            # whose checks look where one of them is seen): a channel rejected on its outline
-            # onto a flush neighbour found only by the residual votes (channel seed 2251 frames
-            # 7 / 8) passes with it.
-            meet = self._shape.rects_meeting(rejected, [c[0] for c in chosen if id(c) not in judged_with], intrinsics)
-            near = [T for T, row in zip(rejected, meet) if row.any()]
-            if near:
-                chosen, _ = self._accept_behind(chosen, near, cloud, depth_m, intrinsics)
-        return chosen
-
-    def _accept_pairs(self, chosen, rejected, cloud, depth_m, intrinsics) -> list:
-        """``chosen`` and the rejected poses accepted two at a time (``ShapeFrontEnd.judge_pairs``:
-        each passes with the other taken as found), a pair only when neither overlaps an
-        instance kept or a pose accepted before it; the strongest pairs first."""
-        if not self._shape.non_convex:
-            return chosen
-        found = [c[0] for c in chosen]
-        limit = self.config.frontend.max_overlap
-        free, sub = self._free_block(found, rejected)
-        if len(free) < 2:
-            return chosen
-        occluders = self._shape.instance_pixels(found, depth_m, intrinsics)
-        pairs = self._shape.judge_pairs([rejected[k] for k in free], sub, limit, cloud, depth_m, intrinsics,
-                                        occluders, found)
-        taken: set[int] = set()
-        for i, j, ri, rj in pairs:
-            if any(sub[i, k] > limit or sub[k, i] > limit or sub[j, k] > limit or sub[k, j] > limit for k in taken):
-                continue
-            taken |= {i, j}
-            chosen = chosen + [ri, rj]
-        return chosen
-
-    def _accept_groups(self, chosen, rejected, cloud, depth_m, intrinsics) -> list:
-        """``chosen`` and the rejected poses clear of it accepted in groups of three or more
-        (``ShapeFrontEnd.judge_groups``: each passes with all the others taken as found)."""
-        found = [c[0] for c in chosen]
-        free, sub = self._free_block(found, rejected)
-        if len(free) < 3:
-            return chosen
-        occluders = self._shape.instance_pixels(found, depth_m, intrinsics) if found \
-            else np.zeros(depth_m.shape, np.uint8)
-        return chosen + self._shape.judge_groups([rejected[k] for k in free], sub, self.config.frontend.max_overlap,
-                                                 cloud, depth_m, intrinsics, occluders, found)
-
-    def _accept_hidden(self, chosen, rejected, cloud, depth_m, intrinsics) -> list:
-        """``chosen`` and the rejected poses that pass with whatever lies in front of them
-        taken as hiding them (``ShapeFrontEnd.judge_hidden``), added where no instance is."""
-        found = [c[0] for c in chosen]
-        free = [rejected[k] for k in self._clear_of(found, rejected)[1]]
-        if not free:
-            return chosen
-        explained = self._shape.instance_pixels(found, depth_m, intrinsics) if found else None
-        hidden = [c for c in map_each(lambda T: self._shape.judge_hidden(T, cloud, depth_m, intrinsics, explained,
-                                                                                  found),
-                                      free) if c is not None]
-        if not hidden:
-            return chosen
-        chosen = self._hidden_over_overhanging(chosen, hidden, depth_m, intrinsics)
-        return self._one_per_box(chosen + hidden, first=len(chosen), frame=(depth_m, intrinsics))
-
-    def _hidden_over_overhanging(self, chosen, hidden, depth_m, intrinsics) -> list:
-        """``chosen`` without those that overhang space the depth shows empty
-        (``ShapeFrontEnd.overhangs``) where one of the ``hidden`` poses (passed with what lies
-        in front hiding them) that does not overhang claims the same seen points (more than
-        ``FOUND_SHARE_MAX`` of its agreeing points on the chosen one's surface) with more
-        evidence: of two poses explaining the same surface, the one whose unseen rest lies
-        behind a nearer surface, not out in view. An L bracket whose base plate is hidden
-        behind a cylinder, its upright plate seen: the same bracket turned half about the
-        vertical, its base on the open table, agrees as well (support 0.91, free 0.06-0.07,
-        evidence 175-188), kept first, then kept the right pose (judged hidden, free 0) off
-        its place (bracket seed 2465 frames 3 / 5)."""
-        shape = self._shape
-        level = [c for c in hidden if not shape.overhangs(c[0], depth_m, intrinsics)]
-        if not level:
-            return chosen
-        out = []
-        for c in chosen:
-            if shape.overhangs(c[0], depth_m, intrinsics) and any(
-                    h[3] > c[3] and shape.found_shares([h[0]], [c[0]], depth_m, intrinsics)[0] > FOUND_SHARE_MAX
-                    for h in level):
-                continue
-            out.append(c)
-        return out
-
-    def _accept_turned(self, chosen, rejected, cloud, depth_m, intrinsics) -> list:
-        """``chosen`` and the rejected poses clear of it turned over (``ShapeFrontEnd.turned_over_starts``),
-        those clear of the instances found refined and judged as hypotheses (one of each group
-        alike: several fits of one channel turn over onto it), added where no instance is."""
-        found = [c[0] for c in chosen]
-        free = [rejected[k] for k in self._clear_of(found, rejected)[1]]
-        starts = [T1 for S in map_each(lambda T: self._shape.turned_over_starts(T, cloud, depth_m, intrinsics), free)
-                  for T1 in S]
-        # Most fits on an instance found turn over onto it (a fit sliding between two).
-        starts = [starts[k] for k in self._clear_of(found, starts)[1]]
-        if not starts:
-            return chosen
-        second = []
-        checked = self._shape.refine_and_check(starts, cloud, depth_m, intrinsics, second=second)
-        if not checked and not second:
-            return chosen
-        # A pose placed by a half turn is a guess the votes did not make: its near-symmetric
-        # twin is as near (an L bracket with its plates swapped), and so is a pose a few
-        # degrees off the one ICP left; of them the depth agrees with best is kept (bracket
-        # seed 1213 frame 6: the turned pose 178 deg off a bracket, evidence 138, its twin
-        # refined onto that bracket 181; 1917 frame 2: 10.4 deg off, 171.5, its second look
-        # 1.0 deg off, 213).
-        accepted = [self._better_twin(c, cloud, depth_m, intrinsics) for c in checked + second]
-        return self._one_per_box(chosen + accepted, first=len(chosen), frame=(depth_m, intrinsics))
-
-    def _better_twin(self, kept, cloud, depth_m, intrinsics):
-        """Of ``kept`` (T, support, agreeing points, evidence), it after the second look's
-        projective ICP (``ShapeFrontEnd.look_again``) and its near-symmetric twins
-        (``ShapeFrontEnd.near_twins``) refined, each judged, the one with the most evidence."""
-        looked = self._shape.look_again(kept[0], cloud, depth_m, intrinsics)
-        candidates = [kept] + ([looked] if looked is not None else [])
-        twins = self._shape.near_twins(kept[0])
-        if twins:
-            second = []
-            candidates += self._shape.refine_and_check(twins, cloud, depth_m, intrinsics, second=second) + second
-        return max(candidates, key=lambda c: c[3])
-
-    def _accept_residual(self, chosen, hypotheses, cloud, depth_m, intrinsics, provisional=(), rejected=()) -> list:
-        """``chosen`` and the poses voted again over what the instances found leave of their
-        segments (``ShapeFrontEnd.residual_poses``), refined and judged as the first
-        hypotheses, then with the instances found hiding them (``judge_behind``); added
-        where no instance is. ``provisional``: those of ``chosen`` passed only with points
-        taken as hidden behind whatever is in front (``_accept_hidden``): a pose here with
-        more evidence on the place of one takes it (``_one_per_box``), and their segments
-        are voted again with their points kept, for poses on their places
-        (``_on_place_of``). Bracket seed 157 frame 9: a bracket on the upright plate of
-        another, turned half about the vertical, its base plate taken as hidden (evidence
-        219), held the place of that bracket's right pose (243), voted over the points it
-        had taken."""
-        marked = {id(c) for c in provisional}
-        firm = [c for c in chosen if id(c) not in marked]
-        provisional = [c for c in chosen if id(c) in marked]
-        found = [c[0] for c in chosen]
-        supported = self._supported(rejected, found, cloud, depth_m, intrinsics) \
-            if rejected and self.config.frontend.shape_residual_rejected else []
-        poses = self._shape.residual_poses(cloud, found, hypotheses, depth_m, intrinsics)
-        if supported:
-            # Besides, not instead: a supported pose may lie wrong over an instance that the
-            # votes above find (channel seed 0, bracket 2366: hits lost when they replaced them).
-            more = self._shape.residual_poses(cloud, found, np.concatenate([np.reshape(hypotheses, (-1, 4, 4)), poses]),
-                                              supported=supported)
-            poses = np.concatenate([poses, more]) if len(more) else poses
-        rejected, second, checked = [], [], []
-        if len(poses):
-            checked = self._shape.refine_and_check(list(poses), cloud, depth_m, intrinsics, rejected=rejected,
-                                                   second=second)
-        if provisional:
-            placed = [c[0] for c in provisional]
-            again = self._shape.residual_poses(cloud, [c[0] for c in firm],
-                                               np.concatenate([np.reshape(hypotheses, (-1, 4, 4)), poses]),
-                                               depth_m, intrinsics, kept=placed)
-            if len(again):
-                looked = []
-                more = self._shape.refine_and_check(list(again), cloud, depth_m, intrinsics, second=looked) + looked
-                # Only to take a provisional pose's place: elsewhere these votes over its
-                # points add nothing the votes without them did not (and they vote other
-                # clusters over its neighbours: seed 1811 frame 0, a bracket behind a right
-                # provisional one).
-                checked += [c for c in more if self._on_place_of(c[0], placed, (depth_m, intrinsics))]
-        if checked or second:
-            chosen = self._one_per_box(firm + provisional + checked + second, first=len(firm),
-                                       frame=(depth_m, intrinsics))
-        if supported and rejected and self.config.frontend.shape_climbed_pairs and self.config.frontend.shape_rejected_pairs:
-            chosen = self._accept_climbed_pairs(chosen, supported, rejected, cloud, depth_m, intrinsics)
-        if self.config.frontend.shape_hidden_by_instances and rejected:
-            chosen, rejected = self._accept_behind(chosen, rejected, cloud, depth_m, intrinsics)
-            # These votes are over what the instances found leave: a channel lying open side
-            # down among found ones has its fits here (channel seed 631 frame 11: both misses).
-            if rejected:
-                chosen = self._accept_turned(chosen, rejected, cloud, depth_m, intrinsics)
-        return chosen
-
-    def _accept_climbed_pairs(self, chosen, supported, rejected, cloud, depth_m, intrinsics) -> list:
-        """``chosen`` and pairs (``_accept_pairs``) of the ``supported`` rejected poses (those
-        not overhanging space seen empty, ``ShapeFrontEnd.overhangs``) and the
-        poses the residual votes gave beside them (``rejected``: refined, rejected), each
-        of those first climbed (``ShapeFrontEnd.climbed``) with that supported pose's pixels
-        and the instances' taken as hiding it: the best fit so hidden on each place beside it
-        (its box clear of it, the image rectangles meeting) of those worth the climb
-        (``ShapeFrontEnd.climb_fit``). A channel half hidden by its
-        flush neighbour, which is rejected on its outline onto it, has no fit ICP sets right
-        (channel seed 2141 frames 0-2: 2-12 deg off about its top's normal); the pair, judged
-        as ``judge_pairs`` does, passes at the climbed pose."""
-        found = [c[0] for c in chosen]
-        shape = self._shape
-        # Only those rejected for what a neighbour explains: one that overhangs space seen
-        # empty is off along what it shows (channel seed 2404 frame 11: slid 27 mm along its
-        # length, free 0.07, it passed with a channel climbed beside it; 2141's, free 0.00).
-        supported = [supported[k] for k in self._clear_of(found, supported)[1]
-                     if not shape.overhangs(supported[k], depth_m, intrinsics)]
-        rejected = [rejected[k] for k in self._clear_of(found, rejected)[1]]
-        if not supported or not rejected:
-            return chosen
-        occluders = shape.instance_pixels(found, depth_m, intrinsics) if found \
-            else np.zeros(depth_m.shape, np.uint8)
-        starts = []
-        meet = shape.rects_meeting(supported, rejected, intrinsics)
-        for P, beside, meets in zip(supported, self._overlapping(supported, rejected), meet):
-            near = np.flatnonzero(meets & ~np.asarray(beside, bool))
-            if not len(near):
-                continue
-            hiding = np.maximum(occluders, shape.instance_pixels([P], depth_m, intrinsics))
-            scored = [(rejected[k], f) for k in near
-                      if (f := shape.climb_fit(rejected[k], hiding, depth_m, intrinsics)) is not None]
-            if not scored:
-                continue
-            poses = [T for T, _ in scored]
-            best = best_per_place(poses, self._overlapping(poses), 1, fit=[f for _, f in scored])
-            starts += [(T, hiding) for T in best]
-        if not starts:
-            return chosen
-        climbed = map_each(lambda s: shape.climbed(s[0], s[1], cloud, depth_m, intrinsics), starts)
-        return self._accept_pairs(chosen, supported + list(climbed), cloud, depth_m, intrinsics)
-
-    def _supported(self, rejected, found, cloud, depth_m, intrinsics) -> list:
-        """Of the ``rejected`` poses clear of the instances ``found``, those the depth
-        supports (``shape_min_support``, nothing taken as hidden), the most evident first
-        (``supported_evidence``) and each clear of those taken before it (``max_overlap``;
-        ``best_per_place`` with one a place), as ``_one_per_box`` takes instances: rejected by their other checks (the outline
-        onto an unfound neighbour), their points are theirs all the same. By support alone,
-        fits slid along a channel onto its flush neighbour came first (channel seed 2141
-        frame 0: support 0.98, outline 0.22, against the right fit's 0.94 and 0.06)."""
-        free = self._shape.one_of_each([rejected[k] for k in self._clear_of(found, rejected)[1]])
-        scored = [(T, e) for T in free if (e := self._shape.supported_evidence(T, cloud, depth_m, intrinsics))
-                  is not None]
-        if not scored:
-            return []
-        poses = [T for T, _ in scored]
-        return best_per_place(poses, self._overlapping(poses), 1, fit=[e for _, e in scored])
-
-    def _on_place_of(self, T, poses, frame) -> bool:
-        """Whether pose T takes the place of one of ``poses`` in ``_one_per_box``: their
-        boxes overlap beyond ``max_overlap``, or more than ``FOUND_SHARE_MAX`` of that one's
-        agreeing points lie on T's surface (``_own_evidence``)."""
-        return self._overlaps_any([T], poses)[0] or any(not self._own_evidence(P, [T], frame) for P in poses)
-
-    def _accept_behind(self, chosen, rejected, cloud, depth_m, intrinsics) -> tuple[list, list]:
-        """``chosen`` and the rejected poses that pass with the instances found hiding them
-        (``ShapeFrontEnd.judge_behind``), added where no instance is; and the rejected poses
-        clear of the instances found (``_clear_of``), the only ones a later pass can add."""
-        found = [c[0] for c in chosen]
-        rejected = [rejected[k] for k in self._clear_of(found, rejected)[1]]
-        if rejected:
-            occluders = self._shape.instance_pixels(found, depth_m, intrinsics)
-            # Each on its own, two at a time in the shared thread pool (as the refinement).
-            behind = [c for c in map_each(lambda T: self._shape.judge_behind(T, cloud, depth_m, intrinsics,
-                                                                             occluders, found), rejected)
-                      if c is not None]
-            if behind:
-                chosen = self._one_per_box(chosen + behind, first=len(chosen), frame=(depth_m, intrinsics))
-        return chosen, rejected
-
-    def _clear_of(self, found, rejected) -> tuple[np.ndarray, list[int]]:
-        """``box_overlaps`` of ``found`` followed by ``rejected``, and the indices of the
-        rejected poses whose box overlaps no found one's beyond ``max_overlap``: the others
-        are dropped by the selection whatever a judging says, so they are not judged."""
-        limit = self.config.frontend.max_overlap
-        overlap = box_overlaps(self.model, list(found) + list(rejected), self._box_grid)
-        n = len(found)
-        free = [k for k in range(len(rejected))
-                if not (np.any(overlap[n + k, :n] > limit) or np.any(overlap[:n, n + k] > limit))]
-        return overlap, free
-
-    def _free_block(self, found, rejected) -> tuple[list[int], np.ndarray]:
-        """``_clear_of``'s free rejected poses (indices) and the box overlaps among them."""
-        overlap, free = self._clear_of(found, rejected)
-        n = len(found)
-        return free, overlap[np.ix_([n + k for k in free], [n + k for k in free])]
-
-    def _overlaps_any(self, transforms, poses) -> list[bool]:
-        """For each of ``transforms``, whether its box and one of ``poses``' overlap beyond
-        ``max_overlap`` (either way; ``_clear_of``), as ``_one_per_box`` keeps no two."""
-        return [bool(row.any()) for row in self._overlapping(transforms, poses)]
-
-    def _overlapping(self, transforms, poses=None) -> np.ndarray:
+    def _overlapping(self, transforms, poses) -> np.ndarray:
         """(len(transforms), len(poses)) bool: whether each transform's box and each pose's
-        overlap beyond ``max_overlap`` (either way; ``_clear_of``); ``poses`` None: the
-        transforms among themselves (the diagonal True)."""
+        overlap beyond ``max_overlap`` (either way)."""
         limit = self.config.frontend.max_overlap
-        if poses is None:
-            overlap = box_overlaps(self.model, list(transforms), self._box_grid)
-            return (overlap > limit) | (overlap.T > limit) | np.eye(len(transforms), dtype=bool)
         n = len(poses)
         if n == 0 or len(transforms) == 0:
             return np.zeros((len(transforms), n), bool)
         overlap = box_overlaps(self.model, list(poses) + list(transforms), self._box_grid)
         return (overlap[n:, :n] > limit) | (overlap[:n, n:].T > limit)
-
-    def _one_per_box(self, checked, first: int = 0, frame=None) -> list:
-        """No two instances in one box: of the checked poses (T, support, agreeing points,
-        evidence), the first ``first`` kept as they are, then the rest by their evidence (the
-        depth check's net points, ``ShapeFrontEnd._judge``), each kept when it overlaps none
-        kept before. By agreeing points alone, a carton fitted lying on its side into a
-        standing one's top (its 30 x 15 cm face inside the 30 x 20 top, some of the side
-        face showing too) outnumbered the right pose by a few points while overhanging.
-        ``frame`` ((depth, intrinsics)): each of the rest is also dropped where most of its
-        agreeing points lie on the surfaces of those kept before it (``_own_evidence``)."""
-        checked = list(checked[:first]) + sorted(checked[first:], key=lambda c: -c[3])
-        overlap = box_overlaps(self.model, [c[0] for c in checked], self._box_grid)
-        kept, limit = list(range(first)), self.config.frontend.max_overlap
-        for k in range(first, len(checked)):
-            if all(overlap[k, j] <= limit and overlap[j, k] <= limit for j in kept) and (
-                    frame is None or self._own_evidence(checked[k][0], [checked[j][0] for j in kept], frame)):
-                kept.append(k)
-        return [checked[k] for k in kept]
-
-    def _own_evidence(self, T, kept, frame) -> bool:
-        """Whether at most ``FOUND_SHARE_MAX`` of pose T's agreeing points lie on the surfaces
-        of the poses ``kept`` (stronger ones; ``ShapeFrontEnd.found_shares``): beyond it, T is
-        one of them seen again. In the first choice, a bracket turned over onto a stronger
-        one's plate (its box clear of that one's, 0.87 of its points on it) took the place of
-        the bracket it half covered (seed 5 frame 2). In the later passes (poses added only
-        where no instance is), an L bracket turned over, one plate on a found bracket's,
-        passed by ``judge_behind``: seed 923, share 1.00; the poses those passes add right
-        0.00-0.05. Only the kept poses whose boxes can come that near are looked at."""
-        centre = np.asarray(self.model.box_centre, np.float64)
-        here = T[:3, :3] @ centre + T[:3, 3]
-        reach = self.object_reach + 2.0 * self._shape.voxel
-        near = [F for F in kept if np.linalg.norm(F[:3, :3] @ centre + F[:3, 3] - here) <= reach]
-        return not near or self._shape.found_shares([T], near, *frame)[0] <= FOUND_SHARE_MAX
 
     def _register_frame_both(self, rgb, depth_m, intrinsics, gravity=None) -> FrameResult:
         """Texture and shape, each through its own ECC; every SIFT instance is kept as the
@@ -925,7 +548,7 @@ class InstanceRegistration:
         against 0.98 for SIFT alone.)"""
         fe = self.config.frontend
         textured = self._register_frame_sift(rgb, depth_m, intrinsics)
-        shaped = self._register_frame_shape(depth_m, intrinsics, gravity=gravity)
+        shaped = self._register_frame_shape(depth_m, intrinsics, gravity=gravity, rgb=rgb)
         transforms = [i.T for i in textured.instances] + [i.T for i in shaped.instances]
         overlap = box_overlaps(self.model, transforms, self._box_grid)
         kept = list(range(len(textured.instances)))

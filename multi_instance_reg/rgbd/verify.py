@@ -20,10 +20,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..messages import CameraIntrinsics
-from .shape import measured_at
+from ..frontends.shape.geometry import measured_at
 
-# Second-moment elongation (0: round, 1: a line) above which a mask's long axis is defined.
-MIN_ELONGATION = 0.2
 
 
 def _points_and_normals(depth: np.ndarray, K: np.ndarray, rows: np.ndarray, cols: np.ndarray, step: int = 2
@@ -241,23 +239,6 @@ def image_pixels(p: np.ndarray, intrinsics: CameraIntrinsics, shape) -> tuple[np
     return u, v, (u >= 0) & (u < w) & (v >= 0) & (v < h)
 
 
-def in_view_share(T: np.ndarray, model_pts: np.ndarray, model_normals: np.ndarray,
-                  intrinsics: CameraIntrinsics) -> float:
-    """Share of the model's surface facing the camera at pose T that projects inside the
-    image: the depth and outline checks can only judge that part."""
-    p = model_pts @ T[:3, :3].T + T[:3, 3]
-    n = model_normals @ T[:3, :3].T
-    facing = facing_camera(p, n)
-    if not facing.any():
-        return 0.0
-    p = p[facing]
-    K = intrinsics.K
-    u = K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2]
-    v = K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]
-    inside = (u >= -0.5) & (u < intrinsics.width - 0.5) & (v >= -0.5) & (v < intrinsics.height - 0.5)
-    return float(inside.mean())
-
-
 def outline_continuation(T: np.ndarray, model_pts: np.ndarray, model_normals: np.ndarray, depth_m: np.ndarray,
                          intrinsics: CameraIntrinsics, voxel: float, tolerance: float,
                          max_angle_deg: float = 30.0, up: np.ndarray | None = None,
@@ -355,104 +336,6 @@ def outline_continuation(T: np.ndarray, model_pts: np.ndarray, model_normals: np
     return float(linked.sum() / counted), int(len(rows))
 
 
-def outline_shift(T: np.ndarray, model_pts: np.ndarray, model_normals: np.ndarray, depth_m: np.ndarray,
-                  intrinsics: CameraIntrinsics, voxel: float, tolerance: float, reach: float,
-                  max_angle_deg: float = 30.0, with_turn: bool = False):
-    """The translation (camera frame, parallel to the image plane) that moves the model's
-    silhouette at pose T onto the patch of depth surface it lies on, or None when there is
-    no bounded patch. The patch: pixels within ``reach`` of the silhouette where the nearest
-    visible model face goes on (as in ``outline_continuation``), joined through such pixels
-    (the connected piece of them the silhouette covers most). A face seen alone (a carton's top) gives point-to-plane ICP nothing
-    to hold it in its plane: a pose off by a few centimetres along it stays off, and
-    overhangs a gap ("free") while the face continues on the other side. Its outline, where
-    the depth steps away, does place it. A patch that reaches ``reach`` beyond the
-    silhouette is part of a larger surface: None (the outline check rejects such poses).
-    ``with_turn``: (translation, turn): also the angle (radians, about the line of sight,
-    image u towards v) that turns the silhouette's long axis onto the patch's; 0 when either
-    is not elongated (a face seen alone cannot be turned in its plane by ICP either)."""
-    R, t = T[:3, :3], T[:3, 3]
-    p = model_pts @ R.T + t
-    n = model_normals @ R.T
-    facing = facing_camera(p, n)
-    p, n = p[facing], n[facing]
-    if len(p) < 3:
-        return None
-    K = intrinsics.K
-    h, w = depth_m.shape
-    z = p[:, 2]
-    u = K[0, 0] * p[:, 0] / z + K[0, 2]
-    v = K[1, 1] * p[:, 1] / z + K[1, 2]
-    ui, vi = np.round(u).astype(np.int64), np.round(v).astype(np.int64)
-    inside = (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)
-    # Model points hidden behind a nearer measured surface leave the silhouette: the patch
-    # cannot show them, and they would pull the centre towards the occluder.
-    measured = np.zeros(len(p))
-    measured[inside] = depth_m[vi[inside], ui[inside]]
-    shown = inside & ~((measured > 0) & (measured < z - tolerance))
-    if shown.sum() < 3:
-        return None
-    zm = float(np.median(z))
-    px_per_m = K[0, 0] / zm
-    splat = max(1, int(round(0.75 * voxel * px_per_m)))
-    reach_px = max(2, int(round(reach * px_per_m)))
-    pad = splat + reach_px + 2
-    u0, v0 = max(int(ui[shown].min()) - pad, 0), max(int(vi[shown].min()) - pad, 0)
-    u1, v1 = min(int(ui[shown].max()) + pad + 1, w), min(int(vi[shown].max()) + pad + 1, h)
-    if u1 - u0 < 3 or v1 - v0 < 3:
-        return None
-    disc = lambda r: cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-    crop = np.zeros((v1 - v0, u1 - u0), np.uint8)
-    crop[vi[shown] - v0, ui[shown] - u0] = 1
-    body = cv2.dilate(crop, disc(splat))
-    # Looked at every half voxel: finer pixels add nothing to where a voxel-sampled model
-    # sits, and every pixel of a carton at 1.5 m cost 36 ms a call.
-    step = max(1, int(0.5 * voxel * px_per_m))
-    body = body[::step, ::step]
-    region = cv2.dilate(body, disc(max(1, int(round(reach_px / step))))) > 0
-    body = body > 0
-    rows, cols = np.nonzero(region)
-    P, nP, ok = _points_and_normals(depth_m, K, rows * step + v0, cols * step + u0)
-    rows, cols = rows[ok], cols[ok]
-    if len(rows) == 0:
-        return None
-    on = _face_continues(P, nP, p, n, tolerance, max_angle_deg)
-    grid = np.zeros(region.shape, np.uint8)
-    grid[rows[on], cols[on]] = 1
-    count, labels = cv2.connectedComponents(grid, connectivity=8)
-    # The piece that most of the silhouette covers: a pose off by more than the gap to a
-    # neighbour (cartons on a pallet's grid) overlaps the neighbour's top too.
-    under = np.bincount(labels[body & (grid > 0)], minlength=count)
-    under[0] = 0
-    if under.max() == 0:
-        return None
-    patch = labels == int(np.argmax(under))
-    rim = region & ~(cv2.erode(region.astype(np.uint8), disc(1)) > 0)
-    if patch[rim].any():
-        return None
-    # Centres in the image (both pixel masks, so a face seen at a slant weighs alike in
-    # both), the difference taken back to metres at the object's distance; ICP then puts
-    # the face back onto the depth.
-    pr, pc = np.nonzero(patch)
-    br, bc = np.nonzero(body)
-    du, dv = pc.mean() - bc.mean(), pr.mean() - br.mean()
-    shift = np.array([du * step * zm / K[0, 0], dv * step * zm / K[1, 1], 0.0])
-    if not with_turn:
-        return shift
-    # The turn in the image between the two masks' long axes (second moments), when both
-    # have one (an elongated face; a square's axes are not defined).
-    def axis(r, c):
-        r, c = r - r.mean(), c - c.mean()
-        a, b, d = (c * c).mean(), (r * c).mean(), (r * r).mean()
-        elong = np.hypot(a - d, 2 * b) / max(a + d, 1e-12)
-        return 0.5 * np.arctan2(2 * b, a - d), elong
-    ap, ep = axis(pr, pc)
-    ab, eb = axis(br, bc)
-    turn = 0.0
-    if min(ep, eb) > MIN_ELONGATION:
-        turn = float((ap - ab + np.pi / 2) % np.pi - np.pi / 2)
-    return shift, turn
-
-
 def texture_agreement(T: np.ndarray, keypoints: np.ndarray, keypoint_normals: np.ndarray, symmetries,
                       model_xyz: np.ndarray, scene_xyz: np.ndarray, depth_m: np.ndarray,
                       intrinsics: CameraIntrinsics, inlier_thresh: float, tolerance: float
@@ -485,7 +368,7 @@ def surface_samples(points: np.ndarray, extent, max_points: int = 600) -> tuple[
     """(P, 3) points spread over a model's dense cloud (model frame), at most ``max_points``,
     and their outward normals (PCA over the neighbours, turned away from the cloud's centre:
     right for the convex objects of a tabletop; only the back-face test reads the sign)."""
-    from .shape import shape_voxel, surface_normals, voxel_downsample
+    from ..frontends.shape.geometry import shape_voxel, surface_normals, voxel_downsample
 
     pts = np.asarray(points, np.float64)
     if len(pts) < 3:
@@ -534,4 +417,4 @@ def _free_space_share(T, mp, mn, depth, fx, fy, cx, cy, pivot, tolerance, slope)
     return free / m, m
 
 
-__all__ = ["image_pixels", "outline_continuation", "outline_shift", "texture_agreement", "surface_samples", "free_space_share"]
+__all__ = ["outline_continuation", "texture_agreement", "surface_samples", "free_space_share"]

@@ -51,7 +51,7 @@ from scipy.spatial.transform import Rotation
 from ..messages import CameraIntrinsics
 from ..params import param
 from ..transforms import invert_transform, rotation_angle_deg
-from ..rgbd.shape import apply_twist as twist_step
+from ..frontends.shape.geometry import apply_twist as twist_step
 from .icp import ProjectiveICP
 
 _log = logging.getLogger(__name__)

@@ -27,8 +27,8 @@ import math
 import numba
 import numpy as np
 
-from ..symmetry import Symmetries
-from ..threads import map_in_chunks
+from ...symmetry import Symmetries
+from ...threads import map_in_chunks
 
 ANGLE_BINS = 15         # over [0, pi]: 12 deg
 TURN_BINS = 30          # over [0, 2 pi): 12 deg

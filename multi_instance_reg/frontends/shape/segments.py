@@ -21,9 +21,9 @@ import numba
 import numpy as np
 from scipy.spatial import ConvexHull, Delaunay, QhullError, cKDTree
 
-from ..messages import CameraIntrinsics
-from ..threads import submit_each
-from .lifting import depth_to_cloud, fit_dominant_plane
+from ...messages import CameraIntrinsics
+from ...threads import submit_each
+from ...rgbd.lifting import depth_to_cloud, fit_dominant_plane
 
 
 def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.ndarray, max_area: float,
@@ -351,55 +351,6 @@ def graph_components(n, first, second):
     return labels
 
 
-def pairs_across_steps(points: np.ndarray, labels: np.ndarray, reach: float, link: float,
-                       small: np.ndarray | None = None) -> list[tuple[int, int]]:
-    """Pairs of segments (a, b) that may be one object split by a depth step: side by side
-    in the image (points within ``link`` of each other across the line of sight, at the
-    nearer one's distance) while apart in depth (else they would be one segment), and a
-    within ``reach`` (the object's diameter: no two points farther apart); b too, and both
-    together (then a < b), or b larger (it joins the object's other part with a neighbour).
-    A non-convex object hides part of itself: an L bracket seen from behind shows its upright
-    plate and, past a depth step, its base plate, two segments that each vote alone.
-    ``small``: ``segments_within_reach`` of these points, labels and reach, when known."""
-    ids = np.unique(labels[labels >= 0])
-    if len(ids) < 2:
-        return []
-    # Segments small enough to be (part of) one object; their points' image directions.
-    small = set((segments_within_reach(points, labels, reach) if small is None else small).tolist())
-    if len(small) < 1:
-        return []
-    keep = labels >= 0
-    p = points[keep]
-    lab = labels[keep]
-    ray = p[:, :2] / p[:, 2:3]
-    # Neighbours in the image: within ``link`` at the nearer point's distance (the angle
-    # link / z is largest for the nearest point of the pair, so query with the smallest z).
-    near = cKDTree(ray).query_pairs(link / float(p[:, 2].min()), output_type="ndarray")
-    if len(near) == 0:
-        return []
-    i, j = near[:, 0], near[:, 1]
-    cross = lab[i] != lab[j]
-    i, j = i[cross], j[cross]
-    close = np.linalg.norm(ray[i] - ray[j], axis=1) <= link / np.minimum(p[i, 2], p[j, 2])
-    i, j = i[close], j[close]
-    out = []
-    for a, b in sorted({(min(x, y), max(x, y)) for x, y in zip(lab[i].tolist(), lab[j].tolist())}):
-        if a in small and b in small:
-            if within_reach(points[(labels == a) | (labels == b)], reach):
-                out.append((a, b))
-            else:
-                # Each small, together larger than the object: one of them joins the
-                # object's other part with a neighbour (two brackets' uprights touching), as
-                # a larger b does; the one with more points anchors the pair.
-                na, nb = int(np.sum(labels == a)), int(np.sum(labels == b))
-                out.append((a, b) if na >= nb else (b, a))
-        elif a in small:
-            out.append((a, b))
-        elif b in small:
-            out.append((b, a))
-    return out
-
-
 def segments_within_reach(points: np.ndarray, labels: np.ndarray, reach: float) -> np.ndarray:
     """The ids (ascending) of the segments (labels >= 0) ``within_reach``: small enough to be
     (part of) one object. Each segment's points in their order, found by one sort (not a
@@ -428,4 +379,4 @@ def within_reach(p: np.ndarray, reach: float) -> bool:
     return bool(pdist(p).max() <= reach)
 
 
-__all__ = ["support_mask", "connected_segments", "pairs_across_steps", "segments_within_reach", "within_reach"]
+__all__ = ["support_mask", "connected_segments", "segments_within_reach", "within_reach"]

@@ -29,9 +29,9 @@ import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..messages import CameraIntrinsics
-from ..threads import map_in_chunks
-from ..transforms import apply_transform, invert_transform
+from ...messages import CameraIntrinsics
+from ...threads import map_in_chunks
+from ...transforms import apply_transform, invert_transform
 
 FPFH_BINS = 11
 FPFH_DIM = 3 * FPFH_BINS
@@ -756,47 +756,15 @@ def _depth_support(T, mp, mn, depth, fx, fy, cx, cy, tolerance, self_hiding, occ
     return agree / m, free / m, m
 
 
-def noise_agreement(T: np.ndarray, model_pts: np.ndarray, model_normals: np.ndarray, depth_m: np.ndarray,
-                    intrinsics: CameraIntrinsics, tolerance: float, noise: float) -> float:
-    """Of the model's surface points facing the camera at pose T that agree with the depth
-    image within ``tolerance`` (as in ``depth_support``): the share within ``noise`` (the
-    depth noise, 3 sigma at the object's distance). The tolerance has a floor for what is
-    not noise (a pose a little off, the surface's sampling) that is many sigma near the
-    camera (8 mm against 1.2 mm at 0.45 m); a surface that agrees only within that floor
-    over most of the model is another shape (a cylinder's side laid over a block's top and
-    front agrees at 93 % within 8 mm, 35 % within 2 mm; true cylinders and brackets of the
-    benchmark 59-100 %). 1.0 when nothing agrees."""
-    K = intrinsics.K
-    return _noise_agreement(np.ascontiguousarray(T, np.float64), np.ascontiguousarray(model_pts, np.float64),
-                            np.ascontiguousarray(model_normals, np.float64), depth_m, float(K[0, 0]), float(K[1, 1]),
-                            float(K[0, 2]), float(K[1, 2]), float(tolerance), float(noise))
-
-
-@numba.njit(cache=True, nogil=True)
-def _noise_agreement(T, mp, mn, depth, fx, fy, cx, cy, tolerance, noise):
-    agree = 0
-    close = 0
-    for i in range(mp.shape[0]):
-        px, py, pz, measured = measured_at(T, mp, mn, i, depth, fx, fy, cx, cy)
-        if not measured > 0:
-            continue
-        diff = abs(measured - pz)
-        if diff < tolerance:
-            agree += 1
-            if diff < noise:
-                close += 1
-    return close / agree if agree > 0 else 1.0
-
-
 def scene_cloud(depth_m: np.ndarray, intrinsics: CameraIntrinsics, mask: np.ndarray, voxel: float,
                 stride: int = 1) -> np.ndarray:
     """Search-region depth points (camera frame), voxel-downsampled, (M, 3) float64."""
-    from .lifting import depth_to_cloud
+    from ...rgbd.lifting import depth_to_cloud
 
     pts, _ = depth_to_cloud(depth_m, intrinsics, mask.astype(bool), stride=stride)
     return voxel_downsample(np.asarray(pts, np.float64), voxel)
 
 
 __all__ = ["shape_voxel", "voxel_downsample", "describe", "fpfh", "normals_and_variation", "surface_normals", "ShapeMatcher",
-           "icp_point_to_plane", "PointGrid", "apply_twist", "depth_support", "noise_agreement", "is_convex", "scene_cloud",
+           "icp_point_to_plane", "PointGrid", "apply_twist", "depth_support", "is_convex", "scene_cloud",
            "FPFH_DIM"]

@@ -1,0 +1,307 @@
+"""The shape front end's one verification: how well a pose explains the frame, and the
+joint choice of the instances.
+
+    view = FrameView(depth_m, intrinsics, rgb)              # once a frame: colour edges
+    e = explain(T, model, view, tolerance, claimed)          # one pose: Explanation
+    chosen = select(candidates, model, view, ...)            # the set that explains most
+
+The model's camera-facing surface samples at the pose, drawn with a z-buffer (a non-convex
+object hides parts of itself), each compared with the depth measured on its pixel:
+
+- *agree*: within the tolerance (3 sigma of the depth noise at its distance, sigma = k z^2,
+  with a floor) and the measured normal within ``NORMAL_DEG`` of the model's (where the
+  depth around the pixel gives one: a dropout or a flying pixel leaves it out, not against);
+  weighted 1 within the noise itself, down to nothing at the tolerance;
+- *free*: the measurement lies farther: the camera saw through where the model would stand;
+- *hidden*: a nearer measured surface. Behind pixels another chosen instance claims, it is
+  explained and left out; behind anything else it counts half against (an object behind an
+  unknown occluder stays possible, a pose sunk into a surface does not pass on it alone);
+- no depth (dropouts, IR shadows): left out, neither for nor against;
+- and any sample of the model, seen or not, more than a voxel (or the tolerance) below a support plane the
+  depth shows there (floor, pallet, table): inside it, counted as free (two cartons sunk 3
+  cm into a pallet fit a crate's top).
+
+And the outline: the share of a band just outside the drawn model where the nearest model
+face continues in the depth (``verify.outline_continuation``): a piece of a larger surface
+(a carton fitted onto a crate's top, a pose sunk into the table) continues past its
+outline; a true instance does not. Pixels another chosen instance claims, and with colour
+the pixels on or next to a colour edge, break that continuation: flush-packed cartons form
+one plane in depth, and their outlines are seen only in colour.
+
+The evidence of a pose is support - 2 x free - 2 x outline (shares of the judged samples); the
+gain a pose would add is its evidence times the samples it explains that no chosen
+instance explains already. ``select`` takes the pose with the largest gain while it passes
+``shape_min_support`` and ``shape_min_evidence``, claims its pixels, and scores the poses
+that meet it again: hypotheses on the same pixels compete, and a neighbour's outline onto
+a chosen instance no longer counts against it.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from ...messages import CameraIntrinsics
+from ...rgbd.verify import _points_and_normals, facing_camera, outline_continuation
+
+# A sample agrees only when the measured normal is within this of the model's (where the
+# depth gives one): a cylinder's side laid over a block's edge agrees in depth, not in normals.
+NORMAL_DEG = 45.0
+NORMAL_STEP = 2         # pixels: the central differences' half width
+# A sample hidden by a nearer surface that no chosen instance explains counts this much
+# against the pose (a chosen instance's pixels: not at all).
+HIDDEN_WEIGHT = 0.5
+# A sample in space the camera saw through counts this many times against the pose: seen
+# empty is stronger than not seen (a cylinder fitted over a distractor's edge overhangs by
+# 6 % and agrees elsewhere: evidence 0.80 with the weight 1, true cylinders 0.79-0.99).
+FREE_WEIGHT = 2.0
+# The outline's weight in the evidence (as the earlier checks ranked: support - free - 2 x outline).
+OUTLINE_WEIGHT = 2.0
+# At least this many samples must be judged (on valid depth, not explained by another
+# instance): fewer tell nothing.
+MIN_JUDGED = 20
+# A pose whose agreeing samples lie more than this share on pixels a chosen instance
+# claims is that instance seen again (the same pixels): it is dropped.
+MAX_CLAIMED = 0.5
+# Canny's thresholds on the blurred grey image: low enough for the seam between two cartons
+# of slightly different shades (12 grey levels).
+EDGE_LOW, EDGE_HIGH = 15, 40
+# Colour edges mark outlines only where at most this share of a pose's samples lie near one
+# (a plain face: those along its outline); more is texture, edges along any outline by chance
+# (a carton fitted onto a brick wall passed on them).
+MAX_TEXTURE = 0.5
+# A sample more than this many voxels (or the depth tolerance, if larger) below a support
+# plane the depth shows is inside it.
+SUNK_VOXELS = 1.0
+
+
+@dataclass
+class FrameView:
+    """What the verification reads of a frame: the depth, the camera, and the colour edges
+    (None without colour, or on an image of one colour)."""
+    depth: np.ndarray
+    intrinsics: CameraIntrinsics
+    edges: np.ndarray | None = None
+    widened: dict = field(default_factory=dict)     # edges_within's images by radius
+
+    def edges_within(self, r: int) -> np.ndarray:
+        """(H, W) uint8: the pixels within r of a colour edge (made once a frame per radius:
+        a full-image dilation a pose cost as much as the rest of its explanation)."""
+        out = self.widened.get(r)
+        if out is None:
+            out = cv2.dilate(self.edges, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
+            self.widened[r] = out
+        return out
+
+    @staticmethod
+    def of(depth_m: np.ndarray, intrinsics: CameraIntrinsics, rgb: np.ndarray | None = None) -> "FrameView":
+        edges = None
+        if rgb is not None and rgb.ndim == 3:
+            grey = cv2.GaussianBlur(cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY), (5, 5), 0)
+            if int(grey.max()) - int(grey.min()) >= 8:
+                found = cv2.Canny(grey, EDGE_LOW, EDGE_HIGH)
+                edges = (found > 0).astype(np.uint8) if found.any() else None
+        return FrameView(depth_m, intrinsics, edges)
+
+
+@dataclass
+class Explanation:
+    """One pose's account of the frame."""
+    T: np.ndarray
+    agree: float            # samples the depth confirms (and their normals), weighted by how closely
+    free: int               # samples in space the camera saw through
+    hidden: float           # samples behind a nearer surface no chosen instance explains (weighted)
+    judged: int             # agree + free + hidden + those off in depth or normal
+    outline: float          # share of the outline band where the surface goes on
+    pixels: np.ndarray      # flat pixel indices of the agreeing samples (what it claims)
+    rect: tuple             # image rows and columns its judged samples span (top, bottom, left, right)
+    claimed: float = 0.0    # of its agreeing samples (weighted), those on pixels already claimed
+
+    @property
+    def support(self) -> float:
+        return self.agree / self.judged if self.judged else 0.0
+
+    @property
+    def evidence(self) -> float:
+        if self.judged < MIN_JUDGED:
+            return -1.0
+        return (self.agree - FREE_WEIGHT * self.free) / self.judged - OUTLINE_WEIGHT * self.outline
+
+    @property
+    def gain(self) -> float:
+        """Evidence times the samples it explains that no chosen instance explains."""
+        return self.evidence * (self.agree - self.claimed)
+
+
+def visible_samples(T: np.ndarray, surface: np.ndarray, normals: np.ndarray, intrinsics: CameraIntrinsics,
+                    shape, splat: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The model's samples at pose T that face the camera, fall in the image and are not
+    behind the model's own nearer surface (z-buffer of the samples, each drawn over
+    ``splat`` metres): (points (n, 3), normals, rows, cols)."""
+    p = surface @ T[:3, :3].T + T[:3, 3]
+    n = normals @ T[:3, :3].T
+    facing = facing_camera(p, n)
+    p, n = p[facing], n[facing]
+    K = intrinsics.K
+    h, w = shape
+    u = np.round(K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2]).astype(np.int64)
+    v = np.round(K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]).astype(np.int64)
+    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    p, n, u, v = p[inside], n[inside], u[inside], v[inside]
+    if len(p) < 2:
+        return p, n, v, u
+    # z-buffer in a crop around the drawing: the nearest sample per pixel, spread over its splat.
+    r = max(1, int(round(splat * K[0, 0] / float(np.median(p[:, 2])))))
+    u0, v0 = u.min(), v.min()
+    zbuf = np.full((v.max() - v0 + 1, u.max() - u0 + 1), np.inf, np.float32)
+    np.minimum.at(zbuf, (v - v0, u - u0), p[:, 2].astype(np.float32))
+    zbuf = cv2.erode(zbuf, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
+    front = p[:, 2] <= zbuf[v - v0, u - u0] + 2.0 * splat
+    return p[front], n[front], v[front], u[front]
+
+
+def explain(T: np.ndarray, surface: np.ndarray, normals: np.ndarray, view: FrameView, tolerance: float,
+            voxel: float, same_surface: float, claimed: np.ndarray | None = None,
+            up: np.ndarray | None = None, planes=()) -> Explanation:
+    """How well pose T explains the frame (module docstring). ``surface``, ``normals``: the
+    model's samples (model frame, outward); ``tolerance``: metres, agreement in depth at
+    the pose's distance; ``same_surface``: metres, "the same surface" for the outline (the
+    depth noise); ``claimed``: (H, W) uint8, pixels chosen instances explain (or None);
+    ``up``: the support's normal (what lies below the object does not continue it);
+    ``planes``: the frame's support planes ((normal towards the camera, offset) each)."""
+    depth = view.depth
+    p, n, rows, cols = visible_samples(T, surface, normals, view.intrinsics, depth.shape, 0.5 * voxel)
+    d = depth[rows, cols].astype(np.float64)
+    valid = d > 0
+    p, n, rows, cols, d = p[valid], n[valid], rows[valid], cols[valid], d[valid]
+    diff = d - p[:, 2]
+    near = np.abs(diff) < tolerance
+    free = diff >= tolerance
+    behind = diff <= -tolerance
+    mine = np.ones(len(d), bool) if claimed is None else claimed[rows, cols] == 0
+    # Normals where the depth gives one: four neighbours a couple of pixels away, all on the
+    # same surface (not across a depth step, where a difference is no normal).
+    r, c = rows[near], cols[near]
+    _, measured, has = _points_and_normals(depth, view.intrinsics.K, r, c, NORMAL_STEP)
+    h, w = depth.shape
+    smooth = np.ones(len(r), bool)
+    for dr, dc in ((0, NORMAL_STEP), (0, -NORMAL_STEP), (NORMAL_STEP, 0), (-NORMAL_STEP, 0)):
+        q = depth[np.clip(r + dr, 0, h - 1), np.clip(c + dc, 0, w - 1)]
+        smooth &= np.abs(q - d[near]) < tolerance
+    turned = np.zeros(len(r), bool)
+    turned[has] = np.sum(measured * n[near][has], axis=1) < np.cos(np.radians(NORMAL_DEG))
+    turned &= smooth
+    agree = near.copy()
+    agree[np.flatnonzero(near)[turned]] = False
+    hidden_other = behind & mine
+    hidden = HIDDEN_WEIGHT * float(np.sum(hidden_other))
+    sunk = sunk_samples(T, surface, view, tolerance, voxel, planes)
+    judged = int(round(np.sum(~behind) + hidden)) + sunk
+    explained = claimed
+    if view.edges is not None and len(p):
+        # Colour edges widened over the outline band's inner edge (the samples' splat and
+        # half a voxel past them, as outline_continuation draws it, and two pixels): where
+        # one runs along the outline, the surface past it is another object's going on.
+        px = voxel * view.intrinsics.K[0, 0] / float(np.median(p[:, 2]))
+        r = int(round(0.75 * px)) + int(round(0.5 * px)) + 2
+        edges = view.edges_within(r)
+        # Only where the object's own face is mostly plain: on texture (a brick wall, a print)
+        # edges lie everywhere, along any outline by chance.
+        if np.mean(edges[rows, cols] > 0) <= MAX_TEXTURE:
+            explained = edges if claimed is None else np.maximum(edges, claimed)
+    outline, _ = outline_continuation(T, surface, normals, depth, view.intrinsics, voxel, same_surface, up=up,
+                                      explained=explained)
+    pix = rows[agree] * depth.shape[1] + cols[agree]
+    # Each agreeing sample counts 1 within the depth noise (same_surface), less towards the
+    # tolerance (nothing at it): the tolerance's floor is many sigma near the camera, and a shape
+    # that only passes near the surface (a cylinder lying in a wider one's place: 87 % within
+    # 8 mm) is not the surface.
+    weight = np.clip((tolerance - np.abs(diff)) / max(tolerance - same_surface, 1e-9), 0.0, 1.0)
+    taken = 0.0 if claimed is None else float(np.sum(weight[~mine & agree]))
+    rect = (int(rows.min()), int(rows.max()), int(cols.min()), int(cols.max())) if len(rows) else (0, -1, 0, -1)
+    return Explanation(T, float(np.sum(weight[agree])), int(free.sum()) + sunk, hidden, judged, float(outline), pix, rect,
+                       taken)
+
+
+def sunk_samples(T: np.ndarray, surface: np.ndarray, view: FrameView, tolerance: float, voxel: float,
+                 planes) -> int:
+    """How many of the model's samples at pose T, seen or not, lie more than ``SUNK_VOXELS``
+    (or ``tolerance``) below one of the support ``planes`` where the depth shows that plane (or something on it)
+    on their pixel: inside the support. The camera sees little of what is sunk (a carton's
+    sides at a grazing angle), so the volume is asked, as two instances' volumes are."""
+    if not planes:
+        return 0
+    p = surface @ T[:3, :3].T + T[:3, 3]
+    deep = max(SUNK_VOXELS * voxel, tolerance)
+    out = np.zeros(len(p), bool)
+    for n_up, offset in planes:
+        out |= p @ n_up + offset < -deep
+    if not out.any():
+        return 0
+    q = p[out]
+    K = view.intrinsics.K
+    h, w = view.depth.shape
+    z = np.maximum(q[:, 2], 1e-6)
+    u = np.round(K[0, 0] * q[:, 0] / z + K[0, 2]).astype(np.int64)
+    v = np.round(K[1, 1] * q[:, 1] / z + K[1, 2]).astype(np.int64)
+    inside = (q[:, 2] > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    q, d = q[inside], view.depth[v[inside], u[inside]].astype(np.float64)
+    count = np.zeros(len(q), bool)
+    for n_up, offset in planes:
+        below = q @ n_up + offset < -deep
+        seen = (d > 0) & ((q @ n_up) * (d / q[:, 2]) + offset >= -tolerance)    # measured on or above it
+        count |= below & seen
+    return int(count.sum())
+
+
+def claim(mask: np.ndarray, e: Explanation, radius: int) -> None:
+    """Mark the pixels of explanation e's agreeing samples (spread over ``radius`` pixels:
+    the samples lie a few pixels apart) as claimed in ``mask`` (H, W) uint8."""
+    if len(e.pixels) == 0:
+        return
+    one = np.zeros(mask.shape, np.uint8)
+    one.flat[e.pixels] = 1
+    r = max(1, radius)
+    one = cv2.dilate(one, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
+    np.maximum(mask, one, out=mask)
+
+
+def select(candidates: list, rescore, conflicts, min_support: float, min_evidence: float, radius: int,
+           margin: int, shape, late=lambda: False) -> list:
+    """The instances chosen jointly from ``candidates`` (Explanations with nothing claimed;
+    those that could pass were what hides them and their outlines explained): of those that
+    pass, the best gain first; after each choice the rest are scored again with its pixels claimed
+    (``rescore(e, claimed)`` -> Explanation), those that ``conflicts(e, chosen)`` (their
+    volumes overlap a chosen one's: two objects cannot fill one space, which the depth
+    alone cannot tell where neither is seen) or repeat its pixels (``MAX_CLAIMED``) drop
+    out; only those whose drawings come within ``margin`` pixels of the chosen one's are
+    scored again. Stops when no pose passes ``min_support`` and ``min_evidence``; once
+    ``late()`` (the frame's deadline), without scoring again."""
+    def passes(e):
+        return e.support >= min_support and e.evidence >= min_evidence and e.agree - e.claimed >= MIN_JUDGED // 2
+
+    def possible(e):
+        # Could pass once chosen instances explain what hides it and its outline.
+        return e.agree - FREE_WEIGHT * e.free >= min_evidence * max(e.judged - e.hidden, 1.0)
+    pending = [e for e in candidates if possible(e)]
+    claimed = np.zeros(shape, np.uint8)
+    chosen: list = []
+    while pending:
+        ready = [k for k, e in enumerate(pending) if passes(e)]
+        if not ready:
+            break
+        e = pending.pop(max(ready, key=lambda k: pending[k].gain))
+        chosen.append(e)
+        claim(claimed, e, radius)
+        pending = [c for c in pending if not conflicts(c, e)]
+        if not late():
+            # Only the poses whose drawing comes near the chosen one's can score otherwise.
+            pending = [rescore(c, claimed) if _near(c.rect, e.rect, margin) else c for c in pending]
+        pending = [c for c in pending if c.claimed <= MAX_CLAIMED * max(c.agree, 1)]
+    return chosen
+
+
+def _near(a: tuple, b: tuple, margin: int) -> bool:
+    """Whether two image rectangles (top, bottom, left, right) come within ``margin`` pixels."""
+    return not (a[0] > b[1] + margin or b[0] > a[1] + margin or a[2] > b[3] + margin or b[2] > a[3] + margin)

@@ -1,0 +1,642 @@
+"""The shape front end of the per-frame pipeline: pose hypotheses from depth alone, each
+refined by ICP and explained against the frame (explain.py), and the instances chosen
+jointly. No ROS; colour only for its edges.
+
+    shape = ShapeFrontEnd(model, frontend_config)
+    cloud = shape.frame_cloud(depth_m, intrinsics, search_mask)    # points off the supports, segments
+    src, tgt = shape.correspondences(cloud)                         # point-pair votes: model -> scene points
+    ... ECC on (src, tgt) (with ``shape.ecc_config(base)``) ...
+    view = FrameView.of(depth_m, intrinsics, rgb)
+    candidates = shape.refine_all(transforms, cloud, view)          # [Explanation], best first
+    chosen = shape.choose(candidates, cloud, view, conflicts)       # the instances
+"""
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ...core import ECCConfig
+from ...errors import InputError
+from ...messages import CameraIntrinsics
+from ...models.model import ObjectModel
+from ...threads import shared_pool, submit_each
+from ...tracking.icp import align_projective
+from .explain import FREE_WEIGHT, HIDDEN_WEIGHT, Explanation, FrameView, explain, select
+from ...rgbd.verify import facing_camera
+from .faces import Faces, frame_patches, matches, model_faces, nearest_face_pose, patch_poses
+from .geometry import (PointGrid, ShapeMatcher, depth_support, describe, icp_point_to_plane, is_convex, scene_cloud,
+                       surface_normals, voxel_downsample)
+from .ppf import ANGLE_BINS as ANGLE_STEPS, PPFModel, cluster_poses
+from .segments import connected_segments, segments_within_reach, support_mask
+
+
+# ICP pairs a model point with a scene point at most this many voxels away.
+ICP_REACH = 2.0
+# A refined pose with more than this share of its points in space seen empty is aligned again
+# by projective ICP, for this many rounds.
+OVERHANG = 0.02
+PROJECTIVE_ROUNDS = 30
+# Points closer than this many voxels are in one segment.
+SEGMENT_LINK = 2.0
+# An instance needs at least this many model points seen on valid depth (explain.MIN_JUDGED
+# for the verification; here for the cheap check before ICP).
+MIN_VISIBLE = 20
+
+
+@dataclass
+class FrameCloud:
+    points: np.ndarray        # (M, 3) camera frame, voxel-downsampled
+    normals: np.ndarray       # (M, 3) towards the camera
+    salient: np.ndarray       # (S,) indices of the points that are matched
+    descriptors: np.ndarray   # (S, 33) their FPFH
+    tree: cKDTree | None
+    segments: np.ndarray | None = None    # (M,) segment label per point (-1: none), ppf only
+    poses: np.ndarray | None = None       # (K, 4, 4) pose hypotheses clustered from the votes, ppf only
+    up: np.ndarray | None = None          # (3,) the support plane's normal (the largest, or the largest level
+                                          # one given gravity), towards the camera, ppf only
+    up_offset: float | None = None        # that plane: up . p + up_offset = 0 on it
+    planes: tuple = ()                    # every support plane with a large piece removed: (normal, offset)
+    grid: PointGrid | None = None         # the points and normals for ICP's nearest-point search
+    patches: Faces | None = None          # the segments' flat patches shaped as a model face (ppf, shape_faces)
+    patch_fits: np.ndarray | None = None  # (J, F) bool: patch j has model face f's outline
+    compact: np.ndarray | None = None     # ids of the segments within the object's diameter (``compact_segments``)
+
+
+class ShapeFrontEnd:
+    def __init__(self, model: ObjectModel, fe):
+        self._deadline = None         # set_deadline's time.process_time() bound, or None
+        self.deadline_cut = False     # whether past_deadline turned work away since set_deadline
+        if not model.has_shape:
+            raise InputError("the object model has no shape data (frontend.correspondences shape/both); "
+                             "build it from a mesh with `mireg build-model --mesh FILE`")
+        self.model = model
+        self.fe = fe
+        self.voxel = float(model.shape_voxel)
+        keep = np.flatnonzero(model.shape_variation >= fe.shape_min_variation)
+        if len(keep) < 3:
+            keep = np.arange(len(model.shape_points))
+        self._model_idx = keep
+        self._model_pts = model.shape_points.astype(np.float64)
+        # The surface once (the descriptors hold a point once per view that sees it): for ICP
+        # and the depth check.
+        self._surface, self._surface_normals = oriented_downsample(self._model_pts, model.shape_normals, self.voxel)
+        self.diameter = float(np.linalg.norm(model.extent))
+        # Metres: the farthest the depth check can tell the object's shape from any surface
+        # there: its tolerance (3 sigma of the depth noise, sigma = shape_depth_noise x z^2)
+        # at most shape_max_noise_share of the object's diameter. Beyond, every surface of
+        # its size agrees (IC-BIN, a room 2-3 m behind a bin of cups: 30-56 mm against a
+        # cup's 45 mm radius, support 0.8-1.0 on clutter). No points from there.
+        k, share = fe.shape_depth_noise, fe.shape_max_noise_share
+        self.resolvable_depth = float(np.sqrt(share * self.diameter / (3.0 * k))) if k > 0 and share > 0 else np.inf
+        # The radius of the smallest ball about a point of the surface that holds the whole
+        # object (0.49-0.61 of the box diagonal for the cartons, cylinders, brackets, channels,
+        # tees and stairs): what a reference in a segment of several objects pairs with
+        # (``partner_reach``).
+        self.central_reach = central_radius(self._surface)
+        # A non-convex object (an L bracket) hides parts of itself that face the camera: the
+        # depth check draws its own surface first (each sample a disc of about the samples'
+        # spacing) and leaves those parts out. On a convex one nothing is hidden (0: not drawn;
+        # the downsampled surfaces of boxes and cylinders stand at most 0.6 voxel in front of
+        # their own tangent planes, the bracket's 20 voxels).
+        self._self_hiding = 0.0 if is_convex(self._surface, self._surface_normals, self.voxel) \
+            else 0.75 * self.voxel
+        self._box_centre = np.asarray(model.box_centre, np.float64)
+        self.features = fe.shape_features
+        if self.features == "ppf":
+            self._ppf = PPFModel(self._surface, self._surface_normals, self.diameter, self.voxel, model.symmetries,
+                                 bucket_cap=fe.shape_ppf_bucket)
+            # The largest flat piece the object can show: its two largest box sides.
+            e = np.sort(np.asarray(model.extent, np.float64))
+            self._max_face_area = float(e[1] * e[2])
+            # Where flush tops of such objects would lie above their support (support_mask).
+            self._face_heights = object_face_heights(self._surface, self._surface_normals, self.voxel)
+            # The model's flat faces with a long axis (a carton's six): a frame patch with
+            # the same outline moments places the pose (frontends/shape/faces.py). Convex models only:
+            # a non-convex one hides parts of its own faces (the bracket's upright, its base
+            # plate), and a plate's outline does not say on which side the rest lies
+            # (bracket MHF1 seed 0 / 5: 0.925 / 0.833 -> 0.901 / 0.828 with them).
+            self._faces = model_faces(self._surface, self._surface_normals, self.voxel) \
+                if fe.shape_faces and self._self_hiding == 0 else None
+        else:
+            self._matcher = ShapeMatcher(model.shape_descriptors[keep], k=fe.shape_neighbours)
+
+    @property
+    def depth_tolerance(self) -> float:
+        """Metres: a model point agrees with the depth image within this."""
+        return max(self.fe.shape_depth_tolerance, 0.8 * self.voxel)
+
+    @property
+    def non_convex(self) -> bool:
+        """Whether the model hides parts of itself (an L bracket; ``_self_hiding``)."""
+        return self._self_hiding > 0
+
+    def tolerance_at(self, T: np.ndarray) -> float:
+        """Metres: agreement with the depth image for an instance at pose T, within the depth
+        noise at its distance (3 sigma; 2.4 cm at 2 m, where a fixed 1.2 cm left true cartons
+        at 0.88 support and 0.1 "free")."""
+        return max(self.depth_tolerance, 3.0 * self.fe.shape_depth_noise * float(T[2, 3]) ** 2)
+
+    def _visible_surface(self, T: np.ndarray, normals: bool = False):
+        """The model's surface samples at pose T (camera frame) that face the camera; with
+        ``normals``, (samples, their normals)."""
+        p = self._surface @ T[:3, :3].T + T[:3, 3]
+        n = self._surface_normals @ T[:3, :3].T
+        facing = facing_camera(p, n)
+        return (p[facing], n[facing]) if normals else p[facing]
+
+    def surface_normals_at(self, points: np.ndarray) -> np.ndarray:
+        """(N, 3) the outward normal of the model surface nearest each model-frame point."""
+        if len(points) == 0:
+            return np.zeros((0, 3))
+        _, j = cKDTree(self._surface).query(np.asarray(points, np.float64), k=1)
+        return self._surface_normals[j]
+
+    def warm_up_frame(self) -> tuple[np.ndarray, CameraIntrinsics, np.ndarray]:
+        """A small made-up depth frame of the object in front of a wall, for ``warm_up``: the
+        shape path's kernels (support planes, normals, votes, ICP, depth and outline checks)
+        compile on their first call, seconds on a new checkout's first frame otherwise. The
+        model's camera-facing surface at an oblique pose, each sample drawn as a square of
+        its voxel's footprint in its tangent plane (not at one depth: the steps of a tilted
+        face, a few mm, would be no depth a sensor gives), nearest first. Returns the depth,
+        its intrinsics and the pose drawn."""
+        f, w, h = 120.0, 160, 120
+        z = max(1.6 * f * self.diameter / w, self.fe.depth_min + self.diameter)
+        c, s = np.cos(0.5), np.sin(0.5)
+        T = np.eye(4)
+        T[:3, :3] = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]]) @ np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+        T[:3, 3] = [0.0, 0.0, z]
+        depth = np.full((h, w), np.float32(z + self.diameter))       # the wall behind it
+        p, n = self._visible_surface(T, normals=True)
+        u = np.rint(f * p[:, 0] / p[:, 2] + w / 2).astype(int)
+        v = np.rint(f * p[:, 1] / p[:, 2] + h / 2).astype(int)
+        r = int(np.ceil(f * self.voxel / z / 2))
+        for k in np.argsort(-p[:, 2]):                                # far first: the nearest stays
+            rows = np.arange(max(v[k] - r, 0), max(min(v[k] + r + 1, h), 0))
+            cols = np.arange(max(u[k] - r, 0), max(min(u[k] + r + 1, w), 0))
+            if len(rows) == 0 or len(cols) == 0:
+                continue
+            # Each pixel's ray (x, y, 1) meets the sample's plane n . (ray t - p) = 0 at depth t.
+            den = n[k, 0] * (cols[None, :] - w / 2) / f + n[k, 1] * (rows[:, None] - h / 2) / f + n[k, 2]
+            depth[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1] = float(n[k] @ p[k]) / den
+        K = np.array([[f, 0.0, w / 2], [0.0, f, h / 2], [0.0, 0.0, 1.0]])
+        return depth, CameraIntrinsics(K, w, h), T
+
+    def ecc_config(self, base: ECCConfig) -> ECCConfig:
+        """ECC for shape matches: thresholds no finer than the voxel they are sampled at, and
+        compatibility only between points that one object can hold (spatial weight)."""
+        return replace(base, inlier_thresh=max(base.inlier_thresh, 1.5 * self.voxel),
+                       sampling_tolerance=max(base.sampling_tolerance, 0.6 * self.voxel),
+                       spatial_sigma=1.2 * self.diameter, sampling="consistency")
+
+    def frame_cloud(self, depth_m: np.ndarray, intrinsics: CameraIntrinsics, search: np.ndarray | None,
+                    gravity: np.ndarray | None = None, within: np.ndarray | None = None) -> FrameCloud:
+        """The frame's points where objects can be, no farther than the depth where the
+        object's shape can be told (``resolvable_depth``). ``search``: (H, W) bool, the
+        pipeline's search region (fpfh: its planes removed, inside the workspace); None: the
+        depth within [depth_min, depth_max] (ppf: it removes the planes itself,
+        ``segment_cloud``). ``within``: (H, W) bool, the workspace's pixels (or None: no
+        workspace), kept of what is left once the planes are removed. ``gravity``: see
+        ``segment_cloud``."""
+        if search is None:
+            search = (depth_m >= self.fe.depth_min) & (depth_m <= self.fe.depth_max)
+        if np.isfinite(self.resolvable_depth):
+            search = search & (depth_m <= self.resolvable_depth)
+        if self.features == "ppf":
+            return self.segment_cloud(depth_m, intrinsics, search, gravity, within)
+        if within is not None:
+            search = search & within
+        # Every second pixel is plenty: the voxel is several pixel footprints wide.
+        pts = scene_cloud(depth_m, intrinsics, search, self.voxel, stride=2)
+        if len(pts) > self.fe.shape_max_points:
+            pts = pts[np.random.default_rng(0).choice(len(pts), self.fe.shape_max_points, replace=False)]
+        if len(pts) < 10:
+            return FrameCloud(pts, np.zeros_like(pts), np.zeros(0, np.int64), np.zeros((0, 33), np.float32), None)
+        normals, variation, desc = describe(pts, self.voxel, toward=np.zeros(3))
+        salient = np.flatnonzero(variation >= self.fe.shape_min_variation)
+        return FrameCloud(pts, normals, salient, desc[salient], cKDTree(pts),
+                          grid=PointGrid(pts, normals, ICP_REACH * self.voxel))
+
+    def segment_cloud(self, depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.ndarray,
+                      gravity: np.ndarray | None = None, within: np.ndarray | None = None) -> FrameCloud:
+        """The ``valid`` pixels' points minus the large pieces of dominant planes (floor,
+        pallet top, table), those of them ``within`` the workspace (pixels; None: all),
+        voxel-downsampled, with normals, cut into connected segments. ``gravity``
+        (unit "up", camera frame; None: not known): the support "below" the objects
+        (``cloud.up``) is the largest removed plane within ``shape_gravity_tolerance_deg`` of
+        it, not a larger wall (``support_mask``)."""
+        fe = self.fe
+        ground, planes, rest = [], [], []
+        # Every second pixel's point off the supports (lifted once, in support_mask).
+        support_mask(depth_m, intrinsics, valid, fe.shape_support_area * self._max_face_area,
+                     fe.shape_plane_thresh, fe.shape_depth_noise, stride=2, ground=ground, planes=planes,
+                     up=gravity, up_tolerance_deg=fe.shape_gravity_tolerance_deg, rest=rest,
+                     face_heights=self._face_heights)
+        pts = rest[0]
+        if within is not None:
+            pts = pts[within[rest[1][:, 0], rest[1][:, 1]]]
+        pts = voxel_downsample(np.asarray(pts, np.float64), self.voxel)
+        empty = FrameCloud(pts, np.zeros_like(pts), np.zeros(0, np.int64), np.zeros((0, 33), np.float32), None,
+                           np.full(len(pts), -1, np.int64))
+        if len(pts) < 10:
+            return empty
+        # The segments on the other core while the normals are estimated here (neither
+        # needs the other; both searches release the GIL and share one tree), and the ICP
+        # grid built here while the segments, the longer of the two, are finished.
+        tree = cKDTree(pts)
+        segments = submit_each(lambda p: connected_segments(p, SEGMENT_LINK * self.voxel,
+                                                            fe.shape_min_segment, tree=tree), [pts])[0]
+        normals = surface_normals(pts, self.voxel, toward=np.zeros(3), tree=tree)
+        grid = PointGrid(pts, normals, ICP_REACH * self.voxel)
+        labels = segments.result()
+        return FrameCloud(pts, normals, np.zeros(0, np.int64), np.zeros((0, 33), np.float32), tree, labels,
+                          up=ground[0] if ground else None, up_offset=ground[1] if ground else None,
+                          planes=tuple(planes), grid=grid)
+
+    def correspondences(self, cloud: FrameCloud, on_poses=None, on_matches=None) -> tuple[np.ndarray, np.ndarray]:
+        """(model points (N, 3), scene points (N, 3)). ppf: each reference point of a
+        segment with the model point its pair votes choose (over the symmetries); fpfh: each
+        salient scene point with its ``shape_neighbours`` nearest model descriptors.
+        ``on_poses()`` is called as soon as ``cloud.poses`` (ppf) is set (to start their
+        refinement); ``on_matches(src, tgt)`` (ppf) as soon as the correspondences are made,
+        before the vote clusters' poses, which they do not depend on (to start ECC on them)."""
+        if self.features == "ppf":
+            if cloud.segments is None or not np.any(cloud.segments >= 0):
+                return np.zeros((0, 3)), np.zeros((0, 3))
+            reach = self.partner_reach(cloud)
+            s, m, poses, share = self._ppf.vote(cloud.points, cloud.normals, cloud.segments,
+                                                self.fe.shape_ref_step, self.fe.shape_max_partners, reach=reach)
+            poses = self._ppf.canonical_poses(poses)
+            src, matched = self._ppf.correspondences(s, poses, cloud.points, canonical=True, tree=cloud.tree)
+            tgt = cloud.points[matched]
+            if on_matches is not None:
+                on_matches(src, tgt)
+            if self.fe.shape_pose_clusters > 0:
+                # The references' own poses, clustered: an instance whose references ECC
+                # does not group (too few agree among the rest) still gets a hypothesis.
+                cloud.poses = cluster_poses(poses, share, 360.0 / ANGLE_STEPS, 0.1 * self.diameter,
+                                            self.fe.shape_pose_clusters)
+                if self._self_hiding > 0 and self.fe.shape_segment_clusters > 0:
+                    # Non-convex models only: a convex one's segment is one surface whose
+                    # votes agree (pallet and cylinders seeds 0 / 5: the same results with
+                    # them, for 12-20 ms more refinement a pallet frame).
+                    cloud.poses = np.concatenate([cloud.poses, self.segment_poses(poses, share, cloud.segments[s],
+                                                                                  cloud.poses)])
+                if self._faces is not None and len(self._faces):
+                    # The face poses first; a vote cluster that one of them would be refined
+                    # for (``distinct``) is left out: moved onto the same patch, it would be
+                    # the same pose, refined twice.
+                    faces = self.face_poses(cloud)
+                    near = _within(cloud.poses, faces, 360.0 / ANGLE_STEPS, 0.1 * self.diameter)
+                    cloud.poses = np.concatenate([faces, cloud.poses[~near]])
+            if on_poses is not None:
+                on_poses()
+            return src, tgt
+        s, m = self._matcher.match(cloud.descriptors)
+        return self._model_pts[self._model_idx[m]], cloud.points[cloud.salient[s]]
+
+    def partner_reach(self, cloud: FrameCloud) -> np.ndarray | None:
+        """(M,) metres: how far from each point of the cloud, as a reference, its vote
+        partners may lie, by segment; None: the
+        object's diameter everywhere. In a segment larger than the
+        object (two points farther apart than its diameter),
+        ``central_reach``: touching instances form one segment (channels side by side, their
+        tops flush), and partners spread over the diameter lay mostly on the neighbours
+        (open-side-down channels merged in pairs or fours: 0-5 right references of 70-100
+        each; voted over their own points alone, 10-60). A reference near its instance's
+        middle still pairs with all of it."""
+        labels = cloud.segments
+        if labels is None:
+            return None
+        compact = self.compact_segments(cloud)
+        reach = np.full(len(cloud.points), np.inf)
+        reach[(labels >= 0) & ~np.isin(labels, compact)] = self.central_reach
+        return reach if np.isfinite(reach).any() else None
+
+    def compact_segments(self, cloud: FrameCloud) -> np.ndarray:
+        """``segments_within_reach`` of the cloud's segments and the object's diameter, found
+        once a frame (3-4 ms a channel frame)."""
+        if cloud.compact is None:
+            cloud.compact = segments_within_reach(cloud.points, cloud.segments, self.diameter)
+        return cloud.compact
+
+    def face_poses(self, cloud: FrameCloud) -> np.ndarray:
+        """(K, 4, 4) pose hypotheses from the segments' flat patches whose outline moments are
+        a model face's (``faces.patch_poses``; a carton seen from above shows its top alone,
+        and its references' votes are blurred in the plane of it), one per pose the object's
+        symmetries tell apart. Also keeps those patches (``cloud.patches``, ``patch_fits``) for
+        ``_refine``."""
+        fe = self.fe
+        patches = frame_patches(cloud.points, cloud.normals, cloud.segments, self.diameter,
+                                SEGMENT_LINK * self.voxel,
+                                lambda z: max(self.depth_tolerance, 3.0 * fe.shape_depth_noise * z * z))
+        fits = matches(self._faces, patches, self.voxel)
+        shaped = fits.any(axis=1)
+        cloud.patches, cloud.patch_fits = patches.take(shaped), fits[shaped]
+        poses = patch_poses(self._faces, cloud.patches, cloud.patch_fits)
+        if len(poses) <= 1:
+            return poses
+        # One pose per patch and face the symmetries tell apart (a box's top on either sign
+        # of its axis, or its bottom's face: one pose, up to the faces' sampling).
+        poses = self._ppf.canonical_poses(poses)
+        keep = cluster_poses(poses, np.ones(len(poses)), 5.0, self.voxel, len(poses), min_members=1, indices=True)
+        return poses[np.sort(keep)]
+
+    def segment_poses(self, poses: np.ndarray, share: np.ndarray, labels: np.ndarray, taken: np.ndarray,
+                      k: int | None = None) -> np.ndarray:
+        """(K, 4, 4) each segment's best ``shape_segment_clusters`` (``k``) clusters of its own
+        references' poses (``labels``: each reference's segment), those not already among
+        ``taken`` (the frame-wide clusters). Ranked over the whole frame, an instance whose
+        segment is small or whose references mostly vote wrong poses (a bracket's plate seen
+        alone: blurred and turned-over votes) loses to the larger segments' second and third
+        clusters: its right cluster ranked 33rd-96th of 50-130, yet 1st-3rd in its segment."""
+        k = self.fe.shape_segment_clusters if k is None else k
+        angle, shift = 360.0 / ANGLE_STEPS, 0.1 * self.diameter
+        out = []
+        for label in np.unique(labels[labels >= 0]):
+            mine = np.flatnonzero(labels == label)
+            if len(mine) >= 2:
+                out.append(cluster_poses(poses[mine], share[mine], angle, shift, k))
+        if not out:
+            return np.zeros((0, 4, 4))
+        out = np.concatenate(out)
+        out = out[~_within(out, taken, angle, shift)]
+        # One of each group the refinement would take as one pose (two segments of one
+        # bracket, its upright and base plate, vote the same): the rest would be refined
+        # ahead of ECC for nothing.
+        return out[np.sort(self.distinct(out))] if len(out) > 1 else out
+
+
+    def refine_all(self, transforms, cloud: FrameCloud, view: FrameView, started: "Prefetch | None" = None,
+                   offset: int = 0) -> list[Explanation]:
+        """Each hypothesis refined by ICP and explained (``refine_one``), those the depth
+        hardly supports dropped. Hypotheses that are one pose (ECC's and the vote clusters'
+        for one instance) are refined once: the first of each group, in the order given
+        (``distinct``: best first, so that the frame's deadline leaves the weakest). Two at a
+        time in the shared thread pool (the kernels, k-d tree queries and OpenCV calls
+        release the GIL). ``started``: a ``Prefetch`` (``start_refining``) of
+        ``transforms[offset:]`` already under way; what it has taken on is used."""
+        if cloud.grid is None:
+            return []
+        order = self.distinct(transforms)
+        claimed = started.stop() if started is not None else set()
+        missing = [k for k in order if k - offset not in claimed]
+        new = dict(zip(missing, submit_each(lambda T0: self.refine_one(T0, cloud, view),
+                                            [np.array(transforms[k], np.float64) for k in missing])))
+        out = [(new[k] if k in new else _Claimed(started, k - offset)).result() for k in order]
+        return [e for e in out if e is not None]
+
+    def start_refining(self, transforms, cloud: FrameCloud, view: FrameView) -> "Prefetch | None":
+        """The vote clusters' poses refined on one worker of the shared thread pool while
+        ECC runs on this thread, the weakest first: the strongest are the ones most often
+        duplicated by an ECC transform (and then not needed); ``refine_all(...,
+        started=)`` stops it and takes its results. None on a single core."""
+        if cloud.grid is None or len(transforms) == 0:
+            return None
+        first = self.distinct(transforms)
+        rest = sorted(set(range(len(transforms))) - set(first))
+        return Prefetch(lambda T0: self.refine_one(T0, cloud, view),
+                        [np.array(T, np.float64) for T in transforms], sorted(first, reverse=True) + rest[::-1])
+
+    def distinct(self, transforms) -> list[int]:
+        """Indices of the transforms to refine: the first of each group of near-identical
+        ones (within the vote clusters' 24 deg and a tenth of the diagonal), in the order
+        the groups are refined."""
+        if len(transforms) <= 1:
+            return list(range(len(transforms)))
+        return list(cluster_poses(np.stack([np.asarray(T, np.float64) for T in transforms]),
+                                  -np.arange(len(transforms), dtype=np.float64), 360.0 / ANGLE_STEPS,
+                                  0.1 * self.diameter, len(transforms), min_members=1, indices=True))
+
+    def refine_one(self, T0: np.ndarray, cloud: FrameCloud, view: FrameView) -> Explanation | None:
+        """Hypothesis T0 refined by ICP and explained against the frame, nothing claimed
+        (``explain``); None past the frame's deadline or where the depth hardly supports it.
+        Reads only the frame's data: safe in several threads at once."""
+        fe = self.fe
+        if self.past_deadline():
+            return None
+        depth_m, intrinsics = view.depth, view.intrinsics
+        fit = lambda T: self.depth_check(T, depth_m, intrinsics)
+        first = min(3, fe.shape_icp_iterations)
+        # The depth check first (a projection, no search), then a few rounds of ICP: a
+        # hypothesis the depth hardly supports is dropped without paying for the rest
+        # (most of ECC's clusters are wrong).
+        start = fit(T0)
+        if cloud.patches is not None:
+            # On a frame patch shaped as one of its faces (a carton's top seen whole): placed
+            # by the patch's outline, which holds what ICP on the face alone does not (its
+            # turn and shift in the plane), if the depth agrees at least as well.
+            on_patch = nearest_face_pose(self._faces, cloud.patches, cloud.patch_fits, T0,
+                                         0.1 * self.diameter + self.voxel)
+            if on_patch is not None and (moved := fit(on_patch))[0] >= start[0]:
+                T0, start = on_patch, moved
+        if start[1] < 0.25 * fe.shape_min_support:
+            return None
+        T = self._icp(T0, cloud, depth_m, intrinsics, ICP_REACH * self.voxel, first)
+        best = max([start + (T0,), fit(T) + (T,)], key=lambda c: c[0])
+        if best[1] < 0.5 * fe.shape_min_support:
+            return None
+        T = self._icp(best[3], cloud, depth_m, intrinsics, 1.5 * self.voxel, fe.shape_icp_iterations - first)
+        # ICP can slide a box seen by one face alone: whichever pose the depth supports better.
+        best = max([best, fit(T) + (T,)], key=lambda c: c[0])
+        if best[2] > OVERHANG:
+            # Overhanging space seen empty: nearest-point ICP paired points across a
+            # non-convex object's parts (or onto a neighbour). Projective ICP pairs each
+            # model point with the depth on its ray instead.
+            T = align_projective(best[3], self._surface, self._surface_normals, depth_m, intrinsics,
+                                 PROJECTIVE_ROUNDS, 1.5 * self.voxel, 0.75 * self.voxel).T
+            best = max([best, fit(T) + (T,)], key=lambda c: c[0])
+        _, support, free, T = best
+        if support - FREE_WEIGHT * free < 0.9 * fe.shape_min_evidence * (support + free):
+            # Not even were everything that hides it explained (``explain.select``'s
+            # ``possible``, by the cheap check): not worth its explanation.
+            return None
+        return self.explain(T, cloud, view)
+
+    def depth_check(self, T, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> tuple[float, float, float]:
+        """(support - free, support, free) of the model's surface at pose T
+        (``geometry.depth_support``, compiled: the cheap look that guides ICP), the points
+        behind the depth counted half as ``explain`` counts those behind a surface no chosen
+        instance explains; (-1, 0, 1) with fewer than ``MIN_VISIBLE`` points judged."""
+        support, free, n = depth_support(T, self._surface, self._surface_normals, depth_m, intrinsics,
+                                         self.tolerance_at(T), self._self_hiding)
+        if n < MIN_VISIBLE:
+            return -1.0, 0.0, 1.0
+        judged = support + free + HIDDEN_WEIGHT * max(1.0 - support - free, 0.0)
+        return (support - free) / judged, support / judged, free / judged
+
+    def explain(self, T, cloud: FrameCloud, view: FrameView, claimed: np.ndarray | None = None) -> Explanation:
+        """``explain.explain`` of pose T with this model's surface, tolerance and support."""
+        return explain(T, self._surface, self._surface_normals, view, self.tolerance_at(T), self.voxel,
+                       self._same_surface(T), claimed, up=cloud.up, planes=cloud.planes)
+
+    def choose(self, candidates: list[Explanation], cloud: FrameCloud, view: FrameView, conflicts) -> list[Explanation]:
+        """The instances among the refined ``candidates``, chosen jointly (``explain.select``);
+        ``conflicts(e, chosen)``: whether two explanations' model volumes overlap."""
+        K = view.intrinsics.K
+        z = float(np.median([e.T[2, 3] for e in candidates])) if candidates else 1.0
+        px = K[0, 0] * self.voxel / max(z, 1e-3)        # a voxel in pixels at the candidates' distance
+        return select(candidates, lambda e, claimed: self.explain(e.T, cloud, view, claimed), conflicts,
+                      self.fe.shape_min_support, self.fe.shape_min_evidence, max(1, int(round(0.75 * px))),
+                      int(np.ceil(2.0 * px)), view.depth.shape, self.past_deadline)
+
+    def _same_surface(self, T) -> float:
+        """Metres: depth differences within the noise (3 sigma) at pose T's distance, at least
+        2 mm: "the same surface" for the outline."""
+        return max(3.0 * self.fe.shape_depth_noise * float(T[2, 3]) ** 2, 0.002)
+
+    def set_deadline(self, at: float | None) -> None:
+        """Refine no further hypothesis once ``time.process_time()`` passes ``at`` (None: no
+        bound); ``deadline_cut`` says afterwards whether that turned any away. CPU time, not
+        the clock's: what the frame costs, whatever else the host runs (on a host of its own
+        the two agree), so that a replay or a benchmark finds the same instances at any load."""
+        self._deadline, self.deadline_cut = at, False
+
+    def past_deadline(self) -> bool:
+        """Whether the frame's deadline has passed (and so work is turned away: counted)."""
+        if self._deadline is None or time.process_time() < self._deadline:
+            return False
+        self.deadline_cut = True
+        return True
+
+    def _icp(self, T, cloud: FrameCloud, depth_m, intrinsics, max_dist: float, iterations: int) -> np.ndarray:
+        """Point-to-plane ICP of the model's surface facing the camera, paired as
+        ``shape_icp_association`` says: with the frame cloud's nearest points, or with the
+        depth pixels the model points project to (the tracker's ICP)."""
+        if self.fe.shape_icp_association == "projective":
+            return align_projective(T, self._surface, self._surface_normals, depth_m, intrinsics, iterations,
+                                    max_dist, 0.5 * max_dist).T
+        return icp_point_to_plane(T, self._surface, cloud.grid, max_dist=max_dist, iterations=iterations,
+                                  model_normals=self._surface_normals)[0]
+
+
+class Prefetch:
+    """``function`` of items, in the given order, on one worker of the shared thread pool,
+    until ``stop``; the results by item index (``result``). Nothing is run on a single core."""
+
+    def __init__(self, function, items, order):
+        self._function, self._items, self._order = function, items, list(order)
+        self._lock = threading.Lock()
+        self._stopped = False
+        self._claimed: set[int] = set()
+        self._done: dict = {}
+        pool = shared_pool()
+        self._future = pool.submit(self._run) if pool is not None else None
+
+    def _run(self) -> None:
+        for k in self._order:
+            with self._lock:
+                if self._stopped:
+                    return
+                self._claimed.add(k)
+            self._done[k] = self._function(self._items[k])
+
+    def stop(self) -> set[int]:
+        """Takes on no more items; returns those it has taken on (done, or under way)."""
+        with self._lock:
+            self._stopped = True
+            return set(self._claimed)
+
+    def result(self, k: int):
+        """Item k's result (one taken on), once it is done."""
+        if self._future is not None:
+            self._future.result()      # the worker's exception, if any, is raised here
+        return self._done[k]
+
+
+class _Claimed:
+    """Item k of a Prefetch, as a task with ``result()``."""
+
+    def __init__(self, prefetch: Prefetch, k: int):
+        self._prefetch, self._k = prefetch, k
+
+    def result(self):
+        return self._prefetch.result(self._k)
+
+
+def _within(poses: np.ndarray, others: np.ndarray, max_angle_deg: float, max_shift: float) -> np.ndarray:
+    """(len(poses),) bool: within ``max_angle_deg`` and ``max_shift`` of any of ``others``."""
+    if len(poses) == 0 or len(others) == 0:
+        return np.zeros(len(poses), bool)
+    cos = (np.einsum("aij,bij->ab", poses[:, :3, :3], others[:, :3, :3]) - 1.0) / 2.0
+    shift = np.linalg.norm(poses[:, None, :3, 3] - others[None, :, :3, 3], axis=2)
+    return np.any((cos >= np.cos(np.radians(max_angle_deg))) & (shift < max_shift), axis=1)
+
+
+# ``object_face_heights``: model surface samples facing this close to up (degrees) ...
+FACE_UP_DEG = 10.0
+# ... at least this many within half a voxel of one height make a face there.
+FACE_MIN_POINTS = 10
+
+
+def object_face_heights(surface: np.ndarray, normals: np.ndarray, voxel: float) -> np.ndarray:
+    """The heights (metres, ascending) above its support at which the model, resting on a
+    side of its box, shows a flat face facing up: the channel lying open side down its back
+    at 5 cm, open side up its floor at 8 mm and its rims at 5 cm, on a side its wall at 10
+    cm. Surface samples (model frame, box axes) facing up within FACE_UP_DEG, binned by
+    half a voxel."""
+    out = []
+    for axis in range(3):
+        for sign in (1.0, -1.0):
+            s = sign * surface[:, axis]
+            up = sign * normals[:, axis] >= np.cos(np.radians(FACE_UP_DEG))
+            h = s[up] - s.min()
+            binned = np.rint(h / (0.5 * voxel)).astype(np.int64)
+            bins, counts = np.unique(binned, return_counts=True)
+            out.extend(float(np.mean(h[binned == b])) for b in bins[counts >= FACE_MIN_POINTS])
+    return np.unique(np.round(np.asarray([x for x in out if x > 0.5 * voxel]), 4))
+
+
+def central_radius(points: np.ndarray) -> float:
+    """The least, over the points, of the largest distance from one to any other: the radius
+    of the smallest ball about one of them that holds them all. The farthest point from any
+    point is a vertex of their convex hull."""
+    from scipy.spatial import ConvexHull, QhullError
+    from scipy.spatial.distance import cdist
+
+    points = np.asarray(points, np.float64)
+    try:
+        far = points[ConvexHull(points).vertices]
+    except QhullError:          # flat or too few points: every point is a candidate
+        far = points
+    return float(cdist(points, far).max(axis=1).min())
+
+
+def oriented_downsample(points: np.ndarray, normals: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
+    """The mean point and normal per voxel and normal direction (the nearest of +-x, +-y,
+    +-z): the two sides of a plate thinner than two voxels stay apart, each with its own
+    outward normal (a visible side is matched, ICP'd and checked against its own side)."""
+    normals = np.asarray(normals, np.float64)
+    side = np.argmax(np.abs(normals), axis=1) * 2 + (normals[np.arange(len(normals)), np.argmax(np.abs(normals), axis=1)] < 0)
+    keys = np.floor(np.asarray(points, np.float64) / voxel).astype(np.int64)
+    keys -= keys.min(axis=0)
+    dims = keys.max(axis=0) + 1
+    flat = ((keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]) * 6 + side
+    _, inverse, counts = np.unique(flat, return_inverse=True, return_counts=True)
+    out_p = np.stack([np.bincount(inverse, weights=points[:, k], minlength=len(counts)) for k in range(3)], 1)
+    out_n = np.stack([np.bincount(inverse, weights=normals[:, k], minlength=len(counts)) for k in range(3)], 1)
+    out_n /= np.maximum(np.linalg.norm(out_n, axis=1, keepdims=True), 1e-12)
+    return out_p / counts[:, None], out_n
+
+
+def resolve_correspondences(choice: str, model: ObjectModel) -> str:
+    """``auto``: what the model allows (texture and shape: both; shape only: shape; else sift)."""
+    has_sift = model.num_keypoints >= 3
+    if choice == "auto":
+        if model.has_shape:
+            return "both" if has_sift else "shape"
+        return "sift"
+    if choice in ("shape", "both") and not model.has_shape:
+        raise InputError(f"frontend.correspondences={choice} needs shape data in the model; build it from a mesh "
+                         f"with `mireg build-model --mesh FILE`, or use sift")
+    if choice in ("sift", "both") and not has_sift:
+        raise InputError(f"frontend.correspondences={choice} needs SIFT keypoints, and this model has "
+                         f"{model.num_keypoints} (built from a mesh alone); use shape or auto, or build the model "
+                         f"with capture bags as well")
+    return choice
+
+
+__all__ = ["ShapeFrontEnd", "FrameCloud", "FrameView", "resolve_correspondences", "oriented_downsample"]

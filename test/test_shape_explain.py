@@ -1,0 +1,135 @@
+"""The shape front end's one verification (frontends/shape/explain.py): known answers for
+a box seen from above on a floor, in free space, behind a surface, as a piece of a larger
+surface, flush with its neighbours (told apart only by colour), and the joint choice."""
+import numpy as np
+import pytest
+
+from multi_instance_reg.frontends.shape.explain import FrameView, claim, select
+from multi_instance_reg.frontends.shape.frontend import ShapeFrontEnd
+from multi_instance_reg.meshes import box_mesh
+from multi_instance_reg.messages import CameraIntrinsics
+from multi_instance_reg.models.mesh_model import build_model_from_mesh
+from multi_instance_reg.rgbd.pipeline import FrontEndConfig
+from multi_instance_reg.transforms import make_transform
+
+FLOOR = 1.575           # metres: the floor the box (0.3 x 0.2 x 0.15) stands on, seen from above
+TOP = FLOOR - 0.15
+
+
+@pytest.fixture(scope="module")
+def shape():
+    return ShapeFrontEnd(build_model_from_mesh(box_mesh(0.3, 0.2, 0.15), "box"), FrontEndConfig())
+
+
+def _intrinsics():
+    return CameraIntrinsics(K=np.array([[400.0, 0, 160], [0, 400.0, 120], [0, 0, 1]]), width=320, height=240)
+
+
+def _pose(x=0.0, y=0.0, top=TOP):
+    """The box seen from above, its top (+z, 0.3 x 0.2) at depth ``top``, centred at x, y."""
+    return make_transform(np.diag([1.0, -1.0, -1.0]), [x, y, top + 0.075])
+
+
+def _scene(tops, floor=FLOOR):
+    """A depth image of a floor and box tops ((x, y, depth, half x, half y) each)."""
+    K = _intrinsics().K
+    v, u = np.mgrid[0:240, 0:320]
+    depth = np.full((240, 320), floor, np.float32)
+    for x0, y0, z, hx, hy in tops:
+        x, y = (u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z
+        depth[(np.abs(x - x0) < hx) & (np.abs(y - y0) < hy)] = z
+    return depth
+
+
+def _explain(shape, T, depth, rgb=None, claimed=None):
+    view = FrameView.of(depth, _intrinsics(), rgb)
+    cloud = shape.frame_cloud(depth, _intrinsics(), None)
+    return shape.explain(T, cloud, view, claimed)
+
+
+def test_a_true_pose_explains_its_pixels_and_a_pose_in_free_space_does_not(shape):
+    depth = _scene([(0.0, 0.0, TOP, 0.15, 0.1)])
+    true = _explain(shape, _pose(), depth)
+    assert true.support > 0.9 and true.free == 0 and true.outline < 0.05 and true.evidence > 0.85
+    # 10 cm nearer the camera: in space the camera saw through to the top and the floor.
+    floating = _explain(shape, _pose(top=TOP - 0.1), depth)
+    assert floating.agree == 0 and floating.free > 0.9 * floating.judged and floating.evidence < -0.9
+    assert true.gain > 0 >= floating.gain
+
+
+def test_a_pose_behind_a_nearer_surface_counts_as_hidden_and_a_chosen_instance_explains_it(shape):
+    # A board 20 cm above the box covers its left half (a small board: no support plane).
+    depth = _scene([(0.0, 0.0, TOP, 0.15, 0.1)])
+    board = _scene([(-0.1, 0.0, TOP - 0.2, 0.1, 0.14)])
+    depth = np.minimum(depth, board)
+    e = _explain(shape, _pose(), depth)
+    assert e.hidden > 0.2 * e.judged and e.agree > 0.4 * e.judged and e.free == 0
+    # With the board's pixels claimed by an instance chosen before it, what it hides is explained.
+    board = (depth < TOP - 0.1).astype(np.uint8)
+    again = _explain(shape, _pose(), depth, claimed=board)
+    assert again.hidden == 0 and again.support > e.support and again.support > 0.9
+
+
+def test_a_piece_of_a_larger_surface_continues_past_its_outline(shape):
+    # A box-sized piece of a 0.6 x 0.4 board's top: the board's surface goes on past its outline.
+    depth = _scene([(0.0, 0.0, TOP, 0.3, 0.2)])
+    e = _explain(shape, _pose(), depth)
+    assert e.support > 0.5 and e.outline > 0.5 and e.evidence < 0.0
+
+
+def test_flush_boxes_are_split_by_the_colour_edges_between_them(shape):
+    # Three boxes packed side by side with no gap: one plane in depth, 0.9 x 0.2 m.
+    K = _intrinsics().K
+    depth = _scene([(0.0, 0.0, TOP, 0.45, 0.1)])
+    rgb = np.full((240, 320, 3), 90, np.uint8)
+    v, u = np.mgrid[0:240, 0:320]
+    x, y = (u - K[0, 2]) / K[0, 0] * TOP, (v - K[1, 2]) / K[1, 1] * TOP
+    for k, x0 in enumerate((-0.3, 0.0, 0.3)):
+        rgb[(np.abs(x - x0) < 0.149) & (np.abs(y) < 0.1)] = (150 + 40 * k, 120, 60)
+    grey = _explain(shape, _pose(), depth)
+    coloured = _explain(shape, _pose(), depth, rgb)
+    assert grey.outline > 0.3                   # depth alone: a piece of a larger surface
+    assert coloured.outline < 0.05 and coloured.evidence > 0.85
+    # Half a box off, across a colour edge: the colour edge inside it does not help it.
+    off = _explain(shape, _pose(x=0.15), depth, rgb)
+    assert off.evidence < coloured.evidence
+
+
+def test_two_hypotheses_on_the_same_pixels_give_one_instance_and_two_boxes_two(shape):
+    depth = _scene([(-0.2, 0.0, TOP, 0.15, 0.1), (0.2, 0.0, TOP, 0.15, 0.1)])
+    view = FrameView.of(depth, _intrinsics())
+    cloud = shape.frame_cloud(depth, _intrinsics(), None)
+    left, right = _pose(x=-0.2), _pose(x=-0.2)
+    right[:3, 3] += [0.004, 0.0, 0.0]                  # the same box, 4 mm apart
+    other = _pose(x=0.2)
+    candidates = [shape.explain(T, cloud, view) for T in (left, right, other)]
+    never = lambda a, b: False                          # no volume test: the pixels alone decide
+    chosen = shape.choose(candidates, cloud, view, never)
+    assert len(chosen) == 2
+    assert {round(float(e.T[0, 3]), 1) for e in chosen} == {-0.2, 0.2}
+    # Claimed pixels are taken out of a later pose's gain.
+    mask = np.zeros(depth.shape, np.uint8)
+    claim(mask, candidates[0], 2)
+    again = shape.explain(right, cloud, view, mask)
+    assert again.claimed > 0.9 * again.agree and again.gain < 0.1 * candidates[1].gain
+
+
+def test_select_stops_when_nothing_passes_and_keeps_the_best_of_a_conflict(shape):
+    depth = _scene([(0.0, 0.0, TOP, 0.15, 0.1)])
+    view = FrameView.of(depth, _intrinsics())
+    cloud = shape.frame_cloud(depth, _intrinsics(), None)
+    good, bad = shape.explain(_pose(), cloud, view), shape.explain(_pose(top=TOP - 0.1), cloud, view)
+    rescore = lambda e, claimed: shape.explain(e.T, cloud, view, claimed)
+    always = lambda a, b: True
+    assert select([bad], rescore, always, 0.75, 0.8, 2, 8, depth.shape) == []
+    chosen = select([bad, good], rescore, always, 0.75, 0.8, 2, 8, depth.shape)
+    assert len(chosen) == 1 and chosen[0] is good
+
+
+def test_a_pose_reaching_into_the_support_it_stands_on_counts_as_free(shape):
+    # A crate 0.4 x 0.3 x 0.12 on a floor (a support plane): the box, 15 cm tall, with its top
+    # in the crate's top, reaches 3 cm into the floor, which the camera sees around the crate.
+    crate = _scene([(0.0, 0.0, FLOOR - 0.12, 0.2, 0.15)])
+    sunk = _explain(shape, _pose(x=0.05, y=0.05, top=FLOOR - 0.12), crate)
+    standing = _explain(shape, _pose(), _scene([(0.0, 0.0, TOP, 0.15, 0.1)]))
+    assert sunk.free > 0.05 * sunk.judged and standing.free == 0
