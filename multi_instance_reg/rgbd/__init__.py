@@ -5,6 +5,4 @@
 - ``lifting``: robust depth lookup, undistortion, back-projection;  ``depth_noise``: the sensor's noise from the frame.
 - ``verify``: checks of a pose against the depth image (the acceptors).
 - ``workspace``: the box / image mask the search keeps to;  ``overlay``: the debug picture.
-- ``shape_frontend``, ``shape``, ``ppf``, ``segments``, ``faces``: the shape front end (moving
-  to ``frontends/shape``).
 """
