@@ -68,6 +68,7 @@ bench: install
 	$(VENV)/bin/mireg bench tracking
 	$(VENV)/bin/mireg bench tracking --seed 1000
 	$(VENV)/bin/mireg bench bop
+	$(VENV)/bin/mireg bench scale
 	$(VENV)/bin/mireg bench node
 
 clean:
