@@ -46,8 +46,12 @@ SEGMENT_LINK = 2.0
 # An instance needs at least this many model points seen on valid depth (explain.MIN_JUDGED
 # for the verification; here for the cheap check before ICP).
 MIN_VISIBLE = 20
-# sigma_z / z^2 (per metre) where a frame gives too few smooth patches to measure it
-# (shape_depth_noise 0): a D4xx's, about what the synthetic d455 profile measures (0.0018).
+# sigma_z / z^2 (per metre) where a frame gives too few smooth patches to measure it, and the
+# least a measurement is taken for (shape_depth_noise 0): a D4xx's. The 7 x 7 plane fits see
+# the pixel-to-pixel part of the noise only; a real camera's error is also correlated over
+# tens of pixels, which the depth check over an object's extent meets too: the IC-BIN frames
+# measure 0.0010-0.0014, and at that k the noise-share cut searched the room out to 2.4 m
+# (15-17 s CPU on the bin of cartons, 3.5 s at 0.002; the cut was set there with 0.002).
 NOMINAL_DEPTH_NOISE = 0.002
 
 
@@ -128,11 +132,11 @@ class ShapeFrontEnd:
         """Set and return ``depth_noise`` for this frame: ``shape_depth_noise`` when > 0, else
         measured on the frame (``rgbd/depth_noise.py``, 3-5 ms at 640x480; a fixed k is too
         strict on a noisier camera: a realistic-sensor pallet, k 0.004, gave no pose with
-        0.002), ``NOMINAL_DEPTH_NOISE`` when the frame has too few smooth patches."""
+        0.002), never below ``NOMINAL_DEPTH_NOISE`` (also when the frame has too few smooth
+        patches)."""
         k = self.fe.shape_depth_noise
         if k <= 0:
-            k = measure_depth_noise(depth_m)
-            k = NOMINAL_DEPTH_NOISE if k is None else k
+            k = max(measure_depth_noise(depth_m) or 0.0, NOMINAL_DEPTH_NOISE)
         self.depth_noise = float(k)
         return self.depth_noise
 
