@@ -43,6 +43,19 @@ def test_demo_runs_end_to_end_and_leaves_overlays_and_a_summary(tmp_path):
     assert "MHF1" in done.stdout and "mean latency" in done.stdout and "frames dropped" in done.stdout
     for log in ("node.log", "listen.log", "play.log"):
         assert (out / log).stat().st_size > 0
+    # What the node published, frame by frame, as mireg offline's poses.json.
+    frames = json.loads((out / "poses.json").read_text())["frames"]
+    assert len(frames) == summary["frames"]
+    assert all(len(i["T"]) == 4 and "object" in i and "track_id" in i for f in frames for i in f["instances"])
+
+
+def test_demo_refuses_a_domain_id_fast_dds_cannot_use(tmp_path):
+    done = subprocess.run([sys.executable, "-m", "multi_instance_reg.tools.demo", "--out", str(tmp_path / "demo"),
+                           "--domain-id", "240"], env=ros_env(52), cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and "Traceback" not in done.stderr
+    assert done.stderr.strip().splitlines() == [
+        "mireg demo: error: --domain-id must be 0 to 232 (the largest ROS_DOMAIN_ID Fast DDS can use), got 240"]
+    assert not (tmp_path / "demo").exists()     # refused before rendering anything
 
 
 def test_large_data_profile_is_used_unless_the_user_chose_one():

@@ -3,6 +3,7 @@
     mireg bop run DATASET -o OUT [--split test] [--model ID=MODEL.npz ...] [--objects 1,2]
                   [--scenes 1,2] [--images 0,5] [--all-images] [--tracking | --no-tracking]
                   [--params FILE.yaml] [--overlays N] [--method NAME] [--csv FILE]
+                  [--ray | --workers N | --address ADDR] [--retries N]
     mireg bop model DATASET --obj ID -o MODEL.npz
     mireg bop to-bag DATASET --scene ID -o BAG [--split test] [--images 0,5] [--rate 30] [--storage sqlite3|mcap]
     mireg bop score RESULTS.csv --dataset DATASET [--split test] [-o SCORES.json]   (tools/bop_score.py)
@@ -19,6 +20,8 @@ symmetries ``models_info.json`` lists (kept in ``OUT/models/``). Which objects: 
 else the targets' (``test_targets_bop19.json``), else the ground truth's, else all in
 ``models_info.json``. Images are solved alone (BOP images are not a video) unless
 ``--tracking``, which runs each scene's images in id order through the tracker.
+``--ray`` / ``--workers`` / ``--address``: the images (scenes with --tracking) as tasks on Ray
+workers, each finished one in ``OUT/parts/`` so that a rerun skips it (docs/scale_out.md).
 
 ``model`` builds one object's model file from the dataset's mesh (the same code path).
 ``to-bag`` writes one scene as a realsense-ros rosbag2 (topics as ``datasets/rgbd_bag.py``
@@ -179,6 +182,9 @@ def add_run_arguments(p) -> None:
     p.add_argument("--method", default="mireg", help="method name in the CSV's file name (default mireg)")
     p.add_argument("--csv", default=None, help="results CSV path (default OUT/<method>_<dataset>-<split>.csv)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    from ..distributed.ray_runner import add_ray_arguments
+
+    add_ray_arguments(p, "images (with --tracking: the scenes)")
 
 
 def results_file_name(method: str, dataset: str, split: str) -> str:
@@ -191,18 +197,105 @@ def results_file_name(method: str, dataset: str, split: str) -> str:
     return f"{clean(method)}_{clean(dataset).lower()}-{clean(split)}.csv"
 
 
-def run_run(args) -> int:
-    import cv2
+class BopImageSolver:
+    """What one worker of ``bop run`` holds: the dataset, the models and the pipeline (loaded
+    once, warmed up). ``run(task)`` solves a task's (scene_id, im_id) images: one image, or
+    a scene's images in id order through a fresh tracker. The serial run and every Ray
+    worker go through this one class, so both give the same poses."""
 
+    def __init__(self, dataset_root: str, split: str, models, obj_ids: list[int], config, tracker_config,
+                 overlay_pairs=()):
+        from ..datasets.bop import BopDataset
+        from ..rgbd.multi_model import MultiModelRegistration
+        from ..rgbd.workspace import Workspace
+        from .offline import object_frame_symmetries
+
+        self.ds = BopDataset(dataset_root, split)
+        self.models, self.obj_ids = list(models), list(obj_ids)
+        self.obj_of = {m.name: o for m, o in zip(self.models, self.obj_ids)}
+        self.index_of = {o: k for k, o in enumerate(self.obj_ids)}
+        self.symmetries = [object_frame_symmetries(m) for m in self.models]
+        self.reg = MultiModelRegistration(self.models, config)
+        self.reg.warm_up()
+        self.workspace = Workspace.from_config(config.workspace)      # drawn in the overlays
+        self.tracker_config = tracker_config
+        self.overlay_pairs = {tuple(p) for p in overlay_pairs}
+
+    def run(self, task) -> dict:
+        """{"images": summary entries, "estimates": CSV rows [scene, im, obj, score, R (9), t_mm (3), seconds],
+        "skipped": reasons of the images left out, "overlays": {file name: PNG bytes}}."""
+        import cv2
+
+        from ..datasets.bop import BopEstimate
+        from ..rgbd.pipeline import check_frame
+        from ..tracking import ObjectTrackers
+        from .offline import estimates_in_object_frame
+
+        out = {"images": [], "estimates": [], "skipped": [], "overlays": {}}
+        trackers = None if self.tracker_config is None else ObjectTrackers(self.models, self.tracker_config)
+        for scene_id, im_id in task:
+            t0, cpu0 = time.perf_counter(), time.process_time()
+            try:
+                frame = self.ds.read_frame(scene_id, im_id)
+                check_frame(frame.rgb, frame.depth_m, frame.intrinsics)
+                result = self.reg.register_frame(frame.rgb, frame.depth_m, frame.intrinsics)
+            except InputError as exc:
+                out["skipped"].append(f"scene {scene_id} image {im_id}: {exc}")
+                continue
+            published = result.instances
+            if trackers is not None:
+                published = trackers.step(frame.stamp_ns, frame.depth_m, frame.intrinsics, result.instances,
+                                          rgb=frame.rgb)      # the colour image: the camera's motion
+            seconds, cpu_seconds = time.perf_counter() - t0, time.process_time() - cpu0
+            by_object: dict[int, int] = {}
+            for inst in published:
+                obj = self.obj_of[inst.object]
+                T = estimates_in_object_frame(self.models[self.index_of[obj]], inst.T)[0]
+                e = BopEstimate.from_pose(frame.scene_id, frame.im_id, obj, inst.score, T, seconds)
+                out["estimates"].append([e.scene_id, e.im_id, e.obj_id, e.score, e.R.reshape(-1).tolist(),
+                                         np.asarray(e.t_mm, np.float64).tolist(), e.time_s])
+                by_object[obj] = by_object.get(obj, 0) + 1
+            entry = {"scene_id": frame.scene_id, "im_id": frame.im_id, "seconds": round(seconds, 4),
+                     "cpu_seconds": round(cpu_seconds, 4),       # this process, all threads: less swayed by a loaded host
+                     "poses": len(published), "poses_by_object": {str(o): c for o, c in sorted(by_object.items())},
+                     "deadline_cut": bool(result.deadline_cut)}     # frontend.shape_deadline_ms stopped the search
+            owners = None
+            if frame.gt_poses is not None:
+                owners = np.array([self.index_of.get(int(o), -1) for o in frame.gt_obj_ids], np.int64)
+                entry.update(_hits(frame, owners, self.models, self.symmetries, published))
+            out["images"].append(entry)
+            if (frame.scene_id, frame.im_id) in self.overlay_pairs:
+                ok, png = cv2.imencode(".png", overlay(frame, self.models, published, owners, self.workspace))
+                out["overlays"][f"{frame.scene_id:06d}_{frame.im_id:06d}.png"] = png.tobytes()
+        return out
+
+
+def bop_tasks(pairs, tracking: bool) -> list[list[tuple[int, int]]]:
+    """One task per image; with tracking one per scene (its images in order, one tracker)."""
+    if not tracking:
+        return [[p] for p in pairs]
+    return [list(group) for _, group in itertools.groupby(pairs, key=lambda p: p[0])]
+
+
+def describe_bop_task(task) -> str:
+    if len(task) == 1:
+        return f"scene {task[0][0]} image {task[0][1]}"
+    return f"scene {task[0][0]} images {task[0][1]}-{task[-1][1]} ({len(task)})"
+
+
+def task_key(task) -> str:
+    return f"{task[0][0]:06d}_{task[0][1]:06d}" + (f"-{task[-1][1]:06d}" if len(task) > 1 else "")
+
+
+def run_run(args) -> int:
     from ..datasets.bop import BopEstimate, write_results_csv
     from ..datasets.rgbd_bag import SkipCounter
-    from ..rgbd.multi_model import MultiModelRegistration
-    from ..rgbd.pipeline import check_frame
-    from ..rgbd.workspace import Workspace
-    from ..tracking import ObjectTrackers
-    from .offline import (Progress, estimates_in_object_frame, load_config, load_tracker_config,
-                          object_frame_symmetries)
+    from ..distributed.ray_runner import connect, run_serial, run_tasks, wants_ray
+    from ..distributed.resume import PartsFolder, run_fingerprint
+    from ..progress import Progress
+    from .offline import load_config, load_tracker_config
 
+    use_ray = wants_ray(args)
     ds = _open(args)
     out_dir = Path(args.output)
     if out_dir.exists() and not out_dir.is_dir():
@@ -216,65 +309,66 @@ def run_run(args) -> int:
     obj_ids = chosen_objects(ds, pairs, parse_ids(args.objects, "objects"), given)
     config = load_config(args.params)
     tracker_config = load_tracker_config(args.params) if args.tracking else None
-    skipped = SkipCounter()
     # The first readable image before the models are built (half a minute for a large mesh):
     # a dataset whose images are all bad fails at once.
-    frames = ds.read_frames(pairs, skipped)
-    first = next(frames, None)
-    if first is None:
-        raise InputError(f"no image of {ds.split_dir} could be processed ({skipped.count} skipped: {skipped.summary()})")
+    unreadable = SkipCounter()
+    if next(ds.read_frames(pairs, unreadable), None) is None:
+        raise InputError(f"no image of {ds.split_dir} could be processed ({unreadable.count} skipped: "
+                         f"{unreadable.summary()})")
+    workers = connect(args.address, args.workers) if use_ray else 0    # a cluster not there: said before the models are built
     out_dir.mkdir(parents=True, exist_ok=True)
     models = load_bop_models(ds, obj_ids, given, out_dir / "models")
-    obj_of = {m.name: o for m, o in zip(models, obj_ids)}
-    index_of = {o: k for k, o in enumerate(obj_ids)}
-    symmetries = [object_frame_symmetries(m) for m in models]
-    reg = MultiModelRegistration(models, config)
-    reg.warm_up()
-    workspace = Workspace.from_config(config.workspace)      # drawn in the overlays
     overlay_dir = out_dir / "overlays"
-    estimates, images = [], []
-    trackers, tracked_scene = None, None
-    bar = Progress(len(pairs), not args.quiet)
-    for n, frame in enumerate(itertools.chain([first], frames)):
-        t0, cpu0 = time.perf_counter(), time.process_time()
-        try:
-            check_frame(frame.rgb, frame.depth_m, frame.intrinsics)
-            result = reg.register_frame(frame.rgb, frame.depth_m, frame.intrinsics)
-        except InputError as exc:
-            skipped.add(f"scene {frame.scene_id} image {frame.im_id}: {exc}")
-            continue
-        published = result.instances
-        if tracker_config is not None:
-            if trackers is None or tracked_scene != frame.scene_id:
-                trackers, tracked_scene = ObjectTrackers(models, tracker_config), frame.scene_id
-            published = trackers.step(frame.stamp_ns, frame.depth_m, frame.intrinsics, result.instances,
-                                      rgb=frame.rgb)      # the colour image: the camera's motion
-        seconds, cpu_seconds = time.perf_counter() - t0, time.process_time() - cpu0
-        by_object: dict[int, int] = {}
-        for inst in published:
-            obj = obj_of[inst.object]
-            m = models[index_of[obj]]
-            T = estimates_in_object_frame(m, inst.T)[0]
-            estimates.append(BopEstimate.from_pose(frame.scene_id, frame.im_id, obj, inst.score, T, seconds))
-            by_object[obj] = by_object.get(obj, 0) + 1
-        entry = {"scene_id": frame.scene_id, "im_id": frame.im_id, "seconds": round(seconds, 4),
-                 "cpu_seconds": round(cpu_seconds, 4),       # this process, all threads: less swayed by a loaded host
-                 "poses": len(published), "poses_by_object": {str(o): c for o, c in sorted(by_object.items())},
-                 "deadline_cut": bool(result.deadline_cut)}     # frontend.shape_deadline_ms stopped the search
-        owners = None
-        if frame.gt_poses is not None:
-            owners = np.array([index_of.get(int(o), -1) for o in frame.gt_obj_ids], np.int64)
-            entry.update(_hits(frame, owners, models, symmetries, published))
-        images.append(entry)
-        if len(images) <= args.overlays:
+    tasks = bop_tasks(pairs, bool(args.tracking))
+    results: dict[str, dict] = {}
+    parts = PartsFolder(out_dir / "parts", run_fingerprint(models, config, tracker_config, dataset=str(ds.root.resolve()),
+                                                           split=ds.split, objects=obj_ids)) if use_ray else None
+
+    def on_result(task, result):
+        if result["overlays"]:
             overlay_dir.mkdir(parents=True, exist_ok=True)
-            cv2.imwrite(str(overlay_dir / f"{frame.scene_id:06d}_{frame.im_id:06d}.png"),
-                        overlay(frame, models, published, owners, workspace))
-        bar.update(n + 1)
-    bar.close()
+            for name, png in result["overlays"].items():
+                (overlay_dir / name).write_bytes(png)
+        if parts is not None:
+            parts.save(task_key(task), result)
+        results[task_key(task)] = result
+
+    if parts is not None:
+        for task in tasks:
+            done = parts.load(task_key(task))
+            if done is not None:
+                results[task_key(task)] = done
+    todo = [t for t in tasks if task_key(t) not in results]
+    worker_args = (str(ds.root), ds.split, models, obj_ids, config, tracker_config, pairs[:max(args.overlays, 0)])
+    bar = Progress(len(tasks), not args.quiet, unit="scenes" if args.tracking else "images")
+    t_run = time.perf_counter()
+    try:
+        if use_ray:
+            if len(results):
+                print(f"mireg bop run: {len(results)} of {len(tasks)} task(s) done before (in {parts.folder}); "
+                      f"running the other {len(todo)} on {min(workers, len(todo))} Ray worker(s)", file=sys.stderr)
+            failures = run_tasks(BopImageSolver, worker_args, todo, describe_bop_task, on_result, workers, args.retries,
+                                 bar, done_before=len(results))
+        else:
+            failures = run_serial(BopImageSolver, worker_args, todo, describe_bop_task, on_result, bar)
+    finally:
+        bar.close()
+    run_seconds = time.perf_counter() - t_run
+    images, estimates, skipped = [], [], SkipCounter()
+    for task in tasks:
+        result = results.get(task_key(task))
+        if result is None:
+            continue
+        images.extend(result["images"])
+        estimates.extend(BopEstimate(s, im, o, score, np.array(R).reshape(3, 3), np.array(t), secs)
+                         for s, im, o, score, R, t, secs in result["estimates"])
+        for reason in result["skipped"]:
+            skipped.add(reason)
     if not images:
         raise InputError(f"no image of {ds.split_dir} could be processed ({skipped.count} skipped: "
-                         f"{skipped.summary() or 'none selected'})")
+                         f"{skipped.summary() or 'none selected'}"
+                         + (f"; {len(failures)} task(s) failed: {failures[0].task}: {failures[0].error}" if failures else "")
+                         + ")")
     csv_path = Path(args.csv) if args.csv else out_dir / results_file_name(args.method, ds.name, ds.split)
     write_results_csv(csv_path, estimates)
     secs = np.array([e["seconds"] for e in images])
@@ -282,6 +376,10 @@ def run_run(args) -> int:
     summary = {"dataset": str(ds.root), "split": ds.split, "csv": str(csv_path), "objects": obj_ids,
                "models": [m.name for m in models], "tracking": bool(args.tracking), "images": images,
                "skipped": skipped.count, "skip_reasons": skipped.reasons,
+               "failed_tasks": [f.as_json() for f in failures],
+               # How this run went: Ray workers (0: serial), the tasks it ran and their wall-clock seconds.
+               "run": {"workers": workers, "tasks_run": len(todo), "tasks_done_before": len(tasks) - len(todo),
+                       "wall_seconds": round(run_seconds, 3)},
                "deadline_cut_images": sum(e["deadline_cut"] for e in images),
                "seconds_per_image": {"mean": float(secs.mean()), "p50": float(np.median(secs)), "max": float(secs.max())},
                "cpu_seconds_per_image": {"mean": float(cpu.mean()), "p50": float(np.median(cpu)), "max": float(cpu.max())}}
@@ -300,6 +398,11 @@ def run_run(args) -> int:
         line += f"; {skipped.count} skipped ({skipped.summary()})"
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
     print(f"mireg bop run: {line}; wrote {csv_path} and {out_dir / 'summary.json'}", file=sys.stderr)
+    if failures:
+        print(f"mireg bop run: error: {len(failures)} task(s) failed {args.retries + 1} time(s) and are not in the "
+              f"results (first: {failures[0].task}: {failures[0].error}; all in summary.json failed_tasks); "
+              f"rerun the same command to try them again", file=sys.stderr)
+        return 1
     return 0
 
 

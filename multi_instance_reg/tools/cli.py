@@ -24,6 +24,7 @@ COMMANDS = {
     "synth": ("multi_instance_reg.tools.synth", "make synthetic D455 tabletop bags with ground truth (scene, capture)"),
     "bop": ("multi_instance_reg.tools.bop", "BOP datasets: run the pipeline (results CSV, overlays), build a model from "
                                             "its mesh, convert a scene to a bag"),
+    "tune": ("multi_instance_reg.tools.tune", "search parameters on a labelled BOP set (Optuna, trials on Ray): params.yaml and a report"),
     "param-docs": ("multi_instance_reg.tools.param_docs", "write the parameter reference (docs/parameters.md) from the declared parameters"),
 }
 

@@ -39,6 +39,9 @@ def add_arguments(parser) -> None:
                         help="write the node's debug images there (every --overlay-every-th)")
     parser.add_argument("--overlay-every", type=int, default=5, metavar="K")
     parser.add_argument("--summary", type=Path, metavar="JSON", help="also write the summary to this file")
+    parser.add_argument("--poses", type=Path, metavar="JSON",
+                        help="also write every frame's instances there, as `mireg offline`'s poses.json (plus each "
+                             "frame's latency and the node's details)")
     parser.add_argument("--model", type=Path, metavar="MODEL", action="append", default=[],
                         help="the node's model file, once per object: its T_object_model maps the published model "
                              "frame to the ground truth's object frame (without it the two are taken to be the "
@@ -159,6 +162,18 @@ class Listener:
                 gt = f" (truth: {len(self.truth[stamp][0])})"
             print(f"{stamp / 1e9:.3f} s: {len(poses)} instance(s){gt}, "
                   f"{details['latency_ms']:.0f} ms{': ' + insts if insts else ''}", flush=True)
+
+    def poses_json(self) -> dict:
+        """The frames received, in the layout of ``mireg offline``'s poses.json: the same
+        tools read both (what the node published live beside what the bag gives offline)."""
+        frames = []
+        for f in self.frames:
+            details = f["details"]
+            instances = [{**{k: v for k, v in i.items() if k not in ("T",)}, "T": T.tolist()}
+                         for i, T in zip(details["instances"], f["poses"])]
+            frames.append({"stamp_ns": f["stamp_ns"], "frame_id": details.get("frame_id", ""),
+                           "latency_ms": details.get("latency_ms"), "instances": instances})
+        return {"frames": frames}
 
     def summary(self, max_rre_deg: float = 10.0, max_rte: float = 0.02, min_visibility: float = 0.25) -> dict:
         latencies = [f["details"]["latency_ms"] for f in self.frames]
@@ -324,4 +339,7 @@ def run(args) -> int:
     if args.summary:
         args.summary.parent.mkdir(parents=True, exist_ok=True)
         args.summary.write_text(json.dumps(summary, indent=2) + "\n")
+    if args.poses:
+        args.poses.parent.mkdir(parents=True, exist_ok=True)
+        args.poses.write_text(json.dumps(listener.poses_json()) + "\n")
     return 0

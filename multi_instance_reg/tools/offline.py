@@ -1,6 +1,10 @@
 """``mireg offline``: replay a recorded bag through the per-frame pipeline, without ROS.
 
-    mireg offline BAG --model MODEL.npz [--model MODEL2.npz ...] -o OUTDIR [--params FILE.yaml] [--topics COLOUR DEPTH INFO]
+    mireg offline BAG [BAG2 ... | FOLDER] --model MODEL.npz [--model MODEL2.npz ...] -o OUTDIR [--params FILE.yaml]
+                  [--topics COLOUR DEPTH INFO] [--ray | --workers N | --address ADDR]
+
+Several bags (or a folder of bags) write each bag's files into OUTDIR/<bag name>/ and a list
+in OUTDIR/summary.json; with Ray each bag is a task on a worker (docs/scale_out.md).
 
 Writes OUTDIR/poses.json (the public contract below). When the bag carries ground truth it
 also writes OUTDIR/metrics.json, overlay_*.png (each instance's box with its id) and
@@ -29,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..progress import Progress
 
 HELP = "replay a bag through the pipeline: poses.json, and metrics.json + pictures with ground truth"
 
@@ -36,7 +41,9 @@ STAGE_ORDER = ("sift", "matching", "lifting", "ecc", "refinement", "tracking", "
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("bag", help="rosbag2 directory, .db3 or .mcap")
+    parser.add_argument("bag", nargs="+",
+                        help="rosbag2 directory, .db3 or .mcap; several, or a folder holding bags: each bag's files go "
+                             "into OUTDIR/<bag name>/ and OUTDIR/summary.json lists them all")
     parser.add_argument("--model", required=True, action="append",
                         help="object model (.npz) from `mireg build-model`; give it again for each further object "
                              "(one SIFT pass for all; models need different names)")
@@ -61,10 +68,14 @@ def add_arguments(parser) -> None:
                         help="ignore the camera's accelerometer (/camera/camera/accel/sample or /camera/camera/imu) even "
                              "when the bag has it: every frame without the direction of gravity, as before (A/B)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    from ..distributed.ray_runner import add_ray_arguments
+
+    add_ray_arguments(parser, "bags (one task per bag: a tracked bag stays in order)")
 
 
 def load_config(params_path):
-    """PipelineConfig with the frontend.*, ecc.* and workspace.* entries of a node parameter file applied."""
+    """PipelineConfig with the frontend.*, ecc.* and workspace.* entries of a node parameter file
+    (or of a dict of dotted names) applied."""
     from ..rgbd.pipeline import PipelineConfig
 
     return _config_from_params(PipelineConfig(), params_path, ("frontend", "ecc", "workspace"))
@@ -87,6 +98,8 @@ def load_tracker_config(params_path):
 def _params(params_path) -> dict:
     from ..params import read_params_yaml
 
+    if isinstance(params_path, dict):        # entries already read (mireg tune's trials)
+        return params_path
     return {} if params_path is None else read_params_yaml(params_path)
 
 
@@ -97,29 +110,6 @@ def _config_from_params(config, params, groups, strip: bool = False):
     values = params if isinstance(params, dict) else _params(params)
     ours = {(k.split(".", 1)[1] if strip else k): v for k, v in values.items() if k.split(".", 1)[0] in groups}
     return with_overrides(config, ours)
-
-
-class Progress:
-    """A one-line progress bar on stderr, drawn only when stderr is a terminal."""
-
-    def __init__(self, total: int, enabled: bool = True, width: int = 30):
-        self.total, self.width = max(total, 1), width
-        self.enabled = enabled and sys.stderr.isatty()
-        self.t0 = time.perf_counter()
-
-    def update(self, done: int, extra: str = "") -> None:
-        if not self.enabled:
-            return
-        frac = min(done / self.total, 1.0)
-        bar = "#" * int(frac * self.width) + "." * (self.width - int(frac * self.width))
-        rate = done / max(time.perf_counter() - self.t0, 1e-9)
-        sys.stderr.write(f"\r[{bar}] {done}/{self.total} frames {rate:.1f}/s {extra}")
-        sys.stderr.flush()
-
-    def close(self) -> None:
-        if self.enabled:
-            sys.stderr.write("\n")
-            sys.stderr.flush()
 
 
 @dataclass
@@ -477,66 +467,188 @@ def draw_found_vs_present(present, found, hits, width: int = 900, height: int = 
     return img
 
 
-def run(args) -> int:
-    import cv2
+BAG_SUFFIXES = (".db3", ".mcap", ".bag")
 
+
+def is_bag(path: Path) -> bool:
+    """A rosbag2 folder (metadata.yaml or a .db3 / .mcap inside) or a bag file."""
+    if path.is_file():
+        return path.suffix.lower() in BAG_SUFFIXES
+    return path.is_dir() and ((path / "metadata.yaml").is_file()
+                              or any(p.suffix.lower() in (".db3", ".mcap") for p in path.iterdir()))
+
+
+def find_bags(paths) -> list[Path]:
+    """The bags named, a folder that is no bag standing for the bags in it (sorted by name)."""
+    bags = []
+    for text in paths:
+        path = Path(text)
+        if not path.exists():
+            raise InputError(f"bag {path} does not exist")
+        if is_bag(path) or not path.is_dir():
+            bags.append(path)
+            continue
+        inside = sorted(p for p in path.iterdir() if is_bag(p))
+        if not inside:
+            raise InputError(f"{path} is neither a bag nor a folder holding bags (rosbag2 folders, .db3, .mcap or .bag files)")
+        bags.extend(inside)
+    names = {}
+    for bag in bags:
+        name = bag.stem if bag.is_file() else bag.name
+        if name in names:
+            raise InputError(f"bags {names[name]} and {bag} have the same name '{name}' (their output folder); "
+                             f"rename one or run them separately")
+        names[name] = bag
+    return bags
+
+
+def bag_name(bag: Path) -> str:
+    return bag.stem if bag.is_file() else bag.name
+
+
+class BagReplayer:
+    """What one worker of ``mireg offline`` holds: the models (loaded once) and the settings.
+    ``run(bag)`` replays one bag and returns its output files as bytes, so that the serial
+    run and every Ray worker write the same files (the caller writes them)."""
+
+    def __init__(self, models, config, tracker_config, options: dict):
+        self.models, self.config, self.tracker_config, self.options = list(models), config, tracker_config, options
+
+    def run(self, bag) -> dict:
+        """{"files": {name: bytes}, "line": the one-line report, "frames": n, "metrics": dict or None}."""
+        import cv2
+
+        from ..datasets.rgbd_bag import RGBDBag
+        from ..rgbd.workspace import Workspace
+
+        o, models = self.options, self.models
+        workspace = Workspace.from_config(self.config.workspace)
+        # Pictures are drawn for a few frames spread over the bag; the frame count is known only
+        # roughly (colour messages), which is good enough for spreading.
+        kwargs = dict(zip(("colour_topic", "depth_topic", "info_topic"), o["topics"])) if o["topics"] else {}
+        with RGBDBag(bag, **kwargs) as b:
+            n_est = b.num_colour_messages if not o["max_frames"] else min(o["max_frames"], b.num_colour_messages)
+            has_gt = b.has_ground_truth
+            gt_names = b.instance_objects     # reads the description only: usable after the bag is closed
+        picks = set(np.linspace(0, max(n_est - 1, 0), min(o["overlays"], n_est)).round().astype(int).tolist()) \
+            if has_gt and o["overlays"] > 0 else set()
+        files: dict[str, bytes] = {}
+
+        def on_frame(index, frame, instances):
+            if index in picks:
+                owners = None if frame.gt_poses is None else ground_truth_owners(models, gt_names(len(frame.gt_poses)))
+                img = draw_overlay(frame.rgb, frame.intrinsics, models, instances, frame.gt_poses, owners, workspace)
+                files[f"overlay_{index:05d}.png"] = cv2.imencode(".png", img)[1].tobytes()
+
+        result = replay(bag, models, self.config, o["topics"], o["max_rre_deg"], o["max_rte"], o["max_frames"],
+                        on_frame=on_frame, progress=o["progress"], min_visibility=o["min_visibility"],
+                        tracker_config=self.tracker_config, detect_every=o["detect_every"], gravity=o["gravity"])
+        files["poses.json"] = json.dumps({"frames": result.frames}).encode()
+        lat = result.latency_summary()["total"]
+        line = f"{len(result.frames)} frames, latency p50 {lat['p50']:.1f} ms p95 {lat['p95']:.1f} ms"
+        if result.skipped:
+            line += f", {result.skipped} skipped ({result.skip_reasons})"
+        if result.gravity_frames:
+            line += f", {result.gravity_frames} of them with gravity from the IMU"
+        if result.deadline_cuts:
+            line += f", the shape search's deadline (frontend.shape_deadline_ms) cut {result.deadline_cuts} of them"
+        metrics = None
+        if result.scores:
+            metrics = metrics_dict(result, o["max_rre_deg"], o["max_rte"], o["min_visibility"])
+            files["metrics.json"] = json.dumps(metrics, indent=2).encode()
+            files["found_vs_present.png"] = cv2.imencode(
+                ".png", draw_found_vs_present(result.present, result.found, result.hits))[1].tobytes()
+            rte = metrics["median_rte"]
+            rre = metrics["median_rre_deg"]
+            line += (f"; MHF1 {metrics['MHF1']:.3f} MHR {metrics['MHR']:.3f} MHP {metrics['MHP']:.3f} MF {metrics['MF']:.3f}"
+                     f", median RTE {'-' if rte is None else f'{rte * 1000:.1f} mm'}"
+                     f" RRE {'-' if rre is None else f'{rre:.2f} deg'}")
+            if len(models) > 1:
+                line += "; " + ", ".join(f"{name} MHF1 {m['MHF1']:.3f}" for name, m in metrics["objects"].items())
+                line += f"; {metrics['confusions']} reported as the wrong object"
+            if "identity" in metrics:
+                ident = metrics["identity"]
+                line += (f"; IDF1 {ident['IDF1']:.3f} ID switches {ident['id_switches']} MOTA {ident['MOTA']:.3f}"
+                         f" (detector alone: MHF1 {metrics['detection_only']['MHF1']:.3f})")
+        return {"files": files, "line": line, "frames": len(result.frames), "metrics": metrics}
+
+
+def write_files(folder: Path, files: dict[str, bytes]) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    for name, data in files.items():
+        (folder / name).write_bytes(data)
+
+
+def run(args) -> int:
+    from ..distributed.ray_runner import connect, run_serial, run_tasks, wants_ray
+    from ..distributed.resume import PartsFolder, run_fingerprint
     from ..rgbd.multi_model import load_models
 
-    from ..rgbd.workspace import Workspace
-
+    use_ray = wants_ray(args)
+    bags = find_bags(args.bag)
     models = load_models(args.model)
     config = load_config(args.params)
-    workspace = Workspace.from_config(config.workspace)
+    tracker_config = None if args.no_tracking else load_tracker_config(args.params)
+    if args.detect_every < 1:
+        raise InputError(f"--detect-every must be at least 1, got {args.detect_every}")
     out_dir = Path(args.output)
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"output {out_dir} exists and is not a directory")
-    # Pictures are drawn for a few frames spread over the bag; the frame count is known only
-    # roughly (colour messages), which is good enough for spreading.
-    from ..datasets.rgbd_bag import RGBDBag
-    kwargs = dict(zip(("colour_topic", "depth_topic", "info_topic"), args.topics)) if args.topics else {}
-    with RGBDBag(args.bag, **kwargs) as bag:
-        n_est = bag.num_colour_messages if not args.max_frames else min(args.max_frames, bag.num_colour_messages)
-        has_gt = bag.has_ground_truth
-        gt_names = bag.instance_objects     # reads the description only: usable after the bag is closed
-    picks = set(np.linspace(0, max(n_est - 1, 0), min(args.overlays, n_est)).round().astype(int).tolist()) \
-        if has_gt and args.overlays > 0 else set()
+    several = len(bags) > 1
+    options = {"topics": args.topics, "max_rre_deg": args.max_rre_deg, "max_rte": args.max_rte,
+               "max_frames": args.max_frames, "min_visibility": args.min_visibility, "overlays": args.overlays,
+               "detect_every": args.detect_every, "gravity": not args.no_gravity,
+               "progress": not args.quiet and not several and not use_ray}     # a bar per bag only for one bag here
     out_dir.mkdir(parents=True, exist_ok=True)
+    results: dict[str, dict] = {}
+    parts = PartsFolder(out_dir / "parts", run_fingerprint(models, config, tracker_config, **{
+        k: v for k, v in options.items() if k != "progress"})) if use_ray else None
 
-    def on_frame(index, frame, instances):
-        if index in picks:
-            owners = None if frame.gt_poses is None else ground_truth_owners(models, gt_names(len(frame.gt_poses)))
-            img = draw_overlay(frame.rgb, frame.intrinsics, models, instances, frame.gt_poses, owners, workspace)
-            cv2.imwrite(str(out_dir / f"overlay_{index:05d}.png"), img)
+    def folder(bag):
+        return out_dir / bag_name(bag) if several else out_dir
 
-    result = replay(args.bag, models, config, args.topics, args.max_rre_deg, args.max_rte, args.max_frames,
-                    on_frame=on_frame, progress=not args.quiet, min_visibility=args.min_visibility,
-                    tracker_config=None if args.no_tracking else load_tracker_config(args.params),
-                    detect_every=args.detect_every, gravity=not args.no_gravity)
-    (out_dir / "poses.json").write_text(json.dumps({"frames": result.frames}))
-    lat = result.latency_summary()["total"]
-    line = f"{len(result.frames)} frames, latency p50 {lat['p50']:.1f} ms p95 {lat['p95']:.1f} ms"
-    if result.skipped:
-        line += f", {result.skipped} skipped ({result.skip_reasons})"
-    if result.gravity_frames:
-        line += f", {result.gravity_frames} of them with gravity from the IMU"
-    if result.deadline_cuts:
-        line += f", the shape search's deadline (frontend.shape_deadline_ms) cut {result.deadline_cuts} of them"
-    if result.scores:
-        metrics = metrics_dict(result, args.max_rre_deg, args.max_rte, args.min_visibility)
-        (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
-        cv2.imwrite(str(out_dir / "found_vs_present.png"),
-                    draw_found_vs_present(result.present, result.found, result.hits))
-        rte = metrics["median_rte"]
-        rre = metrics["median_rre_deg"]
-        line += (f"; MHF1 {metrics['MHF1']:.3f} MHR {metrics['MHR']:.3f} MHP {metrics['MHP']:.3f} MF {metrics['MF']:.3f}"
-                 f", median RTE {'-' if rte is None else f'{rte * 1000:.1f} mm'}"
-                 f" RRE {'-' if rre is None else f'{rre:.2f} deg'}")
-        if len(models) > 1:
-            line += "; " + ", ".join(f"{name} MHF1 {m['MHF1']:.3f}" for name, m in metrics["objects"].items())
-            line += f"; {metrics['confusions']} reported as the wrong object"
-        if "identity" in metrics:
-            ident = metrics["identity"]
-            line += (f"; IDF1 {ident['IDF1']:.3f} ID switches {ident['id_switches']} MOTA {ident['MOTA']:.3f}"
-                     f" (detector alone: MHF1 {metrics['detection_only']['MHF1']:.3f})")
-    print(f"mireg offline: {line}; wrote {out_dir}", file=sys.stderr)
+    def on_result(bag, result):
+        write_files(folder(bag), result["files"])
+        if parts is not None:
+            parts.save(bag_name(bag), result)      # written last: the bag is done
+        results[bag_name(bag)] = result
+        if several:
+            print(f"mireg offline: {bag}: {result['line']}; wrote {folder(bag)}", file=sys.stderr)
+
+    if parts is not None:
+        for bag in bags:
+            done = parts.load(bag_name(bag))
+            if done is not None:
+                results[bag_name(bag)] = done
+    todo = [str(b) for b in bags if bag_name(b) not in results]
+    worker_args = (models, config, tracker_config, options)
+    bar = Progress(len(bags), several and not args.quiet, unit="bags")
+    try:
+        if use_ray:
+            workers = connect(args.address, args.workers)
+            if results:
+                print(f"mireg offline: {len(results)} of {len(bags)} bag(s) done before (in {parts.folder}); "
+                      f"running the other {len(todo)} on {min(workers, len(todo))} Ray worker(s)", file=sys.stderr)
+            failures = run_tasks(BagReplayer, worker_args, todo, str, lambda b, r: on_result(Path(b), r), workers,
+                                 args.retries, bar, done_before=len(results))
+        else:
+            failures = run_serial(BagReplayer, worker_args, todo, str, lambda b, r: on_result(Path(b), r), bar)
+    finally:
+        bar.close()
+    if not several and not failures:
+        print(f"mireg offline: {results[bag_name(bags[0])]['line']}; wrote {out_dir}", file=sys.stderr)
+    if several:
+        done = [b for b in bags if bag_name(b) in results]
+        summary = {"bags": [{"bag": str(b), "output": str(folder(b)), "frames": results[bag_name(b)]["frames"],
+                             "line": results[bag_name(b)]["line"], "metrics": results[bag_name(b)]["metrics"]}
+                            for b in done],
+                   "failed_tasks": [f.as_json() for f in failures]}
+        (out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
+        print(f"mireg offline: {len(done)} of {len(bags)} bag(s), {sum(e['frames'] for e in summary['bags'])} frames; "
+              f"wrote {out_dir / 'summary.json'}", file=sys.stderr)
+    if failures:
+        print(f"mireg offline: error: {len(failures)} bag(s) failed {args.retries + 1} time(s) (first: {failures[0].task}: "
+              f"{failures[0].error}" + ("; all in summary.json failed_tasks" if several else "")
+              + "); rerun the same command to try them again", file=sys.stderr)
+        return 1
     return 0

@@ -14,6 +14,7 @@ BENCHES = {
     "register-startup": ("multi_instance_reg.tools.bench.startup", "mireg register in fresh processes: first-call time_s, process wall/CPU time, batch median"),
     "synth": ("multi_instance_reg.tools.bench.synth", "frames/s of the synthetic D455 bag generator at 640x480 and 1280x720"),
     "bop": ("multi_instance_reg.tools.bench.bop", "BOP AR, MHF1 and seconds per image on synthetic BOP sets (tuned and held-out seeds) and the foreign real frames"),
+    "scale": ("multi_instance_reg.tools.bench.scale", "images/s of `mireg bop run` serial, on 1, 2 local Ray workers and a simulated multi-node Ray cluster"),
     "bop-score": ("multi_instance_reg.tools.bench.bop_score", "seconds per image of BOP scoring (VSD, MSSD, MSPD, MHF1) on a generated dataset"),
 }
 

@@ -1,0 +1,1 @@
+"""Runs spread over Ray workers (``ray_runner``) and parameter searches (``tune``)."""
