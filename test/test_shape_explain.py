@@ -133,3 +133,25 @@ def test_a_pose_reaching_into_the_support_it_stands_on_counts_as_free(shape):
     sunk = _explain(shape, _pose(x=0.05, y=0.05, top=FLOOR - 0.12), crate)
     standing = _explain(shape, _pose(), _scene([(0.0, 0.0, TOP, 0.15, 0.1)]))
     assert sunk.free > 0.05 * sunk.judged and standing.free == 0
+
+
+def test_noisy_depth_keeps_a_true_pose_by_spacing_its_normals_wider(shape):
+    # Depth noise k 0.004 (sigma 8 mm at the top): normals from pixels 2 apart point anywhere
+    # (half the samples "turned"); spaced for the noise, a true pose is supported.
+    from multi_instance_reg.frontends.shape.explain import explain, normal_step
+
+    depth = _scene([(0.0, 0.0, TOP, 0.15, 0.1)])
+    rng = np.random.default_rng(4)
+    depth = (depth + rng.standard_normal(depth.shape) * 0.004 * depth ** 2).astype(np.float32)
+    view = FrameView.of(depth, _intrinsics())
+    cloud = shape.frame_cloud(depth, _intrinsics(), None)
+    assert shape.depth_noise == pytest.approx(0.004, rel=0.15)
+    spaced = shape.explain(_pose(), cloud, view)
+    T = _pose()
+    narrow = explain(T, shape._surface, shape._surface_normals, view, shape.tolerance_at(T), shape.voxel,
+                     shape._same_surface(T), up=cloud.up, planes=cloud.planes)      # sigma 0: 2 pixels
+    assert spaced.support > 0.9 and spaced.evidence > 0.8
+    assert narrow.support < spaced.support - 0.15
+    sigma = 0.004 * TOP ** 2
+    assert normal_step(0.0, TOP, 400.0, 100.0) == 2 and 5 <= normal_step(sigma, TOP, 400.0, 100.0) <= 7
+    assert normal_step(sigma, TOP, 400.0, 12.0) == 3                     # a quarter of the object's size

@@ -117,7 +117,7 @@ def test_no_points_beyond_the_resolvable_depth(cylinder_model):
     from multi_instance_reg.rgbd.pipeline import PipelineConfig
     from multi_instance_reg.frontends.shape.frontend import ShapeFrontEnd
 
-    fe = PipelineConfig().frontend
+    fe = replace(PipelineConfig().frontend, shape_depth_noise=0.002)     # fixed: the frame is noiseless
     shape = ShapeFrontEnd(cylinder_model, fe)
     z = shape.resolvable_depth
     assert 3.0 * fe.shape_depth_noise * z ** 2 == pytest.approx(fe.shape_max_noise_share * shape.diameter)
@@ -129,6 +129,34 @@ def test_no_points_beyond_the_resolvable_depth(cylinder_model):
     assert len(cloud.points) > 50 and cloud.points[:, 2].max() <= z
     unlimited = ShapeFrontEnd(cylinder_model, replace(fe, shape_max_noise_share=0.0)).frame_cloud(depth, INTR, None)
     assert np.sum(unlimited.points[:, 2] > z) > 50
+
+
+def test_measured_noise_sets_the_resolvable_depth(cylinder_model):
+    """shape_depth_noise 0: k is measured on each frame, and the frame's points stop where 3
+    sigma at that k reaches shape_max_noise_share of the diameter; a fixed k is kept as given."""
+    from multi_instance_reg.rgbd.pipeline import PipelineConfig
+    from multi_instance_reg.frontends.shape.frontend import ShapeFrontEnd
+
+    fe = PipelineConfig().frontend
+    assert fe.shape_depth_noise == 0.0
+    depth, _, _ = _cylinders_on_a_table([-0.15, 0.2], table_z=1.2)
+    depth[:, 170:] += 0.5
+    rng = np.random.default_rng(3)
+    found = {}
+    for k in (0.002, 0.006):
+        noisy = (depth + rng.standard_normal(depth.shape) * k * depth ** 2).astype(np.float32)
+        shape = ShapeFrontEnd(cylinder_model, fe)
+        cloud = shape.frame_cloud(noisy, INTR, None)
+        assert shape.depth_noise == pytest.approx(k, rel=0.15)
+        z = shape.resolvable_depth
+        assert 3.0 * k * z ** 2 == pytest.approx(fe.shape_max_noise_share * shape.diameter, rel=0.35)
+        assert np.all(cloud.points[:, 2] <= z)
+        found[k] = len(cloud.points)
+        fixed = ShapeFrontEnd(cylinder_model, replace(fe, shape_depth_noise=0.002))
+        assert len(fixed.frame_cloud(noisy, INTR, None).points) > 50 and fixed.depth_noise == 0.002
+    # k 0.002: out to about 1.65 m, the table (1.2 m) and the cylinders on it are searched;
+    # k 0.006: about 0.95 m, nothing of the scene can be told apart from a surface.
+    assert found[0.002] > 50 and found[0.006] == 0
 
 
 def test_search_deadline_stops_refining_and_says_so(cylinder_model):

@@ -26,6 +26,7 @@ from ...models.model import ObjectModel
 from ...threads import shared_pool, submit_each
 from ...tracking.icp import align_projective
 from .explain import FREE_WEIGHT, HIDDEN_WEIGHT, Explanation, FrameView, explain, select
+from ...rgbd.depth_noise import measure_depth_noise
 from ...rgbd.verify import facing_camera
 from .faces import Faces, frame_patches, matches, model_faces, nearest_face_pose, patch_poses
 from .geometry import (PointGrid, ShapeMatcher, depth_support, describe, icp_point_to_plane, is_convex, scene_cloud,
@@ -45,6 +46,13 @@ SEGMENT_LINK = 2.0
 # An instance needs at least this many model points seen on valid depth (explain.MIN_JUDGED
 # for the verification; here for the cheap check before ICP).
 MIN_VISIBLE = 20
+# sigma_z / z^2 (per metre) where a frame gives too few smooth patches to measure it, and the
+# least a measurement is taken for (shape_depth_noise 0): a D4xx's. The 7 x 7 plane fits see
+# the pixel-to-pixel part of the noise only; a real camera's error is also correlated over
+# tens of pixels, which the depth check over an object's extent meets too: the IC-BIN frames
+# measure 0.0010-0.0014, and at that k the noise-share cut searched the room out to 2.4 m
+# (15-17 s CPU on the bin of cartons, 3.5 s at 0.002; the cut was set there with 0.002).
+NOMINAL_DEPTH_NOISE = 0.002
 
 
 @dataclass
@@ -85,13 +93,9 @@ class ShapeFrontEnd:
         # and the depth check.
         self._surface, self._surface_normals = oriented_downsample(self._model_pts, model.shape_normals, self.voxel)
         self.diameter = float(np.linalg.norm(model.extent))
-        # Metres: the farthest the depth check can tell the object's shape from any surface
-        # there: its tolerance (3 sigma of the depth noise, sigma = shape_depth_noise x z^2)
-        # at most shape_max_noise_share of the object's diameter. Beyond, every surface of
-        # its size agrees (IC-BIN, a room 2-3 m behind a bin of cups: 30-56 mm against a
-        # cup's 45 mm radius, support 0.8-1.0 on clutter). No points from there.
-        k, share = fe.shape_depth_noise, fe.shape_max_noise_share
-        self.resolvable_depth = float(np.sqrt(share * self.diameter / (3.0 * k))) if k > 0 and share > 0 else np.inf
+        # sigma_z / z^2 of the frame being registered: shape_depth_noise, or measured on each
+        # frame when that is 0 (``measure_noise``, called by ``frame_cloud``).
+        self.depth_noise = fe.shape_depth_noise if fe.shape_depth_noise > 0 else NOMINAL_DEPTH_NOISE
         # The radius of the smallest ball about a point of the surface that holds the whole
         # object (0.49-0.61 of the box diagonal for the cartons, cylinders, brackets, channels,
         # tees and stairs): what a reference in a segment of several objects pairs with
@@ -124,6 +128,28 @@ class ShapeFrontEnd:
         else:
             self._matcher = ShapeMatcher(model.shape_descriptors[keep], k=fe.shape_neighbours)
 
+    def measure_noise(self, depth_m: np.ndarray) -> float:
+        """Set and return ``depth_noise`` for this frame: ``shape_depth_noise`` when > 0, else
+        measured on the frame (``rgbd/depth_noise.py``, 3-5 ms at 640x480; a fixed k is too
+        strict on a noisier camera: a realistic-sensor pallet, k 0.004, gave no pose with
+        0.002), never below ``NOMINAL_DEPTH_NOISE`` (also when the frame has too few smooth
+        patches)."""
+        k = self.fe.shape_depth_noise
+        if k <= 0:
+            k = max(measure_depth_noise(depth_m) or 0.0, NOMINAL_DEPTH_NOISE)
+        self.depth_noise = float(k)
+        return self.depth_noise
+
+    @property
+    def resolvable_depth(self) -> float:
+        """Metres: the farthest the depth check can tell the object's shape from any surface
+        there: its tolerance (3 sigma of the depth noise, sigma = ``depth_noise`` x z^2) at
+        most shape_max_noise_share of the object's diameter. Beyond, every surface of its size
+        agrees (IC-BIN, a room 2-3 m behind a bin of cups: 30-56 mm against a cup's 45 mm
+        radius, support 0.8-1.0 on clutter). No points from there."""
+        k, share = self.depth_noise, self.fe.shape_max_noise_share
+        return float(np.sqrt(share * self.diameter / (3.0 * k))) if k > 0 and share > 0 else np.inf
+
     @property
     def depth_tolerance(self) -> float:
         """Metres: a model point agrees with the depth image within this."""
@@ -138,7 +164,7 @@ class ShapeFrontEnd:
         """Metres: agreement with the depth image for an instance at pose T, within the depth
         noise at its distance (3 sigma; 2.4 cm at 2 m, where a fixed 1.2 cm left true cartons
         at 0.88 support and 0.1 "free")."""
-        return max(self.depth_tolerance, 3.0 * self.fe.shape_depth_noise * float(T[2, 3]) ** 2)
+        return max(self.depth_tolerance, 3.0 * self.depth_noise * float(T[2, 3]) ** 2)
 
     def _visible_surface(self, T: np.ndarray, normals: bool = False):
         """The model's surface samples at pose T (camera frame) that face the camera; with
@@ -201,6 +227,7 @@ class ShapeFrontEnd:
         ``segment_cloud``). ``within``: (H, W) bool, the workspace's pixels (or None: no
         workspace), kept of what is left once the planes are removed. ``gravity``: see
         ``segment_cloud``."""
+        self.measure_noise(depth_m)
         if search is None:
             search = (depth_m >= self.fe.depth_min) & (depth_m <= self.fe.depth_max)
         if np.isfinite(self.resolvable_depth):
@@ -232,7 +259,7 @@ class ShapeFrontEnd:
         ground, planes, rest = [], [], []
         # Every second pixel's point off the supports (lifted once, in support_mask).
         support_mask(depth_m, intrinsics, valid, fe.shape_support_area * self._max_face_area,
-                     fe.shape_plane_thresh, fe.shape_depth_noise, stride=2, ground=ground, planes=planes,
+                     fe.shape_plane_thresh, self.depth_noise, stride=2, ground=ground, planes=planes,
                      up=gravity, up_tolerance_deg=fe.shape_gravity_tolerance_deg, rest=rest,
                      face_heights=self._face_heights)
         pts = rest[0]
@@ -332,7 +359,7 @@ class ShapeFrontEnd:
         fe = self.fe
         patches = frame_patches(cloud.points, cloud.normals, cloud.segments, self.diameter,
                                 SEGMENT_LINK * self.voxel,
-                                lambda z: max(self.depth_tolerance, 3.0 * fe.shape_depth_noise * z * z))
+                                lambda z: max(self.depth_tolerance, 3.0 * self.depth_noise * z * z))
         fits = matches(self._faces, patches, self.voxel)
         shaped = fits.any(axis=1)
         cloud.patches, cloud.patch_fits = patches.take(shaped), fits[shaped]
@@ -471,7 +498,8 @@ class ShapeFrontEnd:
     def explain(self, T, cloud: FrameCloud, view: FrameView, claimed: np.ndarray | None = None) -> Explanation:
         """``explain.explain`` of pose T with this model's surface, tolerance and support."""
         return explain(T, self._surface, self._surface_normals, view, self.tolerance_at(T), self.voxel,
-                       self._same_surface(T), claimed, up=cloud.up, planes=cloud.planes)
+                       self._same_surface(T), claimed, up=cloud.up, planes=cloud.planes,
+                       sigma=self.depth_noise * float(T[2, 3]) ** 2, span=self.diameter)
 
     def choose(self, candidates: list[Explanation], cloud: FrameCloud, view: FrameView, conflicts) -> list[Explanation]:
         """The instances among the refined ``candidates``, chosen jointly (``explain.select``);
@@ -485,8 +513,11 @@ class ShapeFrontEnd:
 
     def _same_surface(self, T) -> float:
         """Metres: depth differences within the noise (3 sigma) at pose T's distance, at least
-        2 mm: "the same surface" for the outline."""
-        return max(3.0 * self.fe.shape_depth_noise * float(T[2, 3]) ** 2, 0.002)
+        2 mm and half a voxel: "the same surface" for the outline. The floor in voxels is the
+        model's own: its downsampled samples near an edge stand up to about half a voxel off
+        their face's plane, and on noiseless depth (measured k 0) a board's top went on past a
+        carton's outline in 6 % of the band at 2 mm, 75 % at half a voxel (99.6 % at k 0.002)."""
+        return max(3.0 * self.depth_noise * float(T[2, 3]) ** 2, 0.002, 0.5 * self.voxel)
 
     def set_deadline(self, at: float | None) -> None:
         """Refine no further hypothesis once ``time.process_time()`` passes ``at`` (None: no
