@@ -162,13 +162,13 @@ def test_a_tiny_study_writes_params_the_node_accepts_and_a_report(local_ray, dat
     from multi_instance_reg.ros.parameters import all_specs
 
     out = tmp_path / "tune"
-    search = ["--param", "frontend.shape_min_support=0.6:0.9", "--param", "frontend.shape_outline_rounds",
+    search = ["--param", "frontend.shape_min_support=0.6:0.9", "--param", "frontend.shape_faces",
               "--holdout-scenes", 2, "--params", data / "no_deadline.yaml", "--workers", 2, "--quiet"]
     code, err = mireg(capsys, "tune", data / "bop", "-o", out, "--trials", 2, *search)
     assert code == 0, err
     report = json.loads((out / "tune.json").read_text())
     assert report["trials"] == 2 and report["tuning_images"] == 2 and report["holdout_images"] == 2
-    assert report["base"]["values"] == {"frontend.shape_min_support": 0.75, "frontend.shape_outline_rounds": 1}
+    assert report["base"]["values"] == {"frontend.shape_min_support": 0.75, "frontend.shape_faces": True}
     chosen = report["chosen"]
     assert chosen["accuracy"] >= report["base"]["accuracy"]
     assert set(report["holdout"]) == {"base", "chosen"} and 0 <= report["holdout"]["chosen"]["MHF1"] <= 1
