@@ -62,16 +62,23 @@ def generate_benchmark_bag(path: Path, object_name=None, scenes: int = 6, frames
     (mixed scenes), ``instances_each`` of each in every scene, so that the bag's one
     /ground_truth/object names every scene's instances. ``depth_noise_correlation_px``: see
     ``sensor.simulate_depth``."""
-    from ...datasets.bag_writer import RealSenseBagWriter
     from ...synthetic.scene import DEFAULT_OBJECT, make_tabletop_scene
+
+    def scene(k):
+        count = instances_each or INSTANCES_PER_SCENE[k % len(INSTANCES_PER_SCENE)]
+        return make_tabletop_scene(object_name or DEFAULT_OBJECT, count, distractors=3, frames=frames, seed=seed + 100 + k)
+    return write_scenes_bag(path, (scene(k) for k in range(scenes)), depth_noise_correlation_px)
+
+
+def write_scenes_bag(path: Path, scenes, depth_noise_correlation_px: float = 0.0) -> Path:
+    """Generated scenes one after the other in one bag at 30 Hz, with ground truth and the
+    accelerometer; the first scene's object description stands for all."""
+    from ...datasets.bag_writer import RealSenseBagWriter
 
     frame_period_ns = 33_333_333
     stamp = 1_700_000_000_000_000_000
     with RealSenseBagWriter(path) as bag:
-        for k in range(scenes):
-            count = instances_each or INSTANCES_PER_SCENE[k % len(INSTANCES_PER_SCENE)]
-            scene = make_tabletop_scene(object_name or DEFAULT_OBJECT, count,
-                                        distractors=3, frames=frames, seed=seed + 100 + k)
+        for k, scene in enumerate(scenes):
             scene.set_depth_noise_correlation(depth_noise_correlation_px)
             if k == 0:
                 bag.write_object_description(stamp, scene.description())

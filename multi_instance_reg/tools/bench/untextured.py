@@ -16,28 +16,17 @@ from pathlib import Path
 
 import numpy as np
 
-from .scenes import INSTANCES_PER_SCENE
+from .scenes import INSTANCES_PER_SCENE, write_scenes_bag
 
 
 def generate_untextured_bag(path: Path, preset: str, scenes: int, frames: int, seed: int, instances=None,
                             depth_noise_correlation_px: float = 0.0) -> Path:
-    from ...datasets.bag_writer import RealSenseBagWriter
     from ...synthetic.untextured import make_untextured_scene
 
-    stamp = 1_700_000_000_000_000_000
-    with RealSenseBagWriter(path) as bag:
-        for k in range(scenes):
-            n = INSTANCES_PER_SCENE[k % len(INSTANCES_PER_SCENE)] if instances is None else instances
-            scene = make_untextured_scene(preset, n, 3, frames, seed + 200 + k)
-            scene.set_depth_noise_correlation(depth_noise_correlation_px)
-            if k == 0:
-                bag.write_object_description(stamp, scene.description())
-            for frame in scene.frames():
-                bag.write_accel_samples(stamp, *scene.accel_samples(frame.index))
-                bag.write_frame(stamp, frame.rgb, frame.depth_mm, scene.intrinsics, poses=frame.poses,
-                                visibility=frame.visibility)
-                stamp += 33_333_333
-    return Path(path)
+    def scene(k):
+        n = INSTANCES_PER_SCENE[k % len(INSTANCES_PER_SCENE)] if instances is None else instances
+        return make_untextured_scene(preset, n, 3, frames, seed + 200 + k)
+    return write_scenes_bag(path, (scene(k) for k in range(scenes)), depth_noise_correlation_px)
 
 
 def run_untextured(args, config) -> int:
