@@ -43,7 +43,7 @@ import cv2
 import numpy as np
 
 from ...messages import CameraIntrinsics
-from ...rgbd.verify import _points_and_normals, facing_camera, outline_continuation
+from ...rgbd.verify import _points_and_normals, facing_camera, image_pixels, outline_continuation
 
 # A sample agrees only when the measured normal is within this of the model's (where the
 # depth gives one): a cylinder's side laid over a block's edge agrees in depth, not in normals.
@@ -148,10 +148,7 @@ def visible_samples(T: np.ndarray, surface: np.ndarray, normals: np.ndarray, int
     facing = facing_camera(p, n)
     p, n = p[facing], n[facing]
     K = intrinsics.K
-    h, w = shape
-    u = np.round(K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2]).astype(np.int64)
-    v = np.round(K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]).astype(np.int64)
-    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    u, v, inside = image_pixels(p, intrinsics, shape)
     p, n, u, v = p[inside], n[inside], u[inside], v[inside]
     if len(p) < 2:
         return p, n, v, u
