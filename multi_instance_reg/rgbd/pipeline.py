@@ -27,6 +27,7 @@ from ..core.refinement import instance_scores, residuals
 from ..errors import InputError
 from ..messages import CameraIntrinsics, no_depth_reason
 from ..params import param
+from ..search_clock import search_time
 from ..transforms import apply_transform, refine_transform, rigid_fit
 from ..frontends.sift.features import SiftSettings, extract_sift_in_region
 from .lifting import backproject, lookup_depth, off_planes, support_planes, undistort_pixels
@@ -513,7 +514,7 @@ class InstanceRegistration:
         # refinement stops at REFINE_SHARE of it, the joint choice (scoring the neighbours of
         # each instance chosen again) has the rest.
         budget = fe.shape_deadline_ms / 1e3 if fe.shape_deadline_ms > 0 else None
-        start = time.process_time()
+        start = search_time()
         self._shape.set_deadline(start + REFINE_SHARE * budget if budget else None)
         candidates = self._shape.refine_all(hypotheses, cloud, view, started, offset)
         cut = self._shape.deadline_cut

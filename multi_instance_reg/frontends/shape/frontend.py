@@ -13,7 +13,6 @@ jointly. No ROS; colour only for its edges.
 from __future__ import annotations
 
 import threading
-import time
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -22,6 +21,7 @@ from scipy.spatial import cKDTree
 from ...core import ECCConfig
 from ...errors import InputError
 from ...messages import CameraIntrinsics
+from ...search_clock import search_time
 from ...models.model import ObjectModel
 from ...threads import shared_pool, submit_each
 from ...tracking.icp import align_projective
@@ -76,7 +76,7 @@ class FrameCloud:
 
 class ShapeFrontEnd:
     def __init__(self, model: ObjectModel, fe):
-        self._deadline = None         # set_deadline's time.process_time() bound, or None
+        self._deadline = None         # set_deadline's search_time() bound, or None
         self.deadline_cut = False     # whether past_deadline turned work away since set_deadline
         if not model.has_shape:
             raise InputError("the object model has no shape data (frontend.correspondences shape/both); "
@@ -520,15 +520,15 @@ class ShapeFrontEnd:
         return max(3.0 * self.depth_noise * float(T[2, 3]) ** 2, 0.002, 0.5 * self.voxel)
 
     def set_deadline(self, at: float | None) -> None:
-        """Refine no further hypothesis once ``time.process_time()`` passes ``at`` (None: no
-        bound); ``deadline_cut`` says afterwards whether that turned any away. CPU time, not
-        the clock's: what the frame costs, whatever else the host runs (on a host of its own
+        """Refine no further hypothesis once ``search_time()`` passes ``at`` (None: no
+        bound); ``deadline_cut`` says afterwards whether that turned any away. CPU time less
+        the kernels' one-off compilation (``search_clock``), not the clock's: what the frame costs, whatever else the host runs (on a host of its own
         the two agree), so that a replay or a benchmark finds the same instances at any load."""
         self._deadline, self.deadline_cut = at, False
 
     def past_deadline(self) -> bool:
         """Whether the frame's deadline has passed (and so work is turned away: counted)."""
-        if self._deadline is None or time.process_time() < self._deadline:
+        if self._deadline is None or search_time() < self._deadline:
             return False
         self.deadline_cut = True
         return True
