@@ -8,11 +8,15 @@ STAMP := $(VENV)/.installed
 # fresh process spends 1-2 s loading numba's JIT cache before its first registration.
 CORE := multi_instance_reg/core
 KERNELS_AOT := $(CORE)/.kernels_aot.built
+# The numba kernels of the front ends, verification and tracker, compiled once into numba's
+# cache (tools/warm_kernels.py), not by each process of a new checkout on its first frame.
+KERNELS_WARM := $(VENV)/.kernels_warm
+NUMBA_SOURCES := $(shell grep -rl --include='*.py' 'numba.njit' multi_instance_reg)
 export PYTHONDONTWRITEBYTECODE := 1
 
 .PHONY: install demo test bench clean
 
-install: $(STAMP) $(KERNELS_AOT)
+install: $(STAMP) $(KERNELS_AOT) $(KERNELS_WARM)
 
 # vision_msgs (Detection3DArray, LabelInfo) and realsense2_camera_msgs (Extrinsics) have no wheel:
 # the last steps build them into the venv from interfaces/ unless the user's ROS already has them
@@ -29,6 +33,10 @@ $(STAMP): requirements.txt setup.py setup.cfg package.xml interfaces/install_vis
 $(KERNELS_AOT): $(STAMP) $(CORE)/native.py $(CORE)/clustering.py $(CORE)/compatibility.py $(CORE)/refinement.py $(CORE)/sampling.py
 	$(PY) -m multi_instance_reg.core.build_native
 	touch $(KERNELS_AOT)
+
+$(KERNELS_WARM): $(STAMP) $(KERNELS_AOT) $(NUMBA_SOURCES) multi_instance_reg/tools/warm_kernels.py
+	$(PY) -m multi_instance_reg.tools.warm_kernels
+	touch $(KERNELS_WARM)
 
 demo: install
 	$(PY) -m multi_instance_reg.tools.demo
