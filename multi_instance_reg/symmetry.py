@@ -75,6 +75,45 @@ def turn_about(axis, point, angle: float) -> np.ndarray:
     return _about(_rotation(axis, angle), np.asarray(point, np.float64))
 
 
+def best_symmetry(x: np.ndarray, y: np.ndarray, sym: "Symmetries | None", within: float
+                  ) -> tuple[np.ndarray, int, int]:
+    """Which symmetry M (model frame) takes points ``x`` (N, 3) onto their matches ``y`` (N, 3)
+    best: (M, pairs within ``within`` metres with it, with the best other discrete symmetry).
+    With a continuous axis, each pair whose height along it and radius about it agree
+    proposes a turn; the turn most pairs agree with wins, refined by least squares on those
+    (a cup's shape is the same at any turn, its print is not)."""
+    x, y = np.asarray(x, np.float64).reshape(-1, 3), np.asarray(y, np.float64).reshape(-1, 3)
+    candidates = [np.eye(4)] if sym is None else list(sym.discrete)
+    scored = []
+    for S in candidates:
+        xs = x @ S[:3, :3].T + S[:3, 3]
+        M = S
+        if sym is not None and sym.axis is not None and len(x):
+            a, c = sym.axis / np.linalg.norm(sym.axis), sym.point
+            px, py = xs - c, y - c
+            hx, hy = px @ a, py @ a
+            rx, ry = px - np.outer(hx, a), py - np.outer(hy, a)
+            ok = (np.abs(hx - hy) < within) & (np.abs(np.linalg.norm(rx, axis=1) - np.linalg.norm(ry, axis=1)) < within)
+            if ok.sum() == 0:
+                scored.append((0, S))
+                continue
+            rx, ry = rx[ok], ry[ok]
+            ang = np.arctan2(np.cross(rx, ry) @ a, np.einsum("ij,ij->i", rx, ry))
+            cos, sin = np.cos(ang)[:, None], np.sin(ang)[:, None]
+            # (proposals, pairs): distance of every pair under every proposed turn.
+            turned = (cos[:, :, None] * rx[None] + sin[:, :, None] * np.cross(a, rx)[None])
+            support = np.linalg.norm(turned - ry[None], axis=2) < within
+            members = support[int(np.argmax(support.sum(axis=1)))]
+            angle = float(np.arctan2(np.sum(np.cross(rx[members], ry[members]) @ a),
+                                     np.sum(np.einsum("ij,ij->i", rx[members], ry[members]))))
+            M = turn_about(a, c, angle) @ S
+            xs = x @ M[:3, :3].T + M[:3, 3]
+        scored.append((int(np.sum(np.linalg.norm(xs - y, axis=1) < within)), M))
+    scored.sort(key=lambda s: -s[0])
+    second = scored[1][0] if len(scored) > 1 else 0
+    return scored[0][1], scored[0][0], second
+
+
 def closest_symmetric_pose(T_gt: np.ndarray, T_est: np.ndarray, sym: Symmetries | None) -> np.ndarray:
     """Among the poses T_gt @ S that look like T_gt, the one nearest to T_est (rotation first:
     the continuous turn is the one that minimises the rotation error, in closed form)."""

@@ -27,7 +27,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..errors import InputError
-from ..symmetry import turn_about
+from ..symmetry import best_symmetry
 from ..transforms import apply_transform, invert_transform
 from .model import CaptureView, ObjectModel, RegisteredView
 from ..rgbd.pipeline import project_points
@@ -105,38 +105,7 @@ def symmetric_choice(x: np.ndarray, y: np.ndarray, model: ObjectModel) -> tuple[
     """Which symmetry M (model frame) takes a view's keypoints ``x`` (placed as the shape found
     them) onto their matches ``y`` among the keypoints placed before: (M, agreeing matches
     with it, agreeing with the best other discrete symmetry)."""
-    sym = model.symmetries
-    candidates = [np.eye(4)] if sym is None else list(sym.discrete)
-    scored = []
-    for S in candidates:
-        xs = apply_transform(S, x)
-        M = S
-        if sym is not None and sym.axis is not None:
-            # Each match whose height and radius agree proposes a turn about the axis; the
-            # proposal most matches agree with wins, refined by least squares on those.
-            a, c = sym.axis / np.linalg.norm(sym.axis), sym.point
-            px, py = xs - c, y - c
-            hx, hy = px @ a, py @ a
-            rx, ry = px - np.outer(hx, a), py - np.outer(hy, a)
-            ok = (np.abs(hx - hy) < AGREE_M) & (np.abs(np.linalg.norm(rx, axis=1) - np.linalg.norm(ry, axis=1)) < AGREE_M)
-            if ok.sum() == 0:
-                scored.append((0, S))
-                continue
-            rx, ry = rx[ok], ry[ok]
-            ang = np.arctan2(np.cross(rx, ry) @ a, np.einsum("ij,ij->i", rx, ry))
-            cos, sin = np.cos(ang)[:, None], np.sin(ang)[:, None]
-            # (proposals, matches): distance of every match under every proposed turn.
-            turned = (cos[:, :, None] * rx[None] + sin[:, :, None] * np.cross(a, rx)[None])
-            support = np.linalg.norm(turned - ry[None], axis=2) < AGREE_M
-            members = support[int(np.argmax(support.sum(axis=1)))]
-            angle = float(np.arctan2(np.sum(np.cross(rx[members], ry[members]) @ a),
-                                     np.sum(np.einsum("ij,ij->i", rx[members], ry[members]))))
-            M = turn_about(a, c, angle) @ S
-            xs = apply_transform(M, x)
-        scored.append((int(np.sum(np.linalg.norm(xs - y, axis=1) < AGREE_M)), M))
-    scored.sort(key=lambda s: -s[0])
-    second = scored[1][0] if len(scored) > 1 else 0
-    return scored[0][1], scored[0][0], second
+    return best_symmetry(x, y, model.symmetries, AGREE_M)
 
 
 def texture_pose(obj: RegisteredView, s_idx: np.ndarray, target: np.ndarray, surface: cKDTree,

@@ -67,7 +67,7 @@ class FrameCloud:
     up: np.ndarray | None = None          # (3,) the support plane's normal (the largest, or the largest level
                                           # one given gravity), towards the camera, ppf only
     up_offset: float | None = None        # that plane: up . p + up_offset = 0 on it
-    planes: tuple = ()                    # every support plane with a large piece removed: (normal, offset)
+    planes: tuple = ()                    # the supports: removed planes level with ``up`` (normal, offset)
     grid: PointGrid | None = None         # the points and normals for ICP's nearest-point search
     patches: Faces | None = None          # the segments' flat patches shaped as a model face (ppf, shape_faces)
     patch_fits: np.ndarray | None = None  # (J, F) bool: patch j has model face f's outline
@@ -279,9 +279,15 @@ class ShapeFrontEnd:
         normals = surface_normals(pts, self.voxel, toward=np.zeros(3), tree=tree)
         grid = PointGrid(pts, normals, ICP_REACH * self.voxel)
         labels = segments.result()
+        # Of the planes removed, those level with the support below are supports: a pose may
+        # not sink into them (``explain``'s sunk samples). The others are walls, a bin's sides:
+        # what lies behind one is hidden, not sunk (IC-BIN: cups inside the bin had 114-159
+        # samples "sunk" into its side, and none of them was found).
+        level = np.cos(np.radians(fe.shape_gravity_tolerance_deg))
+        supports = tuple((n, d) for n, d in planes if ground and abs(float(n @ ground[0])) >= level)
         return FrameCloud(pts, normals, np.zeros(0, np.int64), np.zeros((0, 33), np.float32), tree, labels,
                           up=ground[0] if ground else None, up_offset=ground[1] if ground else None,
-                          planes=tuple(planes), grid=grid)
+                          planes=supports, grid=grid)
 
     def correspondences(self, cloud: FrameCloud, on_poses=None, on_matches=None) -> tuple[np.ndarray, np.ndarray]:
         """(model points (N, 3), scene points (N, 3)). ppf: each reference point of a
