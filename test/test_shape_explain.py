@@ -155,3 +155,32 @@ def test_noisy_depth_keeps_a_true_pose_by_spacing_its_normals_wider(shape):
     sigma = 0.004 * TOP ** 2
     assert normal_step(0.0, TOP, 400.0, 100.0) == 2 and 5 <= normal_step(sigma, TOP, 400.0, 100.0) <= 7
     assert normal_step(sigma, TOP, 400.0, 12.0) == 3                     # a quarter of the object's size
+
+
+def test_a_bins_side_is_a_wall_that_hides_not_a_support_to_sink_into(shape):
+    """A floor seen at 45 deg and a wall standing on it, facing the camera (a bin's side):
+    both are removed as planes, only the floor is a support. A box behind the wall is hidden
+    by it, not sunk into it (IC-BIN: cups inside the bin counted 114-159 samples "sunk" into
+    its side); a box pushed into the floor is still sunk."""
+    from planar_scene import INTRINSICS, card_pose, render_planes
+
+    from multi_instance_reg.frontends.shape.explain import sunk_samples
+    from multi_instance_reg.frontends.shape.segments import support_mask
+
+    grey = np.full((64, 64, 3), 128, np.uint8)
+    floor, wall = card_pose(rx=135, t=(0.0, 0.35, 1.2)), card_pose(rx=-135, t=(0.0, 0.05, 0.9))
+    rgb, depth = render_planes(grey, (3.0, 3.0), [floor])
+    rgb, depth = render_planes(grey, (1.2, 0.5), [wall], rgb, depth)
+    rgb, depth = render_planes(grey, (0.3, 0.2), [card_pose(rx=135, t=(0.25, 0.30, 1.1))], rgb, depth)   # something on the floor
+    removed = []
+    support_mask(depth, INTRINSICS, depth > 0, 0.18, shape.fe.shape_plane_thresh, 0.002, planes=removed)
+    assert len(removed) == 2
+    cloud = shape.frame_cloud(depth, INTRINSICS, None)
+    assert len(cloud.planes) == 1 and abs(cloud.planes[0][0] @ floor[:3, 2]) > 0.999
+    view = FrameView.of(depth, INTRINSICS, rgb)
+    behind_wall = make_transform(np.eye(3), wall[:3, 3] - 0.15 * wall[:3, 2])
+    wall_plane = [p for p in removed if abs(p[0] @ wall[:3, 2]) > 0.999]
+    assert sunk_samples(behind_wall, shape._surface, view, 0.01, shape.voxel, wall_plane) > 50     # as it was counted
+    assert sunk_samples(behind_wall, shape._surface, view, 0.01, shape.voxel, cloud.planes) == 0
+    in_floor = make_transform(np.eye(3), floor[:3, 3] + np.array([-0.2, 0.0, 0.0]))                # half below it
+    assert sunk_samples(in_floor, shape._surface, view, 0.01, shape.voxel, cloud.planes) > 50
