@@ -425,11 +425,12 @@ def save_mesh(mesh: TriangleMesh, path, units: str = "m") -> Path:
 
 # --------------------------------------------------------------------------- sampling
 
-def sample_surface(mesh: TriangleMesh, spacing: float, seed: int = 0, max_points: int = 200_000
-                   ) -> tuple[np.ndarray, np.ndarray]:
+def sample_surface(mesh: TriangleMesh, spacing: float, seed: int = 0, max_points: int = 200_000,
+                   where: bool = False) -> tuple:
     """Points spread over the surface about ``spacing`` apart, with their face normals:
     (P, 3), (P, 3) float64. Random points in proportion to area, then one per voxel of
-    ``spacing`` so that the density is even."""
+    ``spacing`` so that the density is even. With ``where``, also each point's triangle (P,)
+    and barycentric weights (P, 3) (to read the mesh's colour there)."""
     normals, areas = mesh.face_normals_areas()
     total = float(areas.sum())
     n = int(min(max_points, max(1000, 4.0 * total / spacing ** 2)))
@@ -442,6 +443,9 @@ def sample_surface(mesh: TriangleMesh, spacing: float, seed: int = 0, max_points
     keys = np.floor(pts / spacing).astype(np.int64)
     _, first = np.unique(keys, axis=0, return_index=True)
     first = np.sort(first)
+    if where:
+        bary = np.stack([1 - s, s * (1 - r2), s * r2], axis=1)
+        return pts[first], normals[face[first]], face[first], bary[first]
     return pts[first], normals[face[first]]
 
 

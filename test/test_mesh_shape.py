@@ -9,6 +9,7 @@ import pytest
 from multi_instance_reg.errors import InputError
 from multi_instance_reg.meshes import box_mesh, cylinder_mesh, load_mesh, sample_surface, save_mesh
 from multi_instance_reg.metrics import evaluate_scene
+from multi_instance_reg.models.mesh_model import build_model_from_mesh
 from multi_instance_reg.models.model import load_model, save_model
 from multi_instance_reg.symmetry import closest_symmetric_pose, detect_symmetries, parse_symmetry_text
 
@@ -111,6 +112,14 @@ def test_mesh_model_file_round_trip_and_old_files(tmp_path):
     assert not m_old.has_shape and m_old.symmetries is None
     save_model(m_old, tmp_path / "old2.npz")
     assert set(np.load(tmp_path / "old2.npz").files) == set(old)
+    # A mesh without colour gives no grey; one with vertex colours, its grey per shape point.
+    assert model.shape_grey is None and "shape_grey" not in np.load(tmp_path / "c.npz").files
+    coloured = box_mesh(0.3, 0.2, 0.15)
+    coloured.vertex_colours = np.where(coloured.vertices[:, 2:] > 0, 250, 20).repeat(3, axis=1).astype(np.uint8)
+    save_model(build_model_from_mesh(coloured, "carton"), tmp_path / "g.npz")
+    grey = load_model(tmp_path / "g.npz")
+    top = grey.shape_points[:, 2] > 0.074
+    assert grey.shape_grey.shape == (len(grey.shape_points),) and grey.shape_grey[top].min() > 240
 
 
 def test_untextured_offline_replay(tmp_path):

@@ -184,3 +184,47 @@ def test_a_bins_side_is_a_wall_that_hides_not_a_support_to_sink_into(shape):
     assert sunk_samples(behind_wall, shape._surface, view, 0.01, shape.voxel, cloud.planes) == 0
     in_floor = make_transform(np.eye(3), floor[:3, 3] + np.array([-0.2, 0.0, 0.0]))                # half below it
     assert sunk_samples(in_floor, shape._surface, view, 0.01, shape.voxel, cloud.planes) > 50
+
+
+def _printed_can():
+    """A cylinder (the shape of a can) printed in dark and light sectors about its axis
+    (three of each): the shape cannot tell its turns apart, the print can."""
+    from multi_instance_reg.meshes import cylinder_mesh
+
+    mesh = cylinder_mesh(0.066, 0.122, segments=96)
+    angle = np.arctan2(mesh.vertices[:, 1], mesh.vertices[:, 0])
+    level = (40 + 180 * (np.sin(3 * angle) > 0)).astype(np.uint8)
+    mesh.vertex_colours = np.repeat(level[:, None], 3, axis=1)
+    return mesh
+
+
+def test_the_appearance_turns_a_printed_can_to_its_print_and_tells_a_plain_one_apart():
+    """The verification's appearance (explain.py): the model's grey against the image's,
+    over the poses the shape cannot tell apart. A can seen in the image at its true turn and
+    a pose of it turned 40 deg about its axis: the appearance finds the turn back and agrees;
+    a plain grey cylinder of the same shape in the image does not look like it (0) and has
+    less evidence; a model without colour has no appearance."""
+    from multi_instance_reg.models.mesh_render import render_mesh
+
+    mesh = _printed_can()
+    model = build_model_from_mesh(mesh, "can")
+    assert model.shape_grey is not None and model.symmetries.axis is not None
+    can = ShapeFrontEnd(model, FrontEndConfig())
+    intrinsics = _intrinsics()
+    true = make_transform(np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]]), [0.0, 0.0, 0.45])    # lying, side on
+    seen = render_mesh(mesh, true, intrinsics)
+    depth = seen.depth_m.copy()
+    depth[depth == 0] = 0.8                                          # a wall behind
+    view = FrameView.of(depth, intrinsics, seen.rgb)
+    c, s_ = np.cos(np.radians(40)), np.sin(np.radians(40))
+    turned = true @ make_transform(np.array([[c, -s_, 0], [s_, c, 0], [0, 0, 1.0]]), [0, 0, 0])
+    e = can.explain(turned, can.frame_cloud(depth, intrinsics, None), view)
+    assert e.appearance > 0.8
+    offset = np.degrees(np.arccos(np.clip((np.trace(e.T[:3, :3].T @ true[:3, :3]) - 1) / 2, -1, 1)))
+    assert min(offset, abs(offset - 120), abs(offset - 240)) < 6.0      # the print repeats every 120 deg
+    plain = FrameView.of(depth, intrinsics, np.full_like(seen.rgb, 128))
+    p = can.explain(turned, can.frame_cloud(depth, intrinsics, None), plain)
+    assert p.appearance == 0.0 and p.evidence < e.evidence - 0.7
+    mesh.vertex_colours = None
+    bare = ShapeFrontEnd(build_model_from_mesh(mesh, "can"), FrontEndConfig())
+    assert np.isnan(bare.explain(turned, bare.frame_cloud(depth, intrinsics, None), view).appearance)

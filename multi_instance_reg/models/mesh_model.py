@@ -52,6 +52,20 @@ def view_descriptors(dense: np.ndarray, dense_normals: np.ndarray, voxel: float,
     return tuple(np.concatenate(v) for v in out)
 
 
+def surface_grey(mesh: TriangleMesh, faces: np.ndarray, bary: np.ndarray) -> np.ndarray:
+    """(P,) uint8: the mesh's colour as grey at points on triangles ``faces`` with barycentric
+    weights ``bary`` (``sample_surface(..., where=True)``): vertex colours or the texture,
+    interpolated."""
+    from .mesh_render import sample_texture
+
+    if mesh.vertex_colours is not None:
+        rgb = np.einsum("pk,pkc->pc", bary, mesh.vertex_colours[mesh.triangles[faces]].astype(np.float64))
+    else:
+        uv = np.einsum("pk,pkc->pc", bary, mesh.corner_uv[faces].astype(np.float64))
+        rgb = sample_texture(mesh, uv, 0).astype(np.float64)
+    return np.clip(np.round(rgb @ np.array([0.299, 0.587, 0.114])), 0, 255).astype(np.uint8)
+
+
 def mesh_symmetries(mesh: TriangleMesh, seed: int = 1) -> Symmetries:
     """The mesh's symmetries (``symmetry.detect_symmetries``) from its surface sampled every
     1 % of its box diagonal, 1.5 samples' spacing allowed."""
@@ -69,8 +83,14 @@ def build_model_from_mesh(mesh: TriangleMesh, name: str = "", symmetry: "str | S
     extent = hi - lo
     centre = (lo + hi) / 2.0
     voxel = float(voxel) if voxel else shape_voxel(extent)
-    dense, dense_normals = sample_surface(mesh, voxel / 4.0, seed=seed)
+    dense, dense_normals, faces, bary = sample_surface(mesh, voxel / 4.0, seed=seed, where=True)
     pts, normals, variation, desc = view_descriptors(dense, dense_normals, voxel, centre, views)
+    grey = None
+    if mesh.has_colour:
+        # Each shape point takes the colour of the dense sample nearest it: what the
+        # verification compares with the image (explain.py, appearance).
+        _, j = cKDTree(dense).query(pts, k=1, workers=-1)
+        grey = surface_grey(mesh, faces, bary)[j]
     diameter = float(np.linalg.norm(extent))
     if isinstance(symmetry, Symmetries):
         symmetries = symmetry
@@ -92,6 +112,7 @@ def build_model_from_mesh(mesh: TriangleMesh, name: str = "", symmetry: "str | S
         shape_descriptors=desc,
         shape_variation=variation.astype(np.float32),
         shape_voxel=voxel,
+        shape_grey=grey,
         box_centre=centre.astype(np.float64),
         symmetries=symmetries,
     )
@@ -205,5 +226,5 @@ def add_placed_keypoints(model: ObjectModel, objects, poses) -> ObjectModel:
     return model
 
 
-__all__ = ["build_model_from_mesh", "mesh_symmetries", "add_capture_keypoints", "add_placed_keypoints",
+__all__ = ["build_model_from_mesh", "surface_grey", "mesh_symmetries", "add_capture_keypoints", "add_placed_keypoints",
            "add_rendered_keypoints", "render_views", "Symmetries"]

@@ -130,7 +130,7 @@ def render_mesh(mesh: TriangleMesh, T_camera_object: np.ndarray, intrinsics: Cam
         rgb[seen] = np.clip(np.einsum("pk,pkc->pc", w, corners) + 0.5, 0, 255).astype(np.uint8)
     else:
         uv = np.einsum("pk,pkc->pc", w, mesh.corner_uv[t])
-        rgb[seen] = _sample_texture(mesh, uv, _texture_level(mesh, T, intrinsics.K, tris))
+        rgb[seen] = sample_texture(mesh, uv, _texture_level(mesh, T, intrinsics.K, tris))
     return MeshRender(rgb, depth, tri_id, T, intrinsics)
 
 
@@ -153,7 +153,7 @@ def _texture_level(mesh: TriangleMesh, T, K, tris) -> int:
     return max(int(np.floor(0.5 * np.log2(max(tx.sum() / px.sum(), 1.0)))), 0)
 
 
-def _sample_texture(mesh: TriangleMesh, uv: np.ndarray, level: int) -> np.ndarray:
+def sample_texture(mesh: TriangleMesh, uv: np.ndarray, level: int) -> np.ndarray:
     """(P, 3) uint8: the texture at texture coordinates ``uv`` (P, 2) (v up from the
     picture's bottom, as PLY and OBJ writers have it), bilinear, on pyramid level ``level``."""
     img = mesh.texture
@@ -190,4 +190,4 @@ def look_at(centre: np.ndarray, direction: np.ndarray, distance: float) -> np.nd
     return T
 
 
-__all__ = ["MeshRender", "render_mesh", "rasterise", "look_at", "BACKGROUND_RGB"]
+__all__ = ["MeshRender", "render_mesh", "rasterise", "look_at", "BACKGROUND_RGB", "sample_texture"]

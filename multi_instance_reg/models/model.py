@@ -19,6 +19,7 @@ Optional, from a mesh (`mireg build-model --mesh`; files without them load as be
   shape_normals    (Q, 3)  float32  outward unit normals there
   shape_descriptors (Q, 33) float32 FPFH descriptors there (frontends/shape/geometry.py)
   shape_variation  (Q,)    float32  surface variation there (flat faces ~0; edges, corners higher)
+  shape_grey       (Q,)    uint8    optional: the mesh's grey level there (a mesh with colour)
   box_centre       (3,)    float64  centre of the object's box in the model frame (default 0)
   symmetry_discrete (S, 4, 4) float64  symmetries, identity first (multi_instance_reg/symmetry.py)
   symmetry_axis    (3,)    float64  continuous symmetry about this axis ...
@@ -63,6 +64,7 @@ class ObjectModel:
     shape_descriptors: np.ndarray | None = None  # (Q, 33) float32
     shape_variation: np.ndarray | None = None    # (Q,) float32
     shape_voxel: float = 0.0
+    shape_grey: np.ndarray | None = None         # (Q,) uint8, the mesh's colour as grey (None: no colour)
     box_centre: np.ndarray = field(default_factory=lambda: np.zeros(3))
     symmetries: "Symmetries | None" = None
     # Not stored: how many views a build without ground truth placed (None: all, by their poses),
@@ -106,6 +108,8 @@ def save_model(model: ObjectModel, path) -> Path:
                       shape_normals=np.asarray(model.shape_normals, np.float32),
                       shape_descriptors=np.asarray(model.shape_descriptors, np.float32),
                       shape_variation=np.asarray(model.shape_variation, np.float32))
+    if model.has_shape and model.shape_grey is not None:
+        arrays["shape_grey"] = np.asarray(model.shape_grey, np.uint8)
     if np.any(np.asarray(model.box_centre) != 0):
         arrays["box_centre"] = np.asarray(model.box_centre, np.float64)
     if model.symmetries is not None and not model.symmetries.is_trivial:
@@ -166,6 +170,8 @@ def load_model(path) -> ObjectModel:
     if "symmetry_discrete" in arrays:
         shape["symmetries"] = Symmetries(arrays["symmetry_discrete"].astype(np.float64),
                                          arrays.get("symmetry_axis"), arrays.get("symmetry_point"))
+    if "shape_grey" in arrays and "shape_descriptors" in arrays:
+        shape["shape_grey"] = arrays["shape_grey"].astype(np.uint8)
     if "box_centre" in arrays:
         shape["box_centre"] = arrays["box_centre"].astype(np.float64)
     return ObjectModel(**shape,
@@ -220,6 +226,8 @@ def _check_arrays(a: dict, where: str) -> None:
         if q < 3 or not float(a["shape_voxel"]) > 0:
             raise InputError(f"model file {where}: shape data with {q} points and voxel {float(a['shape_voxel'])}; "
                              f"rebuild it with `mireg build-model --mesh`")
+    if "shape_grey" in a and "shape_points" in a:
+        shape_ok("shape_grey", (len(a["shape_points"]),))
     if "box_centre" in a:
         shape_ok("box_centre", (3,))
     if "symmetry_discrete" in a:

@@ -560,12 +560,15 @@ class InstanceRegistration:
             if all(overlap[k, j] <= fe.max_overlap and overlap[j, k] <= fe.max_overlap for j in kept):
                 # The texture has its say: a shape pose that shows the model's textured
                 # faces is kept only when some of the frame's matches agree with it (they
-                # also pick which of its symmetric poses it is).
+                # also pick which of its symmetric poses it is). Once: where the mesh has
+                # colour, the verification judged the pose's appearance already, densely
+                # (IC-BIN: the cups' shape poses met 0-6 of the frame's 40-70 matches).
                 T, agree, shown = texture_agreement(inst.T, self._keypoints_xyz, self._keypoint_normals,
                                                     self.model.symmetries, match_model, match_scene, depth_m,
                                                     intrinsics, self.config.ecc.inlier_thresh,
                                                     self._shape.depth_tolerance)
-                if shown >= fe.both_min_shown_keypoints and agree < fe.both_min_agreeing:
+                if not self._shape.judges_appearance and shown >= fe.both_min_shown_keypoints \
+                        and agree < fe.both_min_agreeing:
                     continue
                 kept.append(k)
                 instances.append(Instance(len(instances), T, inst.inliers, inst.score, self.model.name))

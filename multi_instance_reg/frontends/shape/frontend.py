@@ -22,10 +22,12 @@ from ...core import ECCConfig
 from ...errors import InputError
 from ...messages import CameraIntrinsics
 from ...search_clock import search_time
+from ...symmetry import detect_symmetries
 from ...models.model import ObjectModel
 from ...threads import shared_pool, submit_each
 from ...tracking.icp import align_projective
-from .explain import FREE_WEIGHT, HIDDEN_WEIGHT, Explanation, FrameView, explain, select
+from .explain import (APPEARANCE_BASE, APPEARANCE_WEIGHT, FREE_WEIGHT, HIDDEN_WEIGHT, Explanation, FrameView,
+                      explain, select, symmetric_greys)
 from ...rgbd.depth_noise import measure_depth_noise
 from ...rgbd.verify import facing_camera
 from .faces import Faces, frame_patches, matches, model_faces, nearest_face_pose, patch_poses
@@ -92,6 +94,16 @@ class ShapeFrontEnd:
         # The surface once (the descriptors hold a point once per view that sees it): for ICP
         # and the depth check.
         self._surface, self._surface_normals = oriented_downsample(self._model_pts, model.shape_normals, self.voxel)
+        # The mesh's grey level at each sample under each pose the shape cannot tell apart,
+        # for the verification's appearance (None: no colour). Those are the model's
+        # symmetries, or where it declares none (BOP declares those of the textured object:
+        # a printed can has none) the shape's own.
+        self._surface_grey = None
+        if model.shape_grey is not None:
+            _, j = cKDTree(self._model_pts).query(self._surface, k=1)
+            alike = model.symmetries if model.symmetries is not None and not model.symmetries.is_trivial \
+                else detect_symmetries(self._model_pts, self.voxel)
+            self._surface_grey = symmetric_greys(self._surface, np.asarray(model.shape_grey, np.float64)[j], alike)
         self.diameter = float(np.linalg.norm(model.extent))
         # sigma_z / z^2 of the frame being registered: shape_depth_noise, or measured on each
         # frame when that is 0 (``measure_noise``, called by ``frame_cloud``).
@@ -154,6 +166,12 @@ class ShapeFrontEnd:
     def depth_tolerance(self) -> float:
         """Metres: a model point agrees with the depth image within this."""
         return max(self.fe.shape_depth_tolerance, 0.8 * self.voxel)
+
+    @property
+    def judges_appearance(self) -> bool:
+        """Whether the verification compares the model's colour with the image's (a mesh
+        with colour)."""
+        return self._surface_grey is not None
 
     @property
     def non_convex(self) -> bool:
@@ -483,7 +501,9 @@ class ShapeFrontEnd:
                                  PROJECTIVE_ROUNDS, 1.5 * self.voxel, 0.75 * self.voxel).T
             best = max([best, fit(T) + (T,)], key=lambda c: c[0])
         _, support, free, T = best
-        if support - FREE_WEIGHT * free < 0.9 * fe.shape_min_evidence * (support + free):
+        # The most its appearance could add (a model with colour): the bound stays a bound.
+        looks = APPEARANCE_WEIGHT * (1.0 - APPEARANCE_BASE) if self._surface_grey is not None else 0.0
+        if support - FREE_WEIGHT * free < (0.9 * fe.shape_min_evidence - looks) * (support + free):
             # Not even were everything that hides it explained (``explain.select``'s
             # ``possible``, by the cheap check): not worth its explanation.
             return None
@@ -505,7 +525,7 @@ class ShapeFrontEnd:
         """``explain.explain`` of pose T with this model's surface, tolerance and support."""
         return explain(T, self._surface, self._surface_normals, view, self.tolerance_at(T), self.voxel,
                        self._same_surface(T), claimed, up=cloud.up, planes=cloud.planes,
-                       sigma=self.depth_noise * float(T[2, 3]) ** 2, span=self.diameter)
+                       sigma=self.depth_noise * float(T[2, 3]) ** 2, span=self.diameter, grey=self._surface_grey)
 
     def choose(self, candidates: list[Explanation], cloud: FrameCloud, view: FrameView, conflicts) -> list[Explanation]:
         """The instances among the refined ``candidates``, chosen jointly (``explain.select``);
