@@ -6,7 +6,7 @@ Without BAGs, a synthetic scene bag is generated first in a temporary directory:
 tabletop scenes with 4 to 12 instances plus distractors at 640x480, ``--frames`` frames each.
 Without --model, the model is built from capture bags (default: generated, the object
 resting on its bottom, its top and both long sides, so that the model sees every face). Prints MHF1, MHR, MHP, MF, the
-median RTE / RRE of the hits, the latency per frame (p50, p95) and each stage's p50 / p95.
+median RTE / RRE of the hits, the latency per frame (p50, p95, p99) and each stage's p50 / p95.
 """
 from __future__ import annotations
 
