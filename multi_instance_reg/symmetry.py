@@ -24,6 +24,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .errors import InputError
+from .transforms import apply_transform
 
 
 def _rotation(axis, angle: float) -> np.ndarray:
@@ -86,7 +87,7 @@ def best_symmetry(x: np.ndarray, y: np.ndarray, sym: "Symmetries | None", within
     candidates = [np.eye(4)] if sym is None else list(sym.discrete)
     scored = []
     for S in candidates:
-        xs = x @ S[:3, :3].T + S[:3, 3]
+        xs = apply_transform(S, x)
         M = S
         if sym is not None and sym.axis is not None and len(x):
             a, c = sym.axis / np.linalg.norm(sym.axis), sym.point
@@ -107,7 +108,7 @@ def best_symmetry(x: np.ndarray, y: np.ndarray, sym: "Symmetries | None", within
             angle = float(np.arctan2(np.sum(np.cross(rx[members], ry[members]) @ a),
                                      np.sum(np.einsum("ij,ij->i", rx[members], ry[members]))))
             M = turn_about(a, c, angle) @ S
-            xs = x @ M[:3, :3].T + M[:3, 3]
+            xs = apply_transform(M, x)
         scored.append((int(np.sum(np.linalg.norm(xs - y, axis=1) < within)), M))
     scored.sort(key=lambda s: -s[0])
     second = scored[1][0] if len(scored) > 1 else 0

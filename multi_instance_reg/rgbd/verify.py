@@ -20,6 +20,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..messages import CameraIntrinsics
+from ..symmetry import best_symmetry
+from ..transforms import apply_transform, invert_transform
 from ..frontends.shape.geometry import measured_at
 
 
@@ -349,12 +351,9 @@ def texture_agreement(T: np.ndarray, keypoints: np.ndarray, keypoint_normals: np
     A continuous symmetry's turn is found too: the shape leaves it open, the print does not
     (IC-BIN's cups: shape poses at the turn ICP left them showed 700-1,500 keypoints and
     met 0-2 of the matches, and the texture turned away cups the shape had right)."""
-    from ..symmetry import best_symmetry
-
     T = np.asarray(T, np.float64)
-    Ti = np.linalg.inv(T)
     # S m = T^-1 s for the pose T S: the matches' scene points in the pose's model frame.
-    in_model = np.asarray(scene_xyz, np.float64) @ Ti[:3, :3].T + Ti[:3, 3]
+    in_model = apply_transform(invert_transform(T), np.asarray(scene_xyz, np.float64))
     S, agree, _ = best_symmetry(model_xyz, in_model, None if symmetries is None or symmetries.is_trivial
                                 else symmetries, inlier_thresh)
     best = T @ S if agree > 0 else T

@@ -49,9 +49,12 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ...messages import CameraIntrinsics
 from ...rgbd.verify import _points_and_normals, facing_camera, image_pixels, outline_continuation
+from ...symmetry import turn_about
+from ...transforms import apply_transform, invert_transform
 
 # A sample agrees only when the measured normal is within this of the model's (where the
 # depth gives one): a cylinder's side laid over a block's edge agrees in depth, not in normals.
@@ -308,10 +311,6 @@ def symmetric_greys(surface: np.ndarray, grey: np.ndarray, symmetries, turns: in
     the ``symmetries`` (their discrete ones, each with ``turns`` turns about a continuous
     axis): under pose T S the sample at x is the model's point S^-1 x, the nearest sample's
     grey. One column (identity) without symmetries."""
-    from scipy.spatial import cKDTree
-
-    from ...symmetry import turn_about
-
     mats = [np.eye(4)] if symmetries is None else [np.asarray(S, np.float64) for S in symmetries.discrete]
     if symmetries is not None and symmetries.axis is not None:
         mats = [S @ turn_about(symmetries.axis, symmetries.point, 2.0 * np.pi * k / turns)
@@ -319,8 +318,7 @@ def symmetric_greys(surface: np.ndarray, grey: np.ndarray, symmetries, turns: in
     tree = cKDTree(surface)
     cols = []
     for S in mats:
-        Si = np.linalg.inv(S)
-        _, j = tree.query(surface @ Si[:3, :3].T + Si[:3, 3], k=1)
+        _, j = tree.query(apply_transform(invert_transform(S), surface), k=1)
         cols.append(np.asarray(grey, np.float64)[j])
     return Greys(np.stack(cols, axis=1), np.stack(mats))
 

@@ -548,8 +548,9 @@ class ShapeFrontEnd:
     def set_deadline(self, at: float | None) -> None:
         """Refine no further hypothesis once ``search_time()`` passes ``at`` (None: no
         bound); ``deadline_cut`` says afterwards whether that turned any away. CPU time less
-        the kernels' one-off compilation (``search_clock``), not the clock's: what the frame costs, whatever else the host runs (on a host of its own
-        the two agree), so that a replay or a benchmark finds the same instances at any load."""
+        the kernels' one-off compilation (``search_clock``), not the clock's: what the frame
+        costs, whatever else the host runs (on a host of its own the two agree), so that a
+        replay or a benchmark finds the same instances at any load."""
         self._deadline, self.deadline_cut = at, False
 
     def past_deadline(self) -> bool:
