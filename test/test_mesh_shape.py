@@ -202,3 +202,31 @@ def test_profile_objects_mesh_matches_render_and_symmetry(preset):
     else:
         assert sym.axis is None and len(sym.discrete) == 2
         assert np.allclose(sym.discrete[1][:3, :3], np.diag([-1.0, -1.0, 1.0]), atol=1e-6)
+
+
+def test_flush_cartons_form_one_plane_in_depth_and_show_their_seams_in_colour():
+    """The ``flush`` preset: cartons packed with hairline gaps, their tops within a few
+    millimetres of one plane, and the line where two meet darker than their tops (a real
+    carton's worn edges), so the outlines are in the colour image and not in the depth."""
+    import cv2
+
+    from multi_instance_reg.synthetic.untextured import make_untextured_scene
+
+    scene = make_untextured_scene("flush", 10, 0, 1, 3)
+    cartons = [p for p in scene.placements if p.spec.name == "carton"]
+    assert len(cartons) == 10
+    xy = np.array([p.pose[:2, 3] for p in cartons])
+    apart = np.linalg.norm(xy[:, None] - xy[None], axis=2) + np.eye(len(xy))
+    assert 0.2 <= apart.min() <= 0.2025                    # neighbours along the short side: hairline gaps
+    tops = np.array([p.pose[2, 3] for p in cartons])
+    assert np.ptp(tops) < 0.005
+    frame = next(iter(scene.frames()))
+    grey = cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2GRAY).astype(np.float32)
+    seam, inside = [], []
+    for k in range(len(cartons)):
+        mine = (frame.instance_mask == k).astype(np.uint8)
+        others = ((frame.instance_mask >= 0) & (frame.instance_mask != k)).astype(np.uint8)
+        seam.append(grey[(mine > 0) & (cv2.dilate(others, np.ones((3, 3), np.uint8)) > 0)])
+        inside.append(grey[cv2.erode(mine, np.ones((9, 9), np.uint8)) > 0])
+    seam, inside = np.concatenate(seam), np.concatenate(inside)
+    assert len(seam) > 100 and seam.mean() < 0.9 * inside.mean()

@@ -55,6 +55,10 @@ class ObjectSpec:
     # A "profile": its outline in the object's (x, z) plane, counter-clockwise, extruded over
     # y in [-dy/2, dy/2]; ``parts`` are that outline cut into boxes (``profile_parts``).
     profile: tuple = ()
+    # A "flat" face darkened over this much along its edges (a cardboard carton's crushed,
+    # shadowed edges): cartons packed flush show a dark seam between them from above, as
+    # real ones do (their outlines are in the colour image, not in the depth).
+    worn_edge_m: float = 0.0
 
     @property
     def radius(self) -> float:
@@ -205,10 +209,13 @@ def _tee_outline(X, Z, t):
 
 
 BRACKET_THICKNESS_M = 0.012
+WORN_EDGE_M = 0.004
+# The worn edge's darkest shade (at the very edge), rising linearly to the tint.
+WORN_EDGE_SHADE = 0.55
 UNTEXTURED_OBJECTS: dict[str, ObjectSpec] = {spec.name: spec for spec in (
     # A plain brown shipping carton (stacked on pallets).
     ObjectSpec("carton", "box", (0.30, 0.20, 0.15), _flat("box"),
-               resting=(("+z", 0.8), ("-z", 0.2)), tint=(168, 128, 84)),
+               resting=(("+z", 0.8), ("-z", 0.2)), tint=(168, 128, 84), worn_edge_m=WORN_EDGE_M),
     # A turned grey part, standing or lying.
     ObjectSpec("grey_cylinder", "cylinder", (0.06, 0.06, 0.10), _flat("cylinder"),
                resting=(("+z", 0.6), ("+x", 0.4)), tint=(150, 152, 158)),
@@ -413,6 +420,21 @@ def face_size_m(spec: ObjectSpec, face: str) -> tuple[float, float]:
             "+z": (dx, dy), "-z": (dx, dy)}[face]
 
 
+def _flat_texture(tint, width_m: float, height_m: float, worn_edge_m: float) -> np.ndarray:
+    """The tint all over; with ``worn_edge_m``, darkened towards the face's edges over that
+    width (WORN_EDGE_SHADE at the edge), at a texel a millimetre."""
+    if worn_edge_m <= 0:
+        tex = np.empty((16, 16, 3), np.uint8)
+        tex[:] = tint
+        return tex
+    w, h = (int(np.clip(round(1000.0 * m), 16, _MAX_TEXTURE_SIDE)) for m in (width_m, height_m))
+    xs = np.minimum(np.arange(w) + 0.5, w - np.arange(w) - 0.5) / w * width_m
+    ys = np.minimum(np.arange(h) + 0.5, h - np.arange(h) - 0.5) / h * height_m
+    to_edge = np.minimum(xs[None, :], ys[:, None])
+    shade = WORN_EDGE_SHADE + (1.0 - WORN_EDGE_SHADE) * np.clip(to_edge / worn_edge_m, 0.0, 1.0)
+    return (shade[:, :, None] * np.asarray(tint, np.float32)[None, None]).astype(np.uint8)
+
+
 @functools.lru_cache(maxsize=None)
 def object_textures(name: str) -> dict[str, np.ndarray]:
     """Face name -> HxWx3 uint8 texture for object or prop ``name`` (cached; treat as read-only)."""
@@ -420,9 +442,8 @@ def object_textures(name: str) -> dict[str, np.ndarray]:
     textures = {}
     for face, picture in spec.faces:
         width_m, height_m = face_size_m(spec, face)
-        if picture == "flat":       # untextured: the tint all over
-            tex = np.empty((16, 16, 3), np.uint8)
-            tex[:] = spec.tint
+        if picture == "flat":       # untextured: the tint all over (and its worn edges)
+            tex = _flat_texture(spec.tint, width_m, height_m, spec.worn_edge_m)
             tex.setflags(write=False)
             textures[face] = tex
             continue

@@ -5,6 +5,9 @@ Presets (``make_untextured_scene(preset, ...)``):
   layers on a pallet on the floor, a few centimetres apart, some slots empty, seen from above
   by a slowly drifting camera 1.2-2 m from the cartons (tilted 5-30 deg off vertical).
   With ``instances=0`` the pallet carries other plain boxes only (distractor-only frames).
+- ``flush``: the same cartons packed flush on the pallet, side by side in one layer with
+  hairline gaps (as real ones are: from above their tops form one plane, and only their
+  worn, darker edges show where one ends), some slots empty; the same camera.
 - ``cylinders`` / ``bracket``: grey cylinders or L-shaped brackets with plain distractors on a
   table, seen by the hand-held sweep of the tabletop scenes (0.5-1 m).
 - ``channel`` / ``stairs`` / ``tee``: a U channel, a block of three steps or a T profile,
@@ -17,6 +20,7 @@ shape front end never looks at colour). The objects' meshes come from
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from ..errors import InputError
 from ..transforms import make_transform
@@ -27,6 +31,7 @@ from .sensor import d455_intrinsics
 
 PRESETS = {
     "pallet": "carton",
+    "flush": "carton",
     "cylinders": "grey_cylinder",
     "bracket": "bracket",
     # Objects the shape front end was not developed on (session 12): on the table like the
@@ -42,6 +47,11 @@ BENCH_ALL = ("pallet", "cylinders", "bracket")
 TABLE_DISTRACTORS = ("grey_block", "wide_cylinder", "grey_cylinder", "bracket")
 PALLET_DISTRACTORS = ("crate", "grey_block")
 PALLET_GRID = (3, 3)            # slots along the pallet's x and y per layer
+# Cartons packed flush: the gap between neighbours (a hairline: none in the depth), the
+# step between their tops (bulging cardboard) and their tilt.
+FLUSH_GAP_M = (1e-4, 2e-3)
+FLUSH_STEP_M = 2e-3
+FLUSH_TILT_RAD = np.radians(0.7)
 
 
 def preset_object(preset: str) -> str:
@@ -63,7 +73,10 @@ def make_untextured_scene(preset: str, instances: int = 8, distractors: int = 3,
     if int(frames) < 1:
         raise InputError(f"frames must be at least 1, got {frames}")
     rng_choose, rng_place, rng_path = (np.random.default_rng([int(seed), 20 + k]) for k in range(3))
-    if preset == "pallet":
+    if preset == "flush" and int(instances) > 0:
+        placements = _flush_placements(target, int(instances), rng_place)
+        poses = overhead_trajectory(placements, int(frames), rng_path)
+    elif preset in ("pallet", "flush"):
         placements = _pallet_placements(target, int(instances), int(distractors), rng_place)
         poses = overhead_trajectory(placements, int(frames), rng_path)
     else:
@@ -119,6 +132,31 @@ def _pallet_placements(carton, instances: int, distractors: int, rng) -> list[Pl
                                       [shift[0], shift[1], h + 0.001])
         placements.append(Placement(carton, pose, label, "stacked"))
         label += 1
+    return placements
+
+
+def _flush_placements(carton, instances: int, rng) -> list[Placement]:
+    """The pallet and on it ``instances`` cartons packed flush in one layer: the pallet's
+    area cut into a grid of the carton's footprint (long side along the pallet's), the
+    cartons in a random subset of its slots, each a hairline (FLUSH_GAP_M) from its
+    neighbours' slots, its top up to FLUSH_STEP_M off theirs and tilted up to FLUSH_TILT_RAD."""
+    pallet = get_object("pallet")
+    pallet_pose = make_transform(_rot_z(rng.uniform(-0.2, 0.2)), [0.0, 0.0, pallet.dimensions_m[2] / 2])
+    placements = [Placement(pallet, pallet_pose, _DISTRACTOR_LABEL0, "free")]
+    (px, py), (cx, cy, h) = pallet.dimensions_m[:2], carton.dimensions_m
+    nx, ny = int(round(px / cx)), int(round(py / cy))        # the load may overhang by its gaps
+    slots = rng.permutation(nx * ny)[:min(instances, nx * ny)]
+    gaps_x, gaps_y = rng.uniform(*FLUSH_GAP_M, size=nx), rng.uniform(*FLUSH_GAP_M, size=ny)
+    xs = np.cumsum(np.r_[0.0, cx + gaps_x[:-1]])
+    ys = np.cumsum(np.r_[0.0, cy + gaps_y[:-1]])
+    xs, ys = xs - xs.mean(), ys - ys.mean()
+    for label, slot in enumerate(slots):
+        tilt = rng.uniform(-FLUSH_TILT_RAD, FLUSH_TILT_RAD, size=2)
+        R = _rot_z(np.pi * int(rng.integers(2))) @ Rotation.from_rotvec([tilt[0], tilt[1], 0.0]).as_matrix()
+        pose = pallet_pose @ make_transform(R, [xs[slot % nx], ys[slot // nx], 0.0])
+        lift = 0.5 * (abs(np.sin(tilt[1])) * cx + abs(np.sin(tilt[0])) * cy)      # the tilt's low corner on the pallet
+        pose[2, 3] = pallet.dimensions_m[2] + h / 2 + lift + rng.uniform(0.0, FLUSH_STEP_M)
+        placements.append(Placement(carton, pose, label, "flush"))
     return placements
 
 
