@@ -228,3 +228,18 @@ def test_the_appearance_turns_a_printed_can_to_its_print_and_tells_a_plain_one_a
     mesh.vertex_colours = None
     bare = ShapeFrontEnd(build_model_from_mesh(mesh, "can"), FrontEndConfig())
     assert np.isnan(bare.explain(turned, bare.frame_cloud(depth, intrinsics, None), view).appearance)
+
+
+
+def test_a_box_s_creases_are_told_from_its_flat_faces(shape):
+    # Each sample's distance to the nearest sample on another face: near the box's edges,
+    # where its faces, lit differently, meet at a colour edge even on a plain box.
+    from multi_instance_reg.frontends.shape.explain import crease_distances
+    p, n, voxel = shape._surface, shape._surface_normals, shape.voxel
+    d = crease_distances(p, n, 4 * voxel)
+    # The samples more than 4 voxels from any other face are told none nearer; those within half
+    # a voxel of an edge of their face find the next face within about a voxel and a half.
+    on_face = np.sort(np.abs(p) / (0.5 * np.array([0.3, 0.2, 0.15])), axis=1)[:, 1] < 1 - 8 * voxel / 0.15
+    assert np.all(d[on_face] == pytest.approx(4 * voxel))
+    edge = np.sort(0.5 * np.array([0.3, 0.2, 0.15])[None] - np.abs(p), axis=1)[:, 1] < 0.5 * voxel
+    assert edge.sum() > 20 and np.all(d[edge] < 1.5 * voxel)

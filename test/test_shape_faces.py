@@ -99,3 +99,28 @@ def test_two_tops_in_one_segment_are_cut_apart():
     patches = frame_patches(Q, NQ, np.zeros(len(Q), np.int64), diameter, 2 * model.shape_voxel, lambda z: 0.01)
     assert len(patches) == 2
     assert len(patch_poses(faces, patches, matches(faces, patches, model.shape_voxel))) >= 4
+
+
+def test_flush_tops_are_cut_apart_along_the_colour_seam_between_them():
+    from multi_instance_reg.frontends.shape.explain import FrameView
+    from multi_instance_reg.messages import CameraIntrinsics
+
+    model, surface, normals, T, P, N = _top_seen_from_above(yaw=0.0)
+    # Its neighbour packed flush past its long side: one plane in depth, 0.3 x 0.4 m.
+    Q, NQ = np.vstack([P, P + [0.0, 0.2, 0.0]]), np.vstack([N, N])
+    faces = model_faces(surface, normals, model.shape_voxel)
+    diameter = float(np.linalg.norm(model.extent))
+    cut = lambda **k: frame_patches(Q, NQ, np.zeros(len(Q), np.int64), diameter, 2 * model.shape_voxel,
+                                    lambda z: 0.01, **k)
+    assert not matches(faces, cut(), model.shape_voxel).any()      # depth alone: no face of the box
+    # In colour a dark seam, 3 pixels wide, where the two tops meet (y = 0.07 m at 1.5 m).
+    K = np.array([[400.0, 0, 160], [0, 400.0, 120], [0, 0, 1]])
+    rgb = np.full((240, 320, 3), 150, np.uint8)
+    seam = int(round(K[1, 1] * 0.07 / 1.5 + K[1, 2]))
+    rgb[seam - 1:seam + 2] = 70
+    view = FrameView.of(np.full((240, 320), 1.5, np.float32), CameraIntrinsics(K=K, width=320, height=240), rgb)
+    patches = cut(across_edges=view.across_edges)
+    fits = matches(faces, patches, model.shape_voxel)
+    assert len(patches) == 2 and fits.any(axis=1).all()
+    best = min((_errors(model, T, Q_) for Q_ in patch_poses(faces, patches, fits)), key=lambda e: e[0] + 100 * e[1])
+    assert best[0] < 2.0 and best[1] < 0.015

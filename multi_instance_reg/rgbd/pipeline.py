@@ -498,7 +498,7 @@ class InstanceRegistration:
                 solving.extend(submit_each(lambda pair: self._shape_ecc.register(*pair), [(s, g)]))
 
         src, tgt = self._shape.correspondences(cloud, on_poses=lambda: started.append(
-            self._shape.start_refining(list(cloud.poses), cloud, view)), on_matches=start_ecc)
+            self._shape.start_refining(list(cloud.poses), cloud, view)), on_matches=start_ecc, view=view)
         started = started[0] if started else None
         t5 = time.perf_counter()
         t["shape"] = (t4 - t3) * 1e3

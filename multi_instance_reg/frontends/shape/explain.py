@@ -25,8 +25,9 @@ And the outline: the share of a band just outside the drawn model where the near
 face continues in the depth (``verify.outline_continuation``): a piece of a larger surface
 (a carton fitted onto a crate's top, a pose sunk into the table) continues past its
 outline; a true instance does not. Pixels another chosen instance claims, and with colour
-the pixels on or next to a colour edge, break that continuation: flush-packed cartons form
-one plane in depth, and their outlines are seen only in colour.
+the pixels on or next to a colour edge, break that continuation where the drawing is plain
+(``plain_drawing``): flush-packed cartons form one plane in depth, and their outlines are
+seen only in colour.
 
 And where the model has colour (a mesh with vertex colours or a texture) and the frame has
 colour: the *appearance*, the correlation of the model's grey levels with the image's over
@@ -79,6 +80,8 @@ MIN_JUDGED = 20
 # A pose whose agreeing samples lie more than this share on pixels a chosen instance
 # claims is that instance seen again (the same pixels): it is dropped.
 MAX_CLAIMED = 0.5
+# Normals this far apart meet at a crease (``crease_distances``).
+CREASE_DEG = 30.0
 # Canny's thresholds on the blurred grey image: low enough for the seam between two cartons
 # of slightly different shades (12 grey levels).
 EDGE_LOW, EDGE_HIGH = 15, 40
@@ -119,6 +122,24 @@ class FrameView:
         if out is None:
             out = cv2.dilate(self.edges, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
             self.widened[r] = out
+        return out
+
+    def across_edges(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """(N,) bool: whether the image line between points a[k] and b[k] (camera frame, a
+        voxel or two apart) meets a colour edge (widened by two pixels: Canny's line fades
+        where a seam meets an outline), looked at a quarter, half and three quarters of the
+        way. All False without edges."""
+        if self.edges is None:
+            return np.zeros(len(a), bool)
+        near = self.edges_within(2)
+        h, w = near.shape
+        K = self.intrinsics.K
+        uv = [(K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2], K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]) for p in (a, b)]
+        out = np.zeros(len(a), bool)
+        for f in (0.25, 0.5, 0.75):
+            u = np.clip(np.round((1 - f) * uv[0][0] + f * uv[1][0]).astype(np.int64), 0, w - 1)
+            v = np.clip(np.round((1 - f) * uv[0][1] + f * uv[1][1]).astype(np.int64), 0, h - 1)
+            out |= near[v, u] > 0
         return out
 
     @staticmethod
@@ -192,6 +213,51 @@ def visible_samples(T: np.ndarray, surface: np.ndarray, normals: np.ndarray, int
     return p[front], n[front], v[front], u[front], index[front]
 
 
+def crease_distances(surface: np.ndarray, normals: np.ndarray, reach: float) -> np.ndarray:
+    """(N,) metres from each sample to the nearest one whose normal turns from its own by more
+    than CREASE_DEG (``reach`` where none is nearer)."""
+    out = np.full(len(surface), float(reach))
+    pairs = cKDTree(surface).query_pairs(reach, output_type="ndarray")
+    if len(pairs):
+        a, b = pairs[:, 0], pairs[:, 1]
+        turned = np.sum(normals[a] * normals[b], axis=1) < np.cos(np.radians(CREASE_DEG))
+        d = np.linalg.norm(surface[a[turned]] - surface[b[turned]], axis=1)
+        np.minimum.at(out, a[turned], d)
+        np.minimum.at(out, b[turned], d)
+    return out
+
+
+def plain_drawing(view: FrameView, rows: np.ndarray, cols: np.ndarray, index: np.ndarray, voxel: float, px: float,
+                  r: int, creases: np.ndarray | None) -> bool:
+    """Whether a pose's drawing (its samples' pixels rows, cols; ``index`` into the model's
+    samples) is mostly plain in colour, so that the edges along its outline are its outline:
+    on texture (a brick wall, a print) edges lie everywhere, along any outline by chance. At
+    most MAX_TEXTURE of the samples near an edge (within r pixels), judged on those farther
+    than r inside the drawing, where a plain face has none (along the outline it has them:
+    a carton 50 pixels wide at 1.5 m has half its samples there), nor along the object's own
+    creases (its faces, lit differently, meet at an edge; ``creases``: the samples'
+    ``crease_distances``, None: none known); on all of them when too few lie so far inside.
+    ``px``: a voxel (``voxel`` metres) in pixels."""
+    inner = interior_samples(rows, cols, int(round(0.75 * px)), r)
+    if creases is not None:
+        inner &= creases[index] > r * voxel / px
+    judge = inner if np.count_nonzero(inner) >= MIN_JUDGED else slice(None)
+    return bool(np.mean(view.edges_within(r)[rows[judge], cols[judge]] > 0) <= MAX_TEXTURE)
+
+
+def interior_samples(rows: np.ndarray, cols: np.ndarray, gap: int, inset: int) -> np.ndarray:
+    """(N,) bool: the samples (pixels rows, cols) at least ``inset`` pixels inside their
+    drawing: its pixels with gaps of up to ``gap`` between samples closed."""
+    disc = lambda k: cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * k + 1, 2 * k + 1))
+    pad = gap + 1
+    r0, c0 = rows.min() - pad, cols.min() - pad
+    drawing = np.zeros((rows.max() - r0 + pad + 1, cols.max() - c0 + pad + 1), np.uint8)
+    drawing[rows - r0, cols - c0] = 1
+    inside = cv2.erode(cv2.dilate(drawing, disc(gap)), disc(gap + inset), borderType=cv2.BORDER_CONSTANT,
+                       borderValue=0)
+    return inside[rows - r0, cols - c0] > 0
+
+
 def normal_step(sigma: float, z: float, focal_px: float, span_px: float) -> int:
     """Pixels: the central differences' half width for normals at distance ``z`` with depth
     noise ``sigma`` (metres): the slope over 2 s pixels (2 s z / f metres) carries sqrt(2)
@@ -204,7 +270,7 @@ def normal_step(sigma: float, z: float, focal_px: float, span_px: float) -> int:
 def explain(T: np.ndarray, surface: np.ndarray, normals: np.ndarray, view: FrameView, tolerance: float,
             voxel: float, same_surface: float, claimed: np.ndarray | None = None,
             up: np.ndarray | None = None, planes=(), sigma: float = 0.0, span: float = 0.0,
-            grey: "Greys | None" = None) -> Explanation:
+            grey: "Greys | None" = None, creases: np.ndarray | None = None) -> Explanation:
     """How well pose T explains the frame (module docstring). ``surface``, ``normals``: the
     model's samples (model frame, outward); ``tolerance``: metres, agreement in depth at
     the pose's distance; ``same_surface``: metres, "the same surface" for the outline (the
@@ -213,8 +279,9 @@ def explain(T: np.ndarray, surface: np.ndarray, normals: np.ndarray, view: Frame
     ``planes``: the frame's support planes ((normal towards the camera, offset) each);
     ``sigma``: metres, the depth noise at the pose's distance, and ``span``: metres, the
     object's size, for the normals' spacing (``normal_step``); ``grey``: the model's colour
-    (``Greys``; None: it has none), for the appearance. The pose comes back turned to the
-    one of those the shape cannot tell apart that looks most like the image."""
+    (``Greys``; None: it has none), for the appearance; ``creases``: each sample's
+    ``crease_distances`` (``plain_drawing``). The pose comes back turned to the one of those
+    the shape cannot tell apart that looks most like the image."""
     depth = view.depth
     p, n, rows, cols, index = visible_samples(T, surface, normals, view.intrinsics, depth.shape, 0.5 * voxel)
     d = depth[rows, cols].astype(np.float64)
@@ -252,10 +319,8 @@ def explain(T: np.ndarray, surface: np.ndarray, normals: np.ndarray, view: Frame
         # one runs along the outline, the surface past it is another object's going on.
         px = voxel * view.intrinsics.K[0, 0] / float(np.median(p[:, 2]))
         r = int(round(0.75 * px)) + int(round(0.5 * px)) + 2
-        edges = view.edges_within(r)
-        # Only where the object's own face is mostly plain: on texture (a brick wall, a print)
-        # edges lie everywhere, along any outline by chance.
-        if np.mean(edges[rows, cols] > 0) <= MAX_TEXTURE:
+        if plain_drawing(view, rows, cols, index, voxel, px, r, creases):
+            edges = view.edges_within(r)
             explained = edges if claimed is None else np.maximum(edges, claimed)
     outline, _ = outline_continuation(T, surface, normals, depth, view.intrinsics, voxel, same_surface, up=up,
                                       explained=explained)

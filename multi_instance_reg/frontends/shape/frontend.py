@@ -27,7 +27,7 @@ from ...models.model import ObjectModel
 from ...threads import shared_pool, submit_each
 from ...tracking.icp import align_projective
 from .explain import (APPEARANCE_BASE, APPEARANCE_WEIGHT, FREE_WEIGHT, HIDDEN_WEIGHT, Explanation, FrameView,
-                      explain, select, symmetric_greys)
+                      crease_distances, explain, select, symmetric_greys)
 from ...rgbd.depth_noise import measure_depth_noise
 from ...rgbd.verify import facing_camera
 from .faces import Faces, frame_patches, matches, model_faces, nearest_face_pose, patch_poses
@@ -43,6 +43,9 @@ ICP_REACH = 2.0
 # by projective ICP, for this many rounds.
 OVERHANG = 0.02
 PROJECTIVE_ROUNDS = 30
+# Voxels: how far from a crease a sample's distance to it is told (``crease_distances``; the
+# edges that mark an outline are widened by about two voxels at 1.5 m).
+CREASE_REACH = 4.0
 # Points closer than this many voxels are in one segment.
 SEGMENT_LINK = 2.0
 # An instance needs at least this many model points seen on valid depth (explain.MIN_JUDGED
@@ -94,6 +97,7 @@ class ShapeFrontEnd:
         # The surface once (the descriptors hold a point once per view that sees it): for ICP
         # and the depth check.
         self._surface, self._surface_normals = oriented_downsample(self._model_pts, model.shape_normals, self.voxel)
+        self._creases = crease_distances(self._surface, self._surface_normals, CREASE_REACH * self.voxel)
         # The mesh's grey level at each sample under each pose the shape cannot tell apart,
         # for the verification's appearance (None: no colour). Those are the model's
         # symmetries, or where it declares none (BOP declares those of the textured object:
@@ -307,13 +311,15 @@ class ShapeFrontEnd:
                           up=ground[0] if ground else None, up_offset=ground[1] if ground else None,
                           planes=supports, grid=grid)
 
-    def correspondences(self, cloud: FrameCloud, on_poses=None, on_matches=None) -> tuple[np.ndarray, np.ndarray]:
+    def correspondences(self, cloud: FrameCloud, on_poses=None, on_matches=None,
+                        view: FrameView | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(model points (N, 3), scene points (N, 3)). ppf: each reference point of a
         segment with the model point its pair votes choose (over the symmetries); fpfh: each
         salient scene point with its ``shape_neighbours`` nearest model descriptors.
         ``on_poses()`` is called as soon as ``cloud.poses`` (ppf) is set (to start their
         refinement); ``on_matches(src, tgt)`` (ppf) as soon as the correspondences are made,
-        before the vote clusters' poses, which they do not depend on (to start ECC on them)."""
+        before the vote clusters' poses, which they do not depend on (to start ECC on them).
+        ``view``: the frame's colour edges cut flat patches (``face_poses``)."""
         if self.features == "ppf":
             if cloud.segments is None or not np.any(cloud.segments >= 0):
                 return np.zeros((0, 3)), np.zeros((0, 3))
@@ -340,7 +346,7 @@ class ShapeFrontEnd:
                     # The face poses first; a vote cluster that one of them would be refined
                     # for (``distinct``) is left out: moved onto the same patch, it would be
                     # the same pose, refined twice.
-                    faces = self.face_poses(cloud)
+                    faces = self.face_poses(cloud, view)
                     near = _within(cloud.poses, faces, 360.0 / ANGLE_STEPS, 0.1 * self.diameter)
                     cloud.poses = np.concatenate([faces, cloud.poses[~near]])
             if on_poses is not None:
@@ -374,16 +380,17 @@ class ShapeFrontEnd:
             cloud.compact = segments_within_reach(cloud.points, cloud.segments, self.diameter)
         return cloud.compact
 
-    def face_poses(self, cloud: FrameCloud) -> np.ndarray:
+    def face_poses(self, cloud: FrameCloud, view: FrameView | None = None) -> np.ndarray:
         """(K, 4, 4) pose hypotheses from the segments' flat patches whose outline moments are
         a model face's (``faces.patch_poses``; a carton seen from above shows its top alone,
         and its references' votes are blurred in the plane of it), one per pose the object's
         symmetries tell apart. Also keeps those patches (``cloud.patches``, ``patch_fits``) for
-        ``_refine``."""
-        fe = self.fe
+        ``_refine``. ``view``: with colour, its edges cut a plane where the depth shows none
+        (the seams of cartons packed flush)."""
         patches = frame_patches(cloud.points, cloud.normals, cloud.segments, self.diameter,
                                 SEGMENT_LINK * self.voxel,
-                                lambda z: max(self.depth_tolerance, 3.0 * self.depth_noise * z * z))
+                                lambda z: max(self.depth_tolerance, 3.0 * self.depth_noise * z * z),
+                                across_edges=None if view is None or view.edges is None else view.across_edges)
         fits = matches(self._faces, patches, self.voxel)
         shaped = fits.any(axis=1)
         cloud.patches, cloud.patch_fits = patches.take(shaped), fits[shaped]
@@ -525,7 +532,8 @@ class ShapeFrontEnd:
         """``explain.explain`` of pose T with this model's surface, tolerance and support."""
         return explain(T, self._surface, self._surface_normals, view, self.tolerance_at(T), self.voxel,
                        self._same_surface(T), claimed, up=cloud.up, planes=cloud.planes,
-                       sigma=self.depth_noise * float(T[2, 3]) ** 2, span=self.diameter, grey=self._surface_grey)
+                       sigma=self.depth_noise * float(T[2, 3]) ** 2, span=self.diameter, grey=self._surface_grey,
+                       creases=self._creases)
 
     def choose(self, candidates: list[Explanation], cloud: FrameCloud, view: FrameView, conflicts) -> list[Explanation]:
         """The instances among the refined ``candidates``, chosen jointly (``explain.select``);

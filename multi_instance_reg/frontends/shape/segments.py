@@ -302,13 +302,17 @@ def _remove_large_pieces(pts, on, labels, rows, cols, stride, fxfy, n, max_area,
     return removed, piece
 
 
-def connected_segments(points: np.ndarray, link: float, min_points: int, tree: cKDTree | None = None) -> np.ndarray:
+def connected_segments(points: np.ndarray, link: float, min_points: int, tree: cKDTree | None = None,
+                       apart=None) -> np.ndarray:
     """(N,) segment label per point (-1: in a segment of fewer than ``min_points``), points
-    joined when closer than ``link``. ``tree``: a k-d tree of ``points``, when there is one."""
+    joined when closer than ``link``. ``tree``: a k-d tree of ``points``, when there is one.
+    ``apart(first, second)``: (P,) bool, the pairs of points (indices) not to join though near."""
     n = len(points)
     if n == 0:
         return np.zeros(0, np.int64)
     pairs = (cKDTree(points) if tree is None else tree).query_pairs(link, output_type="ndarray")
+    if apart is not None and len(pairs):
+        pairs = pairs[~apart(pairs[:, 0], pairs[:, 1])]
     labels = graph_components(n, pairs[:, 0], pairs[:, 1])
     sizes = np.bincount(labels)
     keep = sizes[labels] >= min_points
