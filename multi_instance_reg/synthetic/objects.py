@@ -59,6 +59,9 @@ class ObjectSpec:
     # shadowed edges): cartons packed flush show a dark seam between them from above, as
     # real ones do (their outlines are in the colour image, not in the depth).
     worn_edge_m: float = 0.0
+    # A band of packing tape this wide along the middle of the top and bottom ("+z", "-z"),
+    # over the flaps' seam: a real carton's top is seldom one plain face.
+    tape_m: float = 0.0
 
     @property
     def radius(self) -> float:
@@ -209,13 +212,17 @@ def _tee_outline(X, Z, t):
 
 
 BRACKET_THICKNESS_M = 0.012
-WORN_EDGE_M = 0.004
+WORN_EDGE_M = 0.006
+TAPE_M = 0.048
+# Packing tape's shade against the carton's (lighter, glossy).
+TAPE_SHADE = 1.12
 # The worn edge's darkest shade (at the very edge), rising linearly to the tint.
 WORN_EDGE_SHADE = 0.55
 UNTEXTURED_OBJECTS: dict[str, ObjectSpec] = {spec.name: spec for spec in (
     # A plain brown shipping carton (stacked on pallets).
     ObjectSpec("carton", "box", (0.30, 0.20, 0.15), _flat("box"),
-               resting=(("+z", 0.8), ("-z", 0.2)), tint=(168, 128, 84), worn_edge_m=WORN_EDGE_M),
+               resting=(("+z", 0.8), ("-z", 0.2)), tint=(168, 128, 84), worn_edge_m=WORN_EDGE_M,
+               tape_m=TAPE_M),
     # A turned grey part, standing or lying.
     ObjectSpec("grey_cylinder", "cylinder", (0.06, 0.06, 0.10), _flat("cylinder"),
                resting=(("+z", 0.6), ("+x", 0.4)), tint=(150, 152, 158)),
@@ -420,10 +427,11 @@ def face_size_m(spec: ObjectSpec, face: str) -> tuple[float, float]:
             "+z": (dx, dy), "-z": (dx, dy)}[face]
 
 
-def _flat_texture(tint, width_m: float, height_m: float, worn_edge_m: float) -> np.ndarray:
+def _flat_texture(tint, width_m: float, height_m: float, worn_edge_m: float, tape_m: float = 0.0) -> np.ndarray:
     """The tint all over; with ``worn_edge_m``, darkened towards the face's edges over that
-    width (WORN_EDGE_SHADE at the edge), at a texel a millimetre."""
-    if worn_edge_m <= 0:
+    width (WORN_EDGE_SHADE at the edge), at a texel a millimetre; with ``tape_m``, a band of
+    tape that wide along the face's width through its middle (TAPE_SHADE)."""
+    if worn_edge_m <= 0 and tape_m <= 0:
         tex = np.empty((16, 16, 3), np.uint8)
         tex[:] = tint
         return tex
@@ -431,7 +439,11 @@ def _flat_texture(tint, width_m: float, height_m: float, worn_edge_m: float) -> 
     xs = np.minimum(np.arange(w) + 0.5, w - np.arange(w) - 0.5) / w * width_m
     ys = np.minimum(np.arange(h) + 0.5, h - np.arange(h) - 0.5) / h * height_m
     to_edge = np.minimum(xs[None, :], ys[:, None])
-    shade = WORN_EDGE_SHADE + (1.0 - WORN_EDGE_SHADE) * np.clip(to_edge / worn_edge_m, 0.0, 1.0)
+    shade = WORN_EDGE_SHADE + (1.0 - WORN_EDGE_SHADE) * np.clip(to_edge / max(worn_edge_m, 1e-9), 0.0, 1.0)
+    if tape_m > 0:
+        across = np.abs((np.arange(h) + 0.5) / h - 0.5) * height_m
+        shade = np.where((across < 0.5 * tape_m)[:, None] & (to_edge > 0), shade * TAPE_SHADE, shade)
+    shade = np.minimum(shade, 255.0 / max(max(tint), 1))
     return (shade[:, :, None] * np.asarray(tint, np.float32)[None, None]).astype(np.uint8)
 
 
@@ -443,7 +455,8 @@ def object_textures(name: str) -> dict[str, np.ndarray]:
     for face, picture in spec.faces:
         width_m, height_m = face_size_m(spec, face)
         if picture == "flat":       # untextured: the tint all over (and its worn edges)
-            tex = _flat_texture(spec.tint, width_m, height_m, spec.worn_edge_m)
+            tex = _flat_texture(spec.tint, width_m, height_m, spec.worn_edge_m,
+                                spec.tape_m if face in ("+z", "-z") else 0.0)
             tex.setflags(write=False)
             textures[face] = tex
             continue
