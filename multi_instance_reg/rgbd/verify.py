@@ -298,9 +298,10 @@ def outline_continuation(T: np.ndarray, model_pts: np.ndarray, model_normals: np
     rows, cols = rows + v0, cols + u0
     P, nP, ok = _points_and_normals(depth_m, K, rows, cols)
     rows, cols = rows[ok], cols[ok]
-    if explained is not None:
-        mine = explained[rows, cols] == 0
-        P, nP, rows, cols = P[mine], nP[mine], rows[mine], cols[mine]
+    # Explained pixels stay in the band, as pixels where the object ends: left out of it, a
+    # few pixels of continuation where a seam's colour edge fades (a carton's corner) made
+    # most of what was left.
+    mine = np.ones(len(rows), bool) if explained is None else explained[rows, cols] == 0
     if len(rows) == 0:
         return 0.0, 0
     counted = len(P)
@@ -319,11 +320,13 @@ def outline_continuation(T: np.ndarray, model_pts: np.ndarray, model_normals: np
         # and 8 of them decided). Only the pixels above it are looked at (the floor past a
         # carton's edge is most of the nearest-point search's work).
         above = P @ up > floor
+        look = above & mine
         cont = np.zeros(len(P), np.bool_)
-        cont[above] = _face_continues(P[above], nP[above], p, n, tolerance, max_angle_deg, reach[above])
+        cont[look] = _face_continues(P[look], nP[look], p, n, tolerance, max_angle_deg, reach[look])
         counted = max(int(above.sum()), len(P) // 2, 1)
     else:
-        cont = _face_continues(P, nP, p, n, tolerance, max_angle_deg, reach)
+        cont = np.zeros(len(P), np.bool_)
+        cont[mine] = _face_continues(P[mine], nP[mine], p, n, tolerance, max_angle_deg, reach[mine])
     # Only surface that goes on from the outline itself counts: reached from the band's
     # inner edge through continuing pixels. A neighbour with its faces in line (cartons
     # on a pallet's grid) lies past a gap, a depth step that breaks the chain.
