@@ -1,6 +1,6 @@
 """The shape front end's one verification (frontends/shape/explain.py): known answers for
 a box seen from above on a floor, in free space, behind a surface, as a piece of a larger
-surface, flush with its neighbours (told apart only by colour), and the joint choice."""
+surface, flush with its neighbours (told apart only by the seams in colour), and the joint choice."""
 import numpy as np
 import pytest
 
@@ -77,22 +77,44 @@ def test_a_piece_of_a_larger_surface_continues_past_its_outline(shape):
     assert e.support > 0.5 and e.outline > 0.5 and e.evidence < 0.0
 
 
-def test_flush_boxes_are_split_by_the_colour_edges_between_them(shape):
-    # Three boxes packed side by side with no gap: one plane in depth, 0.9 x 0.2 m.
+def test_flush_boxes_are_split_by_the_dark_seams_between_them(shape):
+    # Three boxes packed side by side with no gap: one plane in depth, 0.9 x 0.2 m. In colour
+    # alike, but for the dark line where two meet (light does not reach into the gap).
     K = _intrinsics().K
     depth = _scene([(0.0, 0.0, TOP, 0.45, 0.1)])
     rgb = np.full((240, 320, 3), 90, np.uint8)
     v, u = np.mgrid[0:240, 0:320]
     x, y = (u - K[0, 2]) / K[0, 0] * TOP, (v - K[1, 2]) / K[1, 1] * TOP
-    for k, x0 in enumerate((-0.3, 0.0, 0.3)):
-        rgb[(np.abs(x - x0) < 0.149) & (np.abs(y) < 0.1)] = (150 + 40 * k, 120, 60)
+    rgb[(np.abs(x) < 0.45) & (np.abs(y) < 0.1)] = (170, 130, 80)
+    plain = rgb.copy()
+    for x0 in (-0.15, 0.15):
+        rgb[(np.abs(x - x0) < 0.004) & (np.abs(y) < 0.1)] = (70, 50, 30)
     grey = _explain(shape, _pose(), depth)
+    no_seams = _explain(shape, _pose(), depth, plain)
     coloured = _explain(shape, _pose(), depth, rgb)
     assert grey.outline > 0.3                   # depth alone: a piece of a larger surface
+    assert no_seams.outline > 0.3               # and in colour without seams
     assert coloured.outline < 0.05 and coloured.evidence > 0.85
-    # Half a box off, across a colour edge: the colour edge inside it does not help it.
+    # Half a box off, across a seam: the seam inside it does not help it.
     off = _explain(shape, _pose(x=0.15), depth, rgb)
-    assert off.evidence < coloured.evidence
+    assert off.evidence < coloured.evidence - 0.3
+    # Boxes printed with dark lines all over: a line along the outline may be the print's.
+    printed = rgb.copy()
+    printed[(np.abs(x) < 0.45) & (np.abs(y) < 0.1) & (np.mod(x + 0.45, 0.03) < 0.004)] = (70, 50, 30)
+    assert _explain(shape, _pose(), depth, printed).outline > 0.3
+
+
+def test_a_box_s_creases_are_told_from_its_flat_faces(shape):
+    # Each sample's distance to the nearest sample on another face: near the box's edges,
+    # where its faces meet at a dark line (a worn edge) even on a plain box.
+    from multi_instance_reg.frontends.shape.explain import crease_distances
+    p, n, voxel = shape._surface, shape._surface_normals, shape.voxel
+    half = 0.5 * np.array([0.3, 0.2, 0.15])
+    d = crease_distances(p, n, 4 * voxel)
+    to_planes = np.sort(half[None] - np.abs(p), axis=1)     # [0]: its own face's, [1]: the nearest other face's
+    assert np.all(d[to_planes[:, 1] > 5 * voxel] == pytest.approx(4 * voxel))
+    near_edge = to_planes[:, 1] < 0.5 * voxel
+    assert near_edge.sum() > 20 and np.all(d[near_edge] < 1.5 * voxel)
 
 
 def test_two_hypotheses_on_the_same_pixels_give_one_instance_and_two_boxes_two(shape):
@@ -230,16 +252,3 @@ def test_the_appearance_turns_a_printed_can_to_its_print_and_tells_a_plain_one_a
     assert np.isnan(bare.explain(turned, bare.frame_cloud(depth, intrinsics, None), view).appearance)
 
 
-
-def test_a_box_s_creases_are_told_from_its_flat_faces(shape):
-    # Each sample's distance to the nearest sample on another face: near the box's edges,
-    # where its faces, lit differently, meet at a colour edge even on a plain box.
-    from multi_instance_reg.frontends.shape.explain import crease_distances
-    p, n, voxel = shape._surface, shape._surface_normals, shape.voxel
-    d = crease_distances(p, n, 4 * voxel)
-    # The samples more than 4 voxels from any other face are told none nearer; those within half
-    # a voxel of an edge of their face find the next face within about a voxel and a half.
-    on_face = np.sort(np.abs(p) / (0.5 * np.array([0.3, 0.2, 0.15])), axis=1)[:, 1] < 1 - 8 * voxel / 0.15
-    assert np.all(d[on_face] == pytest.approx(4 * voxel))
-    edge = np.sort(0.5 * np.array([0.3, 0.2, 0.15])[None] - np.abs(p), axis=1)[:, 1] < 0.5 * voxel
-    assert edge.sum() > 20 and np.all(d[edge] < 1.5 * voxel)

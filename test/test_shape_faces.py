@@ -101,7 +101,7 @@ def test_two_tops_in_one_segment_are_cut_apart():
     assert len(patch_poses(faces, patches, matches(faces, patches, model.shape_voxel))) >= 4
 
 
-def test_flush_tops_are_cut_apart_along_the_colour_seam_between_them():
+def test_flush_tops_are_cut_apart_along_the_dark_seam_between_them_and_not_along_tape():
     from multi_instance_reg.frontends.shape.explain import FrameView
     from multi_instance_reg.messages import CameraIntrinsics
 
@@ -113,13 +113,19 @@ def test_flush_tops_are_cut_apart_along_the_colour_seam_between_them():
     cut = lambda **k: frame_patches(Q, NQ, np.zeros(len(Q), np.int64), diameter, 2 * model.shape_voxel,
                                     lambda z: 0.01, **k)
     assert not matches(faces, cut(), model.shape_voxel).any()      # depth alone: no face of the box
-    # In colour a dark seam, 3 pixels wide, where the two tops meet (y = 0.07 m at 1.5 m).
+    # In colour, a band of lighter tape along the middle of each top (a step, not a line)
+    # and a dark seam, 3 pixels wide, where the two tops meet (y = 0.07 m at 1.5 m).
     K = np.array([[400.0, 0, 160], [0, 400.0, 120], [0, 0, 1]])
+    row = lambda y: int(round(K[1, 1] * y / 1.5 + K[1, 2]))
     rgb = np.full((240, 320, 3), 150, np.uint8)
-    seam = int(round(K[1, 1] * 0.07 / 1.5 + K[1, 2]))
+    for middle in (-0.03, 0.17):
+        rgb[row(middle - 0.024):row(middle + 0.024)] = 175
+    taped = FrameView.of(np.full((240, 320), 1.5, np.float32), CameraIntrinsics(K=K, width=320, height=240), rgb)
+    assert not matches(faces, cut(across_seams=taped.across_seams), model.shape_voxel).any()
+    seam = row(0.07)
     rgb[seam - 1:seam + 2] = 70
     view = FrameView.of(np.full((240, 320), 1.5, np.float32), CameraIntrinsics(K=K, width=320, height=240), rgb)
-    patches = cut(across_edges=view.across_edges)
+    patches = cut(across_seams=view.across_seams)
     fits = matches(faces, patches, model.shape_voxel)
     assert len(patches) == 2 and fits.any(axis=1).all()
     best = min((_errors(model, T, Q_) for Q_ in patch_poses(faces, patches, fits)), key=lambda e: e[0] + 100 * e[1])

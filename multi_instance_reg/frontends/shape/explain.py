@@ -1,7 +1,7 @@
 """The shape front end's one verification: how well a pose explains the frame, and the
 joint choice of the instances.
 
-    view = FrameView(depth_m, intrinsics, rgb)              # once a frame: colour edges
+    view = FrameView.of(depth_m, intrinsics, rgb)           # once a frame: depth and grey levels
     e = explain(T, model, view, tolerance, claimed)          # one pose: Explanation
     chosen = select(candidates, model, view, ...)            # the set that explains most
 
@@ -25,9 +25,10 @@ And the outline: the share of a band just outside the drawn model where the near
 face continues in the depth (``verify.outline_continuation``): a piece of a larger surface
 (a carton fitted onto a crate's top, a pose sunk into the table) continues past its
 outline; a true instance does not. Pixels another chosen instance claims, and with colour
-the pixels on or next to a colour edge, break that continuation where the drawing is plain
-(``plain_drawing``): flush-packed cartons form one plane in depth, and their outlines are
-seen only in colour.
+a seam along the outline (a dark line: light does not reach into the gap between two
+boxes; ``outline_seams``), break that continuation: flush-packed cartons form one plane
+in depth, and their outlines are seen only as such lines. A print's, a tape's or a brick
+wall's lines elsewhere say nothing of where the object ends.
 
 And where the model has colour (a mesh with vertex colours or a texture) and the frame has
 colour: the *appearance*, the correlation of the model's grey levels with the image's over
@@ -80,15 +81,20 @@ MIN_JUDGED = 20
 # A pose whose agreeing samples lie more than this share on pixels a chosen instance
 # claims is that instance seen again (the same pixels): it is dropped.
 MAX_CLAIMED = 0.5
+# A seam between two boxes packed flush (``FrameView.seams``): a line at most about SEAM_PX
+# pixels wide (a 1-2 mm gap and the boxes' rounded edges: 6-8 pixels at 1.5-2 m in the
+# generator's frames), SEAM_DARKER grey levels darker than the image beside it.
+SEAM_PX = 5
+SEAM_DARKER = 8.0
+# Pixels: the seams are widened by this (the line fades where a seam meets an outline or crosses tape).
+SEAM_WIDEN = 2
+# Pixels: a seam this near a drawing's outline runs along it (``outline_seams``).
+OUTLINE_SEAM_PX = 2
+# Seams mark outlines only where at most this share of a pose's samples inside its drawing
+# lie on one: more is a print (a carton fitted onto a juice carton's print passed on them).
+MAX_TEXTURE = 0.5
 # Normals this far apart meet at a crease (``crease_distances``).
 CREASE_DEG = 30.0
-# Canny's thresholds on the blurred grey image: low enough for the seam between two cartons
-# of slightly different shades (12 grey levels).
-EDGE_LOW, EDGE_HIGH = 15, 40
-# Colour edges mark outlines only where at most this share of a pose's samples lie near one
-# (a plain face: those along its outline); more is texture, edges along any outline by chance
-# (a carton fitted onto a brick wall passed on them).
-MAX_TEXTURE = 0.5
 # The appearance's weight in the evidence (it counts as much as the support), and the
 # correlation at which it neither adds nor takes: a pose that looks like the object (IC-BIN
 # cups 0.65-0.87, generated cans 0.6-0.7) gains, one that looks like something else (a
@@ -107,51 +113,51 @@ SUNK_VOXELS = 1.0
 
 @dataclass
 class FrameView:
-    """What the verification reads of a frame: the depth, the camera, and the colour edges
-    (None without colour, or on an image of one colour)."""
+    """What the verification reads of a frame: the depth, the camera, and the colour image's
+    grey levels (None without colour)."""
     depth: np.ndarray
     intrinsics: CameraIntrinsics
-    edges: np.ndarray | None = None
-    grey: np.ndarray | None = None                  # (H, W) float32, blurred as for the edges (None: no colour)
-    widened: dict = field(default_factory=dict)     # edges_within's images by radius
+    grey: np.ndarray | None = None                  # (H, W) float32, blurred over 5 x 5 pixels
+    cache: dict = field(default_factory=dict)       # what is made once a frame (``seams``)
 
-    def edges_within(self, r: int) -> np.ndarray:
-        """(H, W) uint8: the pixels within r of a colour edge (made once a frame per radius:
-        a full-image dilation a pose cost as much as the rest of its explanation)."""
-        out = self.widened.get(r)
+    def seams(self) -> np.ndarray:
+        """(H, W) uint8: the dark thin lines of the colour image (made once a frame): pixels
+        SEAM_DARKER grey levels darker than the image closed over SEAM_PX (a black-hat),
+        widened by SEAM_WIDEN. Light does not reach into the gap between two boxes packed
+        flush, however narrow; a print's or a tape's edge is a step between two shades,
+        not such a line."""
+        out = self.cache.get("seams")
         if out is None:
-            out = cv2.dilate(self.edges, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
-            self.widened[r] = out
+            disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * SEAM_PX + 1, 2 * SEAM_PX + 1))
+            dark = cv2.morphologyEx(self.grey, cv2.MORPH_BLACKHAT, disc) > SEAM_DARKER
+            out = cv2.dilate(dark.astype(np.uint8), np.ones((2 * SEAM_WIDEN + 1, 2 * SEAM_WIDEN + 1), np.uint8))
+            self.cache["seams"] = out
         return out
 
-    def across_edges(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    def across_seams(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """(N,) bool: whether the image line between points a[k] and b[k] (camera frame, a
-        voxel or two apart) meets a colour edge (widened by two pixels: Canny's line fades
-        where a seam meets an outline), looked at a quarter, half and three quarters of the
-        way. All False without edges."""
-        if self.edges is None:
+        voxel or two apart) crosses a seam (``seams``), looked at a quarter, half and three
+        quarters of the way. All False without colour."""
+        if self.grey is None:
             return np.zeros(len(a), bool)
-        near = self.edges_within(2)
-        h, w = near.shape
+        seams = self.seams()
+        h, w = seams.shape
         K = self.intrinsics.K
         uv = [(K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2], K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]) for p in (a, b)]
         out = np.zeros(len(a), bool)
         for f in (0.25, 0.5, 0.75):
             u = np.clip(np.round((1 - f) * uv[0][0] + f * uv[1][0]).astype(np.int64), 0, w - 1)
             v = np.clip(np.round((1 - f) * uv[0][1] + f * uv[1][1]).astype(np.int64), 0, h - 1)
-            out |= near[v, u] > 0
+            out |= seams[v, u] > 0
         return out
 
     @staticmethod
     def of(depth_m: np.ndarray, intrinsics: CameraIntrinsics, rgb: np.ndarray | None = None) -> "FrameView":
-        edges = None
+        grey = None
         if rgb is not None and rgb.ndim == 3:
             grey = cv2.GaussianBlur(cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY), (5, 5), 0)
-            if int(grey.max()) - int(grey.min()) >= 8:
-                found = cv2.Canny(grey, EDGE_LOW, EDGE_HIGH)
-                edges = (found > 0).astype(np.uint8) if found.any() else None
-            return FrameView(depth_m, intrinsics, edges, grey.astype(np.float32))
-        return FrameView(depth_m, intrinsics, edges)
+            grey = grey.astype(np.float32)
+        return FrameView(depth_m, intrinsics, grey)
 
 
 @dataclass
@@ -213,6 +219,37 @@ def visible_samples(T: np.ndarray, surface: np.ndarray, normals: np.ndarray, int
     return p[front], n[front], v[front], u[front], index[front]
 
 
+def outline_seams(view: FrameView, rows: np.ndarray, cols: np.ndarray, index: np.ndarray, gap: int, r: int,
+                  creases: np.ndarray | None, metres_per_px: float) -> np.ndarray | None:
+    """(H, W) uint8: the seams (``FrameView.seams``) that run along a drawing's outline
+    (within OUTLINE_SEAM_PX of it; the drawing: the samples' pixels rows, cols, gaps of up
+    to ``gap`` closed), widened by ``r``; None where the drawing is not plain: where more than
+    MAX_TEXTURE of its samples farther than ``r`` inside it and off the model's creases
+    (``creases``: the samples' ``crease_distances``, metres; ``index`` into them) lie on
+    one. A dark line tells where an object ends only where the object has none of its own
+    (a print's lines lie along any outline by chance; a plain carton's faces meet at a dark
+    line too, its worn edge, hence the creases)."""
+    disc = lambda k: cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * k + 1, 2 * k + 1))
+    seams = view.seams()
+    h, w = seams.shape
+    pad = gap + r + OUTLINE_SEAM_PX + 1
+    r0, c0 = max(int(rows.min()) - pad, 0), max(int(cols.min()) - pad, 0)
+    r1, c1 = min(int(rows.max()) + pad + 1, h), min(int(cols.max()) + pad + 1, w)
+    drawing = np.zeros((r1 - r0, c1 - c0), np.uint8)
+    drawing[rows - r0, cols - c0] = 1
+    body = cv2.erode(cv2.dilate(drawing, disc(gap)), disc(gap), borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    inner = cv2.erode(body, disc(r), borderType=cv2.BORDER_CONSTANT, borderValue=0)[rows - r0, cols - c0] > 0
+    if creases is not None:
+        inner &= creases[index] > r * metres_per_px
+    judge = inner if np.count_nonzero(inner) >= MIN_JUDGED else slice(None)
+    if np.mean(seams[rows[judge], cols[judge]] > 0) > MAX_TEXTURE:
+        return None
+    ring = cv2.dilate(body, disc(OUTLINE_SEAM_PX)) & (1 - cv2.erode(body, disc(OUTLINE_SEAM_PX)))
+    out = np.zeros((h, w), np.uint8)
+    out[r0:r1, c0:c1] = cv2.dilate(seams[r0:r1, c0:c1] & ring, disc(r))
+    return out
+
+
 def crease_distances(surface: np.ndarray, normals: np.ndarray, reach: float) -> np.ndarray:
     """(N,) metres from each sample to the nearest one whose normal turns from its own by more
     than CREASE_DEG (``reach`` where none is nearer)."""
@@ -225,38 +262,6 @@ def crease_distances(surface: np.ndarray, normals: np.ndarray, reach: float) -> 
         np.minimum.at(out, a[turned], d)
         np.minimum.at(out, b[turned], d)
     return out
-
-
-def plain_drawing(view: FrameView, rows: np.ndarray, cols: np.ndarray, index: np.ndarray, voxel: float, px: float,
-                  r: int, creases: np.ndarray | None) -> bool:
-    """Whether a pose's drawing (its samples' pixels rows, cols; ``index`` into the model's
-    samples) is mostly plain in colour, so that the edges along its outline are its outline:
-    on texture (a brick wall, a print) edges lie everywhere, along any outline by chance. At
-    most MAX_TEXTURE of the samples near an edge (within r pixels), judged on those farther
-    than r inside the drawing, where a plain face has none (along the outline it has them:
-    a carton 50 pixels wide at 1.5 m has half its samples there), nor along the object's own
-    creases (its faces, lit differently, meet at an edge; ``creases``: the samples'
-    ``crease_distances``, None: none known); on all of them when too few lie so far inside.
-    ``px``: a voxel (``voxel`` metres) in pixels."""
-    inner = interior_samples(rows, cols, int(round(0.75 * px)), r)
-    if creases is not None:
-        inner &= creases[index] > r * voxel / px
-    judge = inner if np.count_nonzero(inner) >= MIN_JUDGED else slice(None)
-    return bool(np.mean(view.edges_within(r)[rows[judge], cols[judge]] > 0) <= MAX_TEXTURE)
-
-
-def interior_samples(rows: np.ndarray, cols: np.ndarray, gap: int, inset: int) -> np.ndarray:
-    """(N,) bool: the samples (pixels rows, cols) at least ``inset`` pixels inside their
-    drawing: its pixels with gaps of up to ``gap`` between samples closed."""
-    disc = lambda k: cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * k + 1, 2 * k + 1))
-    pad = gap + 1
-    r0, c0 = rows.min() - pad, cols.min() - pad
-    drawing = np.zeros((rows.max() - r0 + pad + 1, cols.max() - c0 + pad + 1), np.uint8)
-    drawing[rows - r0, cols - c0] = 1
-    inside = cv2.erode(cv2.dilate(drawing, disc(gap)), disc(gap + inset), borderType=cv2.BORDER_CONSTANT,
-                       borderValue=0)
-    return inside[rows - r0, cols - c0] > 0
-
 
 def normal_step(sigma: float, z: float, focal_px: float, span_px: float) -> int:
     """Pixels: the central differences' half width for normals at distance ``z`` with depth
@@ -279,8 +284,8 @@ def explain(T: np.ndarray, surface: np.ndarray, normals: np.ndarray, view: Frame
     ``planes``: the frame's support planes ((normal towards the camera, offset) each);
     ``sigma``: metres, the depth noise at the pose's distance, and ``span``: metres, the
     object's size, for the normals' spacing (``normal_step``); ``grey``: the model's colour
-    (``Greys``; None: it has none), for the appearance; ``creases``: each sample's
-    ``crease_distances`` (``plain_drawing``). The pose comes back turned to the one of those
+    (``Greys``; None: it has none), for the appearance; ``creases``: the samples'
+    ``crease_distances`` (``outline_seams``). The pose comes back turned to the one of those
     the shape cannot tell apart that looks most like the image."""
     depth = view.depth
     p, n, rows, cols, index = visible_samples(T, surface, normals, view.intrinsics, depth.shape, 0.5 * voxel)
@@ -313,15 +318,15 @@ def explain(T: np.ndarray, surface: np.ndarray, normals: np.ndarray, view: Frame
     sunk = sunk_samples(T, surface, view, tolerance, voxel, planes)
     judged = int(round(np.sum(~behind) + hidden)) + sunk
     explained = claimed
-    if view.edges is not None and len(p):
-        # Colour edges widened over the outline band's inner edge (the samples' splat and
-        # half a voxel past them, as outline_continuation draws it, and two pixels): where
-        # one runs along the outline, the surface past it is another object's going on.
+    if view.grey is not None and len(p):
+        # Seams along the outline, widened over the outline band's inner edge (the samples'
+        # splat and half a voxel past them, as outline_continuation draws it, and two
+        # pixels): there the surface past the outline is another object's going on.
         px = voxel * view.intrinsics.K[0, 0] / float(np.median(p[:, 2]))
         r = int(round(0.75 * px)) + int(round(0.5 * px)) + 2
-        if plain_drawing(view, rows, cols, index, voxel, px, r, creases):
-            edges = view.edges_within(r)
-            explained = edges if claimed is None else np.maximum(edges, claimed)
+        seams = outline_seams(view, rows, cols, index, int(round(0.75 * px)), r, creases, voxel / px)
+        if seams is not None:
+            explained = seams if claimed is None else np.maximum(seams, claimed)
     outline, _ = outline_continuation(T, surface, normals, depth, view.intrinsics, voxel, same_surface, up=up,
                                       explained=explained)
     pix = rows[agree] * depth.shape[1] + cols[agree]

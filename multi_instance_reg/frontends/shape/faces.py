@@ -1,5 +1,5 @@
 """Flat faces: the model's, and the flat patches of a frame's segments, matched by their
-outline's second moments. No ROS; colour only as the edges that cut a plane.
+outline's second moments. No ROS; colour only as the seams that cut a plane.
 
 A carton seen from above shows its top alone. Point pairs on one plane differ only in their
 distance, so its references vote for poses blurred in the plane (3-7 right references of 70
@@ -112,15 +112,15 @@ def model_faces(points: np.ndarray, normals: np.ndarray, voxel: float, most: int
 
 
 def frame_patches(points: np.ndarray, normals: np.ndarray, labels: np.ndarray, reach: float, link: float,
-                  tolerance, min_points: int = 15, per_segment: int = 2, across_edges=None) -> Faces:
+                  tolerance, min_points: int = 15, per_segment: int = 2, across_seams=None) -> Faces:
     """The flat patches of each segment: its ``per_segment`` largest planes (``_planes``;
     ``tolerance(z)``: metres off the plane at the segment's median distance z),
     a plane wider than ``reach`` (the object's diameter: it holds several objects' faces)
     cut into connected pieces (points within ``link``: coplanar tops of touching cartons
-    are apart where a gap shows between them). ``across_edges(a, b)`` ((N,) bool: the
-    image between points a[k] and b[k] holds a colour edge; ``FrameView.across_edges``):
-    no link across one either, for cartons packed flush show no gap in depth, only a seam
-    in colour."""
+    are apart where a gap shows between them). ``across_seams(a, b)`` ((N,) bool: the
+    image between points a[k] and b[k] crosses a seam; ``FrameView.across_seams``): no
+    link across one either, for cartons packed flush show no gap in depth, only a dark
+    line in colour."""
     out, wide = [], []
     for s in np.unique(labels[labels >= 0]):
         idx = np.flatnonzero(labels == s)
@@ -136,7 +136,7 @@ def frame_patches(points: np.ndarray, normals: np.ndarray, labels: np.ndarray, r
         # All wide planes cut in one call, each moved far from the others (no link across).
         q = np.concatenate([q for _, q in wide])
         plane_of = np.repeat(np.arange(len(wide)), [len(p) for _, p in wide])
-        apart = None if across_edges is None else (lambda i, j: across_edges(q[i], q[j]))
+        apart = None if across_seams is None else (lambda i, j: across_seams(q[i], q[j]))
         lab = connected_segments(q + np.outer(plane_of, [0.0, 0.0, 10.0 * (reach + link)]), link, min_points,
                                  apart=apart)
         for k in np.unique(lab[lab >= 0]):

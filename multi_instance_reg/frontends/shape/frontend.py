@@ -1,6 +1,6 @@
 """The shape front end of the per-frame pipeline: pose hypotheses from depth alone, each
 refined by ICP and explained against the frame (explain.py), and the instances chosen
-jointly. No ROS; colour only for its edges.
+jointly. No ROS; colour only for its seams and its appearance.
 
     shape = ShapeFrontEnd(model, frontend_config)
     cloud = shape.frame_cloud(depth_m, intrinsics, search_mask)    # points off the supports, segments
@@ -44,7 +44,7 @@ ICP_REACH = 2.0
 OVERHANG = 0.02
 PROJECTIVE_ROUNDS = 30
 # Voxels: how far from a crease a sample's distance to it is told (``crease_distances``; the
-# edges that mark an outline are widened by about two voxels at 1.5 m).
+# seams that mark an outline are widened by about two voxels at 1.5 m).
 CREASE_REACH = 4.0
 # Points closer than this many voxels are in one segment.
 SEGMENT_LINK = 2.0
@@ -319,7 +319,7 @@ class ShapeFrontEnd:
         ``on_poses()`` is called as soon as ``cloud.poses`` (ppf) is set (to start their
         refinement); ``on_matches(src, tgt)`` (ppf) as soon as the correspondences are made,
         before the vote clusters' poses, which they do not depend on (to start ECC on them).
-        ``view``: the frame's colour edges cut flat patches (``face_poses``)."""
+        ``view``: the frame's seams cut flat patches (``face_poses``)."""
         if self.features == "ppf":
             if cloud.segments is None or not np.any(cloud.segments >= 0):
                 return np.zeros((0, 3)), np.zeros((0, 3))
@@ -385,12 +385,12 @@ class ShapeFrontEnd:
         a model face's (``faces.patch_poses``; a carton seen from above shows its top alone,
         and its references' votes are blurred in the plane of it), one per pose the object's
         symmetries tell apart. Also keeps those patches (``cloud.patches``, ``patch_fits``) for
-        ``_refine``. ``view``: with colour, its edges cut a plane where the depth shows none
-        (the seams of cartons packed flush)."""
+        ``_refine``. ``view``: with colour, its seams cut a plane where the depth shows no
+        gap (cartons packed flush)."""
         patches = frame_patches(cloud.points, cloud.normals, cloud.segments, self.diameter,
                                 SEGMENT_LINK * self.voxel,
                                 lambda z: max(self.depth_tolerance, 3.0 * self.depth_noise * z * z),
-                                across_edges=None if view is None or view.edges is None else view.across_edges)
+                                across_seams=None if view is None or view.grey is None else view.across_seams)
         fits = matches(self._faces, patches, self.voxel)
         shaped = fits.any(axis=1)
         cloud.patches, cloud.patch_fits = patches.take(shaped), fits[shaped]
