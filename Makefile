@@ -75,6 +75,8 @@ bench: install
 	$(VENV)/bin/mireg bench frames --objects snack_box,can,cereal_box --scenes 4 --frames 3 --seed 7
 	$(VENV)/bin/mireg bench frames --untextured all --scenes 4 --frames 3
 	$(VENV)/bin/mireg bench frames --untextured all --scenes 4 --frames 3 --seed 5
+	$(VENV)/bin/mireg bench frames --untextured flush --scenes 4 --frames 3
+	$(VENV)/bin/mireg bench frames --untextured flush --scenes 4 --frames 3 --seed 5
 	$(VENV)/bin/mireg bench tracking
 	$(VENV)/bin/mireg bench tracking --seed 1000
 	$(VENV)/bin/mireg bench bop

@@ -7,7 +7,7 @@
                       [--seed S] [--storage sqlite3|mcap] [--image-transport raw|compressed]
                       [--resolution 640x480|1280x720] [--preview DIR] [--bop DIR [--bop-scene ID]]
     mireg synth capture -o OUT --object NAME [--seed S] [--views N] [...]
-    mireg synth untextured -o OUT --preset pallet|cylinders|bracket|channel|stairs|tee [--instances K] [--distractors D]
+    mireg synth untextured -o OUT --preset pallet|flush|cylinders|bracket|channel|stairs|tee [--instances K] [--distractors D]
                       [--frames F] [--seed S] [--mesh FILE.ply|.stl|.obj [--units m|mm]]
     mireg synth mesh --object NAME -o FILE.ply|.stl|.obj [--units m|mm]
 """
@@ -142,6 +142,8 @@ def add_arguments(parser) -> None:
         description="Flat-coloured objects with ground truth: " + "; ".join(
             f"{k}: {v}" for k, v in {"pallet": "cartons in one or two layers on a pallet, seen from above at 1.2-2 m "
                                                 "(--instances 0: other boxes only)",
+                                      "flush": "the same cartons packed flush in one layer on the pallet, hairline "
+                                               "gaps, taped tops, worn dark edges",
                                       "cylinders": "grey cylinders and plain distractors on a table, 0.5-1 m",
                                       "bracket": "L-shaped brackets and plain distractors on a table, 0.5-1 m",
                                       "channel, stairs, tee": "U channels, blocks of three steps or T profiles, "
