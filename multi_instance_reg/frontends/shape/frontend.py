@@ -45,7 +45,7 @@ OVERHANG = 0.02
 PROJECTIVE_ROUNDS = 30
 # A pose ICP slid off the flat patch it lies on goes back onto it unless the depth check's
 # support - free is better off it by more than this (``refine_one``).
-PATCH_SLACK = 0.1
+PATCH_SLACK = 0.05
 # Voxels: how far from a crease a sample's distance to it is told (``crease_distances``; the
 # seams that mark an outline are widened by about two voxels at 1.5 m).
 CREASE_REACH = 4.0
@@ -516,7 +516,7 @@ class ShapeFrontEnd:
             # neighbour's top, 0.02-0.05 more, 2-3 cm off): placed on its patch again, unless
             # the depth supports ICP's pose by more than PATCH_SLACK.
             on_patch = nearest_face_pose(self._faces, cloud.patches, cloud.patch_fits, best[3],
-                                         0.1 * self.diameter + self.voxel)
+                                         0.1 * self.diameter + self.voxel, keep_plane=True)
             if on_patch is not None and (moved := fit(on_patch))[0] >= best[0] - PATCH_SLACK:
                 best = moved + (on_patch,)
         _, support, free, T = best
