@@ -60,7 +60,7 @@ def test_a_top_seen_whole_gives_its_pose_and_a_pose_off_in_yaw_is_moved_onto_it(
     faces = model_faces(surface, normals, model.shape_voxel)
     diameter = float(np.linalg.norm(model.extent))
     patches = frame_patches(P, N, np.zeros(len(P), np.int64), diameter, 2 * model.shape_voxel, lambda z: 0.01)
-    assert len(patches) == 1
+    assert len(patches) == 1 and not patches.joined.any()      # delimited by the depth
     fits = matches(faces, patches, model.shape_voxel)
     poses = patch_poses(faces, patches, fits)
     assert len(poses) >= 2                                      # the top, on either sign of its axis
@@ -127,6 +127,6 @@ def test_flush_tops_are_cut_apart_along_the_dark_seam_between_them_and_not_along
     view = FrameView.of(np.full((240, 320), 1.5, np.float32), CameraIntrinsics(K=K, width=320, height=240), rgb)
     patches = cut(across_seams=view.across_seams)
     fits = matches(faces, patches, model.shape_voxel)
-    assert len(patches) == 2 and fits.any(axis=1).all()
+    assert len(patches) == 2 and fits.any(axis=1).all() and patches.joined.all()   # by their outline
     best = min((_errors(model, T, Q_) for Q_ in patch_poses(faces, patches, fits)), key=lambda e: e[0] + 100 * e[1])
     assert best[0] < 2.0 and best[1] < 0.015

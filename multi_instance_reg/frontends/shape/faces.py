@@ -41,12 +41,14 @@ class Faces:
     normal: np.ndarray    # (F, 3) outward (model) / towards the camera (frame)
     axis: np.ndarray      # (F, 3) unit, in the plane: the long axis
     sides: np.ndarray     # (F, 2) the equivalent rectangle's sides (long, short): sqrt(12 x moment)
+    joined: np.ndarray | None = None   # (F,) bool, frame patches: one of several pieces of one plane
 
     def __len__(self) -> int:
         return len(self.centre)
 
     def take(self, keep) -> "Faces":
-        return Faces(self.centre[keep], self.normal[keep], self.axis[keep], self.sides[keep])
+        joined = None if self.joined is None else self.joined[keep]
+        return Faces(self.centre[keep], self.normal[keep], self.axis[keep], self.sides[keep], joined)
 
 
 def _moments(p: np.ndarray, n: np.ndarray):
@@ -62,14 +64,12 @@ def _moments(p: np.ndarray, n: np.ndarray):
     return c, long_axis, sides
 
 
-def _empty() -> Faces:
-    return Faces(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 2)))
-
-
-def _collect(items) -> Faces:
-    if not items:
-        return _empty()
-    return Faces(*(np.array([it[k] for it in items], np.float64) for k in range(4)))
+def _collect(items, joined=None) -> Faces:
+    """Faces of (centre, normal, axis, sides) items, ``joined`` (one bool each) or not known."""
+    faces = Faces(*(np.array([it[k] for it in items], np.float64).reshape(-1, n) for k, n in enumerate((3, 3, 3, 2))))
+    if joined is not None:
+        faces.joined = np.array(joined, bool).reshape(-1)
+    return faces
 
 
 def _planes(points: np.ndarray, normals: np.ndarray, idx: np.ndarray, tolerance: float, min_points: int,
@@ -121,7 +121,8 @@ def frame_patches(points: np.ndarray, normals: np.ndarray, labels: np.ndarray, r
     are apart where a gap shows between them). ``across_seams(a, b)`` ((N,) bool: the
     image between points a[k] and b[k] crosses a seam; ``FrameView.across_seams``): no
     link across one either, for cartons packed flush show no gap in depth, only a dark
-    line in colour."""
+    line in colour. The pieces of a plane cut in several are ``joined``: what delimits them
+    in the plane is their outline, not the depth."""
     out, wide = [], []
     for s in np.unique(labels[labels >= 0]):
         idx = np.flatnonzero(labels == s)
@@ -133,6 +134,7 @@ def frame_patches(points: np.ndarray, normals: np.ndarray, labels: np.ndarray, r
                 out.append((c, normal, axis, sides))
             else:
                 wide.append((normal, q))
+    joined = [False] * len(out)
     if wide:
         # All wide planes cut in one call, each moved far from the others (no link across).
         q = np.concatenate([q for _, q in wide])
@@ -140,12 +142,13 @@ def frame_patches(points: np.ndarray, normals: np.ndarray, labels: np.ndarray, r
         apart = None if across_seams is None else (lambda i, j: across_seams(q[i], q[j]))
         lab = connected_segments(q + np.outer(plane_of, [0.0, 0.0, 10.0 * (reach + link)]), link, min_points,
                                  apart=apart)
-        for k in np.unique(lab[lab >= 0]):
-            piece = lab == k
-            normal = wide[plane_of[piece][0]][0]
-            c, axis, sides = _moments(q[piece], normal)
-            out.append((c, normal, axis, sides))
-    return _collect(out)
+        pieces = np.unique(lab[lab >= 0])
+        plane_of_piece = np.array([plane_of[np.argmax(lab == k)] for k in pieces], np.int64)
+        for k, plane in zip(pieces, plane_of_piece):
+            c, axis, sides = _moments(q[lab == k], wide[plane][0])
+            out.append((c, wide[plane][0], axis, sides))
+            joined.append(bool(np.count_nonzero(plane_of_piece == plane) > 1))
+    return _collect(out, joined)
 
 
 def matches(model: Faces, frame: Faces, voxel: float) -> np.ndarray:

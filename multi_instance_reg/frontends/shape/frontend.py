@@ -43,9 +43,11 @@ ICP_REACH = 2.0
 # by projective ICP, for this many rounds.
 OVERHANG = 0.02
 PROJECTIVE_ROUNDS = 30
-# A pose ICP slid off the flat patch it lies on goes back onto it unless the depth check's
-# support - free is better off it by more than this (``refine_one``).
-PATCH_SLACK = 0.05
+# A pose ICP slid off its flat patch, one of several pieces of one plane in depth, goes back
+# onto it unless the depth check's support - free is better off it by more than this
+# (``refine_one``; flush cartons: 0.02-0.05 gained 2-3 cm off; with no bound, ICP's better
+# fits were undone too).
+PATCH_SLACK = 0.1
 # Voxels: how far from a crease a sample's distance to it is told (``crease_distances``; the
 # seams that mark an outline are widened by about two voxels at 1.5 m).
 CREASE_REACH = 4.0
@@ -511,13 +513,17 @@ class ShapeFrontEnd:
                                  PROJECTIVE_ROUNDS, 1.5 * self.voxel, 0.75 * self.voxel).T
             best = max([best, fit(T) + (T,)], key=lambda c: c[0])
         if cloud.patches is not None:
-            # A face seen alone holds nothing in its plane, and ICP slides it there for a
-            # little more support (a carton packed flush: its hidden sides paired with a
-            # neighbour's top, 0.02-0.05 more, 2-3 cm off): placed on its patch again, unless
-            # the depth supports ICP's pose by more than PATCH_SLACK.
-            on_patch = nearest_face_pose(self._faces, cloud.patches, cloud.patch_fits, best[3],
+            # A face that is a piece of a larger plane in depth (cartons packed flush) is
+            # held in that plane by nothing but its patch's outline, and ICP slides it there
+            # for a little more support (its hidden sides paired with a neighbour's top,
+            # 0.02-0.05 more, 2-3 cm off): put back on its patch in its plane, unless the
+            # depth supports ICP's pose by more than PATCH_SLACK. Where gaps show in depth,
+            # ICP's place is the better one (a noisy patch's outline is off by a few mm and deg).
+            fits = cloud.patch_fits & cloud.patches.joined[:, None]
+            on_patch = nearest_face_pose(self._faces, cloud.patches, fits, best[3],
                                          0.1 * self.diameter + self.voxel, keep_plane=True)
-            if on_patch is not None and (moved := fit(on_patch))[0] >= best[0] - PATCH_SLACK:
+            if on_patch is not None and not _within(on_patch[None], best[3][None], 1.0, 0.25 * self.voxel)[0] \
+                    and (moved := fit(on_patch))[0] >= best[0] - PATCH_SLACK:
                 best = moved + (on_patch,)
         _, support, free, T = best
         # The most its appearance could add (a model with colour): the bound stays a bound.
