@@ -121,8 +121,8 @@ def frame_patches(points: np.ndarray, normals: np.ndarray, labels: np.ndarray, r
     are apart where a gap shows between them). ``across_seams(a, b)`` ((N,) bool: the
     image between points a[k] and b[k] crosses a seam; ``FrameView.across_seams``): no
     link across one either, for cartons packed flush show no gap in depth, only a dark
-    line in colour. The pieces of a plane cut in several are ``joined``: what delimits them
-    in the plane is their outline, not the depth."""
+    line in colour. The pieces of a plane cut in several are ``joined``: their neighbours
+    lie in their plane, which holds them in it only at a gap, if there is one."""
     out, wide = [], []
     for s in np.unique(labels[labels >= 0]):
         idx = np.flatnonzero(labels == s)
