@@ -299,8 +299,8 @@ def outline_continuation(T: np.ndarray, model_pts: np.ndarray, model_normals: np
     P, nP, ok = _points_and_normals(depth_m, K, rows, cols)
     rows, cols = rows[ok], cols[ok]
     # Explained pixels stay in the band, as pixels where the object ends: left out of it, a
-    # few pixels of continuation where a seam's colour edge fades (a carton's corner) made
-    # most of what was left.
+    # few pixels of continuation where a seam fades (a carton's corner) made most of what
+    # was left.
     mine = np.ones(len(rows), bool) if explained is None else explained[rows, cols] == 0
     if len(rows) == 0:
         return 0.0, 0
