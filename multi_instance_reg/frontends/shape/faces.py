@@ -143,8 +143,8 @@ def frame_patches(points: np.ndarray, normals: np.ndarray, labels: np.ndarray, r
         apart = None if across_seams is None else (lambda i, j: across_seams(q[i], q[j]))
         lab = connected_segments(q + np.outer(plane_of, [0.0, 0.0, 10.0 * (reach + link)]), link, min_points,
                                  apart=apart)
-        pieces = np.unique(lab[lab >= 0])
-        plane_of_piece = np.array([plane_of[np.argmax(lab == k)] for k in pieces], np.int64)
+        pieces, first = np.unique(lab, return_index=True)
+        pieces, plane_of_piece = pieces[pieces >= 0], plane_of[first[pieces >= 0]]
         for k, plane in zip(pieces, plane_of_piece):
             c, axis, sides = _moments(q[lab == k], wide[plane][0])
             out.append((c, wide[plane][0], axis, sides))

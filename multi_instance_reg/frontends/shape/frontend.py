@@ -395,7 +395,7 @@ class ShapeFrontEnd:
         patches = frame_patches(cloud.points, cloud.normals, cloud.segments, self.diameter,
                                 SEGMENT_LINK * self.voxel,
                                 lambda z: max(self.depth_tolerance, 3.0 * self.depth_noise * z * z),
-                                across_seams=None if view is None or view.grey is None else view.across_seams)
+                                across_seams=None if view is None else view.across_seams)
         fits = matches(self._faces, patches, self.voxel)
         shaped = fits.any(axis=1)
         cloud.patches, cloud.patch_fits = patches.take(shaped), fits[shaped]
