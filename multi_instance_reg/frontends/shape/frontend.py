@@ -532,7 +532,7 @@ class ShapeFrontEnd:
             # Not even were everything that hides it explained (``explain.select``'s
             # ``possible``, by the cheap check): not worth its explanation.
             return None
-        return self.explain(T, cloud, view)
+        return self.explain(T, cloud, view, needed=fe.shape_min_evidence)
 
     def depth_check(self, T, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> tuple[float, float, float]:
         """(support - free, support, free) of the model's surface at pose T
@@ -546,12 +546,13 @@ class ShapeFrontEnd:
         judged = support + free + HIDDEN_WEIGHT * max(1.0 - support - free, 0.0)
         return (support - free) / judged, support / judged, free / judged
 
-    def explain(self, T, cloud: FrameCloud, view: FrameView, claimed: np.ndarray | None = None) -> Explanation:
+    def explain(self, T, cloud: FrameCloud, view: FrameView, claimed: np.ndarray | None = None,
+                needed: float | None = None) -> Explanation:
         """``explain.explain`` of pose T with this model's surface, tolerance and support."""
         return explain(T, self._surface, self._surface_normals, view, self.tolerance_at(T), self.voxel,
                        self._same_surface(T), claimed, up=cloud.up, planes=cloud.planes,
                        sigma=self.depth_noise * float(T[2, 3]) ** 2, span=self.diameter, grey=self._surface_grey,
-                       creases=self._creases)
+                       creases=self._creases, needed=needed)
 
     def choose(self, candidates: list[Explanation], cloud: FrameCloud, view: FrameView, conflicts) -> list[Explanation]:
         """The instances among the refined ``candidates``, chosen jointly (``explain.select``);
