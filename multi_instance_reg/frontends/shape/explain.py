@@ -47,7 +47,7 @@ a chosen instance no longer counts against it.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -173,6 +173,14 @@ class Explanation:
     rect: tuple             # image rows and columns its judged samples span (top, bottom, left, right)
     claimed: float = 0.0    # of its agreeing samples (weighted), those on pixels already claimed
     appearance: float = float("nan")   # correlation of the model's grey with the image's (NaN: none)
+    weights: np.ndarray | None = None  # the agreeing samples' weights, as ``pixels``
+
+    def claimed_in(self, mask: np.ndarray) -> float:
+        """``claimed`` as it is with the pixels of ``mask`` (H, W) claimed, without explaining
+        the pose again: its agreeing samples do not depend on what is claimed."""
+        if self.weights is None or len(self.pixels) == 0:
+            return 0.0
+        return float(np.sum(self.weights[mask.flat[self.pixels] > 0]))
 
     @property
     def support(self) -> float:
@@ -340,7 +348,7 @@ def explain(T: np.ndarray, surface: np.ndarray, normals: np.ndarray, view: Frame
     if grey is not None and view.grey is not None:
         looks, turn = appearance(grey.grey[index[agree]], view.grey[rows[agree], cols[agree]])
     out = Explanation(T if turn == 0 else T @ grey.symmetries[turn], float(np.sum(weight[agree])),
-                      int(free.sum()) + sunk, hidden, judged, 1.0, pix, rect, taken, looks)
+                      int(free.sum()) + sunk, hidden, judged, 1.0, pix, rect, taken, looks, weight[agree])
     if needed is not None and out.possible < needed:
         return out
     explained = claimed
@@ -459,25 +467,47 @@ def select(candidates: list, rescore, conflicts, min_support: float, min_evidenc
     alone cannot tell where neither is seen) or repeat its pixels (``MAX_CLAIMED``) drop
     out; only those whose drawings come within ``margin`` pixels of the chosen one's are
     scored again. Stops when no pose passes ``min_support`` and ``min_evidence``; once
-    ``late()`` (the frame's deadline), without scoring again."""
+    ``late()`` (the frame's deadline), without scoring again.
+
+    Lazily: a pose near a choice made since it was scored stands in with the most it can
+    gain now (``possible`` times what it explains that is not claimed; claiming only
+    explains more of what hides it and of its outline) and is scored again only when that
+    could win. The same choices as scoring every such pose after each choice, for a few of
+    those scorings (flush cartons: each is near up to eight chosen neighbours)."""
     def passes(e):
         return e.support >= min_support and e.evidence >= min_evidence and e.agree - e.claimed >= MIN_JUDGED // 2
 
-    pending = [e for e in candidates if e.possible >= min_evidence]
+    def rank(e, stale):
+        if stale:
+            return e.possible * (e.agree - e.claimed)
+        return e.gain if passes(e) else -np.inf
+
+    pending = [[e, False] for e in candidates if e.possible >= min_evidence]      # (explanation, stale)
     claimed = np.zeros(shape, np.uint8)
     chosen: list = []
     while pending:
-        ready = [k for k, e in enumerate(pending) if passes(e)]
-        if not ready:
+        scoring = not late()
+        ranks = [rank(e, stale and scoring) for e, stale in pending]
+        k = int(np.argmax(ranks))
+        if ranks[k] == -np.inf:
             break
-        e = pending.pop(max(ready, key=lambda k: pending[k].gain))
+        e, stale = pending[k]
+        if stale and scoring:
+            pending[k] = [rescore(e, claimed), False]
+            continue
+        pending.pop(k)
         chosen.append(e)
         claim(claimed, e, radius)
-        pending = [c for c in pending if not conflicts(c, e)]
-        if not late():
-            # Only the poses whose drawing comes near the chosen one's can score otherwise.
-            pending = [rescore(c, claimed) if _near(c.rect, e.rect, margin) else c for c in pending]
-        pending = [c for c in pending if c.claimed <= MAX_CLAIMED * max(c.agree, 1)]
+        kept = []
+        for c, stale in pending:
+            if conflicts(c, e):
+                continue
+            if _near(c.rect, e.rect, margin):
+                # Only the poses whose drawing comes near the chosen one's can score otherwise.
+                c, stale = replace(c, claimed=c.claimed_in(claimed)), True
+            if c.claimed <= MAX_CLAIMED * max(c.agree, 1):
+                kept.append([c, stale])
+        pending = kept
     return chosen
 
 
