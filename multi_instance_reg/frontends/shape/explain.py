@@ -202,7 +202,9 @@ class Explanation:
         """The most evidence the pose can reach, as it would be with everything that hides
         it explained by chosen instances and its outline clear: what it is judged on first
         (``select``), and so what ``explain`` asks before it looks at the outline."""
-        return (self.agree - FREE_WEIGHT * self.free) / max(self.judged - self.hidden, 1.0) + self.looks
+        net = self.agree - FREE_WEIGHT * self.free
+        # Claims leave between judged - hidden and judged samples judged: the most either way.
+        return net / max(self.judged - self.hidden if net >= 0 else self.judged, 1.0) + self.looks
 
     @property
     def gain(self) -> float:
