@@ -364,7 +364,7 @@ def explain(T: np.ndarray, surface: np.ndarray, normals: np.ndarray, view: Frame
         if seams is not None:
             explained = seams if claimed is None else np.maximum(seams, claimed)
     out.outline = float(outline_continuation(T, surface, normals, depth, view.intrinsics, voxel, same_surface,
-                                             up=up, explained=explained)[0])
+                                             up=up, explained=explained, normal_step=step)[0])
     return out
 
 
