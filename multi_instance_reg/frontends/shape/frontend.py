@@ -31,8 +31,8 @@ from .explain import (APPEARANCE_BASE, APPEARANCE_WEIGHT, FREE_WEIGHT, HIDDEN_WE
 from ...rgbd.depth_noise import measure_depth_noise
 from ...rgbd.verify import facing_camera
 from .faces import Faces, frame_patches, matches, model_faces, nearest_face_pose, patch_poses
-from .geometry import (PointGrid, ShapeMatcher, depth_support, describe, icp_point_to_plane, is_convex, scene_cloud,
-                       surface_normals, voxel_downsample)
+from .geometry import (PointGrid, ShapeMatcher, depth_support, describe, icp_point_to_plane, is_convex, normal_radius,
+                       scene_cloud, surface_normals, voxel_downsample)
 from .ppf import ANGLE_BINS as ANGLE_STEPS, PPFModel, cluster_poses
 from .segments import connected_segments, segments_within_reach, support_mask
 
@@ -257,10 +257,16 @@ class ShapeFrontEnd:
         self.measure_noise(depth_m)
         if search is None:
             search = (depth_m >= self.fe.depth_min) & (depth_m <= self.fe.depth_max)
+        if self.features == "ppf":
+            # The supports are sought up to an object's size beyond the resolvable depth, where
+            # an object there stands (a floor past it, seen only in pieces nearer, was fitted
+            # across those, the pallet's top and the cartons' tops: 12 deg off level); the
+            # points are kept only nearer.
+            if np.isfinite(self.resolvable_depth):
+                search = search & (depth_m <= self.resolvable_depth + self.diameter)
+            return self.segment_cloud(depth_m, intrinsics, search, gravity, within)
         if np.isfinite(self.resolvable_depth):
             search = search & (depth_m <= self.resolvable_depth)
-        if self.features == "ppf":
-            return self.segment_cloud(depth_m, intrinsics, search, gravity, within)
         if within is not None:
             search = search & within
         # Every second pixel is plenty: the voxel is several pixel footprints wide.
@@ -289,9 +295,12 @@ class ShapeFrontEnd:
                      fe.shape_plane_thresh, self.depth_noise, stride=2, ground=ground, planes=planes,
                      up=gravity, up_tolerance_deg=fe.shape_gravity_tolerance_deg, rest=rest,
                      face_heights=self._face_heights)
-        pts = rest[0]
+        pts, pix = rest
         if within is not None:
-            pts = pts[within[rest[1][:, 0], rest[1][:, 1]]]
+            keep = within[pix[:, 0], pix[:, 1]]
+            pts, pix = pts[keep], pix[keep]
+        if np.isfinite(self.resolvable_depth):
+            pts = pts[pts[:, 2] <= self.resolvable_depth]
         pts = voxel_downsample(np.asarray(pts, np.float64), self.voxel)
         empty = FrameCloud(pts, np.zeros_like(pts), np.zeros(0, np.int64), np.zeros((0, 33), np.float32), None,
                            np.full(len(pts), -1, np.int64))
@@ -303,7 +312,9 @@ class ShapeFrontEnd:
         tree = cKDTree(pts)
         segments = submit_each(lambda p: connected_segments(p, SEGMENT_LINK * self.voxel,
                                                             fe.shape_min_segment, tree=tree), [pts])[0]
-        normals = surface_normals(pts, self.voxel, toward=np.zeros(3), tree=tree)
+        z = float(np.median(pts[:, 2]))
+        normals = surface_normals(pts, self.voxel, toward=np.zeros(3), tree=tree,
+                                  radius=normal_radius(self.voxel, self.depth_noise * z * z))
         grid = PointGrid(pts, normals, ICP_REACH * self.voxel)
         labels = segments.result()
         # Of the planes removed, those level with the support below are supports: a pose may
