@@ -77,6 +77,8 @@ bench: install
 	$(VENV)/bin/mireg bench frames --untextured all --scenes 4 --frames 3 --seed 5
 	$(VENV)/bin/mireg bench frames --untextured flush --scenes 4 --frames 3
 	$(VENV)/bin/mireg bench frames --untextured flush --scenes 4 --frames 3 --seed 5
+	$(VENV)/bin/mireg bench frames --untextured flush --sensor realistic --randomise --scenes 4 --frames 3 --seed 100
+	$(VENV)/bin/mireg bench frames --untextured flush --sensor realistic --randomise --scenes 4 --frames 3 --seed 110
 	$(VENV)/bin/mireg bench tracking
 	$(VENV)/bin/mireg bench tracking --seed 1000
 	$(VENV)/bin/mireg bench bop

@@ -26,6 +26,7 @@ HELP = "per-frame pipeline on scene bags: MHF1/MHR/MHP/MF, RTE/RRE, latency by s
 
 
 def add_arguments(parser) -> None:
+    from ...synthetic.sensor import SENSOR_PROFILES
     from ...synthetic.untextured import PRESETS
     UNTEXTURED_CHOICES = tuple(PRESETS) + ("all",)
     parser.add_argument("bags", nargs="*", help="scene bags with ground truth (default: generate --scenes of them)")
@@ -53,6 +54,11 @@ def add_arguments(parser) -> None:
                         help="benchmark the shape front end on untextured generated scenes instead "
                              "(model from the object's mesh; also distractor-only scenes and the model build time; "
                              "all: pallet, cylinders and bracket)")
+    parser.add_argument("--sensor", choices=tuple(SENSOR_PROFILES), default="d455",
+                        help="--untextured: the generated depth's sensor profile (d455, the default, or realistic: "
+                             "as mireg synth's)")
+    parser.add_argument("--randomise", action="store_true",
+                        help="--untextured: each figure of the sensor profile drawn per scene seed from a range")
     parser.add_argument("--depth-noise-correlation", type=float, default=0.0, metavar="PX",
                         help="generated scene bags: depth noise shared by neighbouring pixels over about PX pixels, "
                              "as a stereo matcher's window makes it (default 0: independent per pixel; the "

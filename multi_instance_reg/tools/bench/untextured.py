@@ -2,8 +2,8 @@
 
 Per preset (pallet, cylinders, bracket, channel, stairs, tee; ``all`` = the first three in turn): the object's mesh is written
 and timed into a model (``mireg build-model --mesh``), ``--scenes`` scenes of ``--frames``
-frames are generated (seeds seed+200, ...; 4 to 12 instances), plus as many distractor-only
-scenes (no instance). Printed: MHF1 (hits over the object's symmetries), median RTE/RRE,
+frames are generated (seeds seed+200, ...; 4 to 12 instances; ``--sensor``, ``--randomise``: the
+depth's sensor profile, as ``mireg synth``'s), plus as many distractor-only scenes (no instance). Printed: MHF1 (hits over the object's symmetries), median RTE/RRE,
 the instances reported on distractor-only frames, latency p50/p95, the model build time.
 """
 from __future__ import annotations
@@ -20,12 +20,13 @@ from .scenes import INSTANCES_PER_SCENE, write_scenes_bag
 
 
 def generate_untextured_bag(path: Path, preset: str, scenes: int, frames: int, seed: int, instances=None,
-                            depth_noise_correlation_px: float = 0.0) -> Path:
+                            depth_noise_correlation_px: float = 0.0, sensor: str = "d455",
+                            randomise: bool = False) -> Path:
     from ...synthetic.untextured import make_untextured_scene
 
     def scene(k):
         n = INSTANCES_PER_SCENE[k % len(INSTANCES_PER_SCENE)] if instances is None else instances
-        return make_untextured_scene(preset, n, 3, frames, seed + 200 + k)
+        return make_untextured_scene(preset, n, 3, frames, seed + 200 + k).set_sensor(sensor, randomise)
     return write_scenes_bag(path, (scene(k) for k in range(scenes)), depth_noise_correlation_px)
 
 
@@ -51,9 +52,11 @@ def run_untextured(args, config) -> int:
             print(f"[{preset}] generating {args.scenes} scenes + {args.scenes} distractor-only scenes of "
                   f"{args.frames} frames (seed {args.seed}) ...", file=sys.stderr)
             noise = args.depth_noise_correlation
-            bag = generate_untextured_bag(tmp / "scenes", preset, args.scenes, args.frames, args.seed,
+            bag = generate_untextured_bag(tmp / "scenes", preset, args.scenes, args.frames, args.seed, sensor=args.sensor,
+                                          randomise=args.randomise,
                                           depth_noise_correlation_px=noise)
             empty = generate_untextured_bag(tmp / "empty", preset, args.scenes, args.frames, args.seed + 50, instances=0,
+                                            sensor=args.sensor, randomise=args.randomise,
                                             depth_noise_correlation_px=noise)
             gravity = not args.no_gravity
             r = replay(bag, model, config, None, args.max_rre_deg, args.max_rte, progress=sys.stderr.isatty(),
@@ -68,7 +71,8 @@ def run_untextured(args, config) -> int:
                        preset=preset, symmetries=model.symmetries.describe() if model.symmetries else "none")
         results[preset] = metrics
         print(f"== untextured {preset} ({name}; symmetries: {metrics['symmetries']}; "
-              f"correspondences: {config.frontend.correspondences}; seed {args.seed})")
+              f"correspondences: {config.frontend.correspondences}; seed {args.seed}; "
+              f"sensor {args.sensor}{', randomised' if args.randomise else ''})")
         print(format_report(metrics))
         print(f"distractor-only frames: {len(r_empty.frames)}, instances reported there (false positives): {fp}; "
               f"model from a mesh of {len(load_mesh_vertices(name))} vertices built in {build_s:.2f} s; "
