@@ -797,7 +797,6 @@ def _vote_reference(p, n, refs, lo, hi, reach, max_partners, bucket_start, entry
                     d_step, a_step, n_dist):
     """``ppf._vote`` written plainly: a dict accumulator per reference, the peak the
     first-voted of the largest cells. Also returns the most votes one reference cast."""
-    import math
 
     from multi_instance_reg.frontends.shape.ppf import TURN_BINS, _align_to_x, _feature
 
@@ -983,3 +982,32 @@ def test_object_face_heights_of_a_box_are_its_sides():
     assert np.allclose(heights, [0.05, 0.10, 0.16], atol=0.003)
 
 
+
+
+def test_normals_on_a_noisy_camera_are_averaged_over_a_face_not_across_its_edge():
+    """normal_radius widens the normals' neighbourhood with the depth noise; within it each
+    normal is averaged with its neighbours' that turn little (surface_normals): on a box's two
+    faces seen with 12 mm of noise (the realistic sensor at 1.7 m) the faces' normals come
+    out within a few degrees, and the points next to the edge keep their own face's normal."""
+    from multi_instance_reg.frontends.shape.geometry import NORMAL_RADIUS, normal_radius, surface_normals
+
+    voxel, sigma = 0.0156, 0.012
+    rng = np.random.default_rng(5)
+    g = np.arange(-0.3, 0.3, voxel)
+    a, b = np.meshgrid(g, g)
+    top = np.stack([a.ravel(), b.ravel(), np.zeros(a.size)], axis=1)            # z = 0, normal +z
+    side = np.stack([a.ravel(), np.zeros(a.size), -np.abs(b.ravel()) - voxel], axis=1)   # y = 0 below it, normal -y
+    side = side[side[:, 0] > -0.29]
+    top = top[top[:, 1] < 0]                                                     # the top on y < 0: an edge at y = 0
+    pts = np.concatenate([top, side]) + rng.normal(0.0, sigma / 2, (len(top) + len(side), 3))
+    toward = np.array([0.0, -2.0, 2.0])
+    wide = normal_radius(voxel, sigma)
+    assert wide > NORMAL_RADIUS * voxel and normal_radius(voxel, 0.002) == NORMAL_RADIUS * voxel
+    truth = np.concatenate([np.tile([0.0, 0.0, 1.0], (len(top), 1)), np.tile([0.0, -1.0, 0.0], (len(side), 1))])
+
+    def off(n):
+        return np.degrees(np.arccos(np.clip(np.abs(np.sum(n * truth, axis=1)), -1.0, 1.0)))
+    plain, smoothed = off(surface_normals(pts, voxel, toward)), off(surface_normals(pts, voxel, toward, radius=wide))
+    assert np.median(smoothed) < 0.5 * np.median(plain) and np.median(smoothed) < 6.0
+    near_edge = np.concatenate([np.abs(top[:, 1]) < 1.5 * voxel, np.abs(side[:, 2]) < 2.5 * voxel])
+    assert near_edge.sum() > 50 and np.median(smoothed[near_edge]) < 12.0      # one plane fit as wide: 19 deg

@@ -131,6 +131,23 @@ def test_no_points_beyond_the_resolvable_depth(cylinder_model):
     assert np.sum(unlimited.points[:, 2] > z) > 50
 
 
+def test_the_support_is_found_beyond_the_resolvable_depth(cylinder_model):
+    """Objects nearer than the resolvable depth may stand on a support past it: the supports
+    are sought up to an object's size farther, so the table is found (and removed) though no
+    point of it is kept; sought only as far as the points, it was not there at all."""
+    from multi_instance_reg.rgbd.pipeline import PipelineConfig
+    from multi_instance_reg.frontends.shape.frontend import ShapeFrontEnd
+
+    fe = replace(PipelineConfig().frontend, shape_depth_noise=0.002)
+    shape = ShapeFrontEnd(cylinder_model, fe)
+    z = shape.resolvable_depth
+    table = z + 0.04                                             # the cylinders' tops 6 cm nearer than z
+    depth, _, _ = _cylinders_on_a_table([-0.15, 0.0, 0.15], table_z=table)
+    cloud = shape.frame_cloud(depth, INTR, None)
+    assert cloud.up is not None and cloud.up_offset == pytest.approx(table, abs=0.01)
+    assert len(cloud.points) > 50 and cloud.points[:, 2].max() <= z
+
+
 def test_measured_noise_sets_the_resolvable_depth(cylinder_model):
     """shape_depth_noise 0: k is measured on each frame, and the frame's points stop where 3
     sigma at that k reaches shape_max_noise_share of the diameter; a fixed k is kept as given."""
