@@ -797,6 +797,7 @@ def _vote_reference(p, n, refs, lo, hi, reach, max_partners, bucket_start, entry
                     d_step, a_step, n_dist):
     """``ppf._vote`` written plainly: a dict accumulator per reference, the peak the
     first-voted of the largest cells. Also returns the most votes one reference cast."""
+    import math
 
     from multi_instance_reg.frontends.shape.ppf import TURN_BINS, _align_to_x, _feature
 
