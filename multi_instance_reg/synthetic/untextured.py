@@ -93,9 +93,7 @@ def _pallet_placements(carton, instances: int, distractors: int, rng) -> list[Pl
     """The pallet (a distractor) and, on it, ``instances`` cartons in a 3 x 3 grid per layer
     (the first layer filled first, the rest on top of first-layer cartons); with no cartons,
     ``distractors`` other boxes on the pallet instead."""
-    pallet = get_object("pallet")
-    pallet_pose = make_transform(_rot_z(rng.uniform(-0.2, 0.2)), [0.0, 0.0, pallet.dimensions_m[2] / 2])
-    placements = [Placement(pallet, pallet_pose, _DISTRACTOR_LABEL0, "free")]
+    pallet, pallet_pose, placements = _pallet_on_the_floor(rng)
     top = pallet.dimensions_m[2]
     if instances == 0:
         names = [PALLET_DISTRACTORS[int(i)] for i in rng.integers(len(PALLET_DISTRACTORS), size=max(distractors, 1))]
@@ -135,14 +133,20 @@ def _pallet_placements(carton, instances: int, distractors: int, rng) -> list[Pl
     return placements
 
 
+def _pallet_on_the_floor(rng):
+    """The pallet (a distractor), turned up to 0.2 rad about the vertical: (spec, pose,
+    [its placement])."""
+    pallet = get_object("pallet")
+    pallet_pose = make_transform(_rot_z(rng.uniform(-0.2, 0.2)), [0.0, 0.0, pallet.dimensions_m[2] / 2])
+    return pallet, pallet_pose, [Placement(pallet, pallet_pose, _DISTRACTOR_LABEL0, "free")]
+
+
 def _flush_placements(carton, instances: int, rng) -> list[Placement]:
     """The pallet and on it ``instances`` cartons packed flush in one layer: the pallet's
     area cut into a grid of the carton's footprint (long side along the pallet's), the
     cartons in a random subset of its slots, each a hairline (FLUSH_GAP_M) from its
     neighbours' slots, its top up to FLUSH_STEP_M off theirs and tilted up to FLUSH_TILT_RAD."""
-    pallet = get_object("pallet")
-    pallet_pose = make_transform(_rot_z(rng.uniform(-0.2, 0.2)), [0.0, 0.0, pallet.dimensions_m[2] / 2])
-    placements = [Placement(pallet, pallet_pose, _DISTRACTOR_LABEL0, "free")]
+    pallet, pallet_pose, placements = _pallet_on_the_floor(rng)
     (px, py), (cx, cy, h) = pallet.dimensions_m[:2], carton.dimensions_m
     nx, ny = int(round(px / cx)), int(round(py / cy))        # the load may overhang by its gaps
     slots = rng.permutation(nx * ny)[:min(instances, nx * ny)]

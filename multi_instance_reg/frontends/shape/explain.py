@@ -344,13 +344,14 @@ def explain(T: np.ndarray, surface: np.ndarray, normals: np.ndarray, view: Frame
     # that only passes near the surface (a cylinder lying in a wider one's place: 87 % within
     # 8 mm) is not the surface.
     weight = np.clip((tolerance - np.abs(diff)) / max(tolerance - same_surface, 1e-9), 0.0, 1.0)
-    taken = 0.0 if claimed is None else float(np.sum(weight[~mine & agree]))
     rect = (int(rows.min()), int(rows.max()), int(cols.min()), int(cols.max())) if len(rows) else (0, -1, 0, -1)
     looks, turn = float("nan"), 0
     if grey is not None and view.grey is not None:
         looks, turn = appearance(grey.grey[index[agree]], view.grey[rows[agree], cols[agree]])
     out = Explanation(T if turn == 0 else T @ grey.symmetries[turn], float(np.sum(weight[agree])),
-                      int(free.sum()) + sunk, hidden, judged, 1.0, pix, rect, taken, looks, weight[agree])
+                      int(free.sum()) + sunk, hidden, judged, 1.0, pix, rect, 0.0, looks, weight[agree])
+    if claimed is not None:
+        out.claimed = out.claimed_in(claimed)
     if needed is not None and out.possible < needed:
         return out
     explained = claimed

@@ -295,10 +295,9 @@ class ShapeFrontEnd:
                      fe.shape_plane_thresh, self.depth_noise, stride=2, ground=ground, planes=planes,
                      up=gravity, up_tolerance_deg=fe.shape_gravity_tolerance_deg, rest=rest,
                      face_heights=self._face_heights)
-        pts, pix = rest
+        pts = rest[0]
         if within is not None:
-            keep = within[pix[:, 0], pix[:, 1]]
-            pts, pix = pts[keep], pix[keep]
+            pts = pts[within[rest[1][:, 0], rest[1][:, 1]]]
         if np.isfinite(self.resolvable_depth):
             pts = pts[pts[:, 2] <= self.resolvable_depth]
         pts = voxel_downsample(np.asarray(pts, np.float64), self.voxel)

@@ -2,9 +2,10 @@
 
 Per preset (pallet, cylinders, bracket, channel, stairs, tee; ``all`` = the first three in turn): the object's mesh is written
 and timed into a model (``mireg build-model --mesh``), ``--scenes`` scenes of ``--frames``
-frames are generated (seeds seed+200, ...; 4 to 12 instances; ``--sensor``, ``--randomise``: the
-depth's sensor profile, as ``mireg synth``'s), plus as many distractor-only scenes (no instance). Printed: MHF1 (hits over the object's symmetries), median RTE/RRE,
-the instances reported on distractor-only frames, latency p50/p95, the model build time.
+frames are generated (seeds seed+200, ...; 4 to 12 instances; ``--sensor``, ``--randomise``:
+the depth's sensor profile, as ``mireg synth``'s), plus as many distractor-only scenes (no
+instance). Printed: MHF1 (hits over the object's symmetries), median RTE/RRE, the
+instances reported on distractor-only frames, latency p50/p95, the model build time.
 """
 from __future__ import annotations
 
@@ -35,7 +36,7 @@ def run_untextured(args, config) -> int:
     from ...models.mesh_model import build_model_from_mesh
     from ...synthetic.objects import get_object, object_mesh
     from ...synthetic.untextured import BENCH_ALL, PRESETS
-    from ..offline import ReplayResult, format_report, metrics_dict, replay
+    from ..offline import format_report, metrics_dict, replay
 
     presets = list(BENCH_ALL) if args.untextured == "all" else [args.untextured]
     if args.correspondences:
