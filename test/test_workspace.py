@@ -131,6 +131,29 @@ def test_no_points_beyond_the_resolvable_depth(cylinder_model):
     assert np.sum(unlimited.points[:, 2] > z) > 50
 
 
+def test_a_box_is_looked_for_as_far_as_its_faces_edges_show(cylinder_model):
+    """A model placed by its faces' outlines (a carton) is looked for out to where the
+    tolerance is half its thinnest extent, the least step at its faces' edges; the diameter's
+    share held realistic-sensor cartons at 1.7-2.0 m (k 0.006) out. A model without such faces
+    (the cylinder) keeps the diameter's share."""
+    from multi_instance_reg.frontends.shape.frontend import FACE_STEP_SHARE, ShapeFrontEnd
+    from multi_instance_reg.models.mesh_model import build_model_from_mesh
+    from multi_instance_reg.rgbd.pipeline import PipelineConfig
+    from multi_instance_reg.synthetic.objects import get_object, object_mesh
+
+    carton = build_model_from_mesh(object_mesh(get_object("carton")), "carton")
+    fe = replace(PipelineConfig().frontend, shape_depth_noise=0.006)
+    box = ShapeFrontEnd(carton, fe)
+    thinnest = float(np.min(carton.extent))
+    assert 3.0 * 0.006 * box.resolvable_depth ** 2 == pytest.approx(FACE_STEP_SHARE * thinnest)
+    assert box.resolvable_depth > 1.2 * np.sqrt(fe.shape_max_noise_share * box.diameter / (3.0 * 0.006))
+    assert ShapeFrontEnd(carton, replace(fe, shape_faces=False)).resolvable_depth == pytest.approx(
+        np.sqrt(fe.shape_max_noise_share * box.diameter / (3.0 * 0.006)))
+    round_one = ShapeFrontEnd(cylinder_model, fe)
+    assert 3.0 * 0.006 * round_one.resolvable_depth ** 2 == pytest.approx(fe.shape_max_noise_share
+                                                                          * round_one.diameter)
+
+
 def test_the_support_is_found_beyond_the_resolvable_depth(cylinder_model):
     """Objects nearer than the resolvable depth may stand on a support past it: the supports
     are sought up to an object's size farther, so the table is found (and removed) though no

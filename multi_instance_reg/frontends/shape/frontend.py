@@ -51,6 +51,11 @@ PATCH_SLACK = 0.1
 # Voxels: how far from a crease a sample's distance to it is told (``crease_distances``; the
 # seams that mark an outline are widened by about two voxels at 1.5 m).
 CREASE_REACH = 4.0
+# A model placed by its faces' outlines (a box) is looked for out to where the depth's
+# tolerance (3 sigma) is this share of its thinnest extent, the least step its faces' edges
+# show above what it stands on (``resolvable_depth``; realistic-sensor cartons at 1.7-2.0 m,
+# k 0.006, were beyond the diameter's share).
+FACE_STEP_SHARE = 0.5
 # Points closer than this many voxels are in one segment.
 SEGMENT_LINK = 2.0
 # An instance needs at least this many model points seen on valid depth (explain.MIN_JUDGED
@@ -114,6 +119,7 @@ class ShapeFrontEnd:
                 else detect_symmetries(self._model_pts, self.voxel)
             self._surface_grey = symmetric_greys(self._surface, np.asarray(model.shape_grey, np.float64)[j], alike)
         self.diameter = float(np.linalg.norm(model.extent))
+        self._thinnest = float(np.min(model.extent))
         # sigma_z / z^2 of the frame being registered: shape_depth_noise, or measured on each
         # frame when that is 0 (``measure_noise``, called by ``frame_cloud``).
         self.depth_noise = fe.shape_depth_noise if fe.shape_depth_noise > 0 else NOMINAL_DEPTH_NOISE
@@ -131,6 +137,7 @@ class ShapeFrontEnd:
             else 0.75 * self.voxel
         self._box_centre = np.asarray(model.box_centre, np.float64)
         self.features = fe.shape_features
+        self._faces = None
         if self.features == "ppf":
             self._ppf = PPFModel(self._surface, self._surface_normals, self.diameter, self.voxel, model.symmetries,
                                  bucket_cap=fe.shape_ppf_bucket)
@@ -169,7 +176,15 @@ class ShapeFrontEnd:
         agrees (IC-BIN, a room 2-3 m behind a bin of cups: 30-56 mm against a cup's 45 mm
         radius, support 0.8-1.0 on clutter). No points from there."""
         k, share = self.depth_noise, self.fe.shape_max_noise_share
-        return float(np.sqrt(share * self.diameter / (3.0 * k))) if k > 0 and share > 0 else np.inf
+        if k <= 0 or share <= 0:
+            return np.inf
+        reach = share * self.diameter
+        if self._faces is not None and len(self._faces):
+            # A box is placed by a face's outline (``face_poses``), which the depth's noise
+            # does not blur: its shape is told where the step at the face's edges is, its
+            # thinnest extent at least twice the tolerance.
+            reach = max(reach, FACE_STEP_SHARE * self._thinnest)
+        return float(np.sqrt(reach / (3.0 * k)))
 
     @property
     def depth_tolerance(self) -> float:
