@@ -174,8 +174,6 @@ class Explanation:
     claimed: float = 0.0    # of its agreeing samples (weighted), those on pixels already claimed
     appearance: float = float("nan")   # correlation of the model's grey with the image's (NaN: none)
     weights: np.ndarray | None = None  # the agreeing samples' weights, as ``pixels``
-    judged_at: np.ndarray | None = None  # the pose the figures are of, where T is it turned by a
-                                         # symmetry for its looks (None: T itself)
 
     def claimed_in(self, mask: np.ndarray) -> float:
         """``claimed`` as it is with the pixels of ``mask`` (H, W) claimed, without explaining
@@ -351,8 +349,7 @@ def explain(T: np.ndarray, surface: np.ndarray, normals: np.ndarray, view: Frame
     if grey is not None and view.grey is not None:
         looks, turn = appearance(grey.grey[index[agree]], view.grey[rows[agree], cols[agree]])
     out = Explanation(T if turn == 0 else T @ grey.symmetries[turn], float(np.sum(weight[agree])),
-                      int(free.sum()) + sunk, hidden, judged, 1.0, pix, rect, 0.0, looks, weight[agree],
-                      None if turn == 0 else T)
+                      int(free.sum()) + sunk, hidden, judged, 1.0, pix, rect, 0.0, looks, weight[agree])
     if claimed is not None:
         out.claimed = out.claimed_in(claimed)
     if needed is not None and out.possible < needed:

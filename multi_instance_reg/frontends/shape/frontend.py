@@ -585,11 +585,7 @@ class ShapeFrontEnd:
         K = view.intrinsics.K
         z = float(np.median([e.T[2, 3] for e in candidates])) if candidates else 1.0
         px = K[0, 0] * self.voxel / max(z, 1e-3)        # a voxel in pixels at the candidates' distance
-        # Scored again at the pose its figures are of: the samples of a shape turned by a
-        # symmetry are not the same samples (a cup's support 0.64-0.72 over its turns), and
-        # each scoring would turn it again.
-        again = lambda e, claimed: self.explain(e.T if e.judged_at is None else e.judged_at, cloud, view, claimed)
-        return select(candidates, again, conflicts,
+        return select(candidates, lambda e, claimed: self.explain(e.T, cloud, view, claimed), conflicts,
                       self.fe.shape_min_support, self.fe.shape_min_evidence, max(1, int(round(0.75 * px))),
                       int(np.ceil(2.0 * px)), view.depth.shape, self.past_deadline)
 
