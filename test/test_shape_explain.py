@@ -104,6 +104,32 @@ def test_flush_boxes_are_split_by_the_dark_seams_between_them(shape):
     assert _explain(shape, _pose(), depth, printed).outline > 0.3
 
 
+def test_a_pose_icp_carries_across_a_seam_is_explained_at_its_start_too(shape, monkeypatch):
+    """Three boxes flush (one plane in depth, dark seams between them in colour). ICP and
+    the depth check that guides it see no outline: say they carry the middle box's pose half
+    a box along the plane, where the depth fits a little better. That pose fails (a seam
+    runs through it); its start, farther than two hypotheses that are one, is explained
+    too, and the better of the two is kept: the middle box."""
+    K = _intrinsics().K
+    depth = _scene([(0.0, 0.0, TOP, 0.45, 0.1)])
+    rgb = np.full((240, 320, 3), 90, np.uint8)
+    v, u = np.mgrid[0:240, 0:320]
+    x, y = (u - K[0, 2]) / K[0, 0] * TOP, (v - K[1, 2]) / K[1, 1] * TOP
+    rgb[(np.abs(x) < 0.45) & (np.abs(y) < 0.1)] = (170, 130, 80)
+    for x0 in (-0.15, 0.15):
+        rgb[(np.abs(x - x0) < 0.004) & (np.abs(y) < 0.1)] = (70, 50, 30)
+    view = FrameView.of(depth, _intrinsics(), rgb)
+    cloud = shape.frame_cloud(depth, _intrinsics(), None)
+    carried = _pose(x=0.15)
+    checked = ShapeFrontEnd.depth_check
+    monkeypatch.setattr(ShapeFrontEnd, "_icp", lambda self, T, *a, **k: carried.copy())
+    monkeypatch.setattr(ShapeFrontEnd, "depth_check", lambda self, T, *a: tuple(
+        np.add(checked(self, T, *a), (0.01, 0.01, 0.0) if abs(T[0, 3] - 0.15) < 1e-6 else 0.0)))
+    e = shape.refine_one(_pose(), cloud, view)
+    assert e is not None and abs(e.T[0, 3]) < 0.01 and e.evidence > 0.85
+    assert shape.explain(carried, cloud, view).evidence < e.evidence - 0.3
+
+
 def test_a_pose_that_cannot_pass_is_not_looked_at_past_its_samples(shape):
     # ``needed``: a pose whose evidence cannot reach it even with everything hiding it
     # explained gets no outline (reported 1); one that can is explained as without it.

@@ -550,14 +550,24 @@ class ShapeFrontEnd:
             if on_patch is not None and not _within(on_patch[None], best[3][None], 1.0, 0.25 * self.voxel)[0] \
                     and (moved := fit(on_patch))[0] >= best[0] - PATCH_SLACK:
                 best = moved + (on_patch,)
-        _, support, free, T = best
         # The most its appearance could add (a model with colour): the bound stays a bound.
         looks = APPEARANCE_WEIGHT * (1.0 - APPEARANCE_BASE) if self._surface_grey is not None else 0.0
-        if support - FREE_WEIGHT * free < (0.9 * fe.shape_min_evidence - looks) * (support + free):
-            # Not even were everything that hides it explained (``explain.select``'s
-            # ``possible``, by the cheap check): not worth its explanation.
+        # Not worth an explanation: not even were everything that hides it explained
+        # (``explain.select``'s ``possible``, by the cheap check).
+        worth = lambda c: c[1] - FREE_WEIGHT * c[2] >= (0.9 * fe.shape_min_evidence - looks) * (c[1] + c[2])
+        # The depth check that guides ICP does not see an outline: ICP can carry a pose off
+        # a box whose faces are flush with its neighbours' (onto half of each, for a little
+        # more support). Where it moved the pose farther than two hypotheses that are one
+        # (``distinct``) and the moved pose fails, its start is explained too, the better kept.
+        carried = not _within(best[3][None], T0[None], 360.0 / ANGLE_STEPS, 0.1 * self.diameter)[0]
+        tries = [c for c in [best] + ([start + (T0,)] if carried else []) if worth(c)]
+        if not tries:
             return None
-        return self.explain(T, cloud, view, needed=fe.shape_min_evidence)
+        first = self.explain(tries[0][3], cloud, view, needed=fe.shape_min_evidence)
+        if len(tries) == 1 or first.evidence >= fe.shape_min_evidence:
+            return first
+        return max([first, self.explain(tries[1][3], cloud, view, needed=fe.shape_min_evidence)],
+                   key=lambda e: e.evidence)
 
     def depth_check(self, T, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> tuple[float, float, float]:
         """(support - free, support, free) of the model's surface at pose T
