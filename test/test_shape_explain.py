@@ -77,9 +77,10 @@ def test_a_piece_of_a_larger_surface_continues_past_its_outline(shape):
     assert e.support > 0.5 and e.outline > 0.5 and e.evidence < 0.0
 
 
-def test_flush_boxes_are_split_by_the_dark_seams_between_them(shape):
-    # Three boxes packed side by side with no gap: one plane in depth, 0.9 x 0.2 m. In colour
-    # alike, but for the dark line where two meet (light does not reach into the gap).
+def _flush_boxes():
+    """Three boxes packed side by side with no gap: one plane in depth, 0.9 x 0.2 m. In colour
+    alike, but for the dark line where two meet (light does not reach into the gap). Returns
+    (depth, colour without the seams, colour with them, x and y on the tops' plane per pixel)."""
     K = _intrinsics().K
     depth = _scene([(0.0, 0.0, TOP, 0.45, 0.1)])
     rgb = np.full((240, 320, 3), 90, np.uint8)
@@ -89,6 +90,11 @@ def test_flush_boxes_are_split_by_the_dark_seams_between_them(shape):
     plain = rgb.copy()
     for x0 in (-0.15, 0.15):
         rgb[(np.abs(x - x0) < 0.004) & (np.abs(y) < 0.1)] = (70, 50, 30)
+    return depth, plain, rgb, x, y
+
+
+def test_flush_boxes_are_split_by_the_dark_seams_between_them(shape):
+    depth, plain, rgb, x, y = _flush_boxes()
     grey = _explain(shape, _pose(), depth)
     no_seams = _explain(shape, _pose(), depth, plain)
     coloured = _explain(shape, _pose(), depth, rgb)
@@ -110,14 +116,7 @@ def test_a_pose_icp_carries_across_a_seam_is_explained_at_its_start_too(shape, m
     a box along the plane, where the depth fits a little better. That pose fails (a seam
     runs through it); its start, farther than two hypotheses that are one, is explained
     too, and the better of the two is kept: the middle box."""
-    K = _intrinsics().K
-    depth = _scene([(0.0, 0.0, TOP, 0.45, 0.1)])
-    rgb = np.full((240, 320, 3), 90, np.uint8)
-    v, u = np.mgrid[0:240, 0:320]
-    x, y = (u - K[0, 2]) / K[0, 0] * TOP, (v - K[1, 2]) / K[1, 1] * TOP
-    rgb[(np.abs(x) < 0.45) & (np.abs(y) < 0.1)] = (170, 130, 80)
-    for x0 in (-0.15, 0.15):
-        rgb[(np.abs(x - x0) < 0.004) & (np.abs(y) < 0.1)] = (70, 50, 30)
+    depth, _, rgb, _, _ = _flush_boxes()
     view = FrameView.of(depth, _intrinsics(), rgb)
     cloud = shape.frame_cloud(depth, _intrinsics(), None)
     carried = _pose(x=0.15)

@@ -52,13 +52,11 @@ def run_untextured(args, config) -> int:
             build_s = time.perf_counter() - t0
             print(f"[{preset}] generating {args.scenes} scenes + {args.scenes} distractor-only scenes of "
                   f"{args.frames} frames (seed {args.seed}) ...", file=sys.stderr)
-            noise = args.depth_noise_correlation
-            bag = generate_untextured_bag(tmp / "scenes", preset, args.scenes, args.frames, args.seed, sensor=args.sensor,
-                                          randomise=args.randomise,
-                                          depth_noise_correlation_px=noise)
+            camera = dict(sensor=args.sensor, randomise=args.randomise,
+                          depth_noise_correlation_px=args.depth_noise_correlation)
+            bag = generate_untextured_bag(tmp / "scenes", preset, args.scenes, args.frames, args.seed, **camera)
             empty = generate_untextured_bag(tmp / "empty", preset, args.scenes, args.frames, args.seed + 50, instances=0,
-                                            sensor=args.sensor, randomise=args.randomise,
-                                            depth_noise_correlation_px=noise)
+                                            **camera)
             gravity = not args.no_gravity
             r = replay(bag, model, config, None, args.max_rre_deg, args.max_rte, progress=sys.stderr.isatty(),
                        min_visibility=args.min_visibility, gravity=gravity)
