@@ -9,7 +9,7 @@ from multi_instance_reg.messages import CameraIntrinsics
 from multi_instance_reg.rgbd.lifting import _depth_to_cloud_numpy, depth_to_cloud
 from multi_instance_reg.models.mesh_model import build_model_from_mesh
 from multi_instance_reg.frontends.shape.ppf import PPFModel
-from multi_instance_reg.frontends.shape.segments import connected_segments, support_mask
+from multi_instance_reg.frontends.shape.segments import connected_segments, level_supports, support_mask
 from multi_instance_reg.frontends.shape.geometry import PointGrid, icp_point_to_plane
 from multi_instance_reg.frontends.shape.frontend import oriented_downsample
 from multi_instance_reg.symmetry import closest_symmetric_pose
@@ -86,6 +86,18 @@ def test_support_mask_keeps_a_plate_raised_less_than_the_band():
     # Larger than any face of the object (0.0128 m^2 against 0.005): a support, as the table.
     board = support_mask(depth, _intrinsics(), valid, max_area=0.005, thresh=0.004, noise_per_m2=0.002)
     assert board[inner].mean() > 0.8                        # (the rest: points above the band)
+
+
+def test_supports_are_the_planes_parallel_to_the_one_below():
+    # The floor, a pallet's top 2 deg off it, a plane fitted 18 deg off level across a strip
+    # of pallet top between two rows of cartons, and a wall.
+    up = np.array([0.0, -0.34, -0.94])
+    up /= np.linalg.norm(up)
+    turned = lambda deg: cv2.Rodrigues(np.array([np.radians(deg), 0.0, 0.0]))[0] @ up
+    floor, pallet, strip, wall = (up, 1.9), (turned(2.0), 1.75), (turned(18.0), 1.65), (turned(85.0), 0.5)
+    supports = level_supports([floor, pallet, strip, wall], up)
+    assert [d for _, d in supports] == [1.9, 1.75]
+    assert level_supports([floor], None) == ()
 
 
 @pytest.mark.parametrize("stride", [2, 3])

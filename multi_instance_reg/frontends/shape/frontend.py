@@ -34,7 +34,7 @@ from .faces import Faces, frame_patches, matches, model_faces, nearest_face_pose
 from .geometry import (PointGrid, ShapeMatcher, depth_support, describe, icp_point_to_plane, is_convex, normal_radius,
                        scene_cloud, surface_normals, voxel_downsample)
 from .ppf import ANGLE_BINS as ANGLE_STEPS, PPFModel, cluster_poses
-from .segments import connected_segments, segments_within_reach, support_mask
+from .segments import connected_segments, level_supports, segments_within_reach, support_mask
 
 
 # ICP pairs a model point with a scene point at most this many voxels away.
@@ -335,8 +335,7 @@ class ShapeFrontEnd:
         # not sink into them (``explain``'s sunk samples). The others are walls, a bin's sides:
         # what lies behind one is hidden, not sunk (IC-BIN: cups inside the bin had 114-159
         # samples "sunk" into its side, and none of them was found).
-        level = np.cos(np.radians(fe.shape_gravity_tolerance_deg))
-        supports = tuple((n, d) for n, d in planes if ground and abs(float(n @ ground[0])) >= level)
+        supports = level_supports(planes, ground[0] if ground else None)
         return FrameCloud(pts, normals, np.zeros(0, np.int64), np.zeros((0, 33), np.float32), tree, labels,
                           up=ground[0] if ground else None, up_offset=ground[1] if ground else None,
                           planes=supports, grid=grid)

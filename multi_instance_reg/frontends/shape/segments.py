@@ -170,6 +170,24 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
     return out
 
 
+# Degrees: a removed plane is a support when it is this nearly parallel to the one below
+# the objects (``level_supports``).
+SUPPORT_LEVEL_DEG = 5.0
+
+
+def level_supports(planes, up: np.ndarray | None) -> tuple:
+    """The ``planes`` ((normal, offset) each, ``support_mask``'s) that are supports: parallel
+    to ``up``, the plane below the objects, within ``SUPPORT_LEVEL_DEG``; () without it.
+    Supports measured in one depth image are parallel within a degree or two (floor, pallet
+    top, a bin's floor); one farther off was fitted across a narrow strip, which the noise's
+    band lets it tilt about (a pallet's top seen between two rows of cartons, fitted 18 deg
+    off level: every carton "sunk" into it). The rest are walls, a bin's sides."""
+    if up is None:
+        return ()
+    level = np.cos(np.radians(SUPPORT_LEVEL_DEG))
+    return tuple((n, d) for n, d in planes if abs(float(np.asarray(n) @ up)) >= level)
+
+
 # ``_is_object_tops``: at least this share of the piece's points within the tolerance of one
 # face height above the plane below ...
 TOPS_SHARE = 0.9
@@ -383,4 +401,4 @@ def within_reach(p: np.ndarray, reach: float) -> bool:
     return bool(pdist(p).max() <= reach)
 
 
-__all__ = ["support_mask", "connected_segments", "segments_within_reach", "within_reach"]
+__all__ = ["support_mask", "level_supports", "connected_segments", "segments_within_reach", "within_reach"]
