@@ -232,6 +232,32 @@ def test_flush_cartons_form_one_plane_in_depth_and_show_their_seams_in_colour():
     assert len(seam) > 100 and seam.mean() < 0.9 * inside.mean()
 
 
+def test_size_error_makes_the_objects_another_size_than_their_mesh(tmp_path):
+    """``size_error``: every instance of one scene the same size, off the mesh's by at most
+    the share along each axis, packed by that size; the scene's object, the ground truth's
+    frame and the mesh written stay the nominal ones. Out of range: a one-line error."""
+    from multi_instance_reg.synthetic.objects import get_object, scaled
+    from multi_instance_reg.synthetic.untextured import generate_untextured_bag, make_untextured_scene
+
+    nominal = np.array(get_object("carton").dimensions_m)
+    scene = make_untextured_scene("flush", 6, 0, 1, 7, size_error=0.03)
+    sizes = {p.spec.dimensions_m for p in scene.placements if p.spec.name == "carton"}
+    assert len(sizes) == 1
+    share = np.array(sizes.pop()) / nominal
+    assert np.all(np.abs(share - 1.0) <= 0.03) and np.abs(share - 1.0).max() > 0.005
+    assert scene.target.dimensions_m == get_object("carton").dimensions_m
+    assert make_untextured_scene("flush", 6, 0, 1, 7).placements[1].spec.dimensions_m == tuple(nominal)
+    bracket = scaled(get_object("bracket"), (1.1, 1.0, 0.9))
+    (c0, d0), (c1, d1) = get_object("bracket").parts[0], bracket.parts[0]
+    assert np.allclose(d1, np.array(d0) * (1.1, 1.0, 0.9)) and np.allclose(c1, np.array(c0) * (1.1, 1.0, 0.9))
+    assert scaled(get_object("grey_cylinder"), (1.1, 0.9, 1.0)).dimensions_m[0] == pytest.approx(
+        get_object("grey_cylinder").dimensions_m[0])
+    generate_untextured_bag(tmp_path / "bag", "flush", 3, 0, 1, seed=7, mesh_path=tmp_path / "m.stl", size_error=0.03)
+    assert np.allclose(np.ptp(load_mesh(tmp_path / "m.stl").vertices, axis=0), nominal)
+    with pytest.raises(InputError, match="size error"):
+        make_untextured_scene("flush", 6, 0, 1, 7, size_error=0.5)
+
+
 def test_flush_cartons_are_found_one_by_one_on_generated_pallets():
     """Cartons packed flush (one plane in depth, taped tops, dark seams): each is found and
     placed within 2 cm and 10 deg, the patches cut at the seams and kept on them in their

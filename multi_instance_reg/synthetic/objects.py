@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import functools
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -256,6 +256,20 @@ def get_object(name: str) -> ObjectSpec:
     if spec is None:
         raise InputError(f"unknown object '{name}'; choose one of: {', '.join(list(OBJECTS) + list(UNTEXTURED_OBJECTS))}")
     return spec
+
+
+def scaled(spec: ObjectSpec, scale) -> ObjectSpec:
+    """The object made ``scale`` (3,) times as large along its x, y and z axes (its parts and
+    profile too, in the same object frame): a real carton is seldom the size of the mesh
+    its user measured for it. A cylinder keeps a round section (x and y take their mean)."""
+    s = np.asarray(scale, np.float64)
+    if spec.shape == "cylinder":
+        s = np.array([0.5 * (s[0] + s[1])] * 2 + [s[2]])
+    dims = tuple(float(v) for v in np.asarray(spec.dimensions_m) * s)
+    parts = tuple((tuple(float(v) for v in np.asarray(c) * s), tuple(float(v) for v in np.asarray(d) * s))
+                  for c, d in spec.parts)
+    profile = tuple((float(x * s[0]), float(z * s[2])) for x, z in spec.profile)
+    return replace(spec, dimensions_m=dims, parts=parts, profile=profile)
 
 
 def object_mesh(spec: ObjectSpec):

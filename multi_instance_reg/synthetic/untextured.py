@@ -24,7 +24,7 @@ from scipy.spatial.transform import Rotation
 
 from ..errors import InputError
 from ..transforms import make_transform
-from .objects import UNTEXTURED_OBJECTS, get_object
+from .objects import UNTEXTURED_OBJECTS, get_object, scaled
 from .scene import (MAX_DISTRACTORS, MAX_INSTANCES, Placement, SyntheticScene, _DISTRACTOR_LABEL0, _rot_z,
                     overhead_trajectory, place_objects, sweep_trajectory)
 from .sensor import d455_intrinsics
@@ -52,6 +52,8 @@ PALLET_GRID = (3, 3)            # slots along the pallet's x and y per layer
 FLUSH_GAP_M = (1e-4, 2e-3)
 FLUSH_STEP_M = 2e-3
 FLUSH_TILT_RAD = np.radians(0.7)
+# ``size_error``: at most this share of each side.
+MAX_SIZE_ERROR = 0.2
 
 
 def preset_object(preset: str) -> str:
@@ -61,7 +63,10 @@ def preset_object(preset: str) -> str:
 
 
 def make_untextured_scene(preset: str, instances: int = 8, distractors: int = 3, frames: int = 30,
-                          seed: int = 0, resolution: str = "640x480") -> SyntheticScene:
+                          seed: int = 0, resolution: str = "640x480", size_error: float = 0.0) -> SyntheticScene:
+    """``size_error``: the instances are not the size of the object's mesh: all of them
+    (one product) larger or smaller along each axis by a share drawn per seed within
+    +-``size_error``; the ground truth and the mesh written stay the nominal object's."""
     target = get_object(preset_object(preset))
     d455_intrinsics(resolution)
     if int(seed) < 0:
@@ -72,6 +77,11 @@ def make_untextured_scene(preset: str, instances: int = 8, distractors: int = 3,
         raise InputError(f"distractors must be 0 to {MAX_DISTRACTORS}, got {distractors}")
     if int(frames) < 1:
         raise InputError(f"frames must be at least 1, got {frames}")
+    if not 0.0 <= float(size_error) <= MAX_SIZE_ERROR:
+        raise InputError(f"size error must be 0 to {MAX_SIZE_ERROR} (a share of each side), got {size_error}")
+    nominal = target
+    if size_error > 0:
+        target = scaled(target, 1.0 + np.random.default_rng([int(seed), 30]).uniform(-size_error, size_error, 3))
     rng_choose, rng_place, rng_path = (np.random.default_rng([int(seed), 20 + k]) for k in range(3))
     if preset == "flush" and int(instances) > 0:
         placements = _flush_placements(target, int(instances), rng_place)
@@ -86,7 +96,7 @@ def make_untextured_scene(preset: str, instances: int = 8, distractors: int = 3,
         placements = place_objects(target, max(int(instances), 0), specs, rng_place,
                                    arrangement_probs=(0.7, 0.3, 0.0, 0.0))
         poses = sweep_trajectory(placements, int(frames), rng_path)
-    return SyntheticScene("scene", target, placements, poses, d455_intrinsics(resolution), int(seed))
+    return SyntheticScene("scene", nominal, placements, poses, d455_intrinsics(resolution), int(seed))
 
 
 def _pallet_placements(carton, instances: int, distractors: int, rng) -> list[Placement]:
@@ -178,12 +188,13 @@ def generate_untextured_bag(out_path, preset: str, instances: int = 8, distracto
                             seed: int = 0, storage: str = "sqlite3", resolution: str = "640x480",
                             preview_dir=None, mesh_path=None, mesh_units: str = "m",
                             depth_noise_correlation_px: float = 0.0, transport: str = "raw", imu: bool = True,
-                            sensor: str = "d455", randomise: bool = False, bop_dir=None, bop_scene: int | None = None):
+                            sensor: str = "d455", randomise: bool = False, bop_dir=None, bop_scene: int | None = None,
+                            size_error: float = 0.0):
     """Make an untextured scene and write it as a rosbag2; with ``mesh_path`` also the
     target object's mesh (.ply, .stl or .obj) in its object frame. ``depth_noise_correlation_px``:
     see ``sensor.simulate_depth``. ``imu``: with the accelerometer's samples; ``bop_dir``: also
     as a BOP scene (both: ``write_scene_bag``). ``sensor``, ``randomise``: the depth's sensor
-    profile (``SyntheticScene.set_sensor``)."""
+    profile (``SyntheticScene.set_sensor``); ``size_error``: see ``make_untextured_scene``."""
     from ..meshes import save_mesh
     from .objects import object_mesh
     from .scene import write_scene_bag
@@ -193,7 +204,7 @@ def generate_untextured_bag(out_path, preset: str, instances: int = 8, distracto
 
     if mesh_path is not None and Path(mesh_path).suffix.lower() not in MESH_SUFFIXES:
         raise InputError(f"mesh file {mesh_path}: unknown format; use .ply, .stl or .obj")
-    scene = make_untextured_scene(preset, instances, distractors, frames, seed, resolution)
+    scene = make_untextured_scene(preset, instances, distractors, frames, seed, resolution, size_error)
     scene.set_depth_noise_correlation(depth_noise_correlation_px)
     scene.set_sensor(sensor, randomise)
     summary = write_scene_bag(scene, out_path, storage, preview_dir, transport=transport, imu=imu,
