@@ -385,6 +385,27 @@ def segments_within_reach(points: np.ndarray, labels: np.ndarray, reach: float) 
                     np.int64)
 
 
+def segment_pairs(points: np.ndarray, labels: np.ndarray, reach: float) -> list:
+    """Point indices of the union of each pair of segments (labels >= 0) that is
+    ``within_reach``: two pieces that may be one object."""
+    order = np.flatnonzero(labels >= 0)
+    order = order[np.argsort(labels[order], kind="stable")]
+    ids, starts = np.unique(labels[order], return_index=True)
+    members = np.split(order, starts[1:])
+    lo = np.array([points[m].min(axis=0) for m in members]) if members else np.zeros((0, 3))
+    hi = np.array([points[m].max(axis=0) for m in members]) if members else np.zeros((0, 3))
+    out = []
+    for a in range(len(members)):
+        for b in range(a + 1, len(members)):
+            # Their joint box's longest side over the reach: no pair of points within it.
+            if (np.maximum(hi[a], hi[b]) - np.minimum(lo[a], lo[b])).max() > reach:
+                continue
+            union = np.concatenate([members[a], members[b]])
+            if within_reach(points[union], reach):
+                out.append(union)
+    return out
+
+
 def within_reach(p: np.ndarray, reach: float) -> bool:
     """No two of the points farther apart than ``reach``. The box's diagonal bounds the
     farthest pair from above and its longest side from below; only between them are the
@@ -396,9 +417,15 @@ def within_reach(p: np.ndarray, reach: float) -> bool:
         return True
     if side.max() > reach:
         return False
+    from scipy.spatial import ConvexHull, QhullError
     from scipy.spatial.distance import pdist
 
+    try:
+        # The farthest pair are corners of the points' convex hull (a few dozen of hundreds).
+        p = p[ConvexHull(p).vertices]
+    except QhullError:          # flat or too few points
+        pass
     return bool(pdist(p).max() <= reach)
 
 
-__all__ = ["support_mask", "level_supports", "connected_segments", "segments_within_reach", "within_reach"]
+__all__ = ["support_mask", "level_supports", "connected_segments", "segments_within_reach", "segment_pairs", "within_reach"]
