@@ -32,6 +32,26 @@ def test_support_mask_removes_floor_keeps_small_coplanar_tops():
     assert not mask[45:75, 45:95].any() and not mask[155:185, 205:255].any()   # both tops kept
 
 
+def test_a_plane_that_holds_nothing_as_wide_as_the_object_is_removed_but_no_support():
+    """A floor at 1.5 m, a bin's rim 14 cm above it (a ring 2 cm wide around 51 x 37 cm) and
+    a board 25 cm above it (19 x 19 cm): all three removed, but a can (6.6 cm across) could
+    stand on the floor and the board only."""
+    depth = np.full((240, 320), 1.5, np.float32)
+    rim = np.zeros(depth.shape, bool)
+    rim[60:170, 20:170] = True
+    rim[66:164, 26:164] = False
+    depth[rim] = 1.36
+    depth[150:210, 220:280] = 1.25
+    planes = []
+    mask = support_mask(depth, _intrinsics(), depth > 0, max_area=0.02, thresh=0.004, noise_per_m2=0.0,
+                        planes=planes, min_width=0.066)
+    assert mask[rim].mean() > 0.95 and mask[155:205, 225:275].all() and mask[215:, :].all()
+    assert sorted(round(d, 2) for _, d in planes) == [1.25, 1.5]
+    everything = []
+    support_mask(depth, _intrinsics(), depth > 0, max_area=0.02, thresh=0.004, noise_per_m2=0.0, planes=everything)
+    assert sorted(round(d, 2) for _, d in everything) == [1.25, 1.36, 1.5]
+
+
 def test_support_mask_keeps_a_thin_plate_on_the_table_and_says_which_way_is_up():
     """A 12 mm plate lying on a table at 0.7 m: within plane_thresh (1 cm) + 3 sigma of the
     table, point by point (``window`` 1), it would be removed with it; at the shape path's

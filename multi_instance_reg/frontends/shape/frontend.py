@@ -314,7 +314,7 @@ class ShapeFrontEnd:
         support_mask(depth_m, intrinsics, valid, fe.shape_support_area * self._max_face_area,
                      fe.shape_plane_thresh, self.depth_noise, stride=2, ground=ground, planes=planes,
                      up=gravity, up_tolerance_deg=fe.shape_gravity_tolerance_deg, rest=rest,
-                     face_heights=self._face_heights)
+                     face_heights=self._face_heights, min_width=self._thinnest)
         pts = rest[0]
         if within is not None:
             pts = pts[within[rest[1][:, 0], rest[1][:, 1]]]

@@ -30,7 +30,7 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
                  thresh: float, noise_per_m2: float, max_planes: int = 4, min_share: float = 0.03,
                  stride: int = 2, ground: list | None = None, planes: list | None = None,
                  up: np.ndarray | None = None, up_tolerance_deg: float = 20.0, window: int = 5,
-                 rest: list | None = None, face_heights=None) -> np.ndarray:
+                 rest: list | None = None, face_heights=None, min_width: float = 0.0) -> np.ndarray:
     """(H, W) bool: valid pixels that lie on a large piece of a dominant plane (support
     surfaces). A plane point is within ``thresh`` + 3 sigma(z) of it, sigma(z) =
     ``noise_per_m2`` z^2 (stereo depth noise grows with the square of the distance); a piece
@@ -42,7 +42,10 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
     ``ground``, a list, receives the unit normal (towards the camera) of the plane with the
     largest removed area: "up", if the floor, pallet or table is in view; and its offset
     (up . p + offset = 0 on it). ``planes``, a list, receives (normal, offset) alike for every plane a large piece of
-    which was removed (the floor and the pallet's top on it, a table and a wall).
+    which was removed (the floor and the pallet's top on it, a table and a wall) and holds a
+    disc ``min_width`` across (metres): what carries nothing, a bin's rim or a strip of
+    pallet seen between two rows of cartons, is removed but is no support (a bin's rim 2 cm
+    wide, level with the floor: cans standing above it had 105-212 samples "sunk" into it).
 
     ``up`` (unit, camera frame: the direction of gravity's reaction, from an IMU or TF): then
     ``ground`` is the plane with the largest removed area among those whose normal lies within
@@ -87,6 +90,8 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
         count, labels = cv2.connectedComponents(img, connectivity=8)
         removed_area, areas = _remove_large_pieces(pts, on, labels, rows, cols, stride, fxfy, n, max_area, count,
                                                    pix, out)
+        widest = _widest_piece(labels, np.flatnonzero(areas > max_area), float(np.median(z[on])) * stride / K[0, 0]) \
+            if removed_area > 0 else 0.0
         # For the object tops' check: each plane point's piece (0: off the plane), each piece's area.
         pieces = (np.where(on, labels[rows, cols], 0), areas) if face_heights is not None and removed_area > 0 \
             else None
@@ -98,7 +103,7 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
             img[rows[raised], cols[raised]] = 1
             count, labels = cv2.connectedComponents(img, connectivity=8)
             _remove_large_pieces(pts, raised, labels, rows, cols, stride, fxfy, n, max_area, count, pix, out)
-        return removed_area, pieces
+        return removed_area, pieces, widest
 
     # Each plane's band is cut into pieces in the shared thread pool while the next plane
     # is sought here (the search needs only the band, not the pieces).
@@ -125,10 +130,10 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
         alive &= ~band
     found = []
     for n, d, task in cuts:
-        removed_area, pieces = task.result()
+        removed_area, pieces, widest = task.result()
         # The normal on the camera's side, and the offset: normal . p + offset = 0 on the plane.
         normal, offset = np.asarray(n, np.float64) * (1.0 if d > 0 else -1.0), abs(float(d))
-        found.append([normal, offset, removed_area, pieces])
+        found.append([normal, offset, removed_area, pieces, widest])
     if face_heights is not None and len(found) > 1:
         # The large pieces of each plane's own points (a raised surface in its band stays removed).
         heights = np.asarray(face_heights, np.float64)
@@ -148,8 +153,8 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
                     kept.append(k)
             if kept:
                 plane[2] = float(sum(areas[k] for k in large if k not in kept))
-    for normal, offset, removed_area, _ in found:
-        if planes is not None and removed_area > 0:
+    for normal, offset, removed_area, _, widest in found:
+        if planes is not None and removed_area > 0 and 2.0 * widest >= min_width:
             planes.append((normal, offset))
         if ground is not None and removed_area > best_area:
             best_area = removed_area
@@ -294,6 +299,13 @@ def _unmark_raised(pts, on, rows, cols, img, total, count, thresh, sigmas, windo
             if abs(total[r, c]) / count[r, c] > thresh + sigmas * z * z * window / np.sqrt(count[r, c]):
                 on[i] = False
                 img[r, c] = 0
+
+
+def _widest_piece(labels: np.ndarray, pieces: np.ndarray, metres_per_pixel: float) -> float:
+    """Metres: the radius of the largest disc inside any of the ``pieces`` (labels in the
+    sampled image ``labels``), single missing samples (dropouts) closed first."""
+    mask = cv2.morphologyEx(np.isin(labels, pieces).astype(np.uint8), cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8))
+    return float(cv2.distanceTransform(mask, cv2.DIST_L2, 5).max()) * metres_per_pixel
 
 
 @numba.njit(cache=True, nogil=True)
