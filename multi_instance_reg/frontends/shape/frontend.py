@@ -58,11 +58,11 @@ CREASE_REACH = 4.0
 FACE_STEP_SHARE = 0.5
 # Points closer than this many voxels are in one segment.
 SEGMENT_LINK = 2.0
-# ``pair_poses``: each pair's best this many clusters, from every this many times
+# ``joined_poses``: each group's best this many clusters, from every this many times
 # ``shape_ref_step``-th point (on generated brackets and channels, the same hypotheses as
 # from six clusters and every point the segments' votes take, at half the CPU time).
-PAIR_CLUSTERS = 2
-PAIR_REF_SPACING = 2
+JOINED_CLUSTERS = 2
+JOINED_REF_SPACING = 2
 # An instance needs at least this many model points seen on valid depth (explain.MIN_JUDGED
 # for the verification; here for the cheap check before ICP).
 MIN_VISIBLE = 20
@@ -376,8 +376,8 @@ class ShapeFrontEnd:
                     # them, for 12-20 ms more refinement a pallet frame).
                     cloud.poses = np.concatenate([cloud.poses, self.segment_poses(poses, share, cloud.segments[s],
                                                                                   cloud.poses)])
-                    # And each pair of segments that may be one object, voted as one.
-                    cloud.poses = np.concatenate([cloud.poses, self.pair_poses(cloud, cloud.poses)])
+                    # And what segmentation split off an instance, voted with it.
+                    cloud.poses = np.concatenate([cloud.poses, self.joined_poses(cloud, cloud.poses)])
                 if self._faces is not None and len(self._faces):
                     # The face poses first; a vote cluster that one of them would be refined
                     # for (``distinct``) is left out: moved onto the same patch, it would be
@@ -463,21 +463,34 @@ class ShapeFrontEnd:
         # ahead of ECC for nothing.
         return out[np.sort(self.distinct(out))] if len(out) > 1 else out
 
-    def pair_poses(self, cloud: FrameCloud, taken: np.ndarray) -> np.ndarray:
-        """(K, 4, 4) non-convex models: the best PAIR_CLUSTERS clusters of the references of
-        each pair of segments that together fit within the object's diameter, voted as one
-        (partners from both; every PAIR_REF_SPACING x ``shape_ref_step``-th point a
-        reference), those not already among ``taken``. A part in front can hide the corner
-        that joins it to the rest (a bracket seen from behind its upright: the upright and
-        the base plate are two segments), and a plate voted alone is ambiguous (generated
-        brackets, seed 5: 0-1 right references of 33-57 on each such bracket, none found)."""
-        groups = segment_pairs(cloud.points, cloud.segments, self.diameter)
+    def joined_poses(self, cloud: FrameCloud, taken: np.ndarray) -> np.ndarray:
+        """(K, 4, 4) non-convex models: poses voted over what segmentation split off an
+        instance, the best JOINED_CLUSTERS clusters of each group's references (every
+        JOINED_REF_SPACING x ``shape_ref_step``-th point), those not already among ``taken``:
+        - each pair of segments that together fit within the object's diameter, voted as
+          one: a part in front can hide the corner that joins it to the rest (a bracket seen
+          from behind its upright is two segments; generated brackets, seed 5: 0-1 right
+          references of 33-57 on each such bracket, none found);
+        - each segment within the diameter, its references paired with every point within
+          the diameter of its centre: a part touching another object joins that object's
+          segment (generated brackets, seed 3: 0-3 right references on each such bracket).
+        A plate voted alone is ambiguous."""
+        labels = cloud.segments
+        groups = segment_pairs(cloud.points, labels, self.diameter)
+        leads = [len(g) for g in groups]
+        for label in self.compact_segments(cloud):
+            mine = np.flatnonzero(labels == label)
+            around = np.asarray(cloud.tree.query_ball_point(cloud.points[mine].mean(axis=0), self.diameter), np.int64)
+            others = around[(labels[around] >= 0) & (labels[around] != label)]
+            if len(mine) >= 2 and len(others):
+                groups.append(np.concatenate([mine, others]))
+                leads.append(len(mine))
         if not groups:
             return np.zeros((0, 4, 4))
         _, _, poses, share, group = self._ppf.vote_groups(cloud.points, cloud.normals, groups,
-                                                          PAIR_REF_SPACING * self.fe.shape_ref_step,
-                                                          self.fe.shape_max_partners)
-        return self.segment_poses(self._ppf.canonical_poses(poses), share, group, taken, k=PAIR_CLUSTERS)
+                                                          JOINED_REF_SPACING * self.fe.shape_ref_step,
+                                                          self.fe.shape_max_partners, leads=leads)
+        return self.segment_poses(self._ppf.canonical_poses(poses), share, group, taken, k=JOINED_CLUSTERS)
 
     def refine_all(self, transforms, cloud: FrameCloud, view: FrameView, started: "Prefetch | None" = None,
                    offset: int = 0) -> list[Explanation]:

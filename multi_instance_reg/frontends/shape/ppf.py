@@ -248,16 +248,20 @@ class PPFModel:
         refs = np.arange(0, len(order), max(int(ref_step), 1))
         return self._peaks(points, normals, order, refs, seg_lo, seg_hi, max_partners, reach)[:4]
 
-    def vote_groups(self, points: np.ndarray, normals: np.ndarray, groups: list, ref_step: int, max_partners: int):
+    def vote_groups(self, points: np.ndarray, normals: np.ndarray, groups: list, ref_step: int, max_partners: int,
+                    leads=None):
         """``vote`` over groups of point indices (a point may be in several), each group's
         every ``ref_step``-th point a reference paired with points of that group only (the
-        same peaks as one call per group). Returns ``vote``'s and each reference's group (R,)."""
+        same peaks as one call per group); ``leads`` (one per group): only the group's first
+        that many points are references, the rest partners only. Returns ``vote``'s and each
+        reference's group (R,)."""
         sizes = np.asarray([len(g) for g in groups], np.int64)
+        leads = sizes if leads is None else np.minimum(np.asarray(leads, np.int64), sizes)
         order = np.concatenate(groups).astype(np.int64) if len(groups) else np.zeros(0, np.int64)
         seg_hi = np.cumsum(sizes)
         seg_lo = seg_hi - sizes
         step = max(int(ref_step), 1)
-        refs = np.concatenate([lo + np.arange(0, size, step) for lo, size in zip(seg_lo, sizes)]) \
+        refs = np.concatenate([lo + np.arange(0, lead, step) for lo, lead in zip(seg_lo, leads)]) \
             if len(groups) else np.zeros(0, np.int64)
         return self._peaks(points, normals, order, refs.astype(np.int64), seg_lo, seg_hi, max_partners)
 
