@@ -34,7 +34,8 @@ from .faces import Faces, frame_patches, matches, model_faces, nearest_face_pose
 from .geometry import (PointGrid, ShapeMatcher, depth_support, describe, icp_point_to_plane, is_convex, normal_radius,
                        scene_cloud, surface_normals, voxel_downsample)
 from .ppf import ANGLE_BINS as ANGLE_STEPS, PPFModel, cluster_poses
-from .segments import connected_segments, level_supports, segment_pairs, segments_within_reach, support_mask
+from .segments import (connected_segments, level_supports, segment_members, segment_pairs, segments_within_reach,
+                       support_mask)
 
 
 # ICP pairs a model point with a scene point at most this many voxels away.
@@ -478,8 +479,9 @@ class ShapeFrontEnd:
         labels = cloud.segments
         groups = segment_pairs(cloud.points, labels, self.diameter)
         leads = [len(g) for g in groups]
+        ids, members = segment_members(labels)
         for label in self.compact_segments(cloud):
-            mine = np.flatnonzero(labels == label)
+            mine = members[int(np.searchsorted(ids, label))]
             around = np.asarray(cloud.tree.query_ball_point(cloud.points[mine].mean(axis=0), self.diameter), np.int64)
             others = around[(labels[around] >= 0) & (labels[around] != label)]
             if len(mine) >= 2 and len(others):

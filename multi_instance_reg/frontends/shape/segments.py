@@ -91,7 +91,7 @@ def support_mask(depth_m: np.ndarray, intrinsics: CameraIntrinsics, valid: np.nd
         removed_area, areas = _remove_large_pieces(pts, on, labels, rows, cols, stride, fxfy, n, max_area, count,
                                                    pix, out)
         widest = _widest_piece(labels, np.flatnonzero(areas > max_area), float(np.median(z[on])) * stride / K[0, 0]) \
-            if removed_area > 0 else 0.0
+            if removed_area > 0 and min_width > 0 else 0.0
         # For the object tops' check: each plane point's piece (0: off the plane), each piece's area.
         pieces = (np.where(on, labels[rows, cols], 0), areas) if face_heights is not None and removed_area > 0 \
             else None
@@ -385,25 +385,26 @@ def graph_components(n, first, second):
     return labels
 
 
-def segments_within_reach(points: np.ndarray, labels: np.ndarray, reach: float) -> np.ndarray:
-    """The ids (ascending) of the segments (labels >= 0) ``within_reach``: small enough to be
-    (part of) one object. Each segment's points in their order, found by one sort (not a
-    pass over all labels per segment)."""
+def segment_members(labels: np.ndarray) -> tuple[np.ndarray, list]:
+    """The segments' ids (labels >= 0, ascending) and each one's point indices in their
+    order, found by one sort (not a pass over all labels per segment)."""
     order = np.flatnonzero(labels >= 0)
     order = order[np.argsort(labels[order], kind="stable")]
     ids, starts = np.unique(labels[order], return_index=True)
-    ends = np.append(starts[1:], len(order))
-    return np.array([s for s, a, b in zip(ids.tolist(), starts, ends) if within_reach(points[order[a:b]], reach)],
-                    np.int64)
+    return ids, np.split(order, starts[1:]) if len(order) else []
+
+
+def segments_within_reach(points: np.ndarray, labels: np.ndarray, reach: float) -> np.ndarray:
+    """The ids (ascending) of the segments (labels >= 0) ``within_reach``: small enough to be
+    (part of) one object."""
+    ids, members = segment_members(labels)
+    return np.array([s for s, m in zip(ids.tolist(), members) if within_reach(points[m], reach)], np.int64)
 
 
 def segment_pairs(points: np.ndarray, labels: np.ndarray, reach: float) -> list:
     """Point indices of the union of each pair of segments (labels >= 0) that is
     ``within_reach``: two pieces that may be one object."""
-    order = np.flatnonzero(labels >= 0)
-    order = order[np.argsort(labels[order], kind="stable")]
-    ids, starts = np.unique(labels[order], return_index=True)
-    members = np.split(order, starts[1:])
+    _, members = segment_members(labels)
     lo = np.array([points[m].min(axis=0) for m in members]) if members else np.zeros((0, 3))
     hi = np.array([points[m].max(axis=0) for m in members]) if members else np.zeros((0, 3))
     out = []
@@ -440,4 +441,5 @@ def within_reach(p: np.ndarray, reach: float) -> bool:
     return bool(pdist(p).max() <= reach)
 
 
-__all__ = ["support_mask", "level_supports", "connected_segments", "segments_within_reach", "segment_pairs", "within_reach"]
+__all__ = ["support_mask", "level_supports", "connected_segments", "segment_members", "segments_within_reach",
+           "segment_pairs", "within_reach"]
