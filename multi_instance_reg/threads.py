@@ -87,6 +87,23 @@ def submit_each(function, items) -> list:
     return [pool.submit(function, item) for item in items]
 
 
+_BESIDE: ThreadPoolExecutor | None = None
+
+
+def run_beside(function, *args):
+    """``function(*args)`` started on a thread of its own, beside the caller's work; returns
+    a future-like object whose ``result()`` waits (run at once, in this thread, on a single
+    core). Not the shared pool: a task that itself waits on the shared pool's tasks, run
+    inside it, could hold both workers while its own tasks queue behind it."""
+    global _BESIDE
+    if (os.cpu_count() or 1) <= 1:
+        return _Done(lambda a: function(*a), args)
+    if _BESIDE is None:
+        shared_pool()                      # the same GIL switch interval
+        _BESIDE = ThreadPoolExecutor(1, thread_name_prefix="mireg-beside")
+    return _BESIDE.submit(function, *args)
+
+
 def map_each(function, items) -> list:
     """``function(item)`` for each item, in the shared thread pool; the results in order."""
     return [f.result() for f in submit_each(function, items)]
