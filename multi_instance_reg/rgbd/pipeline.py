@@ -528,8 +528,8 @@ class InstanceRegistration:
                                     lambda e, c: bool(self._overlapping([e.T], [c.T])[0, 0]))
         cut = cut or self._shape.deadline_cut
         self._shape.set_deadline(None)
-        instances = [Instance(i, e.T, int(round(e.agree)), e.support, self.model.name) for i, e in enumerate(chosen)]
-        labels, _ = assign_nearest(src, tgt, [e.T for e in chosen], self._shape_ecc.config.inlier_thresh)
+        instances = [Instance(i, e.pose, int(round(e.agree)), e.support, self.model.name) for i, e in enumerate(chosen)]
+        labels, _ = assign_nearest(src, tgt, [e.pose for e in chosen], self._shape_ecc.config.inlier_thresh)
         t["refinement"] = (time.perf_counter() - t6) * 1e3
         t["total"] = (time.perf_counter() - t0) * 1e3
         uv = project_points(tgt, intrinsics)

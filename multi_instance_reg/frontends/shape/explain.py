@@ -174,6 +174,16 @@ class Explanation:
     claimed: float = 0.0    # of its agreeing samples (weighted), those on pixels already claimed
     appearance: float = float("nan")   # correlation of the model's grey with the image's (NaN: none)
     weights: np.ndarray | None = None  # the agreeing samples' weights, as ``pixels``
+    turn: np.ndarray | None = None     # (4, 4) the symmetry the appearance chose (None: none)
+
+    @property
+    def pose(self) -> np.ndarray:
+        """T turned to the one of the poses the shape cannot tell apart that looks most like
+        the image: the pose to report. T is the pose judged (and judged again when claims
+        change): a model's symmetry is seldom exact (IC-BIN's cup: its lid's spout; a turn
+        of 30-90 deg moved 8 -> 47 of its samples into free space), so the turned pose's
+        numbers are not T's."""
+        return self.T if self.turn is None else self.T @ self.turn
 
     def claimed_in(self, mask: np.ndarray) -> float:
         """``claimed`` as it is with the pixels of ``mask`` (H, W) claimed, without explaining
@@ -306,8 +316,8 @@ def explain(T: np.ndarray, surface: np.ndarray, normals: np.ndarray, view: Frame
     ``crease_distances`` (``outline_seams``); ``needed``: the evidence a pose must be able to
     reach (``Explanation.possible``); one that cannot is not looked at further, its outline
     reported as 1 (the surface going on all around; most hypotheses of a real frame: 165 of
-    201 on IC-BIN's, where the outline took half of the explanation's time). The pose comes
-    back turned to the one of those the shape cannot tell apart that looks most like the image."""
+    201 on IC-BIN's, where the outline took half of the explanation's time). With an
+    appearance, the symmetric turn that looks most like the image is kept (``Explanation.pose``)."""
     depth = view.depth
     p, n, rows, cols, index = visible_samples(T, surface, normals, view.intrinsics, depth.shape, 0.5 * voxel)
     d = depth[rows, cols].astype(np.float64)
@@ -348,8 +358,8 @@ def explain(T: np.ndarray, surface: np.ndarray, normals: np.ndarray, view: Frame
     looks, turn = float("nan"), 0
     if grey is not None and view.grey is not None:
         looks, turn = appearance(grey.grey[index[agree]], view.grey[rows[agree], cols[agree]])
-    out = Explanation(T if turn == 0 else T @ grey.symmetries[turn], float(np.sum(weight[agree])),
-                      int(free.sum()) + sunk, hidden, judged, 1.0, pix, rect, 0.0, looks, weight[agree])
+    out = Explanation(T, float(np.sum(weight[agree])), int(free.sum()) + sunk, hidden, judged, 1.0, pix, rect,
+                      0.0, looks, weight[agree], None if turn == 0 else grey.symmetries[turn])
     if claimed is not None:
         out.claimed = out.claimed_in(claimed)
     if needed is not None and out.possible < needed:
