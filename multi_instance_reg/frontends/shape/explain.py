@@ -14,8 +14,12 @@ object hides parts of itself), each compared with the depth measured on its pixe
   weighted 1 within the noise itself, down to nothing at the tolerance;
 - *free*: the measurement lies farther: the camera saw through where the model would stand;
 - *hidden*: a nearer measured surface. Behind pixels another chosen instance claims, it is
-  explained and left out; behind anything else it counts half against (an object behind an
-  unknown occluder stays possible, a pose sunk into a surface does not pass on it alone);
+  explained and left out; behind an occluder (a surface that steps in front) it is not
+  judged, but a pose is judged over no fewer than ``MIN_SEEN`` of its samples seen and
+  hidden (an object behind an unknown occluder stays possible while most of it shows; a
+  pose mostly hidden does not pass on the little that shows); behind the very surface the
+  pose agrees with, running on with no depth step, it may be inside that object and counts
+  half against;
 - no depth (dropouts, IR shadows): left out, neither for nor against;
 - and any sample of the model, seen or not, more than a voxel (or the tolerance) below a support plane the
   depth shows there (floor, pallet, table): inside it, counted as free (two cartons sunk 3
@@ -66,9 +70,17 @@ NORMAL_STEP = 2         # pixels: the central differences' half width, at least
 # sigma per axis) at most: 2 px at 1.7 m with the realistic sensor (k 0.004) gave normals
 # 43 deg off per axis, over half the samples of a true carton "turned" (support 0.71-0.75).
 NORMAL_NOISE_DEG = 15.0
-# A sample hidden by a nearer surface that no chosen instance explains counts this much
-# against the pose (a chosen instance's pixels: not at all).
-HIDDEN_WEIGHT = 0.5
+# A pose is judged over the samples seen, but over no fewer than this share of those seen
+# and those hidden by a nearer surface no chosen instance explains (a chosen instance's
+# pixels explain what they hide): what shows of a mostly hidden pose does not confirm it.
+# IC-BIN's cups in a pile are each behind others or the bin's side; counting each hidden
+# sample half against the pose, a cup 60 % in view needed every seen sample to agree.
+MIN_SEEN = 0.6
+# ... except behind the surface the pose's own agreeing samples lie on, running on to the
+# sample's pixel with no depth step: an occluder steps in front of what it hides, and a
+# pose under a surface that goes on from its own may be inside that object (a cylinder
+# lying half sunk into a wider one's top). Such a sample counts this much against the pose.
+INSIDE_WEIGHT = 0.5
 # A sample in space the camera saw through counts this many times against the pose: seen
 # empty is stronger than not seen (a cylinder fitted over a distractor's edge overhangs by
 # 6 % and agrees elsewhere: evidence 0.80 with the weight 1, true cylinders 0.79-0.99).
@@ -166,8 +178,9 @@ class Explanation:
     T: np.ndarray
     agree: float            # samples the depth confirms (and their normals), weighted by how closely
     free: int               # samples in space the camera saw through
-    hidden: float           # samples behind a nearer surface no chosen instance explains (weighted)
-    judged: int             # agree + free + hidden + those off in depth or normal
+    hidden: int             # samples behind a nearer surface (an occluder) no chosen instance explains
+    seen: int               # agree + free + those off in depth or normal (the sunk among free)
+    inside: int             # samples behind the surface its agreeing samples lie on, running on
     outline: float          # share of the outline band where the surface goes on
     pixels: np.ndarray      # flat pixel indices of the agreeing samples (what it claims)
     rect: tuple             # image rows and columns its judged samples span (top, bottom, left, right)
@@ -193,12 +206,18 @@ class Explanation:
         return float(np.sum(self.weights[mask.flat[self.pixels] > 0]))
 
     @property
+    def judged(self) -> float:
+        """The samples it is judged over: those seen and half those inside, no fewer than
+        ``MIN_SEEN`` of those seen, hidden and inside."""
+        return max(self.seen + INSIDE_WEIGHT * self.inside, MIN_SEEN * (self.seen + self.hidden + self.inside))
+
+    @property
     def support(self) -> float:
         return self.agree / self.judged if self.judged else 0.0
 
     @property
     def evidence(self) -> float:
-        if self.judged < MIN_JUDGED:
+        if self.seen < MIN_JUDGED:
             return -1.0
         return (self.agree - FREE_WEIGHT * self.free) / self.judged - OUTLINE_WEIGHT * self.outline + self.looks
 
@@ -213,8 +232,8 @@ class Explanation:
         it explained by chosen instances and its outline clear: what it is judged on first
         (``select``), and so what ``explain`` asks before it looks at the outline."""
         net = self.agree - FREE_WEIGHT * self.free
-        # Claims leave between judged - hidden and judged samples judged: the most either way.
-        return net / max(self.judged - self.hidden if net >= 0 else self.judged, 1.0) + self.looks
+        # Claims leave between the seen and judged samples judged: the most either way.
+        return net / max(self.seen if net >= 0 else self.judged, 1.0) + self.looks
 
     @property
     def gain(self) -> float:
@@ -345,9 +364,10 @@ def explain(T: np.ndarray, surface: np.ndarray, normals: np.ndarray, view: Frame
     agree = near.copy()
     agree[np.flatnonzero(near)[turned]] = False
     hidden_other = behind & mine
-    hidden = HIDDEN_WEIGHT * float(np.sum(hidden_other))
+    inside = hidden_other & _on_own_surface(depth, rows, cols, agree, same_surface)
+    hidden = int(np.sum(hidden_other & ~inside))
     sunk = sunk_samples(T, surface, view, tolerance, voxel, planes)
-    judged = int(round(np.sum(~behind) + hidden)) + sunk
+    seen = int(np.sum(~behind)) + sunk
     pix = rows[agree] * depth.shape[1] + cols[agree]
     # Each agreeing sample counts 1 within the depth noise (same_surface), less towards the
     # tolerance (nothing at it): the tolerance's floor is many sigma near the camera, and a shape
@@ -358,8 +378,8 @@ def explain(T: np.ndarray, surface: np.ndarray, normals: np.ndarray, view: Frame
     looks, turn = float("nan"), 0
     if grey is not None and view.grey is not None:
         looks, turn = appearance(grey.grey[index[agree]], view.grey[rows[agree], cols[agree]])
-    out = Explanation(T, float(np.sum(weight[agree])), int(free.sum()) + sunk, hidden, judged, 1.0, pix, rect,
-                      0.0, looks, weight[agree], None if turn == 0 else grey.symmetries[turn])
+    out = Explanation(T, float(np.sum(weight[agree])), int(free.sum()) + sunk, hidden, seen, int(inside.sum()), 1.0,
+                      pix, rect, 0.0, looks, weight[agree], None if turn == 0 else grey.symmetries[turn])
     if claimed is not None:
         out.claimed = out.claimed_in(claimed)
     if needed is not None and out.possible < needed:
@@ -377,6 +397,30 @@ def explain(T: np.ndarray, surface: np.ndarray, normals: np.ndarray, view: Frame
     out.outline = float(outline_continuation(T, surface, normals, depth, view.intrinsics, voxel, same_surface,
                                              up=up, explained=explained, normal_step=step)[0])
     return out
+
+
+def _on_own_surface(depth: np.ndarray, rows: np.ndarray, cols: np.ndarray, agree: np.ndarray,
+                    step: float) -> np.ndarray:
+    """(n,) bool: whether each sample's pixel (``rows``, ``cols``) lies on a piece of the
+    measured surface that holds an agreeing sample's pixel (``agree``): the pixels, in a crop
+    around the samples, joined to their four neighbours where the depth differs by less than
+    ``step`` metres; a pixel with a larger step to any neighbour (an edge) joins none."""
+    out = np.zeros(len(rows), bool)
+    if not agree.any() or agree.all():
+        return out
+    r0, c0 = int(rows.min()), int(cols.min())
+    d = depth[r0:int(rows.max()) + 1, c0:int(cols.max()) + 1]
+    smooth = d > 0
+    down = np.abs(d[1:, :] - d[:-1, :]) >= step
+    smooth[1:, :] &= ~down
+    smooth[:-1, :] &= ~down
+    right = np.abs(d[:, 1:] - d[:, :-1]) >= step
+    smooth[:, 1:] &= ~right
+    smooth[:, :-1] &= ~right
+    _, labels = cv2.connectedComponents(smooth.astype(np.uint8), connectivity=4)
+    lab = labels[rows - r0, cols - c0]
+    own = np.unique(lab[agree])
+    return np.isin(lab, own[own > 0])
 
 
 def appearance(model_grey: np.ndarray, image_grey: np.ndarray) -> tuple[float, int]:

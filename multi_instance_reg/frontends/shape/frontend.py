@@ -26,7 +26,7 @@ from ...symmetry import detect_symmetries
 from ...models.model import ObjectModel
 from ...threads import shared_pool, submit_each
 from ...tracking.icp import align_projective
-from .explain import (APPEARANCE_BASE, APPEARANCE_WEIGHT, FREE_WEIGHT, HIDDEN_WEIGHT, Explanation, FrameView,
+from .explain import (APPEARANCE_BASE, APPEARANCE_WEIGHT, FREE_WEIGHT, MIN_SEEN, Explanation, FrameView,
                       crease_distances, explain, select, symmetric_greys)
 from ...rgbd.depth_noise import measure_depth_noise
 from ...rgbd.verify import facing_camera
@@ -607,14 +607,14 @@ class ShapeFrontEnd:
 
     def depth_check(self, T, depth_m: np.ndarray, intrinsics: CameraIntrinsics) -> tuple[float, float, float]:
         """(support - free, support, free) of the model's surface at pose T
-        (``geometry.depth_support``, compiled: the cheap look that guides ICP), the points
-        behind the depth counted half as ``explain`` counts those behind a surface no chosen
-        instance explains; (-1, 0, 1) with fewer than ``MIN_VISIBLE`` points judged."""
+        (``geometry.depth_support``, compiled: the cheap look that guides ICP), over the
+        points seen but no fewer than ``MIN_SEEN`` of all, as ``explain`` judges a pose;
+        (-1, 0, 1) with fewer than ``MIN_VISIBLE`` points judged."""
         support, free, n = depth_support(T, self._surface, self._surface_normals, depth_m, intrinsics,
                                          self.tolerance_at(T), self._self_hiding)
         if n < MIN_VISIBLE:
             return -1.0, 0.0, 1.0
-        judged = support + free + HIDDEN_WEIGHT * max(1.0 - support - free, 0.0)
+        judged = max(support + free, MIN_SEEN)
         return (support - free) / judged, support / judged, free / judged
 
     def explain(self, T, cloud: FrameCloud, view: FrameView, claimed: np.ndarray | None = None,
