@@ -364,7 +364,8 @@ def explain(T: np.ndarray, surface: np.ndarray, normals: np.ndarray, view: Frame
     agree = near.copy()
     agree[np.flatnonzero(near)[turned]] = False
     hidden_other = behind & mine
-    inside = hidden_other & _on_own_surface(depth, rows, cols, agree, same_surface)
+    inside = hidden_other & _on_own_surface(depth, rows, cols, agree, same_surface) if hidden_other.any() \
+        else hidden_other
     hidden = int(np.sum(hidden_other & ~inside))
     sunk = sunk_samples(T, surface, view, tolerance, voxel, planes)
     seen = int(np.sum(~behind)) + sunk
