@@ -554,7 +554,7 @@ class InstanceRegistration:
         against 0.98 for SIFT alone.)"""
         fe = self.config.frontend
         # The two paths share nothing until here: SIFT runs beside the shape path's cloud and
-        # votes (IC-BIN frames: p50 288 -> 246 ms, the same poses).
+        # votes (IC-BIN frames, paired runs: p50 248-262 -> 239-254 ms, the same poses).
         sift = run_beside(self._register_frame_sift, rgb, depth_m, intrinsics)
         shaped = self._register_frame_shape(depth_m, intrinsics, gravity=gravity, rgb=rgb, beside=sift)
         textured = sift.result()
