@@ -48,26 +48,11 @@ from __future__ import annotations
 
 import contextlib
 import json
-import signal
 import sys
 import threading
 import time
 from collections import deque
 from dataclasses import asdict, dataclass
-
-# Ctrl-C is noted as well as raised: a KeyboardInterrupt raised inside some imports (numba's,
-# with the pipeline) is swallowed there, and the node then started as if none had come (a
-# SIGINT 0.5 s into the start under make test's load: test_ros_shutdown, 2 runs of 2).
-_INTERRUPTS: list[int] = []
-
-
-def _note_interrupt(signum, frame):
-    _INTERRUPTS.append(signum)
-    raise KeyboardInterrupt
-
-
-if signal.getsignal(signal.SIGINT) is signal.default_int_handler:   # not where Ctrl-C is ignored
-    signal.signal(signal.SIGINT, _note_interrupt)
 
 # Ctrl-C in the second or two these imports take ends the start quietly, like one later on.
 try:
@@ -780,8 +765,6 @@ def _quiet_half_built_executor(hook):
 
 def _main(argv: list[str] | None) -> int:
     argv = sys.argv if argv is None else argv
-    if _INTERRUPTS:
-        return _stopped_while_starting()
     use_large_data_profile()
     try:
         rclpy.init(args=argv)
@@ -803,9 +786,6 @@ def _main(argv: list[str] | None) -> int:
         # subscription fails (RCLError). That is the stop asked for, not an error.
         if rclpy.ok():
             raise
-        return _stopped_while_starting()
-    if _INTERRUPTS:   # a Ctrl-C an import swallowed on the way
-        node.destroy_node()
         return _stopped_while_starting()
     interrupted = False
     try:
