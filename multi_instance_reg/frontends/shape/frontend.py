@@ -477,9 +477,9 @@ class ShapeFrontEnd:
           segment (generated brackets, seed 3: 0-3 right references on each such bracket).
         A plate voted alone is ambiguous."""
         labels = cloud.segments
-        groups = segment_pairs(cloud.points, labels, self.diameter)
-        leads = [len(g) for g in groups]
         ids, members = segment_members(labels)
+        groups = segment_pairs(cloud.points, labels, self.diameter, members)
+        leads = [len(g) for g in groups]
         for label in self.compact_segments(cloud):
             mine = members[int(np.searchsorted(ids, label))]
             around = np.asarray(cloud.tree.query_ball_point(cloud.points[mine].mean(axis=0), self.diameter), np.int64)

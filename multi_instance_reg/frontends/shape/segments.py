@@ -401,10 +401,12 @@ def segments_within_reach(points: np.ndarray, labels: np.ndarray, reach: float) 
     return np.array([s for s, m in zip(ids.tolist(), members) if within_reach(points[m], reach)], np.int64)
 
 
-def segment_pairs(points: np.ndarray, labels: np.ndarray, reach: float) -> list:
+def segment_pairs(points: np.ndarray, labels: np.ndarray, reach: float, members: list | None = None) -> list:
     """Point indices of the union of each pair of segments (labels >= 0) that is
-    ``within_reach``: two pieces that may be one object."""
-    _, members = segment_members(labels)
+    ``within_reach``: two pieces that may be one object. ``members``: ``segment_members``'
+    lists, when the caller has them already."""
+    if members is None:
+        _, members = segment_members(labels)
     lo = np.array([points[m].min(axis=0) for m in members]) if members else np.zeros((0, 3))
     hi = np.array([points[m].max(axis=0) for m in members]) if members else np.zeros((0, 3))
     out = []
@@ -430,7 +432,6 @@ def within_reach(p: np.ndarray, reach: float) -> bool:
         return True
     if side.max() > reach:
         return False
-    from scipy.spatial import ConvexHull, QhullError
     from scipy.spatial.distance import pdist
 
     try:
