@@ -560,6 +560,43 @@ def test_refinement_in_the_thread_pool_gives_the_serial_results():
                                                                                           b.outline)
 
 
+def test_hypotheses_on_a_verified_instance_wait_for_the_rest(monkeypatch):
+    """With a budget for two refinements, the second goes to the box not yet found, not to
+    a hypothesis centred on the box found first (``Deferring``); the explanations keep the
+    order given."""
+    from multi_instance_reg.rgbd.pipeline import FrontEndConfig
+    from multi_instance_reg.frontends.shape.frontend import Deferring, FrameView, ShapeFrontEnd
+    import multi_instance_reg.threads as threads
+
+    queue = Deferring([0, 1, 2, 3], {k: np.array([0.1 * k, 0.0, 1.0]) for k in range(4)}, 0.05)
+    assert queue.next() == 0
+    queue.verified(np.array([0.1, 0.01, 1.0]))               # an instance where hypothesis 1 is centred
+    assert [queue.next() for _ in range(4)] == [2, 3, 1, None]
+
+    monkeypatch.setattr(threads.os, "cpu_count", lambda: 1)  # one at a time: the order is the test's
+    model = _box_model()
+    intr = _intrinsics()
+    K = intr.K
+    v, u = np.mgrid[0:240, 0:320]
+    depth = np.full((240, 320), 1.575, np.float32)
+    x, y = (u - K[0, 2]) / K[0, 0] * 1.425, (v - K[1, 2]) / K[1, 1] * 1.425
+    for cx in (-0.2, 0.2):
+        depth[(np.abs(x - cx) < 0.15) & (np.abs(y) < 0.1)] = 1.425
+    tops = [make_transform(np.diag([1.0, -1.0, -1.0]), [cx, 0.0, 1.5]) for cx in (-0.2, 0.2)]
+    beside = tops[0].copy()
+    beside[:3, 3] += [0.0, 0.045, 0.0]      # on the first box, apart from its pose (distinct)
+    hypotheses = [tops[0], beside, tops[1]]
+    shape = ShapeFrontEnd(model, FrontEndConfig())
+    assert shape.distinct(hypotheses) == [0, 1, 2]
+    cloud = shape.frame_cloud(depth, intr, None)
+    view = FrameView.of(depth, intr)
+    calls = []
+    shape.past_deadline = lambda: calls.append(1) or len(calls) > 2
+    found = shape.refine_all(hypotheses, cloud, view)
+    centres = sorted(round(float(e.T[0, 3]), 2) for e in found if shape.verified(e))
+    assert centres == [-0.2, 0.2]
+
+
 def test_thread_pool_helpers_keep_order_and_raise_errors():
     from multi_instance_reg.frontends.shape.frontend import Prefetch
     from multi_instance_reg.threads import map_each, submit_each

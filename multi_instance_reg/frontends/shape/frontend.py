@@ -12,6 +12,7 @@ jointly. No ROS; colour only for its seams and its appearance.
 """
 from __future__ import annotations
 
+import os
 import threading
 from dataclasses import dataclass, replace
 
@@ -125,6 +126,7 @@ class ShapeFrontEnd:
                 else detect_symmetries(self._model_pts, self.voxel)
             self._surface_grey = symmetric_greys(self._surface, np.asarray(model.shape_grey, np.float64)[j], alike)
         self.diameter = float(np.linalg.norm(model.extent))
+        self._box_centre = np.asarray(model.box_centre, np.float64)
         self._thinnest = float(np.min(model.extent))
         # sigma_z / z^2 of the frame being registered: shape_depth_noise, or measured on each
         # frame when that is 0 (``measure_noise``, called by ``frame_cloud``).
@@ -499,19 +501,42 @@ class ShapeFrontEnd:
         """Each hypothesis refined by ICP and explained (``refine_one``), those the depth
         hardly supports dropped. Hypotheses that are one pose (ECC's and the vote clusters'
         for one instance) are refined once: the first of each group, in the order given
-        (``distinct``: best first, so that the frame's deadline leaves the weakest). Two at a
-        time in the shared thread pool (the kernels, k-d tree queries and OpenCV calls
-        release the GIL). ``started``: a ``Prefetch`` (``start_refining``) of
-        ``transforms[offset:]`` already under way; what it has taken on is used."""
+        (``distinct``: best first, so that the frame's deadline leaves the weakest), except
+        that one centred on an instance already verified waits for the rest (``Deferring``).
+        On each worker of the shared thread pool (the kernels, k-d tree queries and OpenCV
+        calls release the GIL). ``started``: a ``Prefetch`` (``start_refining``) of
+        ``transforms[offset:]`` already under way; what it has taken on is used. The
+        explanations in the order given, whatever order they were refined in."""
         if cloud.grid is None:
             return []
         order = self.distinct(transforms)
         claimed = started.stop() if started is not None else set()
         missing = [k for k in order if k - offset not in claimed]
-        new = dict(zip(missing, submit_each(lambda T0: self.refine_one(T0, cloud, view),
-                                            [np.array(transforms[k], np.float64) for k in missing])))
-        out = [(new[k] if k in new else _Claimed(started, k - offset)).result() for k in order]
+        hypotheses = {k: np.array(transforms[k], np.float64) for k in missing}
+        queue = Deferring(missing, {k: self.centre(T) for k, T in hypotheses.items()}, 0.5 * self._thinnest)
+        for e in (started.finished() if started is not None else []):
+            if self.verified(e):
+                queue.verified(self.centre(e.T))
+        refined = {}
+
+        def work(_):
+            while (k := queue.next()) is not None:
+                refined[k] = e = self.refine_one(hypotheses[k], cloud, view)
+                if self.verified(e):
+                    queue.verified(self.centre(e.T))
+
+        for worker in submit_each(work, range(os.cpu_count() or 1)):
+            worker.result()
+        out = [refined[k] if k in refined else started.result(k - offset) for k in order]
         return [e for e in out if e is not None]
+
+    def centre(self, T: np.ndarray) -> np.ndarray:
+        """The centre of the model's box at pose T (camera frame)."""
+        return T[:3, :3] @ self._box_centre + T[:3, 3]
+
+    def verified(self, e: Explanation | None) -> bool:
+        """Whether explanation ``e`` passes as an instance on its own (nothing claimed)."""
+        return e is not None and e.support >= self.fe.shape_min_support and e.evidence >= self.fe.shape_min_evidence
 
     def start_refining(self, transforms, cloud: FrameCloud, view: FrameView) -> "Prefetch | None":
         """The vote clusters' poses refined on one worker of the shared thread pool while
@@ -688,13 +713,20 @@ class Prefetch:
                 if self._stopped:
                     return
                 self._claimed.add(k)
-            self._done[k] = self._function(self._items[k])
+            result = self._function(self._items[k])
+            with self._lock:
+                self._done[k] = result
 
     def stop(self) -> set[int]:
         """Takes on no more items; returns those it has taken on (done, or under way)."""
         with self._lock:
             self._stopped = True
             return set(self._claimed)
+
+    def finished(self) -> list:
+        """The results done so far."""
+        with self._lock:
+            return list(self._done.values())
 
     def result(self, k: int):
         """Item k's result (one taken on), once it is done."""
@@ -703,14 +735,35 @@ class Prefetch:
         return self._done[k]
 
 
-class _Claimed:
-    """Item k of a Prefetch, as a task with ``result()``."""
+class Deferring:
+    """Items handed out in a given order to whichever worker asks (``next``), except that
+    one whose place lies within ``reach`` of an instance verified so far (``verified``)
+    waits until only such items are left. Two objects cannot fill one space: a hypothesis
+    centred within half the object's thinnest extent of a verified instance's centre is
+    mostly that instance again (IC-BIN, 80 clusters: 39 of the 45 refinements that landed
+    on a cup found before began within 45 mm of it, none of the 27 that found a new cup
+    began nearer than 75 mm). With a deadline the budget goes to the rest of the frame
+    first; without one the same items are refined."""
 
-    def __init__(self, prefetch: Prefetch, k: int):
-        self._prefetch, self._k = prefetch, k
+    def __init__(self, order, places: dict, reach: float):
+        self._pending = list(order)
+        self._places = places
+        self._reach = float(reach)
+        self._instances = np.zeros((0, 3))
+        self._lock = threading.Lock()
 
-    def result(self):
-        return self._prefetch.result(self._k)
+    def verified(self, place: np.ndarray) -> None:
+        with self._lock:
+            self._instances = np.vstack([self._instances, np.asarray(place, np.float64)[None]])
+
+    def next(self):
+        """The next item (None when none is left)."""
+        with self._lock:
+            for i, k in enumerate(self._pending):
+                if not len(self._instances) or \
+                        np.min(np.linalg.norm(self._instances - self._places[k], axis=1)) >= self._reach:
+                    return self._pending.pop(i)
+            return self._pending.pop(0) if self._pending else None
 
 
 def _within(poses: np.ndarray, others: np.ndarray, max_angle_deg: float, max_shift: float) -> np.ndarray:
