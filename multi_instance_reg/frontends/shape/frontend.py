@@ -126,7 +126,6 @@ class ShapeFrontEnd:
                 else detect_symmetries(self._model_pts, self.voxel)
             self._surface_grey = symmetric_greys(self._surface, np.asarray(model.shape_grey, np.float64)[j], alike)
         self.diameter = float(np.linalg.norm(model.extent))
-        self._box_centre = np.asarray(model.box_centre, np.float64)
         self._thinnest = float(np.min(model.extent))
         # sigma_z / z^2 of the frame being registered: shape_depth_noise, or measured on each
         # frame when that is 0 (``measure_noise``, called by ``frame_cloud``).
@@ -746,24 +745,27 @@ class Deferring:
     first; without one the same items are refined."""
 
     def __init__(self, order, places: dict, reach: float):
-        self._pending = list(order)
-        self._places = places
+        self._order = list(order)
+        self._places = np.array([places[k] for k in self._order], np.float64).reshape(-1, 3)
         self._reach = float(reach)
-        self._instances = np.zeros((0, 3))
+        self._taken = np.zeros(len(self._order), bool)
+        self._near = np.zeros(len(self._order), bool)    # within reach of a verified instance
         self._lock = threading.Lock()
 
     def verified(self, place: np.ndarray) -> None:
         with self._lock:
-            self._instances = np.vstack([self._instances, np.asarray(place, np.float64)[None]])
+            self._near |= np.linalg.norm(self._places - np.asarray(place, np.float64), axis=1) < self._reach
 
     def next(self):
         """The next item (None when none is left)."""
         with self._lock:
-            for i, k in enumerate(self._pending):
-                if not len(self._instances) or \
-                        np.min(np.linalg.norm(self._instances - self._places[k], axis=1)) >= self._reach:
-                    return self._pending.pop(i)
-            return self._pending.pop(0) if self._pending else None
+            left = ~self._taken
+            if not left.any():
+                return None
+            free = left & ~self._near
+            i = int(np.argmax(free if free.any() else left))
+            self._taken[i] = True
+            return self._order[i]
 
 
 def _within(poses: np.ndarray, others: np.ndarray, max_angle_deg: float, max_shift: float) -> np.ndarray:
