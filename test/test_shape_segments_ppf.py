@@ -825,6 +825,30 @@ def test_what_segmentation_split_off_a_bracket_is_voted_with_it(seed, instances,
     assert all(within_reach(cloud.points[g], shape.diameter) for g in groups)
 
 
+@pytest.mark.parametrize("preset, name, factor", [("bracket", "bracket", 2), ("pallet", "carton", 1)])
+def test_a_non_convex_model_checks_more_of_the_frames_vote_clusters(monkeypatch, preset, name, factor):
+    """The frame's vote clusters asked for: twice ``shape_pose_clusters`` for a non-convex
+    model (a bracket), that many for a convex one (a carton)."""
+    from dataclasses import replace
+    from multi_instance_reg.rgbd.pipeline import PipelineConfig
+    from multi_instance_reg.frontends.shape import frontend
+    from multi_instance_reg.synthetic.objects import get_object, object_mesh
+    from multi_instance_reg.synthetic.untextured import make_untextured_scene
+
+    frame = next(iter(make_untextured_scene(preset, 4, 3, 1, 207).frames()))
+    shape = frontend.ShapeFrontEnd(build_model_from_mesh(object_mesh(get_object(name)), name),
+                                   replace(PipelineConfig().frontend, shape_pose_clusters=7))
+    depth = frame.depth_mm.astype(np.float32) / 1000.0
+    shape.depth_noise = shape.measure_noise(depth)
+    cloud = shape.frame_cloud(depth, CameraIntrinsics(K=np.asarray(frame.K, np.float64), width=640, height=480),
+                              None, None, None)
+    asked = []
+    cluster_poses = frontend.cluster_poses
+    monkeypatch.setattr(frontend, "cluster_poses", lambda *a, **k: asked.append(a[4]) or cluster_poses(*a, **k))
+    shape.correspondences(cloud)
+    assert asked[0] == 7 * factor
+
+
 def test_central_radius_is_the_smallest_ball_about_a_surface_point_holding_the_box():
     """A 0.3 x 0.2 x 0.15 box: about the middle of a largest face, the far corners lie
     sqrt(0.15^2 + 0.1^2 + 0.15^2) away; about any other surface point, something lies farther."""
