@@ -375,15 +375,12 @@ class ShapeFrontEnd:
                 # does not group (too few agree among the rest) still gets a hypothesis.
                 # More of them for a non-convex model: its wrong poses rarely pass the
                 # verification (a part stands in space seen empty, or sinks into what is
-                # there), so more cost only search time. A convex one's extra clusters are
-                # boxes slid along their faces and cans turned about their axis, which can
-                # pass (generated pallet s0 and held-out bin, 55 clusters: MHF1 0.974 -> 0.966,
-                # 0.942 -> 0.862). IC-BIN's cups (right clusters ranked 31st-52nd): 24 -> 27
-                # found; the generated non-convex presets, 16 runs: mean MHF1 0.964 -> 0.966,
-                # with the realistic sensor on seeds never tuned on (12 runs): 0.945 -> 0.951.
-                k = self.fe.shape_pose_clusters * (NON_CONVEX_CLUSTERS if self._self_hiding > 0 else 1)
+                # there), so more cost only search time; a convex one's extra clusters (boxes
+                # slid along their faces, cans turned about their axis) can pass. IC-BIN's
+                # cups: the right clusters ranked 31st-52nd.
+                k = self.fe.shape_pose_clusters * (NON_CONVEX_CLUSTERS if self.non_convex else 1)
                 cloud.poses = cluster_poses(poses, share, 360.0 / ANGLE_STEPS, 0.1 * self.diameter, k)
-                if self._self_hiding > 0 and self.fe.shape_segment_clusters > 0:
+                if self.non_convex and self.fe.shape_segment_clusters > 0:
                     # Non-convex models only: a convex one's segment is one surface whose
                     # votes agree (pallet and cylinders seeds 0 / 5: the same results with
                     # them, for 12-20 ms more refinement a pallet frame).
