@@ -53,12 +53,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 
+import math
+
 import cv2
+import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
 from ...messages import CameraIntrinsics
-from ...rgbd.verify import _points_and_normals, facing_camera, image_pixels, outline_continuation
+from ...rgbd.verify import _facing, _points_and_normals_kernel, outline_continuation
 from ...symmetry import turn_about
 from ...transforms import apply_transform, invert_transform
 
@@ -242,27 +245,137 @@ class Explanation:
 
 
 def visible_samples(T: np.ndarray, surface: np.ndarray, normals: np.ndarray, intrinsics: CameraIntrinsics,
-                    shape, splat: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The model's samples at pose T that face the camera, fall in the image and are not
-    behind the model's own nearer surface (z-buffer of the samples, each drawn over
-    ``splat`` metres): (points (n, 3), normals, rows, cols, their indices in ``surface``)."""
+                    depth: np.ndarray, splat: float, tolerance: float, step: int) -> tuple:
+    """The model's samples at pose T that face the camera, fall in the image, are not behind
+    the model's own nearer surface (z-buffer of the samples, each drawn over ``splat``
+    metres) and have depth on their pixel, each compared with that depth: (points (n, 3)
+    camera frame, rows, cols, their indices in ``surface``, the measured depth minus theirs,
+    agree: within ``tolerance`` and the measured normal, ``step`` pixels wide
+    (``normal_step``), not turned from the model's by more than NORMAL_DEG)."""
     p = surface @ T[:3, :3].T + T[:3, 3]
     n = normals @ T[:3, :3].T
-    index = np.flatnonzero(facing_camera(p, n))
-    p, n = p[index], n[index]
     K = intrinsics.K
-    u, v, inside = image_pixels(p, intrinsics, shape)
-    p, n, u, v, index = p[inside], n[inside], u[inside], v[inside], index[inside]
-    if len(p) < 2:
-        return p, n, v, u, index
-    # z-buffer in a crop around the drawing: the nearest sample per pixel, spread over its splat.
-    r = max(1, int(round(splat * K[0, 0] / float(np.median(p[:, 2])))))
-    u0, v0 = u.min(), v.min()
-    zbuf = np.full((v.max() - v0 + 1, u.max() - u0 + 1), np.inf, np.float32)
-    np.minimum.at(zbuf, (v - v0, u - u0), p[:, 2].astype(np.float32))
-    zbuf = cv2.erode(zbuf, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
-    front = p[:, 2] <= zbuf[v - v0, u - u0] + 2.0 * splat
-    return p[front], n[front], v[front], u[front], index[front]
+    fx, fy, cx, cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
+    index, u, v, r = _drawable(p, n, fx, fy, cx, cy, depth.shape[0], depth.shape[1], float(splat))
+    keep, agree, diff = _compare(p, n, index, u, v, np.asarray(depth), fx, fy, cx, cy, _disc(r), float(2.0 * splat),
+                                 float(tolerance), int(step))
+    index = index[keep]
+    return p[index], v[keep], u[keep], index, diff[keep], agree[keep]
+
+
+_DISCS: dict = {}
+
+
+def _disc(r: int) -> np.ndarray:
+    """OpenCV's elliptic structuring element of radius r (uint8, 2r + 1 square)."""
+    out = _DISCS.get(r)
+    if out is None:
+        out = _DISCS[r] = np.ascontiguousarray(cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _drawable(p, n, fx, fy, cx, cy, h, w, splat):
+    # The samples facing the camera (``facing_camera``) that fall in the image: their
+    # indices, pixels (``image_pixels``) and the z-buffer's splat radius in pixels at their
+    # median distance (0 with fewer than two).
+    facing = _facing(p, n)
+    index = np.flatnonzero(facing)
+    u = np.empty(len(index), np.int64)
+    v = np.empty(len(index), np.int64)
+    m = 0
+    for k in range(len(index)):
+        i = index[k]
+        uu = np.int64(np.round(fx * p[i, 0] / p[i, 2] + cx))
+        vv = np.int64(np.round(fy * p[i, 1] / p[i, 2] + cy))
+        if uu >= 0 and uu < w and vv >= 0 and vv < h:
+            index[m], u[m], v[m] = i, uu, vv
+            m += 1
+    index, u, v = index[:m], u[:m], v[:m]
+    r = 0
+    if m >= 2:
+        z = np.empty(m)
+        for k in range(m):
+            z[k] = p[index[k], 2]
+        r = max(1, int(np.round(splat * fx / np.median(z))))
+    return index, u, v, r
+
+
+@numba.njit(cache=True, nogil=True)
+def _compare(p, n, index, u, v, depth, fx, fy, cx, cy, disc, front_slack, tolerance, step):
+    # One pass where the array form made some 40 temporaries a pose (IC-BIN: a quarter of the
+    # verification's time), the same arithmetic: the z-buffer's nearest sample per pixel,
+    # eroded over the disc (cv2.erode), a sample in front within front_slack (float32, as
+    # the buffer); then the depth on its pixel, and for those within the tolerance the
+    # measured normal (``_points_and_normals``) where the four neighbours step pixels away
+    # lie within the tolerance too; the samples ``index`` (pixels u, v). Returns (kept: in
+    # front with depth, agree, the measured depth minus the sample's).
+    m = index.shape[0]
+    keep = np.zeros(m, np.bool_)
+    agree = np.zeros(m, np.bool_)
+    diff = np.zeros(m)
+    if m == 0:
+        return keep, agree, diff
+    h, w = depth.shape
+    if m < 2:
+        for i in range(m):
+            keep[i] = depth[v[i], u[i]] > 0
+    else:
+        u0, v0, u1, v1 = u.min(), v.min(), u.max(), v.max()
+        zbuf = np.full((v1 - v0 + 1, u1 - u0 + 1), np.inf, np.float32)
+        for i in range(m):
+            z = np.float32(p[index[i], 2])
+            if z < zbuf[v[i] - v0, u[i] - u0]:
+                zbuf[v[i] - v0, u[i] - u0] = z
+        r = disc.shape[0] // 2
+        bh, bw = zbuf.shape
+        slack = np.float32(front_slack)
+        for i in range(m):
+            y, x = v[i] - v0, u[i] - u0
+            low = np.float32(np.inf)
+            for dy in range(-r, r + 1):
+                yy = y + dy
+                if yy < 0 or yy >= bh:
+                    continue
+                for dx in range(-r, r + 1):
+                    xx = x + dx
+                    if xx < 0 or xx >= bw or disc[dy + r, dx + r] == 0:
+                        continue
+                    if zbuf[yy, xx] < low:
+                        low = zbuf[yy, xx]
+            keep[i] = p[index[i], 2] <= np.float32(low + slack) and depth[v[i], u[i]] > 0
+    cos_turn = math.cos(math.radians(NORMAL_DEG))
+    rows1 = np.zeros(1, np.int64)
+    cols1 = np.zeros(1, np.int64)
+    P1 = np.empty((1, 3))
+    N1 = np.empty((1, 3))
+    ok1 = np.zeros(1, np.bool_)
+    for i in range(m):
+        if not keep[i]:
+            continue
+        r0, c0 = v[i], u[i]
+        d = float(depth[r0, c0])
+        diff[i] = d - p[index[i], 2]
+        if not abs(diff[i]) < tolerance:
+            continue
+        agree[i] = True
+        smooth = True
+        for k in range(4):
+            rr = r0 + (step if k == 2 else (-step if k == 3 else 0))
+            cc = c0 + (step if k == 0 else (-step if k == 1 else 0))
+            rr = min(max(rr, 0), h - 1)
+            cc = min(max(cc, 0), w - 1)
+            if not abs(float(depth[rr, cc]) - d) < tolerance:
+                smooth = False
+        if not smooth:
+            continue
+        rows1[0], cols1[0], ok1[0] = r0, c0, False
+        if _points_and_normals_kernel(depth, fx, fy, cx, cy, rows1, cols1, step, P1, N1, ok1) == 0:
+            continue
+        j = index[i]
+        if N1[0, 0] * n[j, 0] + N1[0, 1] * n[j, 1] + N1[0, 2] * n[j, 2] < cos_turn:
+            agree[i] = False
+    return keep, agree, diff
 
 
 def outline_seams(view: FrameView, rows: np.ndarray, cols: np.ndarray, index: np.ndarray, gap: int, r: int,
@@ -338,31 +451,13 @@ def explain(T: np.ndarray, surface: np.ndarray, normals: np.ndarray, view: Frame
     201 on IC-BIN's, where the outline took half of the explanation's time). With an
     appearance, the symmetric turn that looks most like the image is kept (``Explanation.pose``)."""
     depth = view.depth
-    p, n, rows, cols, index = visible_samples(T, surface, normals, view.intrinsics, depth.shape, 0.5 * voxel)
-    d = depth[rows, cols].astype(np.float64)
-    valid = d > 0
-    p, n, rows, cols, d, index = p[valid], n[valid], rows[valid], cols[valid], d[valid], index[valid]
-    diff = d - p[:, 2]
-    near = np.abs(diff) < tolerance
-    free = diff >= tolerance
-    behind = diff <= -tolerance
-    mine = np.ones(len(d), bool) if claimed is None else claimed[rows, cols] == 0
-    # Normals where the depth gives one: four neighbours a couple of pixels away, all on the
-    # same surface (not across a depth step, where a difference is no normal).
-    r, c = rows[near], cols[near]
     f, z = float(view.intrinsics.K[0, 0]), float(T[2, 3])
     step = normal_step(sigma, z, f, span * f / max(z, 1e-3))
-    _, measured, has = _points_and_normals(depth, view.intrinsics.K, r, c, step)
-    h, w = depth.shape
-    smooth = np.ones(len(r), bool)
-    for dr, dc in ((0, step), (0, -step), (step, 0), (-step, 0)):
-        q = depth[np.clip(r + dr, 0, h - 1), np.clip(c + dc, 0, w - 1)]
-        smooth &= np.abs(q - d[near]) < tolerance
-    turned = np.zeros(len(r), bool)
-    turned[has] = np.sum(measured * n[near][has], axis=1) < np.cos(np.radians(NORMAL_DEG))
-    turned &= smooth
-    agree = near.copy()
-    agree[np.flatnonzero(near)[turned]] = False
+    p, rows, cols, index, diff, agree = visible_samples(T, surface, normals, view.intrinsics, depth, 0.5 * voxel,
+                                                        tolerance, step)
+    free = diff >= tolerance
+    behind = diff <= -tolerance
+    mine = np.ones(len(diff), bool) if claimed is None else claimed[rows, cols] == 0
     hidden_other = behind & mine
     inside = hidden_other & _on_own_surface(depth, rows, cols, agree, same_surface) if hidden_other.any() \
         else hidden_other
@@ -409,19 +504,56 @@ def _on_own_surface(depth: np.ndarray, rows: np.ndarray, cols: np.ndarray, agree
     out = np.zeros(len(rows), bool)
     if not agree.any() or agree.all():
         return out
-    r0, c0 = int(rows.min()), int(cols.min())
-    d = depth[r0:int(rows.max()) + 1, c0:int(cols.max()) + 1]
-    smooth = d > 0
-    down = np.abs(d[1:, :] - d[:-1, :]) >= step
-    smooth[1:, :] &= ~down
-    smooth[:-1, :] &= ~down
-    right = np.abs(d[:, 1:] - d[:, :-1]) >= step
-    smooth[:, 1:] &= ~right
-    smooth[:, :-1] &= ~right
-    _, labels = cv2.connectedComponents(smooth.astype(np.uint8), connectivity=4)
-    lab = labels[rows - r0, cols - c0]
-    own = np.unique(lab[agree])
-    return np.isin(lab, own[own > 0])
+    depth = np.asarray(depth)
+    return _own_surface(depth, np.asarray(rows, np.int64), np.asarray(cols, np.int64), np.asarray(agree, np.bool_),
+                        depth.dtype.type(step))
+
+
+@numba.njit(cache=True, nogil=True)
+def _own_surface(depth, rows, cols, agree, step):
+    # The pixels reached from an agreeing sample's through smooth 4-neighbours (as
+    # cv2.connectedComponents labels them: the components holding one), in the samples'
+    # crop; the steps in the depth's type (``step`` is of it).
+    r0, c0, r1, c1 = rows.min(), cols.min(), rows.max(), cols.max()
+    h, w = r1 - r0 + 1, c1 - c0 + 1
+    s = step
+    smooth = np.zeros((h, w), np.bool_)
+    for y in range(h):
+        for x in range(w):
+            d = depth[r0 + y, c0 + x]
+            ok = d > 0
+            if ok and y > 0 and not abs(d - depth[r0 + y - 1, c0 + x]) < s:
+                ok = False
+            if ok and y < h - 1 and not abs(depth[r0 + y + 1, c0 + x] - d) < s:
+                ok = False
+            if ok and x > 0 and not abs(d - depth[r0 + y, c0 + x - 1]) < s:
+                ok = False
+            if ok and x < w - 1 and not abs(depth[r0 + y, c0 + x + 1] - d) < s:
+                ok = False
+            smooth[y, x] = ok
+    reached = np.zeros((h, w), np.bool_)
+    stack = np.empty(h * w, np.int64)
+    top = 0
+    for i in range(len(rows)):
+        y, x = rows[i] - r0, cols[i] - c0
+        if agree[i] and smooth[y, x] and not reached[y, x]:
+            reached[y, x] = True
+            stack[top] = y * w + x
+            top += 1
+    while top > 0:
+        top -= 1
+        y, x = stack[top] // w, stack[top] % w
+        for k in range(4):
+            yy = y + (1 if k == 0 else (-1 if k == 1 else 0))
+            xx = x + (1 if k == 2 else (-1 if k == 3 else 0))
+            if yy >= 0 and yy < h and xx >= 0 and xx < w and smooth[yy, xx] and not reached[yy, xx]:
+                reached[yy, xx] = True
+                stack[top] = yy * w + xx
+                top += 1
+    out = np.zeros(len(rows), np.bool_)
+    for i in range(len(rows)):
+        out[i] = reached[rows[i] - r0, cols[i] - c0]
+    return out
 
 
 def appearance(model_grey: np.ndarray, image_grey: np.ndarray) -> tuple[float, int]:
