@@ -358,6 +358,12 @@ def test_the_appearance_turns_a_printed_can_to_its_print_and_tells_a_plain_one_a
     mesh.vertex_colours = None
     bare = ShapeFrontEnd(build_model_from_mesh(mesh, "can"), FrontEndConfig())
     assert np.isnan(bare.explain(turned, bare.frame_cloud(depth, intrinsics, None), view).appearance)
+    # A pose where no sample agrees (the can in the wall's place) has no appearance: it is
+    # explained, not an error (the error ``explain`` raised when asked of such a pose).
+    away = true.copy()
+    away[2, 3] = 0.6
+    far = can.explain(away, can.frame_cloud(depth, intrinsics, None), view)
+    assert far.agree == 0 and np.isnan(far.appearance)
 
 
 

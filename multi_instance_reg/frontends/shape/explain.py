@@ -562,10 +562,10 @@ def appearance(model_grey: np.ndarray, image_grey: np.ndarray) -> tuple[float, i
     under each of the poses the shape cannot tell apart (``Greys``); and that column. NaN
     (and 0) with fewer than ``MIN_JUDGED`` samples or less than ``MIN_GREY_SPREAD`` of spread
     on the model's side; 0 with less on the image's."""
+    if len(image_grey) < MIN_JUDGED:
+        return float("nan"), 0
     a = np.asarray(model_grey, np.float64).reshape(len(model_grey), -1)
     b = np.asarray(image_grey, np.float64)
-    if len(b) < MIN_JUDGED:
-        return float("nan"), 0
     sa = a.std(axis=0)
     ok = sa >= MIN_GREY_SPREAD
     if not ok.any():
