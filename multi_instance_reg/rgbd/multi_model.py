@@ -21,8 +21,10 @@ What is shared and what is not:
   stronger instance's box of another model, or the other way round.
 
 Models found by shape (``frontend.correspondences`` shape/both, from a mesh) run their own
-pipeline per model (their matching is FPFH on depth, not SIFT) and join the selection.
-With one model, the result is exactly ``InstanceRegistration``'s.
+pipeline per model (their shape matching is on depth) and join the selection; those with
+both paths take the frame's one SIFT detection for their SIFT half (models with both paths
+only: it runs beside the first one's shape path). With one model, the result is exactly
+``InstanceRegistration``'s.
 """
 from __future__ import annotations
 
@@ -34,6 +36,7 @@ from ..errors import InputError
 from ..messages import CameraIntrinsics
 from ..frontends.sift.matching import JointMatcher, prepare_descriptors
 from ..models.model import ObjectModel
+from ..threads import run_beside
 from .pipeline import STAGES, FrameResult, Instance, InstanceRegistration, PipelineConfig, box_grid, check_frame
 
 
@@ -72,8 +75,12 @@ class MultiModelRegistration:
         self.pipelines = [InstanceRegistration(m, config) for m in models]
         self.config = self.pipelines[0].config
         self._sift = [k for k, p in enumerate(self.pipelines) if p.correspondences == "sift"]
-        if self._sift:   # one search region for every model: none may lose its objects' tops
-            self.pipelines[self._sift[0]].object_reach = max(self.pipelines[k].object_reach for k in self._sift)
+        # One SIFT detection a frame for every model that matches SIFT (``both`` too), made by
+        # the first: one search region for them all, in which none may lose its objects' tops.
+        self._detecting = [k for k, p in enumerate(self.pipelines) if p.correspondences in ("sift", "both")]
+        if self._detecting:
+            self.pipelines[self._detecting[0]].object_reach = max(self.pipelines[k].object_reach
+                                                                  for k in self._detecting)
         self._grids = [box_grid(m.extent) + np.asarray(m.box_centre, np.float64) for m in models]
         fe = self.config.frontend
         self._joint = None
@@ -103,8 +110,9 @@ class MultiModelRegistration:
         t0 = time.perf_counter()
         per_model: dict[int, FrameResult] = {}
         n_kp = 0
+        keypoints = None
         if self._sift:
-            keypoints = self.pipelines[self._sift[0]].detect(rgb, depth_m, intrinsics, t)
+            keypoints = self.pipelines[self._detecting[0]].detect(rgb, depth_m, intrinsics, t)
             n_kp = keypoints.detected
             # One joint search; or every model's own search queued at once, each model's ECC
             # and selection running as soon as its matches are in while the pool searches the
@@ -121,9 +129,15 @@ class MultiModelRegistration:
                 matches = pending[k]()
                 t["matching"] += (time.perf_counter() - t1) * 1e3
                 per_model[k] = self.pipelines[k].solve(keypoints, *matches)
+        elif len(self._detecting) > 1:
+            # Only models with both paths: the detection runs beside the first one's shape
+            # path, as its own would (the beside thread takes it before that model's matching).
+            detecting = self.pipelines[self._detecting[0]]
+            keypoints = run_beside(lambda: detecting.detect(rgb, depth_m, intrinsics, t))
         for k, pipeline in enumerate(self.pipelines):
             if k not in per_model:
-                per_model[k] = pipeline.register_frame(rgb, depth_m, intrinsics, gravity)
+                per_model[k] = pipeline.register_frame(rgb, depth_m, intrinsics, gravity,
+                                                       keypoints if k in self._detecting else None)
                 n_kp = max(n_kp, per_model[k].num_keypoints)
         for k, res in per_model.items():
             for stage, ms in res.timings_ms.items():

@@ -322,24 +322,29 @@ class InstanceRegistration:
                 self.workspace = workspace
 
     def register_frame(self, rgb: np.ndarray, depth_m: np.ndarray, intrinsics: CameraIntrinsics,
-                       gravity: np.ndarray | None = None) -> FrameResult:
+                       gravity: np.ndarray | None = None, keypoints=None) -> FrameResult:
         """rgb (H, W, 3) uint8, depth_m (H, W) float metres (0 = invalid), aligned to colour.
         ``gravity``: "up" in the colour optical frame (any length; the accelerometer's mean
         reading at rest), or None when not known; the shape path takes the support below the
-        objects along it (``shape_gravity_tolerance_deg``)."""
+        objects along it (``shape_gravity_tolerance_deg``). ``keypoints``: the frame's SIFT
+        keypoints when several models share one detection (``detect``'s, or a future-like
+        object of them); None: detected here."""
         check_frame(rgb, depth_m, intrinsics)
         gravity = unit_up(gravity)
         if self.correspondences == "shape":
             return self._register_frame_shape(depth_m, intrinsics, gravity=gravity, rgb=rgb)
         if self.correspondences == "both":
-            return self._register_frame_both(rgb, depth_m, intrinsics, gravity)
-        return self._register_frame_sift(rgb, depth_m, intrinsics)
+            return self._register_frame_both(rgb, depth_m, intrinsics, gravity, keypoints)
+        return self._register_frame_sift(rgb, depth_m, intrinsics, keypoints)
 
-    def _register_frame_sift(self, rgb, depth_m, intrinsics) -> FrameResult:
+    def _register_frame_sift(self, rgb, depth_m, intrinsics, keypoints=None) -> FrameResult:
         """SIFT matches -> ECC -> refinement and checks on the matches."""
         t = {s: 0.0 for s in STAGES}
         t0 = time.perf_counter()
-        keypoints = self.detect(rgb, depth_m, intrinsics, t)
+        if keypoints is None:
+            keypoints = self.detect(rgb, depth_m, intrinsics, t)
+        elif hasattr(keypoints, "result"):
+            keypoints = keypoints.result()
         t3 = time.perf_counter()
         scene_idx, model_idx = self.match(keypoints)
         t["matching"] = (time.perf_counter() - t3) * 1e3
@@ -546,7 +551,7 @@ class InstanceRegistration:
         overlap = box_overlaps(self.model, list(poses) + list(transforms), self._box_grid)
         return (overlap[n:, :n] > limit) | (overlap[:n, n:].T > limit)
 
-    def _register_frame_both(self, rgb, depth_m, intrinsics, gravity=None) -> FrameResult:
+    def _register_frame_both(self, rgb, depth_m, intrinsics, gravity=None, keypoints=None) -> FrameResult:
         """Texture and shape, each through its own ECC; every SIFT instance is kept as the
         SIFT path finds it, and a shape instance is added where no SIFT instance is. (Joining
         the two correspondence sets before one ECC and judging every instance by the depth
@@ -555,7 +560,7 @@ class InstanceRegistration:
         fe = self.config.frontend
         # The two paths share nothing until here: SIFT runs beside the shape path's cloud and
         # votes (IC-BIN frames, paired runs: p50 248-262 -> 239-254 ms, the same poses).
-        sift = run_beside(self._register_frame_sift, rgb, depth_m, intrinsics)
+        sift = run_beside(self._register_frame_sift, rgb, depth_m, intrinsics, keypoints)
         shaped = self._register_frame_shape(depth_m, intrinsics, gravity=gravity, rgb=rgb, beside=sift)
         textured = sift.result()
         transforms = [i.T for i in textured.instances] + [i.T for i in shaped.instances]
