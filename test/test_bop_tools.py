@@ -217,3 +217,35 @@ def test_draw_points_puts_model_points_where_the_pose_projects_them():
     assert draw_points(img, T, pts, intr, (1, 2, 3)) == 2
     assert img[10, 20].tolist() == [1, 2, 3] and img[7, 25].tolist() == [1, 2, 3]
     assert int(img.sum()) == 2 * 6
+
+
+def test_each_image_is_searched_for_the_objects_its_targets_name(mixed_scene, tmp_path):
+    """With a targets file (BOP's localisation task gives each image's objects) an image is
+    searched only for the objects its targets name; --all-objects searches every object in
+    every image."""
+    _, _, bop = mixed_scene
+    copy = tmp_path / "bop"
+    shutil.copytree(bop, copy)
+    ds = BopDataset(copy)
+    first, second = sorted(ds.models_info)
+    (copy / "test_targets_bop19.json").write_text(json.dumps(
+        [{"scene_id": 4, "im_id": 0, "obj_id": first, "inst_count": 2},
+         {"scene_id": 4, "im_id": 1, "obj_id": first, "inst_count": 2},
+         {"scene_id": 4, "im_id": 1, "obj_id": second, "inst_count": 2}]))
+    params = tmp_path / "no_deadline.yaml"
+    params.write_text("instance_registration:\n  ros__parameters:\n    frontend.shape_deadline_ms: 0.0\n")
+    out = tmp_path / "run"
+    res = cli("bop", "run", copy, "-o", out, "--quiet", "--params", params)
+    assert res.returncode == 0, res.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["objects"] == [first, second] and summary["objects_per_image"] == "targets"
+    by_image = {e["im_id"]: e["poses_by_object"] for e in summary["images"]}
+    assert set(by_image[0]) == {str(first)}
+    assert set(by_image[1]) == {str(first), str(second)}
+    models = [f"{o}={out / 'models' / f'{object_name(o)}.npz'}" for o in (first, second)]
+    res = cli("bop", "run", copy, "-o", tmp_path / "all", "--quiet", "--params", params, "--all-objects",
+              "--images", "0", *[a for m in models for a in ("--model", m)])
+    assert res.returncode == 0, res.stderr
+    summary = json.loads((tmp_path / "all" / "summary.json").read_text())
+    assert summary["objects_per_image"] == "all"
+    assert set(summary["images"][0]["poses_by_object"]) == {str(first), str(second)}

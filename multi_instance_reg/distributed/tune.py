@@ -144,7 +144,8 @@ class TrialWorker:
         values = {**self.base_values, **task["values"]}
         config = load_config(values)
         tracker_config = load_tracker_config(values) if self.tracking else None
-        solver = BopImageSolver(self.dataset_root, self.split, self.models, self.obj_ids, config, tracker_config)
+        solver = BopImageSolver(self.dataset_root, self.split, self.models, self.obj_ids, config, tracker_config,
+                                image_targets=True)    # each image's target objects, as bop run's default
         images, estimates, skipped = [], [], 0
         for t in bop_tasks([tuple(p) for p in task["pairs"]], self.tracking):
             out = solver.run(t)

@@ -102,16 +102,21 @@ class MultiModelRegistration:
             shaped[0].warm_up()
 
     def register_frame(self, rgb: np.ndarray, depth_m: np.ndarray, intrinsics: CameraIntrinsics,
-                       gravity: np.ndarray | None = None) -> FrameResult:
+                       gravity: np.ndarray | None = None, only=None) -> FrameResult:
         """Every instance of every model in one frame; see the module's docstring. ``gravity``:
-        see ``InstanceRegistration.register_frame``."""
+        see ``InstanceRegistration.register_frame``. ``only``: the indices of the models to
+        look for in this frame (the objects known to be in it); None: all."""
         check_frame(rgb, depth_m, intrinsics)
         t = {s: 0.0 for s in STAGES}
         t0 = time.perf_counter()
-        per_model: dict[int, FrameResult] = {}
+        wanted = set(range(len(self.models)) if only is None else only)
+        per_model: dict[int, FrameResult] = {k: FrameResult.empty({}) for k in range(len(self.models))
+                                             if k not in wanted}
+        sift = [k for k in self._sift if k in wanted]
+        detecting = [k for k in self._detecting if k in wanted]
         n_kp = 0
         keypoints = None
-        if self._sift:
+        if sift:
             keypoints = self.pipelines[self._detecting[0]].detect(rgb, depth_m, intrinsics, t)
             n_kp = keypoints.detected
             # One joint search; or every model's own search queued at once, each model's ECC
@@ -120,24 +125,24 @@ class MultiModelRegistration:
             t1 = time.perf_counter()
             if self._joint is not None:
                 joint = self._joint.match_later(keypoints.descriptors)()
-                pending = {k: (lambda m=m: m[:2]) for k, m in zip(self._sift, joint)}
+                pending = {k: (lambda m=m: m[:2]) for k, m in zip(self._sift, joint) if k in wanted}
             else:
-                pending = {k: self.pipelines[k].match_later(keypoints) for k in self._sift}
+                pending = {k: self.pipelines[k].match_later(keypoints) for k in sift}
             t["matching"] += (time.perf_counter() - t1) * 1e3
-            for k in self._sift:
+            for k in sift:
                 t1 = time.perf_counter()
                 matches = pending[k]()
                 t["matching"] += (time.perf_counter() - t1) * 1e3
                 per_model[k] = self.pipelines[k].solve(keypoints, *matches)
-        elif len(self._detecting) > 1:
+        elif len(detecting) > 1:
             # Only models with both paths: the detection runs beside the first one's shape
             # path, as its own would (the beside thread takes it before that model's matching).
-            detecting = self.pipelines[self._detecting[0]]
-            keypoints = run_beside(lambda: detecting.detect(rgb, depth_m, intrinsics, t))
+            first = self.pipelines[self._detecting[0]]        # the one whose search region fits all
+            keypoints = run_beside(lambda: first.detect(rgb, depth_m, intrinsics, t))
         for k, pipeline in enumerate(self.pipelines):
             if k not in per_model:
                 per_model[k] = pipeline.register_frame(rgb, depth_m, intrinsics, gravity,
-                                                       keypoints if k in self._detecting else None)
+                                                       keypoints if k in detecting else None)
                 n_kp = max(n_kp, per_model[k].num_keypoints)
         for k, res in per_model.items():
             for stage, ms in res.timings_ms.items():

@@ -1,7 +1,7 @@
 """``mireg bop``: datasets in the BOP layout (bop.felk.cvut.cz) through the pipeline.
 
     mireg bop run DATASET -o OUT [--split test] [--model ID=MODEL.npz ...] [--objects 1,2]
-                  [--scenes 1,2] [--images 0,5] [--all-images] [--tracking | --no-tracking]
+                  [--scenes 1,2] [--images 0,5] [--all-images] [--all-objects] [--tracking | --no-tracking]
                   [--params FILE.yaml] [--overlays N] [--method NAME] [--csv FILE]
                   [--ray | --workers N | --address ADDR] [--retries N]
     mireg bop model DATASET --obj ID -o MODEL.npz
@@ -18,7 +18,9 @@ whose object frame must be the BOP mesh's) or, for every object without one, bui
 dataset's ``models/obj_NNNNNN.ply`` (mm) as ``mireg build-model --mesh`` does, with the
 symmetries ``models_info.json`` lists (kept in ``OUT/models/``). Which objects: those given,
 else the targets' (``test_targets_bop19.json``), else the ground truth's, else all in
-``models_info.json``. Images are solved alone (BOP images are not a video) unless
+``models_info.json``; with a targets file each image is searched only for the objects its
+targets name (BOP's localisation task gives them; ``--all-objects``: every object in every
+image). Images are solved alone (BOP images are not a video) unless
 ``--tracking``, which runs each scene's images in id order through the tracker.
 ``--ray`` / ``--workers`` / ``--address``: the images (scenes with --tracking) as tasks on Ray
 workers, each finished one in ``OUT/parts/`` so that a rerun skips it (docs/scale_out.md).
@@ -171,6 +173,9 @@ def add_run_arguments(p) -> None:
     p.add_argument("--images", default=None, metavar="0,5", help="image ids to run, in every chosen scene (default all)")
     p.add_argument("--all-images", action="store_true",
                    help="run every image, not only those the targets file (test_targets_bop19.json) names")
+    p.add_argument("--all-objects", action="store_true",
+                   help="look for every chosen object in every image (default with a targets file: in each image only "
+                        "the objects its targets name, as BOP's localisation task gives them)")
     tracking = p.add_mutually_exclusive_group()
     tracking.add_argument("--tracking", action="store_true",
                           help="run each scene's images in id order through the tracker (default: every image alone)")
@@ -204,7 +209,7 @@ class BopImageSolver:
     worker go through this one class, so both give the same poses."""
 
     def __init__(self, dataset_root: str, split: str, models, obj_ids: list[int], config, tracker_config,
-                 overlay_pairs=()):
+                 overlay_pairs=(), image_targets: bool = False):
         from ..datasets.bop import BopDataset
         from ..rgbd.multi_model import MultiModelRegistration
         from ..rgbd.workspace import Workspace
@@ -214,6 +219,13 @@ class BopImageSolver:
         self.models, self.obj_ids = list(models), list(obj_ids)
         self.obj_of = {m.name: o for m, o in zip(self.models, self.obj_ids)}
         self.index_of = {o: k for k, o in enumerate(self.obj_ids)}
+        # Each image's objects (``image_targets``: its targets', of those chosen); an image the
+        # targets do not name (``--all-images``) is searched for all.
+        self.wanted: dict[tuple[int, int], set[int]] = {}
+        if image_targets and self.ds.targets is not None:
+            for t in self.ds.targets:
+                if t.obj_id in self.index_of:
+                    self.wanted.setdefault((t.scene_id, t.im_id), set()).add(self.index_of[t.obj_id])
         self.symmetries = [object_frame_symmetries(m) for m in self.models]
         self.reg = MultiModelRegistration(self.models, config)
         self.reg.warm_up()
@@ -238,7 +250,8 @@ class BopImageSolver:
             try:
                 frame = self.ds.read_frame(scene_id, im_id)
                 check_frame(frame.rgb, frame.depth_m, frame.intrinsics)
-                result = self.reg.register_frame(frame.rgb, frame.depth_m, frame.intrinsics)
+                result = self.reg.register_frame(frame.rgb, frame.depth_m, frame.intrinsics,
+                                                 only=self.wanted.get((scene_id, im_id)))
             except InputError as exc:
                 out["skipped"].append(f"scene {scene_id} image {im_id}: {exc}")
                 continue
@@ -321,8 +334,10 @@ def run_run(args) -> int:
     overlay_dir = out_dir / "overlays"
     tasks = bop_tasks(pairs, bool(args.tracking))
     results: dict[str, dict] = {}
+    image_targets = ds.targets is not None and not args.all_objects
     parts = PartsFolder(out_dir / "parts", run_fingerprint(models, config, tracker_config, dataset=str(ds.root.resolve()),
-                                                           split=ds.split, objects=obj_ids)) if use_ray else None
+                                                           split=ds.split, objects=obj_ids, image_targets=image_targets)
+                        ) if use_ray else None
 
     def on_result(task, result):
         if result["overlays"]:
@@ -339,7 +354,8 @@ def run_run(args) -> int:
             if done is not None:
                 results[task_key(task)] = done
     todo = [t for t in tasks if task_key(t) not in results]
-    worker_args = (str(ds.root), ds.split, models, obj_ids, config, tracker_config, pairs[:max(args.overlays, 0)])
+    worker_args = (str(ds.root), ds.split, models, obj_ids, config, tracker_config, pairs[:max(args.overlays, 0)],
+                   image_targets)
     bar = Progress(len(tasks), not args.quiet, unit="scenes" if args.tracking else "images")
     t_run = time.perf_counter()
     try:
@@ -374,6 +390,7 @@ def run_run(args) -> int:
     secs = np.array([e["seconds"] for e in images])
     cpu = np.array([e["cpu_seconds"] for e in images])
     summary = {"dataset": str(ds.root), "split": ds.split, "csv": str(csv_path), "objects": obj_ids,
+               "objects_per_image": "targets" if image_targets else "all",
                "models": [m.name for m in models], "tracking": bool(args.tracking), "images": images,
                "skipped": skipped.count, "skip_reasons": skipped.reasons,
                "failed_tasks": [f.as_json() for f in failures],
